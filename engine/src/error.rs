@@ -1,0 +1,46 @@
+//! Errors of the model engine.
+
+/// Everything that can go wrong while loading or running a model.
+#[derive(Debug, thiserror::Error)]
+pub enum EngineError {
+    /// A checkpoint lacks a tensor the model needs.
+    #[error("checkpoint is missing tensor `{key}`")]
+    MissingTensor {
+        /// The checkpoint key, as LeRobot names it.
+        key: String,
+    },
+    /// A checkpoint tensor has the wrong shape.
+    #[error("tensor `{key}` has shape {found:?}, expected {expected:?}")]
+    ShapeMismatch {
+        /// The checkpoint key.
+        key: String,
+        /// The shape the model needs.
+        expected: Vec<usize>,
+        /// The shape in the file.
+        found: Vec<usize>,
+    },
+    /// A checkpoint tensor has a dtype the model cannot use.
+    #[error("tensor `{key}` has dtype {found}, expected one of {expected}")]
+    DtypeMismatch {
+        /// The checkpoint key.
+        key: String,
+        /// Acceptable dtypes, human readable.
+        expected: String,
+        /// The dtype in the file.
+        found: String,
+    },
+    /// The checkpoint or config file could not be read or parsed.
+    #[error("cannot load {path}: {reason}")]
+    Load {
+        /// The file.
+        path: String,
+        /// Why.
+        reason: String,
+    },
+    /// A request does not fit the model (wrong state length, undecodable image, ...).
+    #[error("invalid input: {0}")]
+    InvalidInput(String),
+    /// An error inside Candle.
+    #[error(transparent)]
+    Candle(#[from] candle_core::Error),
+}

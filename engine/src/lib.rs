@@ -1,0 +1,19 @@
+//! Kairos model engine: flow-matching action heads in Candle.
+//!
+//! Every model here generates an action chunk of `N` actions of dimension `D` by `K` Euler steps
+//! of a learned velocity field, and returns, besides the chunk, the per-step updates
+//! `U[k] = dt_k * v_k` that the horizon policy reads (paper §3.1). `noise + Σ_k U[k]` equals the
+//! chunk. A request may ask for `S` samples of the same observation; they share the observation
+//! encoding and run along the batch dimension.
+//!
+//! The server talks to models only through [`ActionModel`]; it never sees tensors.
+
+pub mod chunk;
+pub mod error;
+pub mod model;
+pub mod profile;
+
+pub use chunk::ActionChunk;
+pub use error::EngineError;
+pub use model::{ActionModel, ActionRequest, ImageFormat, ImageInput, ModelSpec};
+pub use profile::{EngineProfile, ProfilePoint};

@@ -1,0 +1,3 @@
+//! Kairos server.
+
+pub mod time;
