@@ -1,1 +1,3 @@
-//! Kairos SDK.
+//! Kairos SDK: the robot client, the wire protocol, and helpers for policy-plugin authors.
+
+pub mod protocol;

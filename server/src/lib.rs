@@ -1,3 +1,7 @@
-//! Kairos server.
+//! Kairos server: the execution-aware scheduler, horizon policies, plugin host, engine pool,
+//! QUIC transport and the `kairos` command line.
 
+pub mod cli;
+pub mod horizon;
+pub mod scheduler;
 pub mod time;

@@ -1,0 +1,18 @@
+//! The Kairos wire protocol, version 1 (normative text: `docs/PROTOCOL.md`).
+//!
+//! Shared by the robot client and the server. Transport: QUIC (TLS 1.3, ALPN `kairos/1`).
+//! A connection starts with a `Hello`/`Welcome` exchange on the first bidirectional stream; then
+//! every round is its own bidirectional stream opened by the client: `Submit`, zero or more
+//! `FetchObservation`/`FreshObservation` exchanges, then exactly one `Reply` or `Error`.
+//! Every message is one frame: `kind: u8 | length: u32 big-endian | body`, where body is a
+//! MessagePack map with string keys (see `messages`).
+
+pub mod messages;
+
+pub use messages::*;
+
+/// Protocol version spoken by this crate.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// ALPN identifier of protocol version 1.
+pub const ALPN: &[u8] = b"kairos/1";
