@@ -1,3 +1,4 @@
 //! Kairos SDK: the robot client, the wire protocol, and helpers for policy-plugin authors.
 
 pub mod protocol;
+pub mod trace;
