@@ -3,5 +3,6 @@
 
 pub mod cli;
 pub mod horizon;
+pub mod lifecycle;
 pub mod scheduler;
 pub mod time;
