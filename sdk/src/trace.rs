@@ -363,12 +363,14 @@ impl TraceSet {
     }
 }
 
-/// What the robot runtime reports about one round, in the order things happen. A recorder fed
+/// What the robot runtime reports about one round, identified by its round id. A recorder fed
 /// these produces the same [`RoundTrace`]s the runtime experienced.
 #[derive(Clone, Debug, PartialEq)]
 pub enum RoundEvent {
     /// The robot sent the request of a new round.
     Requested {
+        /// The round id (strictly increasing within the task).
+        round: u64,
         /// Actions executed in the task so far (the round's `issued_at_action`).
         at_action: u32,
         /// Robot clock, µs.
@@ -378,6 +380,8 @@ pub enum RoundEvent {
     },
     /// The reply arrived.
     Replied {
+        /// The round id.
+        round: u64,
         /// Robot clock, µs.
         received_at_us: u64,
         /// The horizon the server chose.
@@ -387,9 +391,12 @@ pub enum RoundEvent {
         /// The per-action confidence ratios, if the runtime had them.
         confidence: Option<Vec<f32>>,
     },
-    /// The robot stopped executing this round's chunk (a newer chunk replaced it, or the task
-    /// ended) after executing `executed` of its actions.
+    /// The robot stopped executing this round's chunk (a newer chunk replaced it, the chunk
+    /// arrived with nothing left to execute, or the task ended) after executing `executed` of its
+    /// actions.
     ChunkDone {
+        /// The round id.
+        round: u64,
         /// Actions of the chunk executed.
         executed: u32,
     },
@@ -414,6 +421,7 @@ pub struct TaskMeta {
 
 #[derive(Debug)]
 struct OpenRound {
+    round: u64,
     issued_at_action: u32,
     sent_at_us: u64,
     obs_bytes: u32,
@@ -421,88 +429,87 @@ struct OpenRound {
     executed: Option<u32>,
 }
 
-/// Builds [`TaskTrace`]s from a robot's [`RoundEvent`]s and writes one line per finished task.
-///
-/// Rounds overlap under asynchronous inference (the next request goes out while the current
-/// chunk still runs), so the recorder keeps every round open until both its reply and its
-/// `ChunkDone` have been seen.
-pub struct TraceRecorder<W: Write> {
-    writer: TraceWriter<W>,
-    task: Option<(TaskMeta, Vec<OpenRound>)>,
+/// One task being recorded: collects [`RoundEvent`]s (rounds overlap under asynchronous
+/// inference, so events of several rounds interleave) and produces its [`TaskTrace`].
+#[derive(Debug)]
+pub struct TaskRecording {
+    meta: TaskMeta,
+    rounds: Vec<OpenRound>,
 }
 
-impl<W: Write> TraceRecorder<W> {
-    /// Starts a trace file with a `recorded` header.
-    pub fn new(out: W) -> Result<Self, TraceError> {
-        Ok(TraceRecorder {
-            writer: TraceWriter::new(out, &TraceHeader::new(TraceSource::Recorded))?,
-            task: None,
-        })
-    }
-
-    /// Begins recording a task. A task still open is an error: end it first.
-    pub fn begin_task(&mut self, meta: TaskMeta) -> Result<(), TraceError> {
-        if let Some((open, _)) = &self.task {
-            return Err(TraceError::Recorder(format!(
-                "task {} is still open",
-                open.task
-            )));
+impl TaskRecording {
+    /// Starts recording a task.
+    pub fn new(meta: TaskMeta) -> Self {
+        TaskRecording {
+            meta,
+            rounds: Vec::new(),
         }
-        self.task = Some((meta, Vec::new()));
-        Ok(())
     }
 
-    /// Feeds one event of the open task. `Replied` and `ChunkDone` refer to the oldest round
-    /// still missing that event, which is the order the runtime produces them in.
+    /// Feeds one event. Events must name a round the recording has seen requested (and, for
+    /// `ChunkDone`, answered); a new request must carry a larger round id than the last.
     pub fn record(&mut self, event: RoundEvent) -> Result<(), TraceError> {
-        let Some((_, rounds)) = &mut self.task else {
-            return Err(TraceError::Recorder("event before begin_task".into()));
-        };
         match event {
             RoundEvent::Requested {
+                round,
                 at_action,
                 sent_at_us,
                 obs_bytes,
-            } => rounds.push(OpenRound {
-                issued_at_action: at_action,
-                sent_at_us,
-                obs_bytes,
-                reply: None,
-                executed: None,
-            }),
+            } => {
+                if self.rounds.last().is_some_and(|r| r.round >= round) {
+                    return Err(TraceError::Recorder(format!(
+                        "round {round} requested after a later or equal round"
+                    )));
+                }
+                self.rounds.push(OpenRound {
+                    round,
+                    issued_at_action: at_action,
+                    sent_at_us,
+                    obs_bytes,
+                    reply: None,
+                    executed: None,
+                });
+            }
             RoundEvent::Replied {
+                round,
                 received_at_us,
                 horizon,
                 inference_us,
                 confidence,
             } => {
-                let r = rounds
-                    .iter_mut()
-                    .find(|r| r.reply.is_none())
-                    .ok_or_else(|| TraceError::Recorder("reply without a request".into()))?;
+                let r = self.open(round)?;
+                if r.reply.is_some() {
+                    return Err(TraceError::Recorder(format!("round {round} replied twice")));
+                }
                 r.reply = Some((horizon, received_at_us, inference_us, confidence));
             }
-            RoundEvent::ChunkDone { executed } => {
-                let r = rounds
-                    .iter_mut()
-                    .find(|r| r.reply.is_some() && r.executed.is_none())
-                    .ok_or_else(|| {
-                        TraceError::Recorder("chunk done without a received chunk".into())
-                    })?;
+            RoundEvent::ChunkDone { round, executed } => {
+                let r = self.open(round)?;
+                if r.reply.is_none() {
+                    return Err(TraceError::Recorder(format!(
+                        "round {round} done before its reply"
+                    )));
+                }
                 r.executed = Some(executed);
             }
         }
         Ok(())
     }
 
-    /// Ends the open task after `total_actions` executed actions, validates it and writes its
-    /// line. Rounds whose reply never came (the task ended first) are dropped; a received chunk
-    /// with no `ChunkDone` counts as not executed.
-    pub fn end_task(&mut self, total_actions: u32) -> Result<TaskTrace, TraceError> {
-        let Some((meta, open)) = self.task.take() else {
-            return Err(TraceError::Recorder("end_task without begin_task".into()));
-        };
-        let rounds = open
+    fn open(&mut self, round: u64) -> Result<&mut OpenRound, TraceError> {
+        self.rounds
+            .iter_mut()
+            .rev()
+            .find(|r| r.round == round)
+            .ok_or_else(|| TraceError::Recorder(format!("round {round} was never requested")))
+    }
+
+    /// Ends the task after `total_actions` executed actions and validates it. Rounds whose reply
+    /// never came (the task ended first) are dropped; a received chunk with no `ChunkDone` counts
+    /// as not executed.
+    pub fn finish(self, total_actions: u32) -> Result<TaskTrace, TraceError> {
+        let rounds = self
+            .rounds
             .into_iter()
             .filter_map(|r| {
                 let (horizon, received, inference, confidence) = r.reply?;
@@ -517,6 +524,7 @@ impl<W: Write> TraceRecorder<W> {
                 })
             })
             .collect();
+        let meta = self.meta;
         let trace = TaskTrace {
             task: meta.task,
             label: meta.label,
@@ -527,6 +535,54 @@ impl<W: Write> TraceRecorder<W> {
             total_actions,
             rounds,
         };
+        trace.validate()?;
+        Ok(trace)
+    }
+}
+
+/// Records tasks one after another into a trace file: [`TraceRecorder::begin_task`], the task's
+/// [`RoundEvent`]s, [`TraceRecorder::end_task`] (which writes its line), and so on.
+pub struct TraceRecorder<W: Write> {
+    writer: TraceWriter<W>,
+    task: Option<TaskRecording>,
+}
+
+impl<W: Write> TraceRecorder<W> {
+    /// Starts a trace file with a `recorded` header.
+    pub fn new(out: W) -> Result<Self, TraceError> {
+        Ok(TraceRecorder {
+            writer: TraceWriter::new(out, &TraceHeader::new(TraceSource::Recorded))?,
+            task: None,
+        })
+    }
+
+    /// Begins recording a task. A task still open is an error: end it first.
+    pub fn begin_task(&mut self, meta: TaskMeta) -> Result<(), TraceError> {
+        if let Some(open) = &self.task {
+            return Err(TraceError::Recorder(format!(
+                "task {} is still open",
+                open.meta.task
+            )));
+        }
+        self.task = Some(TaskRecording::new(meta));
+        Ok(())
+    }
+
+    /// Feeds one event of the open task.
+    pub fn record(&mut self, event: RoundEvent) -> Result<(), TraceError> {
+        match &mut self.task {
+            Some(t) => t.record(event),
+            None => Err(TraceError::Recorder("event before begin_task".into())),
+        }
+    }
+
+    /// Ends the open task (see [`TaskRecording::finish`]) and writes its line.
+    pub fn end_task(&mut self, total_actions: u32) -> Result<TaskTrace, TraceError> {
+        let task = self
+            .task
+            .take()
+            .ok_or_else(|| TraceError::Recorder("end_task without begin_task".into()))?;
+        let trace = task.finish(total_actions)?;
         self.writer.write_task(&trace)?;
         Ok(trace)
     }
@@ -642,12 +698,14 @@ mod tests {
         })
         .unwrap();
         rec.record(RoundEvent::Requested {
+            round: 0,
             at_action: 0,
             sent_at_us: 0,
             obs_bytes: 100,
         })
         .unwrap();
         rec.record(RoundEvent::Replied {
+            round: 0,
             received_at_us: 50_000,
             horizon: 6,
             inference_us: 40_000,
@@ -656,20 +714,30 @@ mod tests {
         .unwrap();
         // Next request goes out while chunk 0 still runs.
         rec.record(RoundEvent::Requested {
+            round: 1,
             at_action: 3,
             sent_at_us: 350_000,
             obs_bytes: 100,
         })
         .unwrap();
         rec.record(RoundEvent::Replied {
+            round: 1,
             received_at_us: 400_000,
             horizon: 8,
             inference_us: 40_000,
             confidence: None,
         })
         .unwrap();
-        rec.record(RoundEvent::ChunkDone { executed: 4 }).unwrap();
-        rec.record(RoundEvent::ChunkDone { executed: 7 }).unwrap();
+        rec.record(RoundEvent::ChunkDone {
+            round: 0,
+            executed: 4,
+        })
+        .unwrap();
+        rec.record(RoundEvent::ChunkDone {
+            round: 1,
+            executed: 7,
+        })
+        .unwrap();
         let t = rec.end_task(11).unwrap();
         assert_eq!(t.rounds.len(), 2);
         assert_eq!(t.rounds[0].executed, 4);
@@ -685,7 +753,13 @@ mod tests {
     #[test]
     fn recorder_refuses_events_out_of_order() {
         let mut rec = TraceRecorder::new(Vec::new()).unwrap();
-        assert!(rec.record(RoundEvent::ChunkDone { executed: 1 }).is_err());
+        assert!(
+            rec.record(RoundEvent::ChunkDone {
+                round: 0,
+                executed: 1
+            })
+            .is_err()
+        );
         rec.begin_task(TaskMeta {
             task: 1,
             label: None,
@@ -700,12 +774,29 @@ mod tests {
         .unwrap();
         assert!(
             rec.record(RoundEvent::Replied {
+                round: 0,
                 received_at_us: 1,
                 horizon: 2,
                 inference_us: 1,
                 confidence: None
             })
             .is_err()
+        );
+        let requested = |round| RoundEvent::Requested {
+            round,
+            at_action: 0,
+            sent_at_us: 0,
+            obs_bytes: 1,
+        };
+        rec.record(requested(3)).unwrap();
+        assert!(rec.record(requested(3)).is_err(), "round ids must increase");
+        assert!(
+            rec.record(RoundEvent::ChunkDone {
+                round: 3,
+                executed: 1
+            })
+            .is_err(),
+            "a chunk cannot be done before it arrived"
         );
     }
 }

@@ -6,3 +6,5 @@ pub mod horizon;
 pub mod lifecycle;
 pub mod scheduler;
 pub mod time;
+pub mod sim;
+pub mod workload;

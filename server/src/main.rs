@@ -14,6 +14,8 @@ struct Cli {
 enum Command {
     /// Print the protocol version and build information.
     Info,
+    /// Evaluation tools: simulate workloads, generate traces.
+    Bench(kairos_server::cli::bench::BenchArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -28,5 +30,6 @@ fn main() -> anyhow::Result<()> {
             );
             Ok(())
         }
+        Command::Bench(args) => kairos_server::cli::bench::run(args),
     }
 }

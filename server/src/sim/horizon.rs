@@ -14,10 +14,7 @@ use crate::horizon::{ChunkView, HorizonError, HorizonInput, HorizonPolicy, Polic
 /// Why a horizon setting cannot be replayed.
 #[derive(Debug, thiserror::Error)]
 pub enum ReplayHorizonError {
-    /// The policy named is not a native horizon policy.
-    #[error("unknown horizon policy `{0}`")]
-    UnknownPolicy(String),
-    /// The policy refused the rebuilt chunk.
+    /// The policy refused the rebuilt chunk, or the setting names no native policy.
     #[error(transparent)]
     Policy(#[from] HorizonError),
 }
@@ -26,8 +23,7 @@ pub enum ReplayHorizonError {
 pub struct ReplayHorizon {
     policy: Box<dyn HorizonPolicy>,
     fallback: Box<dyn HorizonPolicy>,
-    params: PolicyParams,
-    h_min: usize,
+    no_params: PolicyParams,
     recent: Vec<u32>,
     updates: Vec<f32>,
     actions: Vec<f32>,
@@ -40,19 +36,15 @@ const RECENT: usize = 8;
 impl ReplayHorizon {
     /// The policy of `setting`, built from the native registry.
     pub fn new(setting: &HorizonSetting) -> Result<Self, ReplayHorizonError> {
-        let policy = crate::horizon::native(&setting.policy)
-            .ok_or_else(|| ReplayHorizonError::UnknownPolicy(setting.policy.clone()))?;
-        let fallback = crate::horizon::native("static")
-            .ok_or_else(|| ReplayHorizonError::UnknownPolicy("static".into()))?;
-        let h_min = setting
-            .params
-            .get("h_min")
-            .map_or(1, |v| v.max(1.0) as usize);
+        let policy = crate::horizon::builtin(&setting.policy, &setting.params)?;
+        let fallback = crate::horizon::builtin(
+            "static",
+            &PolicyParams::from([("h".to_string(), 1.0)]),
+        )?;
         Ok(ReplayHorizon {
             policy,
             fallback,
-            params: setting.params.clone(),
-            h_min,
+            no_params: PolicyParams::new(),
             recent: Vec::with_capacity(RECENT),
             updates: Vec::new(),
             actions: Vec::new(),
@@ -88,12 +80,13 @@ impl ReplayHorizon {
         let h = if round.confidence.is_some() {
             let input = HorizonInput {
                 chunk,
-                h_min: self.h_min.min(n),
+                h_min: 1,
                 h_max: n,
                 control_hz,
                 round_index,
                 recent_horizons: &self.recent,
-                params: &self.params,
+                // The policy was built with the setting's parameters; empty means "use them".
+                params: &self.no_params,
             };
             let h = self.policy.choose(&input)?;
             crate::horizon::validate_horizon(h, &input)?

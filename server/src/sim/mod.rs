@@ -23,20 +23,19 @@ pub mod robot;
 pub mod stats;
 
 use std::cmp::Reverse;
-use std::collections::{BTreeMap, BinaryHeap, HashMap};
+use std::collections::{BinaryHeap, HashMap};
 use std::time::Duration;
 
-use kairos_sdk::trace::{RoundTrace, TaskTrace, TraceSet};
+use kairos_sdk::trace::{RoundEvent, RoundTrace, TaskMeta, TaskRecording, TaskTrace, TraceSet};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
 use crate::scheduler::{
-    AdmitError, BatchId, Dispatch, EngineSpec, ExecReport, PriorityPolicy, RemainingWork,
-    RequestId, RobotId, RoundOutcome, RoundSubmit, Scheduler, SchedulerConfig, TaskEnd, TaskId,
-    Tier,
+    AdmitError, BatchId, Dispatch, EngineSpec, ExecReport, PolicySpec, RemainingWork, RequestId,
+    RobotId, RoundOutcome, RoundSubmit, Scheduler, SchedulerConfig, TaskEnd, TaskId, Tier,
 };
 use crate::time::Timestamp;
 use horizon::{ReplayHorizon, ReplayHorizonError};
-use robot::Execution;
+use robot::{Accepted, Execution};
 
 /// How tasks arrive.
 #[derive(Clone, Debug, PartialEq)]
@@ -56,31 +55,6 @@ pub enum Load {
         /// Tasks in the list.
         tasks: usize,
     },
-}
-
-/// A priority policy by registry name, with parameters.
-#[derive(Clone, Debug, PartialEq)]
-pub struct PolicySpec {
-    /// Registry name (`fifo`, `plas`, `kairos`, `srw`, ...).
-    pub name: String,
-    /// Parameters (`buckets`, `aging`, ...).
-    pub params: BTreeMap<String, f64>,
-}
-
-impl PolicySpec {
-    /// A policy with default parameters.
-    pub fn named(name: &str) -> Self {
-        PolicySpec {
-            name: name.to_string(),
-            params: BTreeMap::new(),
-        }
-    }
-
-    /// Builder: one parameter.
-    pub fn with(mut self, key: &str, value: f64) -> Self {
-        self.params.insert(key.to_string(), value);
-        self
-    }
 }
 
 /// The modelled network.
@@ -113,6 +87,9 @@ pub struct SimConfig {
     pub load: Load,
     /// Seed for task sampling and arrival times.
     pub seed: u64,
+    /// Record what every replayed robot experienced as traces (`SimResult::recorded`), with the
+    /// same recorder a live robot uses.
+    pub record: bool,
 }
 
 /// Why a run failed.
@@ -141,6 +118,16 @@ pub enum SimError {
     /// The configuration is unusable.
     #[error("invalid configuration: {0}")]
     Config(String),
+    /// Recording a replayed task failed (the replay broke a trace invariant).
+    #[error("recording: {0}")]
+    Record(#[from] kairos_sdk::trace::TraceError),
+}
+
+fn record(recording: &mut Option<TaskRecording>, event: RoundEvent) -> Result<(), SimError> {
+    if let Some(r) = recording {
+        r.record(event)?;
+    }
+    Ok(())
 }
 
 /// One task's outcome.
@@ -177,6 +164,8 @@ pub struct SimResult {
     pub makespan_s: f64,
     /// Events processed.
     pub events: u64,
+    /// With `SimConfig::record`: every task as its robot experienced it, in completion order.
+    pub recorded: Vec<TaskTrace>,
 }
 
 impl SimResult {
@@ -199,8 +188,8 @@ impl SimResult {
 enum Event {
     /// A task instance begins: its robot sends round 0.
     Start { inst: usize },
-    /// A robot timer: trigger the next request or finish the task (ignored if `gen` is old).
-    Wake { inst: usize, gen: u64 },
+    /// A robot timer: trigger the next request or finish the task (ignored if `timer` is old).
+    Wake { inst: usize, timer: u64 },
     /// A round request reaches the server.
     Submit { inst: usize },
     /// A batch's re-fetches are done: the forward pass begins.
@@ -215,7 +204,10 @@ struct Outstanding {
     round: usize,
     sent_at: Timestamp,
     obs_step: u32,
+    obs_bytes: u32,
     request: Option<RequestId>,
+    /// Generation time of its batch, once finished.
+    inference: Duration,
 }
 
 struct Instance<'a> {
@@ -227,8 +219,11 @@ struct Instance<'a> {
     sent: usize,
     outstanding: Option<Outstanding>,
     started_at: Timestamp,
-    gen: u64,
+    timer: u64,
     done: bool,
+    /// The round whose chunk is executing, and the step it took over at.
+    running: Option<(usize, u32)>,
+    recording: Option<TaskRecording>,
 }
 
 impl Instance<'_> {
@@ -245,7 +240,7 @@ impl Instance<'_> {
 
 struct InFlight {
     requests: Vec<(RequestId, usize)>,
-    engine: usize,
+    generation: Duration,
 }
 
 /// The simulation state: the real scheduler plus modelled robots, network and engines.
@@ -262,7 +257,6 @@ struct Sim<'a> {
     next_backlog: usize,
     arrived_at_server: HashMap<RequestId, Timestamp>,
     out: SimResult,
-    obs_transfer: Duration,
 }
 
 fn transfer(bytes: u32, mbps: f64) -> Duration {
@@ -281,6 +275,16 @@ impl<'a> Sim<'a> {
 
     fn spawn(&mut self, trace: &'a TaskTrace, robot: RobotId, at: Timestamp) -> Result<(), SimError> {
         let inst = self.insts.len();
+        let recording = self.cfg.record.then(|| {
+            TaskRecording::new(TaskMeta {
+                task: trace.task,
+                label: trace.label.clone(),
+                setting: trace.setting.clone(),
+                horizon: trace.horizon.clone(),
+                control_hz: trace.control_hz,
+                chunk_len: trace.chunk_len,
+            })
+        });
         self.insts.push(Instance {
             trace,
             robot,
@@ -290,8 +294,10 @@ impl<'a> Sim<'a> {
             sent: 0,
             outstanding: None,
             started_at: at,
-            gen: 0,
+            timer: 0,
             done: false,
+            running: None,
+            recording,
         });
         self.push(at, Event::Start { inst });
         Ok(())
@@ -300,8 +306,8 @@ impl<'a> Sim<'a> {
     /// Plans the robot's next timer: finishing the task, or sending the next request.
     fn plan(&mut self, inst: usize, now: Timestamp) {
         let i = &mut self.insts[inst];
-        i.gen += 1;
-        let gen = i.gen;
+        i.timer += 1;
+        let timer = i.timer;
         if i.done {
             return;
         }
@@ -315,28 +321,38 @@ impl<'a> Sim<'a> {
             None
         };
         if let Some(at) = at {
-            self.push(at.max(now), Event::Wake { inst, gen });
+            self.push(at.max(now), Event::Wake { inst, timer });
         }
     }
 
-    fn send(&mut self, inst: usize, now: Timestamp) {
-        let hints = self.cfg.hints;
+    fn send(&mut self, inst: usize, now: Timestamp) -> Result<(), SimError> {
         let one_way = self.one_way();
         let i = &mut self.insts[inst];
         let round = i.sent;
         i.sent += 1;
+        let obs_bytes = i.round(round).0.obs_bytes;
         let obs_step = i.exec.completed_at(now);
         i.outstanding = Some(Outstanding {
             round,
             sent_at: now,
             obs_step,
+            obs_bytes,
             request: None,
+            inference: Duration::ZERO,
         });
-        let (r, _) = i.round(round);
-        let arrive = now + one_way + transfer(r.obs_bytes, self.cfg.network.robot_uplink_mbps);
+        record(
+            &mut i.recording,
+            RoundEvent::Requested {
+                round: round as u64,
+                at_action: obs_step,
+                sent_at_us: now.as_micros(),
+                obs_bytes,
+            },
+        )?;
+        let arrive = now + one_way + transfer(obs_bytes, self.cfg.network.robot_uplink_mbps);
         self.out.requests += 1;
         self.push(arrive, Event::Submit { inst });
-        let _ = hints;
+        Ok(())
     }
 
     fn submit(&mut self, inst: usize, now: Timestamp) -> Result<(), SimError> {
@@ -403,15 +419,18 @@ impl<'a> Sim<'a> {
                 self.out.queue_s += now.saturating_since(arrived).as_secs_f64();
             }
             let i = &mut self.insts[inst];
-            let bytes = i.round(i.sent.saturating_sub(1)).0.obs_bytes;
+            let Some(o) = &mut i.outstanding else {
+                continue;
+            };
+            let bytes = o.obs_bytes;
             if r.refetch {
                 // The fetch reaches the robot, which captures a fresh observation there and
                 // sends it back; the robot's timeline up to then is already determined.
                 let captured = now + one_way;
-                if let Some(o) = &mut i.outstanding {
-                    o.obs_step = i.exec.completed_at(captured);
-                }
-                let back = captured + one_way + self.obs_transfer_for(bytes);
+                o.obs_step = i.exec.completed_at(captured);
+                let back = captured
+                    + one_way
+                    + transfer(bytes, self.cfg.network.robot_uplink_mbps);
                 ready = ready.max(back);
                 self.out.refetches += 1;
             }
@@ -429,7 +448,7 @@ impl<'a> Sim<'a> {
             batch,
             InFlight {
                 requests,
-                engine: d.engine.0,
+                generation: duration,
             },
         );
         if ready > now {
@@ -440,26 +459,18 @@ impl<'a> Sim<'a> {
         self.push(ready + duration, Event::BatchDone { batch });
     }
 
-    fn obs_transfer_for(&self, bytes: u32) -> Duration {
-        if bytes == 0 {
-            self.obs_transfer
-        } else {
-            transfer(bytes, self.cfg.network.robot_uplink_mbps)
-        }
-    }
-
     fn batch_done(&mut self, batch: u64, now: Timestamp) -> Result<(), SimError> {
         let Some(flight) = self.batches.remove(&batch) else {
             return Ok(());
         };
-        let _ = flight.engine;
         let one_way = self.one_way();
         let mut outcomes = Vec::with_capacity(flight.requests.len());
         for &(request, inst) in &flight.requests {
             let i = &mut self.insts[inst];
-            let Some(o) = &i.outstanding else {
+            let Some(o) = &mut i.outstanding else {
                 continue;
             };
+            o.inference = flight.generation;
             let round_index = o.round;
             let rounds = &i.trace.rounds;
             let r = &rounds[round_index.min(rounds.len() - 1)];
@@ -478,18 +489,49 @@ impl<'a> Sim<'a> {
         Ok(())
     }
 
-    fn reply(&mut self, inst: usize, horizon: u32, now: Timestamp) {
+    fn reply(&mut self, inst: usize, horizon: u32, now: Timestamp) -> Result<(), SimError> {
         let i = &mut self.insts[inst];
         let Some(o) = i.outstanding.take() else {
-            return;
+            return Ok(());
         };
-        i.exec.accept(now, o.obs_step, horizon);
+        let confidence = i.round(o.round).0.confidence.clone();
+        record(
+            &mut i.recording,
+            RoundEvent::Replied {
+                round: o.round as u64,
+                received_at_us: now.as_micros(),
+                horizon,
+                inference_us: crate::time::duration_micros(o.inference),
+                confidence,
+            },
+        )?;
+        match i.exec.accept(now, o.obs_step, horizon) {
+            Accepted::Used { from_step, .. } => {
+                if let Some((round, from)) = i.running.replace((o.round, from_step)) {
+                    record(
+                        &mut i.recording,
+                        RoundEvent::ChunkDone {
+                            round: round as u64,
+                            executed: from_step - from,
+                        },
+                    )?;
+                }
+            }
+            Accepted::Stale => record(
+                &mut i.recording,
+                RoundEvent::ChunkDone {
+                    round: o.round as u64,
+                    executed: 0,
+                },
+            )?,
+        }
         self.plan(inst, now);
+        Ok(())
     }
 
-    fn wake(&mut self, inst: usize, gen: u64, now: Timestamp) -> Result<(), SimError> {
+    fn wake(&mut self, inst: usize, timer: u64, now: Timestamp) -> Result<(), SimError> {
         let i = &self.insts[inst];
-        if i.gen != gen || i.done {
+        if i.timer != timer || i.done {
             return Ok(());
         }
         let total = i.trace.total_actions;
@@ -497,7 +539,7 @@ impl<'a> Sim<'a> {
             return self.finish(inst, now);
         }
         if i.outstanding.is_none() {
-            self.send(inst, now);
+            self.send(inst, now)?;
         }
         Ok(())
     }
@@ -505,6 +547,19 @@ impl<'a> Sim<'a> {
     fn finish(&mut self, inst: usize, now: Timestamp) -> Result<(), SimError> {
         let i = &mut self.insts[inst];
         i.done = true;
+        let total = i.trace.total_actions;
+        if let Some((round, from)) = i.running.take() {
+            record(
+                &mut i.recording,
+                RoundEvent::ChunkDone {
+                    round: round as u64,
+                    executed: total.saturating_sub(from),
+                },
+            )?;
+        }
+        if let Some(recording) = i.recording.take() {
+            self.out.recorded.push(recording.finish(total)?);
+        }
         if let Some(Outstanding {
             request: Some(req), ..
         }) = i.outstanding.take()
@@ -561,22 +616,16 @@ impl<'a> Sim<'a> {
             match ev {
                 Event::Start { inst } => {
                     self.insts[inst].started_at = now;
-                    self.send(inst, now);
+                    self.send(inst, now)?;
                 }
-                Event::Wake { inst, gen } => self.wake(inst, gen, now)?,
+                Event::Wake { inst, timer } => self.wake(inst, timer, now)?,
                 Event::Submit { inst } => self.submit(inst, now)?,
                 Event::BatchStart { batch } => self.sched.handle_batch_started(now, BatchId(batch)),
                 Event::BatchDone { batch } => self.batch_done(batch, now)?,
-                Event::Reply { inst, horizon } => self.reply(inst, horizon, now),
+                Event::Reply { inst, horizon } => self.reply(inst, horizon, now)?,
             }
         }
     }
-}
-
-/// Builds a priority policy from the registry.
-pub fn build_policy(spec: &PolicySpec) -> Result<Box<dyn PriorityPolicy>, SimError> {
-    crate::scheduler::build_policy(&spec.name, &spec.params)
-        .map_err(|e| SimError::Policy(e.to_string()))
 }
 
 /// Runs one simulation of `traces` under `cfg`.
@@ -588,7 +637,8 @@ pub fn simulate(traces: &TraceSet, cfg: &SimConfig) -> Result<SimResult, SimErro
     if cfg.engines.is_empty() {
         return Err(SimError::Config("no engines".into()));
     }
-    let policy = build_policy(&cfg.policy)?;
+    let policy =
+        crate::scheduler::build_policy(&cfg.policy).map_err(|e| SimError::Policy(e.to_string()))?;
     let sched = Scheduler::new(cfg.scheduler.clone(), cfg.engines.clone(), policy);
     let mut sim = Sim {
         cfg,
@@ -602,7 +652,6 @@ pub fn simulate(traces: &TraceSet, cfg: &SimConfig) -> Result<SimResult, SimErro
         next_backlog: 0,
         arrived_at_server: HashMap::new(),
         out: SimResult::default(),
-        obs_transfer: Duration::ZERO,
     };
     // Task picks and arrival times come from their own stream, before anything else runs, so
     // every policy and setting sees the same tasks arriving at the same times.

@@ -144,9 +144,9 @@ pub(crate) fn transfer_time(bytes: u32, mbps: f64) -> Duration {
 /// Round trip of one request in isolation: uplink with the observation, the forward pass at
 /// batch 1, the reply back.
 pub fn isolated_round_trip(w: &Workload) -> (Duration, Duration) {
-    let gen = w.edge_profile().latency(1);
-    let rt = w.robot_rtt() + transfer_time(w.robot.obs_bytes, w.network.robot_uplink_mbps) + gen;
-    (gen, rt)
+    let generation = w.edge_profile().latency(1);
+    let rt = w.robot_rtt() + transfer_time(w.robot.obs_bytes, w.network.robot_uplink_mbps) + generation;
+    (generation, rt)
 }
 
 /// The step at which a robot whose current chunk answers an observation at `obs_step` with
@@ -165,7 +165,7 @@ fn record(
 ) -> Result<TaskTrace, GenerateError> {
     let n = w.robot.chunk_len;
     let hz = w.robot.control_hz;
-    let (gen, round_trip) = isolated_round_trip(w);
+    let (generation, round_trip) = isolated_round_trip(w);
     let mut horizon = ReplayHorizon::new(setting)
         .map_err(|source| GenerateError::Horizon { task, source })?;
     let dynamic = setting.policy != "static";
@@ -188,7 +188,7 @@ fn record(
             issued_at_action: obs_step,
             horizon: 0,
             executed: 0,
-            gen_latency_us: duration_micros(gen),
+            gen_latency_us: duration_micros(generation),
             round_trip_us: Some(duration_micros(round_trip)),
             obs_bytes: w.robot.obs_bytes,
             confidence: Some(confidence_for_target(target, w.horizon.threshold, n)),
