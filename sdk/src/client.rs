@@ -35,6 +35,34 @@ use crate::protocol::{
 use crate::tls::{Fingerprint, PinMismatchSlot, ServerTrust, TlsConfigError};
 use crate::transport::TransportTuning;
 
+/// The client's clock: a monotonic clock (tokio's, so tests can pause it) counted in µs from an
+/// arbitrary origin. The server never compares it with its own clock directly; it maps client
+/// timestamps through each message's `sent_at_us`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Clock {
+    origin: Instant,
+}
+
+impl Clock {
+    /// A clock whose origin is now.
+    pub fn start() -> Clock {
+        Clock {
+            origin: Instant::now(),
+        }
+    }
+
+    /// Microseconds since the origin.
+    pub fn now_us(&self) -> u64 {
+        self.to_us(Instant::now())
+    }
+
+    /// An instant in µs since the origin (0 for instants before it).
+    pub fn to_us(&self, instant: Instant) -> u64 {
+        u64::try_from(instant.saturating_duration_since(self.origin).as_micros())
+            .unwrap_or(u64::MAX)
+    }
+}
+
 /// Application close codes (QUIC `CONNECTION_CLOSE` of type application) used by Kairos.
 pub mod close_code {
     /// The client or server is done with the connection.
@@ -250,7 +278,7 @@ struct Inner {
     mismatch: Option<Arc<PinMismatchSlot>>,
     session: Mutex<Option<Session>>,
     closed: AtomicBool,
-    epoch: Instant,
+    clock: Clock,
     counters: Counters,
 }
 
@@ -433,7 +461,7 @@ impl Client {
                 mismatch: tls.mismatch,
                 session: Mutex::new(None),
                 closed: AtomicBool::new(false),
-                epoch: Instant::now(),
+                clock: Clock::start(),
                 counters: Counters::default(),
             }),
         };
@@ -442,20 +470,15 @@ impl Client {
         Ok(client)
     }
 
-    /// Microseconds on this client's clock (a monotonic clock starting at `connect`). Every
-    /// timestamp sent to the server, observation capture times included, must use it.
+    /// Microseconds on this client's clock. Every timestamp sent to the server, observation
+    /// capture times included, must be on it.
     pub fn now_us(&self) -> u64 {
-        self.instant_to_us(Instant::now())
+        self.inner.clock.now_us()
     }
 
-    /// An instant on this client's clock, in µs.
-    pub fn instant_to_us(&self, instant: Instant) -> u64 {
-        u64::try_from(
-            instant
-                .saturating_duration_since(self.inner.epoch)
-                .as_micros(),
-        )
-        .unwrap_or(u64::MAX)
+    /// This client's clock.
+    pub fn clock(&self) -> Clock {
+        self.inner.clock
     }
 
     /// The `Welcome` of the current connection (model shapes, limits), if connected.
