@@ -879,17 +879,17 @@ pub struct SimulatedRobot {
 }
 
 impl SimulatedRobot {
-    /// A robot with a `state_dim` joint state and one `height`×`width` RGB camera named `front`
-    /// (no camera if either size is 0).
-    pub fn new(state_dim: usize, height: u32, width: u32) -> SimulatedRobot {
-        let cameras = if height == 0 || width == 0 {
-            Vec::new()
-        } else {
-            vec![("front".to_owned(), height, width)]
+    /// A robot with a `state_dim` joint state and `cameras` RGB cameras of `height`×`width`
+    /// pixels, sent raw as `u8` (named `front`, `wrist`, then `camera2`, `camera3`, ...).
+    pub fn new(state_dim: usize, cameras: usize, height: u32, width: u32) -> SimulatedRobot {
+        let name = |i: usize| match i {
+            0 => "front".to_owned(),
+            1 => "wrist".to_owned(),
+            i => format!("camera{i}"),
         };
         SimulatedRobot {
             state: (0..state_dim).map(|i| i as f32 * 0.01).collect(),
-            cameras,
+            cameras: (0..cameras).map(|i| (name(i), height, width)).collect(),
             instruction: "pick up the cube and place it in the bin".to_owned(),
             executed: 0,
             observations: 0,

@@ -153,7 +153,7 @@ impl Recorder {
     fn new(clock: Clock) -> Recorder {
         Recorder {
             clock,
-            inner: SimulatedRobot::new(2, 0, 0),
+            inner: SimulatedRobot::new(2, 0, 0, 0),
             executed: Vec::new(),
         }
     }
@@ -351,7 +351,7 @@ async fn simulated_robot_runs_a_task_over_quic() {
     });
     let config = ClientConfig::pinned(responder.addr, responder.fingerprint, "secret");
     let client = Client::connect(config).await.unwrap();
-    let mut robot = SimulatedRobot::new(2, 8, 8);
+    let mut robot = SimulatedRobot::new(2, 1, 8, 8);
     let summary = RobotRunner::new(RunnerConfig {
         control_hz: 100.0,
         rounds: 4,
