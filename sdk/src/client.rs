@@ -73,11 +73,30 @@ pub mod close_code {
     pub const UNAUTHORIZED: u32 = 2;
     /// The server is shutting down; reconnect later.
     pub const SHUTTING_DOWN: u32 = 3;
+    /// The server is at its connection limit; reconnect later.
+    pub const AT_CAPACITY: u32 = 4;
 }
 
 /// Stream error code a client uses to stop a round stream it abandons (`STOP_SENDING`), so the
 /// server can drop the queued round.
 pub const ROUND_CANCELLED: u32 = 0x10;
+
+/// Stream error code a server may stop a client's send side with after answering a request with
+/// an error, so a client still uploading (e.g. an oversized frame) stops.
+pub const STREAM_REFUSED: u32 = 0x11;
+
+/// Whether a connection that ended this way is worth reconnecting (and resending) for: not when
+/// this side closed it, nor when the server closed it for a protocol violation or a bad token.
+fn reconnect_helps(error: &ConnectionError) -> bool {
+    match error {
+        ConnectionError::LocallyClosed | ConnectionError::VersionMismatch => false,
+        ConnectionError::ApplicationClosed(close) => !matches!(
+            u32::try_from(close.error_code.into_inner()),
+            Ok(close_code::PROTOCOL_ERROR | close_code::UNAUTHORIZED)
+        ),
+        _ => true,
+    }
+}
 
 /// How the client retries after losing its connection.
 #[derive(Clone, Debug, PartialEq)]
@@ -232,10 +251,7 @@ impl ClientError {
     /// server marked retryable.
     pub fn is_retryable(&self) -> bool {
         match self {
-            ClientError::Connection(error) => !matches!(
-                error,
-                ConnectionError::LocallyClosed | ConnectionError::VersionMismatch
-            ),
+            ClientError::Connection(error) => reconnect_helps(error),
             ClientError::Timeout { .. } => true,
             ClientError::Server(reply) => reply.retryable,
             _ => false,
@@ -602,6 +618,15 @@ impl Client {
                 after: timeout,
             }),
         };
+        // A server that refuses the token may close the connection before its error frame is
+        // read; the close code says the same thing.
+        if let Err(ClientError::Connection(ConnectionError::ApplicationClosed(close))) = &result
+            && close.error_code.into_inner() == u64::from(close_code::UNAUTHORIZED)
+        {
+            return Err(ClientError::Unauthorized(
+                String::from_utf8_lossy(&close.reason).into_owned(),
+            ));
+        }
         // A failed handshake reports a TLS alert; the verifier knows whether it was the pin.
         if result.is_err()
             && let (Some(slot), ServerTrust::Pinned(expected)) =
@@ -841,6 +866,10 @@ impl Client {
                 Err(AttemptError::Fatal(error)) => return Err(error),
                 Err(AttemptError::ConnectionLost(error)) => {
                     self.invalidate(&session).await;
+                    if !reconnect_helps(&error) && !matches!(error, ConnectionError::LocallyClosed)
+                    {
+                        return Err(error.into());
+                    }
                     lost += 1;
                     if lost > self.inner.config.reconnect.max_attempts {
                         return Err(error.into());
@@ -944,6 +973,13 @@ impl Task {
                         if client.inner.closed.load(Ordering::Relaxed) {
                             return Err(ClientError::Closed);
                         }
+                        // `drop_connection` closes locally on purpose; any other local close
+                        // is the client going away.
+                        if !reconnect_helps(&error)
+                            && !matches!(error, ConnectionError::LocallyClosed)
+                        {
+                            return Err(ClientError::Connection(error));
+                        }
                         submit.attempt += 1;
                         if submit.attempt > client.inner.config.reconnect.max_attempts {
                             return Err(ClientError::Connection(error));
@@ -1021,6 +1057,18 @@ mod tests {
     #[test]
     fn retryability() {
         assert!(ClientError::Connection(ConnectionError::TimedOut).is_retryable());
+        let closed = |code: u32| {
+            ClientError::Connection(ConnectionError::ApplicationClosed(
+                quinn::ApplicationClose {
+                    error_code: VarInt::from_u32(code),
+                    reason: bytes::Bytes::from_static(b"why"),
+                },
+            ))
+        };
+        assert!(closed(close_code::SHUTTING_DOWN).is_retryable());
+        assert!(closed(close_code::AT_CAPACITY).is_retryable());
+        assert!(!closed(close_code::UNAUTHORIZED).is_retryable());
+        assert!(!closed(close_code::PROTOCOL_ERROR).is_retryable());
         assert!(!ClientError::Connection(ConnectionError::LocallyClosed).is_retryable());
         assert!(!ClientError::Unauthorized("no".into()).is_retryable());
         assert!(ClientError::Server(ErrorReply::new(ErrorCode::Overloaded, "busy")).is_retryable());
