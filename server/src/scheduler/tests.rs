@@ -370,6 +370,32 @@ fn one_edge(latency_ms: f64, max_batch: u32, spec: &str) -> Scheduler {
     )
 }
 
+/// FIFO on one 100 ms edge instance with `config`.
+fn fifo_edge(config: SchedulerConfig, max_batch: u32) -> Scheduler {
+    Scheduler::new(
+        config,
+        vec![engine(Tier::Edge, 100.0, max_batch, 0)],
+        policy("fifo"),
+    )
+}
+
+/// One decision at `start_ms` whose batches run until `end_ms` and are all answered with
+/// `horizon`. Returns the requests served.
+fn serve(s: &mut Scheduler, start_ms: u64, end_ms: u64, horizon: u32) -> Vec<RequestId> {
+    let mut served = Vec::new();
+    for d in s.poll_dispatch(ms(start_ms)) {
+        s.handle_batch_started(ms(start_ms), d.batch);
+        let outcomes: Vec<_> = d
+            .requests
+            .iter()
+            .map(|r| (r.request, RoundOutcome::Answered { horizon }))
+            .collect();
+        s.handle_batch_finished(ms(end_ms), d.batch, &outcomes);
+        served.extend(d.requests.iter().map(|r| r.request));
+    }
+    served
+}
+
 #[test]
 fn cloud_gets_requests_only_when_its_latency_plus_rtt_beats_the_edge_queue() {
     // One edge instance (1 s per batch of 1) and one cloud instance (batch 2). Three requests at
@@ -466,13 +492,12 @@ fn batches_never_exceed_max_batch_and_only_idle_engines_get_work() {
 
 #[test]
 fn stale_observations_are_flagged_for_refetch() {
-    let mut s = Scheduler::new(
+    let mut s = fifo_edge(
         SchedulerConfig {
             stale_after: Duration::from_millis(100),
             ..SchedulerConfig::default()
         },
-        vec![engine(Tier::Edge, 100.0, 4, 0)],
-        policy("fifo"),
+        4,
     );
     let fresh = s
         .handle_submit(ms(1_000), submit_at(1, 1, ms(1_000), None))
@@ -541,13 +566,12 @@ fn newer_round_supersedes_a_pending_one_and_inherits_its_skips() {
 
 #[test]
 fn admission_errors() {
-    let mut s = Scheduler::new(
+    let mut s = fifo_edge(
         SchedulerConfig {
             max_pending: 2,
             ..SchedulerConfig::default()
         },
-        vec![engine(Tier::Edge, 100.0, 1, 0)],
-        policy("fifo"),
+        1,
     );
     let a = s
         .handle_submit(ms(0), submit_at(1, 3, ms(0), None))
@@ -640,13 +664,7 @@ fn task_end_drops_its_pending_request_and_reports_a_summary() {
     let a = s
         .handle_submit(ms(0), submit_at(1, 1, ms(0), None))
         .unwrap();
-    let d = s.poll_dispatch(ms(0));
-    s.handle_batch_started(ms(0), d[0].batch);
-    s.handle_batch_finished(
-        ms(100),
-        d[0].batch,
-        &[(a, RoundOutcome::Answered { horizon: 7 })],
-    );
+    assert_eq!(serve(&mut s, 0, 100, 7), vec![a]);
     let exec = ExecReport {
         started_at: ms(120),
         actions_remaining: 2,
@@ -676,25 +694,18 @@ fn task_end_drops_its_pending_request_and_reports_a_summary() {
 
 #[test]
 fn idle_tasks_expire() {
-    let mut s = Scheduler::new(
+    let mut s = fifo_edge(
         SchedulerConfig {
             task_idle_timeout: Duration::from_secs(5),
             ..SchedulerConfig::default()
         },
-        vec![engine(Tier::Edge, 100.0, 1, 0)],
-        policy("fifo"),
+        1,
     );
     let a = s
         .handle_submit(ms(0), submit_at(1, 1, ms(0), None))
         .unwrap();
     assert_eq!(s.poll_timeout(), None);
-    let d = s.poll_dispatch(ms(0));
-    s.handle_batch_started(ms(0), d[0].batch);
-    s.handle_batch_finished(
-        ms(100),
-        d[0].batch,
-        &[(a, RoundOutcome::Answered { horizon: 1 })],
-    );
+    assert_eq!(serve(&mut s, 0, 100, 1), vec![a]);
     assert_eq!(s.poll_timeout(), Some(ms(5_100)));
     assert!(s.handle_timeout(ms(5_099)).is_empty());
     assert_eq!(s.handle_timeout(ms(5_100)), vec![TaskId(1)]);
@@ -850,7 +861,7 @@ fn plas_queues_by_attained_service_with_anti_starvation() {
 #[test]
 fn fifo_orders_by_arrival_then_id() {
     let v = vec![view(5, 30, 0, 0), view(2, 10, 0, 0), view(7, 10, 0, 0)];
-    assert_eq!(order_of(&mut fifo::Fifo, 100, &v), vec![2, 7, 5]);
+    assert_eq!(order_of(&mut fifo::Fifo::default(), 100, &v), vec![2, 7, 5]);
 }
 
 /// Engines for a property case: `edges` edge instances and optionally one cloud instance.
