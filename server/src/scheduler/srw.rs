@@ -44,9 +44,7 @@
 //! every request as due, the ablation without observation 1; default 1), `due_order` (`work` or
 //! `deadline`, the ablation without observation 2; default `work`).
 
-use std::cmp::Ordering;
-
-use super::policy::{FinishedTask, PendingView, PolicyError, PriorityPolicy};
+use super::policy::{FinishedTask, PendingView, PolicyError, PriorityPolicy, order_by_key};
 use crate::time::Timestamp;
 
 /// Default number of finished tasks before the learned index is used.
@@ -169,7 +167,7 @@ impl GittinsIndex {
 pub struct Srw {
     config: SrwConfig,
     gittins: GittinsIndex,
-    keys: Vec<(bool, f64, Timestamp, u64, usize)>,
+    scratch: Vec<((bool, u64, Timestamp, u64), usize)>,
 }
 
 impl Srw {
@@ -178,7 +176,7 @@ impl Srw {
         Srw {
             config,
             gittins: GittinsIndex::default(),
-            keys: Vec::new(),
+            scratch: Vec::new(),
         }
     }
 
@@ -223,30 +221,25 @@ impl PriorityPolicy for Srw {
         pending: &[PendingView],
         order: &mut Vec<usize>,
     ) -> Result<(), PolicyError> {
-        let mut keys = std::mem::take(&mut self.keys);
-        keys.clear();
-        for (i, view) in pending.iter().enumerate() {
+        let mut scratch = std::mem::take(&mut self.scratch);
+        order_by_key(pending, order, &mut scratch, |view| {
             let deadline = view.exec_ends_at.unwrap_or(view.arrived_at);
             let due = !self.config.slack || deadline <= now;
-            // Higher score first; deadlines enter negated so that earlier is higher.
-            let by_deadline = -(deadline.as_micros() as f64);
-            let score = match (due, self.config.due_order) {
+            // Ascending keys: due first; then the primary key, which is either the deadline in
+            // microseconds or, for due requests ordered by work, the complement of the score's
+            // bits (for finite scores >= 0 the bit pattern orders like the number).
+            let primary = match (due, self.config.due_order) {
                 (true, DueOrder::Work) => {
                     let unwaited = (1.0 - view.wait_ratio(now)).max(MIN_UNWAITED);
-                    self.urgency(view) / unwaited
+                    let score = self.urgency(view) / unwaited;
+                    let score = if score.is_finite() && score > 0.0 { score } else { 0.0 };
+                    u64::MAX - score.to_bits()
                 }
-                _ => by_deadline,
+                _ => deadline.as_micros(),
             };
-            keys.push((due, score, view.arrived_at, view.request.0, i));
-        }
-        keys.sort_unstable_by(|a, b| {
-            b.0.cmp(&a.0)
-                .then_with(|| b.1.partial_cmp(&a.1).unwrap_or(Ordering::Equal))
-                .then_with(|| a.2.cmp(&b.2))
-                .then_with(|| a.3.cmp(&b.3))
+            (!due, primary, view.arrived_at, view.request.0)
         });
-        order.extend(keys.iter().map(|k| k.4));
-        self.keys = keys;
+        self.scratch = scratch;
         Ok(())
     }
 

@@ -21,6 +21,8 @@ pub mod experiment;
 pub mod horizon;
 pub mod robot;
 pub mod stats;
+#[cfg(test)]
+mod tests;
 
 use std::cmp::Reverse;
 use std::collections::{BinaryHeap, HashMap};
@@ -55,6 +57,9 @@ pub enum Load {
         /// Tasks in the list.
         tasks: usize,
     },
+    /// Exactly these tasks (trace task ids) starting at exactly these times, one robot each: for
+    /// hand-computed scenarios and replaying a single recording.
+    Explicit(Vec<(Timestamp, u64)>),
 }
 
 /// The modelled network.
@@ -313,10 +318,10 @@ impl<'a> Sim<'a> {
         }
         let total = i.trace.total_actions;
         let at = if i.exec.until() >= total {
-            i.exec.time_of(total)
+            i.exec.reaches(total)
         } else if i.outstanding.is_none() {
             let (_, step) = i.round(i.sent);
-            i.exec.time_of(step.min(i.exec.until()))
+            i.exec.reaches(step.min(i.exec.until()))
         } else {
             None
         };
@@ -331,7 +336,7 @@ impl<'a> Sim<'a> {
         let round = i.sent;
         i.sent += 1;
         let obs_bytes = i.round(round).0.obs_bytes;
-        let obs_step = i.exec.completed_at(now);
+        let obs_step = i.exec.started_at(now);
         i.outstanding = Some(Outstanding {
             round,
             sent_at: now,
@@ -427,7 +432,7 @@ impl<'a> Sim<'a> {
                 // The fetch reaches the robot, which captures a fresh observation there and
                 // sends it back; the robot's timeline up to then is already determined.
                 let captured = now + one_way;
-                o.obs_step = i.exec.completed_at(captured);
+                o.obs_step = i.exec.started_at(captured);
                 let back = captured
                     + one_way
                     + transfer(bytes, self.cfg.network.robot_uplink_mbps);
@@ -535,7 +540,7 @@ impl<'a> Sim<'a> {
             return Ok(());
         }
         let total = i.trace.total_actions;
-        if i.exec.until() >= total && i.exec.completed_at(now) >= total {
+        if i.exec.until() >= total && i.exec.started_at(now) >= total {
             return self.finish(inst, now);
         }
         if i.outstanding.is_none() {
@@ -682,6 +687,14 @@ pub fn simulate(traces: &TraceSet, cfg: &SimConfig) -> Result<SimResult, SimErro
                 let trace = sim.backlog[robot];
                 sim.next_backlog = robot + 1;
                 sim.spawn(trace, RobotId(robot as u32), Timestamp::from_secs_f64(start))?;
+            }
+        }
+        Load::Explicit(ref starts) => {
+            for (n, &(at, id)) in starts.iter().enumerate() {
+                let trace = pool.iter().find(|t| t.task == id).ok_or_else(|| {
+                    SimError::Config(format!("no task {id} under setting `{}`", cfg.setting))
+                })?;
+                sim.spawn(trace, RobotId(n as u32), at)?;
             }
         }
     }

@@ -141,19 +141,22 @@ pub(crate) fn transfer_time(bytes: u32, mbps: f64) -> Duration {
     Duration::from_secs_f64(f64::from(bytes) * 8.0 / (mbps * 1e6))
 }
 
-/// Round trip of one request in isolation: uplink with the observation, the forward pass at
-/// batch 1, the reply back.
-pub fn isolated_round_trip(w: &Workload) -> (Duration, Duration) {
-    let generation = w.edge_profile().latency(1);
-    let rt = w.robot_rtt() + transfer_time(w.robot.obs_bytes, w.network.robot_uplink_mbps) + generation;
-    (generation, rt)
+/// When the reply to a request sent at `sent` reaches the robot in isolation: half the round
+/// trip up plus the observation on the uplink, the forward pass at batch 1 on an idle edge engine,
+/// half the round trip back. Added up in the order the simulator adds them (each sum rounds to
+/// whole microseconds), so that replaying a task alone reproduces its recording exactly.
+pub fn isolated_reply_at(w: &Workload, sent: Timestamp) -> Timestamp {
+    let one_way = w.robot_rtt() / 2;
+    sent + one_way
+        + transfer_time(w.robot.obs_bytes, w.network.robot_uplink_mbps)
+        + w.edge_profile().latency(1)
+        + one_way
 }
 
-/// The step at which a robot whose current chunk answers an observation at `obs_step` with
-/// horizon `horizon` sends its next request under the SDK trigger rule.
-pub fn trigger_step(obs_step: u32, horizon: u32, trigger_fraction: f64) -> u32 {
-    let k = (trigger_fraction * f64::from(horizon)).ceil() as u32;
-    obs_step.saturating_add(k.clamp(1, horizon.max(1)))
+/// Actions of a chunk with `executable` actions to start before the next request goes out: the
+/// SDK's `ChunkExecutor` trigger point, `ceil(trigger · executable)` computed in `f32` as there.
+pub fn trigger_point(executable: u32, trigger_fraction: f64) -> u32 {
+    ((trigger_fraction as f32) * executable as f32).ceil() as u32
 }
 
 fn record(
@@ -165,7 +168,7 @@ fn record(
 ) -> Result<TaskTrace, GenerateError> {
     let n = w.robot.chunk_len;
     let hz = w.robot.control_hz;
-    let (generation, round_trip) = isolated_round_trip(w);
+    let generation = w.edge_profile().latency(1);
     let mut horizon = ReplayHorizon::new(setting)
         .map_err(|source| GenerateError::Horizon { task, source })?;
     let dynamic = setting.policy != "static";
@@ -182,14 +185,15 @@ fn record(
                 rounds: rounds.len(),
             });
         }
-        let obs_step = exec.completed_at(now);
+        let obs_step = exec.started_at(now);
+        let reply_at = isolated_reply_at(w, now);
         let target = target_horizon(w, traj, obs_step);
         let mut round = RoundTrace {
             issued_at_action: obs_step,
             horizon: 0,
             executed: 0,
             gen_latency_us: duration_micros(generation),
-            round_trip_us: Some(duration_micros(round_trip)),
+            round_trip_us: Some(duration_micros(reply_at.saturating_since(now))),
             obs_bytes: w.robot.obs_bytes,
             confidence: Some(confidence_for_target(target, w.horizon.threshold, n)),
         };
@@ -199,25 +203,25 @@ fn record(
         if !dynamic {
             round.confidence = None;
         }
-        let reply_at = now + round_trip;
         let accepted = exec.accept(reply_at, obs_step, round.horizon);
         ran_from.push(match accepted {
             Accepted::Used { from_step, .. } => Some(from_step),
             Accepted::Stale => None,
         });
-        let h = round.horizon;
         rounds.push(round);
         if exec.until() >= traj.total_actions {
             break;
         }
-        let next = match accepted {
-            Accepted::Used { .. } => trigger_step(obs_step, h, w.robot.trigger_fraction),
-            Accepted::Stale => 0,
+        // The SDK trigger: once `ceil(trigger · executable)` actions of the new chunk have
+        // started (at once for a stale chunk). Never before the chunk arrived.
+        now = match accepted {
+            Accepted::Used { from_step, .. } => {
+                let executable = exec.until() - from_step;
+                let count = from_step + trigger_point(executable, w.robot.trigger_fraction);
+                exec.reaches(count).map_or(reply_at, |t| t.max(reply_at))
+            }
+            Accepted::Stale => reply_at,
         };
-        // The robot cannot send before the chunk that decides the trigger has arrived.
-        now = exec
-            .time_of(next)
-            .map_or(reply_at, |t| t.max(reply_at));
     }
     // Executed actions per chunk: from where it took over to where the next used one did.
     let mut end = traj.total_actions;
