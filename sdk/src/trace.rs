@@ -312,8 +312,11 @@ impl TraceSet {
             let number = i + 1;
             match &header {
                 None => {
-                    let h: TraceHeader = serde_json::from_str(&line)
-                        .map_err(|source| TraceError::Parse { line: number, source })?;
+                    let h: TraceHeader =
+                        serde_json::from_str(&line).map_err(|source| TraceError::Parse {
+                            line: number,
+                            source,
+                        })?;
                     if h.format != TRACE_FORMAT {
                         return Err(TraceError::Unsupported(format!(
                             "format `{}` is not `{TRACE_FORMAT}`",
@@ -329,8 +332,11 @@ impl TraceSet {
                     header = Some(h);
                 }
                 Some(_) => {
-                    let t: TaskTrace = serde_json::from_str(&line)
-                        .map_err(|source| TraceError::Parse { line: number, source })?;
+                    let t: TaskTrace =
+                        serde_json::from_str(&line).map_err(|source| TraceError::Parse {
+                            line: number,
+                            source,
+                        })?;
                     t.validate()?;
                     tasks.push(t);
                 }
@@ -433,7 +439,8 @@ struct OpenRound {
 /// inference, so events of several rounds interleave) and produces its [`TaskTrace`].
 #[derive(Debug)]
 pub struct TaskRecording {
-    meta: TaskMeta,
+    /// The task's description (its `chunk_len` may be filled in once the first reply shows it).
+    pub meta: TaskMeta,
     rounds: Vec<OpenRound>,
 }
 
@@ -593,6 +600,155 @@ impl<W: Write> TraceRecorder<W> {
     }
 }
 
+/// What a [`RunnerTraceRecorder`] writes into every task it records.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RecordSetup {
+    /// Setting label (`static`, `dynamic`, ...) of every recorded task.
+    pub setting: String,
+    /// The horizon policy the robot requested.
+    pub horizon: HorizonSetting,
+    /// Control frequency of the robot.
+    pub control_hz: f32,
+    /// Bytes of one observation as the robot sends it (the runner's events do not carry it).
+    pub obs_bytes: u32,
+}
+
+#[derive(Debug)]
+struct RunnerTask {
+    recording: TaskRecording,
+    /// Σ actions executed by chunks that ended.
+    executed_before: u64,
+    /// The chunk now executing: (round, executable actions).
+    current: Option<(u64, u32)>,
+}
+
+/// Records the [`RunnerEvent`](crate::robot::RunnerEvent)s of `RobotRunner`s (one or many
+/// tasks, interleaved) into a trace file, one line per finished task: what `kairos robot
+/// --record FILE` does.
+///
+/// The runner's events carry everything a trace needs but the action index at which each
+/// request went out; it is reconstructed as the actions of the chunks that already ended plus
+/// those of the current chunk that had started when the request was sent (its executable
+/// actions, `horizon − discarded`, minus the Last Exec Info's `actions_remaining`).
+pub struct RunnerTraceRecorder<W: Write> {
+    writer: TraceWriter<W>,
+    setup: RecordSetup,
+    tasks: BTreeMap<u64, RunnerTask>,
+    written: usize,
+}
+
+impl<W: Write> RunnerTraceRecorder<W> {
+    /// Starts a trace file with a `recorded` header.
+    pub fn new(out: W, setup: RecordSetup) -> Result<Self, TraceError> {
+        Ok(RunnerTraceRecorder {
+            writer: TraceWriter::new(out, &TraceHeader::new(TraceSource::Recorded))?,
+            setup,
+            tasks: BTreeMap::new(),
+            written: 0,
+        })
+    }
+
+    /// Tasks written so far.
+    pub fn tasks_written(&self) -> usize {
+        self.written
+    }
+
+    /// Feeds one runner event.
+    pub fn on_event(&mut self, event: &crate::robot::RunnerEvent) -> Result<(), TraceError> {
+        use crate::robot::RunnerEvent as E;
+        match event {
+            E::RequestSent {
+                task,
+                round,
+                at_us,
+                last_exec,
+            } => {
+                let setup = &self.setup;
+                let t = self.tasks.entry(*task).or_insert_with(|| RunnerTask {
+                    recording: TaskRecording::new(TaskMeta {
+                        task: *task,
+                        label: None,
+                        setting: setup.setting.clone(),
+                        horizon: setup.horizon.clone(),
+                        control_hz: setup.control_hz,
+                        chunk_len: 0,
+                    }),
+                    executed_before: 0,
+                    current: None,
+                });
+                let in_current = match (t.current, last_exec) {
+                    (Some((_, executable)), Some(info)) => {
+                        u64::from(executable.saturating_sub(info.actions_remaining))
+                    }
+                    _ => 0,
+                };
+                let at_action = u32::try_from(t.executed_before + in_current).unwrap_or(u32::MAX);
+                t.recording.record(RoundEvent::Requested {
+                    round: *round,
+                    at_action,
+                    sent_at_us: *at_us,
+                    obs_bytes: self.setup.obs_bytes,
+                })?;
+            }
+            E::ReplyReceived { task, record } => {
+                let t = self.task(*task)?;
+                if t.recording.meta.chunk_len == 0 {
+                    t.recording.meta.chunk_len = record.chunk_len;
+                }
+                t.recording.record(RoundEvent::Replied {
+                    round: record.round,
+                    received_at_us: record.received_at_us,
+                    horizon: record.horizon,
+                    inference_us: record.timing.inference_us,
+                    confidence: None,
+                })?;
+                let executable = record.horizon.saturating_sub(record.discarded);
+                if executable > 0 {
+                    t.current = Some((record.round, executable));
+                }
+            }
+            E::ChunkEnded {
+                task,
+                round,
+                executed,
+                ..
+            } => {
+                let t = self.task(*task)?;
+                t.recording.record(RoundEvent::ChunkDone {
+                    round: *round,
+                    executed: *executed,
+                })?;
+                t.executed_before += u64::from(*executed);
+                if t.current.is_some_and(|(r, _)| r == *round) {
+                    t.current = None;
+                }
+            }
+            E::TaskFinished(summary) => {
+                let t = self.tasks.remove(&summary.task).ok_or_else(|| {
+                    TraceError::Recorder(format!("task {} finished unseen", summary.task))
+                })?;
+                let total = u32::try_from(summary.actions_executed).unwrap_or(u32::MAX);
+                let trace = t.recording.finish(total)?;
+                self.writer.write_task(&trace)?;
+                self.written += 1;
+            }
+            E::ObservationRefetched { .. } | E::RoundFailed { .. } | E::Idle { .. } => {}
+        }
+        Ok(())
+    }
+
+    fn task(&mut self, task: u64) -> Result<&mut RunnerTask, TraceError> {
+        self.tasks.get_mut(&task).ok_or_else(|| {
+            TraceError::Recorder(format!("event of task {task} before its first request"))
+        })
+    }
+
+    /// Flushes and returns the writer; tasks that never finished are not written.
+    pub fn finish(self) -> Result<W, TraceError> {
+        self.writer.finish()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -621,7 +777,12 @@ mod tests {
             control_hz: 30.0,
             chunk_len: 50,
             total_actions: 25,
-            rounds: vec![round(0, 10, 6), round(5, 10, 5), round(10, 10, 5), round(15, 10, 9)],
+            rounds: vec![
+                round(0, 10, 6),
+                round(5, 10, 5),
+                round(10, 10, 5),
+                round(15, 10, 9),
+            ],
         }
     }
 
@@ -798,5 +959,96 @@ mod tests {
             .is_err(),
             "a chunk cannot be done before it arrived"
         );
+    }
+
+    #[test]
+    fn runner_events_become_a_trace_with_reconstructed_action_indices() {
+        use crate::protocol::messages::{LastExecInfo, Timing};
+        use crate::robot::{RoundRecord, RunnerEvent, TaskSummary};
+
+        let setup = RecordSetup {
+            setting: "static".into(),
+            horizon: HorizonSetting {
+                policy: "static".into(),
+                params: BTreeMap::from([("h".to_string(), 8.0)]),
+            },
+            control_hz: 10.0,
+            obs_bytes: 1234,
+        };
+        let reply = |round, received_at_us, discarded| RunnerEvent::ReplyReceived {
+            task: 7,
+            record: RoundRecord {
+                round,
+                sent_at_us: 0,
+                received_at_us,
+                attempts: 1,
+                refetches: 0,
+                horizon: 8,
+                chunk_len: 50,
+                discarded,
+                executed: 0,
+                policy: "static".into(),
+                timing: Timing {
+                    inference_us: 40_000,
+                    ..Timing::default()
+                },
+            },
+        };
+        let sent = |round, at_us, remaining: Option<u32>| RunnerEvent::RequestSent {
+            task: 7,
+            round,
+            at_us,
+            last_exec: remaining.map(|actions_remaining| LastExecInfo {
+                exec_started_at_us: 0,
+                actions_remaining,
+                control_hz: 10.0,
+            }),
+        };
+        let ended = |round, executed| RunnerEvent::ChunkEnded {
+            task: 7,
+            round,
+            executed,
+            dropped: 0,
+        };
+        // Chunks of 8 at 10 Hz, the next request after half of a chunk's executable actions:
+        // round 1 after 4 of chunk 0 (index 4); chunk 1 arrives with one action discarded (7
+        // executable) after chunk 0 ran 5; round 2 after 4 of chunk 1 (index 5 + 4 = 9).
+        let events = [
+            sent(0, 0, None),
+            reply(0, 50_000, 0),
+            sent(1, 350_000, Some(4)),
+            ended(0, 5),
+            reply(1, 400_000, 1),
+            sent(2, 800_000, Some(3)),
+            ended(1, 5),
+            reply(2, 850_000, 1),
+            ended(2, 7),
+            RunnerEvent::TaskFinished(TaskSummary {
+                task: 7,
+                rounds: Vec::new(),
+                started_at_us: 0,
+                finished_at_us: 1_500_000,
+                actions_executed: 17,
+                idle_us: 50_000,
+                failed_rounds: 0,
+                server_record: None,
+            }),
+        ];
+        let mut rec = RunnerTraceRecorder::new(Vec::new(), setup).unwrap();
+        for e in &events {
+            rec.on_event(e).unwrap();
+        }
+        assert_eq!(rec.tasks_written(), 1);
+        let set = TraceSet::read(rec.finish().unwrap().as_slice()).unwrap();
+        let t = &set.tasks[0];
+        assert_eq!((t.task, t.chunk_len, t.total_actions), (7, 50, 17));
+        let got: Vec<(u32, u32, u32)> = t
+            .rounds
+            .iter()
+            .map(|r| (r.issued_at_action, r.horizon, r.executed))
+            .collect();
+        assert_eq!(got, vec![(0, 8, 5), (4, 8, 5), (9, 8, 7)]);
+        assert_eq!(t.rounds[1].round_trip_us, Some(50_000));
+        assert_eq!(t.rounds[2].obs_bytes, 1234);
     }
 }

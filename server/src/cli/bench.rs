@@ -68,7 +68,12 @@ pub struct SimArgs {
     #[arg(long)]
     pub traces: Option<PathBuf>,
     /// Experiments to run, comma-separated: online, fleet, hybrid, buckets, intra.
-    #[arg(long, short = 'e', value_delimiter = ',', default_value = "online,fleet,hybrid,buckets,intra")]
+    #[arg(
+        long,
+        short = 'e',
+        value_delimiter = ',',
+        default_value = "online,fleet,hybrid,buckets,intra"
+    )]
     pub experiments: Vec<String>,
     /// Extra priority policy to compare in the online experiment, e.g. `srw:starve=0.3`
     /// (replays the dynamic-horizon traces). Repeatable.
@@ -171,8 +176,8 @@ fn run_traces(a: TracesArgs) -> anyhow::Result<()> {
     let w = Workload::load(&a.workload)?;
     let set = workload::generate(&w, a.seed)
         .with_context(|| format!("generating traces for `{}`", w.name))?;
-    let file = std::fs::File::create(&a.out)
-        .with_context(|| format!("creating {}", a.out.display()))?;
+    let file =
+        std::fs::File::create(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     set.write(std::io::BufWriter::new(file))
         .with_context(|| format!("writing {}", a.out.display()))?;
     println!(
@@ -213,7 +218,10 @@ fn describe(w: &Workload, set: &TraceSet) -> String {
             .fold((0usize, 0usize), |(n, r), t| (n + 1, r + t.rounds.len()));
         r as f64 / n.max(1) as f64
     };
-    let exec: f64 = set.variant(STATIC).map(|t| t.execution_seconds()).sum::<f64>()
+    let exec: f64 = set
+        .variant(STATIC)
+        .map(|t| t.execution_seconds())
+        .sum::<f64>()
         / set.variant(STATIC).count().max(1) as f64;
     let edge = w.edge_profile();
     let per_s = f64::from(edge.max_batch) / edge.latency(edge.max_batch).as_secs_f64();
@@ -296,6 +304,27 @@ fn run_sim(a: SimArgs) -> anyhow::Result<()> {
             task_scale: a.task_scale,
         },
     );
+    // A recorded trace set may hold only some settings (a robot records the one it ran); drop the
+    // runs that would replay a missing one, and say so.
+    let jobs: Vec<Job> = if a.traces.is_some() {
+        let available: Vec<String> = traces.iter().flat_map(|t| t.settings()).collect();
+        let (keep, drop): (Vec<Job>, Vec<Job>) = jobs
+            .into_iter()
+            .partition(|j| available.iter().any(|s| s == j.variant.setting));
+        if !drop.is_empty() {
+            println!(
+                "skipping {} runs whose horizon setting is not in the trace file (it has: {})",
+                drop.len(),
+                available.join(", ")
+            );
+        }
+        keep
+    } else {
+        jobs
+    };
+    if jobs.is_empty() {
+        bail!("nothing to run");
+    }
     let threads = a
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))

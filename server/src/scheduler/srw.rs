@@ -152,7 +152,7 @@ impl GittinsIndex {
 
     /// `G(age)` for a task that has completed `age` rounds (0 before any observation).
     pub fn get(&mut self, age: u32) -> f64 {
-        if self.observed > self.built_at && self.observed >= self.built_at + self.built_at / 16 + 1 {
+        if self.observed > self.built_at + self.built_at / 16 {
             self.rebuild();
         }
         match self.index.len() {
@@ -232,7 +232,11 @@ impl PriorityPolicy for Srw {
                 (true, DueOrder::Work) => {
                     let unwaited = (1.0 - view.wait_ratio(now)).max(MIN_UNWAITED);
                     let score = self.urgency(view) / unwaited;
-                    let score = if score.is_finite() && score > 0.0 { score } else { 0.0 };
+                    let score = if score.is_finite() && score > 0.0 {
+                        score
+                    } else {
+                        0.0
+                    };
                     u64::MAX - score.to_bits()
                 }
                 _ => deadline.as_micros(),
@@ -292,10 +296,10 @@ mod tests {
     fn due_requests_first_then_earliest_deadline() {
         let mut p = Srw::new(SrwConfig::default());
         let views = [
-            view(1, Some(1500), Some(2)), // not due, late deadline, little work
+            view(1, Some(1500), Some(2)),  // not due, late deadline, little work
             view(2, Some(1200), Some(50)), // not due, earlier deadline
-            view(3, Some(900), Some(40)), // due
-            view(4, Some(950), Some(10)), // due, less work
+            view(3, Some(900), Some(40)),  // due
+            view(4, Some(950), Some(10)),  // due, less work
         ];
         assert_eq!(order(&mut p, 1000, &views), vec![4, 3, 2, 1]);
         // Ablations: without slack everything is due and ordered by work; deadline-only is EDF.

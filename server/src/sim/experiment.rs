@@ -114,7 +114,12 @@ pub fn online_variants() -> Vec<Variant> {
         variant("kairos", "Kairos", "kairos", DYNAMIC),
         variant("kairos-static", "Kairos w/o dyn. horizon", "kairos", STATIC),
         variant("fifo-dynamic", "FIFO + dyn. horizon", "fifo", DYNAMIC),
-        variant("autellix-dynamic", "Autellix + dyn. horizon", "plas", DYNAMIC),
+        variant(
+            "autellix-dynamic",
+            "Autellix + dyn. horizon",
+            "plas",
+            DYNAMIC,
+        ),
         variant("srw", "SRW (ours)", BETTER, DYNAMIC),
         with_hint,
     ]
@@ -406,7 +411,10 @@ pub fn calibrate_rate(
 ) -> Result<f64, SimError> {
     let tasks = w.experiments.tasks_per_run;
     let mean_at = |rate: f64| -> Result<f64, SimError> {
-        let r = simulate(traces, &config(w, variant, Load::Poisson { rate, tasks }, seed))?;
+        let r = simulate(
+            traces,
+            &config(w, variant, Load::Poisson { rate, tasks }, seed),
+        )?;
         Ok(summarize(&r.latencies()).mean)
     };
     let unloaded = mean_at(lo)?;
@@ -500,7 +508,10 @@ impl Report<'_> {
     pub fn variants(&self, w: usize, experiment: Experiment) -> Vec<&Variant> {
         let mut out: Vec<&Variant> = Vec::new();
         for j in self.jobs {
-            if j.workload == w && j.experiment == experiment && !out.iter().any(|v| v.key == j.variant.key) {
+            if j.workload == w
+                && j.experiment == experiment
+                && !out.iter().any(|v| v.key == j.variant.key)
+            {
                 out.push(&j.variant);
             }
         }

@@ -37,10 +37,8 @@ impl ReplayHorizon {
     /// The policy of `setting`, built from the native registry.
     pub fn new(setting: &HorizonSetting) -> Result<Self, ReplayHorizonError> {
         let policy = crate::horizon::builtin(&setting.policy, &setting.params)?;
-        let fallback = crate::horizon::builtin(
-            "static",
-            &PolicyParams::from([("h".to_string(), 1.0)]),
-        )?;
+        let fallback =
+            crate::horizon::builtin("static", &PolicyParams::from([("h".to_string(), 1.0)]))?;
         Ok(ReplayHorizon {
             policy,
             fallback,

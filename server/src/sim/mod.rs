@@ -278,7 +278,12 @@ impl<'a> Sim<'a> {
         self.cfg.network.robot_rtt / 2
     }
 
-    fn spawn(&mut self, trace: &'a TaskTrace, robot: RobotId, at: Timestamp) -> Result<(), SimError> {
+    fn spawn(
+        &mut self,
+        trace: &'a TaskTrace,
+        robot: RobotId,
+        at: Timestamp,
+    ) -> Result<(), SimError> {
         let inst = self.insts.len();
         let recording = self.cfg.record.then(|| {
             TaskRecording::new(TaskMeta {
@@ -365,18 +370,17 @@ impl<'a> Sim<'a> {
         let Some(o) = &i.outstanding else {
             return Ok(());
         };
-        let total = i.trace.total_actions;
+        // As the SDK reports it: a chunk that arrived but whose first action has not started yet
+        // counts as starting at the send time.
         let last_exec = i.exec.chunk_started_at().map(|started_at| ExecReport {
-            started_at,
+            started_at: started_at.min(o.sent_at),
             actions_remaining: i.exec.until().saturating_sub(o.obs_step),
             control_hz: i.trace.control_hz,
         });
+        // What the SDK runner sends: rounds left, this one included.
         let remaining = self.cfg.hints.then(|| RemainingWork {
             rounds: Some(i.trace.rounds.len().saturating_sub(o.round).max(1) as u32),
-            seconds: Some(
-                (f64::from(total.saturating_sub(o.obs_step)) / f64::from(i.trace.control_hz))
-                    as f32,
-            ),
+            seconds: None,
         });
         let submit = RoundSubmit {
             task: i.task,
@@ -433,9 +437,7 @@ impl<'a> Sim<'a> {
                 // sends it back; the robot's timeline up to then is already determined.
                 let captured = now + one_way;
                 o.obs_step = i.exec.started_at(captured);
-                let back = captured
-                    + one_way
-                    + transfer(bytes, self.cfg.network.robot_uplink_mbps);
+                let back = captured + one_way + transfer(bytes, self.cfg.network.robot_uplink_mbps);
                 ready = ready.max(back);
                 self.out.refetches += 1;
             }
@@ -479,17 +481,15 @@ impl<'a> Sim<'a> {
             let round_index = o.round;
             let rounds = &i.trace.rounds;
             let r = &rounds[round_index.min(rounds.len() - 1)];
-            let horizon = i.horizon.choose(
-                r,
-                round_index as u64,
-                i.trace.chunk_len,
-                i.trace.control_hz,
-            )?;
+            let horizon =
+                i.horizon
+                    .choose(r, round_index as u64, i.trace.chunk_len, i.trace.control_hz)?;
             outcomes.push((request, RoundOutcome::Answered { horizon }));
             self.requests.remove(&request);
             self.push(now + one_way, Event::Reply { inst, horizon });
         }
-        self.sched.handle_batch_finished(now, BatchId(batch), &outcomes);
+        self.sched
+            .handle_batch_finished(now, BatchId(batch), &outcomes);
         self.dispatch(now);
         Ok(())
     }
@@ -664,7 +664,9 @@ pub fn simulate(traces: &TraceSet, cfg: &SimConfig) -> Result<SimResult, SimErro
     match cfg.load {
         Load::Poisson { rate, tasks } => {
             if !(rate.is_finite() && rate > 0.0) {
-                return Err(SimError::Config(format!("arrival rate {rate} must be positive")));
+                return Err(SimError::Config(format!(
+                    "arrival rate {rate} must be positive"
+                )));
             }
             let mut t = 0.0f64;
             for n in 0..tasks {
@@ -686,7 +688,11 @@ pub fn simulate(traces: &TraceSet, cfg: &SimConfig) -> Result<SimResult, SimErro
             for (robot, start) in starts.into_iter().enumerate().take(tasks) {
                 let trace = sim.backlog[robot];
                 sim.next_backlog = robot + 1;
-                sim.spawn(trace, RobotId(robot as u32), Timestamp::from_secs_f64(start))?;
+                sim.spawn(
+                    trace,
+                    RobotId(robot as u32),
+                    Timestamp::from_secs_f64(start),
+                )?;
             }
         }
         Load::Explicit(ref starts) => {

@@ -82,7 +82,11 @@ impl Execution {
         }
         // The epsilon keeps `started_at(tick_of(k)) == k + 1` despite rounding to whole µs.
         let ticks = (elapsed / self.micros_per_step + 1e-9).floor() + 1.0;
-        let ticks = if ticks >= f64::from(u32::MAX) { u32::MAX } else { ticks as u32 };
+        let ticks = if ticks >= f64::from(u32::MAX) {
+            u32::MAX
+        } else {
+            ticks as u32
+        };
         self.anchor_step.saturating_add(ticks).min(self.until)
     }
 
@@ -159,7 +163,10 @@ mod tests {
         assert_eq!(e.tick_of(7), Some(ms(750)), "the last covered action");
         assert_eq!(e.tick_of(8), None);
         assert!(!e.is_idle(ms(849)));
-        assert!(e.is_idle(ms(850)), "idle from the tick that finds no action");
+        assert!(
+            e.is_idle(ms(850)),
+            "idle from the tick that finds no action"
+        );
         assert_eq!(e.started_at(ms(5000)), 8);
     }
 
@@ -177,7 +184,11 @@ mod tests {
             }
         );
         assert_eq!(e.until(), 13);
-        assert_eq!(e.chunk_started_at(), Some(ms(700)), "its first action runs at the next tick");
+        assert_eq!(
+            e.chunk_started_at(),
+            Some(ms(700)),
+            "its first action runs at the next tick"
+        );
         assert_eq!(e.tick_of(12), Some(ms(1200)), "the tick phase is kept");
     }
 

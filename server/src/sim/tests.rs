@@ -196,6 +196,27 @@ fn one_robot_alone_executes_then_waits_for_each_round() {
 }
 
 #[test]
+fn a_request_sent_before_the_new_chunk_starts_is_accepted() {
+    // Chunks of 4 at 10 Hz, a request after every started action, 100 ms generation:
+    //   round 0 0..100; action 0 at 100; round 1 sent at once (1 started), 100..200;
+    //   at 200 action 1 starts, then round 1 arrives: its first action runs at the next tick
+    //   (300), but round 2 goes out at 200 already (2 started). Last Exec Info must then report
+    //   the chunk as starting at the send time, as the SDK does, or the scheduler refuses it.
+    //   Round 2 (observation after 2 starts) covers [2, 6); actions keep their 100 ms ticks:
+    //   the last (5) at 600 -> 600 ms.
+    let traces = set(vec![task(1, 6, &[(0, 4), (1, 4), (2, 4)])]);
+    let cfg = config(
+        "kairos",
+        STATIC,
+        Load::Explicit(vec![(ms(0), 1)]),
+        vec![flat_engine(100.0, 1)],
+    );
+    let r = simulate(&traces, &cfg).unwrap();
+    assert_eq!(latencies(&r), BTreeMap::from([(1, 600)]));
+    assert_eq!(r.requests, 3);
+}
+
+#[test]
 fn two_robots_contend_for_one_engine_first_come_first_served() {
     // Task 1 arrives at 0, task 2 at 50 ms; one engine, batches of 1, 100 ms each.
     //   task 1: round 0 runs 0..100; actions 0..3 at 100..400; round 1 sent at 400, runs
@@ -203,7 +224,10 @@ fn two_robots_contend_for_one_engine_first_come_first_served() {
     //   task 2: round 0 waits for the engine, runs 100..200; actions 0..3 at 200..500; round 1
     //           sent at 500 as task 1's round 1 ends, runs 500..600; actions 4..7 at 600..900.
     //           Latency 900 − 50 = 850 ms.
-    let traces = set(vec![task(1, 8, &[(0, 4), (4, 4)]), task(2, 8, &[(0, 4), (4, 4)])]);
+    let traces = set(vec![
+        task(1, 8, &[(0, 4), (4, 4)]),
+        task(2, 8, &[(0, 4), (4, 4)]),
+    ]);
     let cfg = config(
         "fifo",
         STATIC,
@@ -240,10 +264,18 @@ fn fifo_serves_the_earlier_request_first() {
     // actions at 590, 690, 790 -> B 790 − 320 = 470 ms. C: actions at 390, 490, 590 -> 300 ms.
     let r = simulate(
         &contention(),
-        &config("fifo", STATIC, contention_load(), vec![flat_engine(100.0, 1)]),
+        &config(
+            "fifo",
+            STATIC,
+            contention_load(),
+            vec![flat_engine(100.0, 1)],
+        ),
     )
     .unwrap();
-    assert_eq!(latencies(&r), BTreeMap::from([(1, 690), (2, 470), (3, 300)]));
+    assert_eq!(
+        latencies(&r),
+        BTreeMap::from([(1, 690), (2, 470), (3, 300)])
+    );
 }
 
 #[test]
@@ -255,10 +287,18 @@ fn kairos_serves_the_higher_wait_ratio_first() {
     // 490, 590, 690 -> 370 ms); A runs 490..590 (actions at 590, 690, 790 -> 790 ms); C 300 ms.
     let r = simulate(
         &contention(),
-        &config("kairos", STATIC, contention_load(), vec![flat_engine(100.0, 1)]),
+        &config(
+            "kairos",
+            STATIC,
+            contention_load(),
+            vec![flat_engine(100.0, 1)],
+        ),
     )
     .unwrap();
-    assert_eq!(latencies(&r), BTreeMap::from([(1, 790), (2, 370), (3, 300)]));
+    assert_eq!(
+        latencies(&r),
+        BTreeMap::from([(1, 790), (2, 370), (3, 300)])
+    );
 }
 
 #[test]
@@ -267,13 +307,24 @@ fn srw_serves_due_requests_by_remaining_work_aged_by_waiting() {
     // the hint both have 1 round left; B's wait ratio 1 divides its urgency by 0.01, A's 0.23 by
     // 0.77: B first, as Kairos. Without hints (and no finished tasks to learn from) both
     // urgencies are 0 and arrival order decides, as FIFO.
-    let mut cfg = config("srw", STATIC, contention_load(), vec![flat_engine(100.0, 1)]);
+    let mut cfg = config(
+        "srw",
+        STATIC,
+        contention_load(),
+        vec![flat_engine(100.0, 1)],
+    );
     cfg.hints = true;
     let with_hint = simulate(&contention(), &cfg).unwrap();
-    assert_eq!(latencies(&with_hint), BTreeMap::from([(1, 790), (2, 370), (3, 300)]));
+    assert_eq!(
+        latencies(&with_hint),
+        BTreeMap::from([(1, 790), (2, 370), (3, 300)])
+    );
     cfg.hints = false;
     let without = simulate(&contention(), &cfg).unwrap();
-    assert_eq!(latencies(&without), BTreeMap::from([(1, 690), (2, 470), (3, 300)]));
+    assert_eq!(
+        latencies(&without),
+        BTreeMap::from([(1, 690), (2, 470), (3, 300)])
+    );
 }
 
 #[test]
@@ -303,13 +354,19 @@ fn srw_lets_a_request_with_slack_wait_for_one_that_is_due() {
         &config("fifo", STATIC, load.clone(), vec![flat_engine(100.0, 1)]),
     )
     .unwrap();
-    assert_eq!(latencies(&fifo), BTreeMap::from([(1, 1200), (2, 500), (3, 150)]));
+    assert_eq!(
+        latencies(&fifo),
+        BTreeMap::from([(1, 1200), (2, 500), (3, 150)])
+    );
     let srw = simulate(
         &traces,
         &config("srw", STATIC, load, vec![flat_engine(100.0, 1)]),
     )
     .unwrap();
-    assert_eq!(latencies(&srw), BTreeMap::from([(1, 1200), (2, 400), (3, 150)]));
+    assert_eq!(
+        latencies(&srw),
+        BTreeMap::from([(1, 1200), (2, 400), (3, 150)])
+    );
 }
 
 #[test]

@@ -169,8 +169,8 @@ fn record(
     let n = w.robot.chunk_len;
     let hz = w.robot.control_hz;
     let generation = w.edge_profile().latency(1);
-    let mut horizon = ReplayHorizon::new(setting)
-        .map_err(|source| GenerateError::Horizon { task, source })?;
+    let mut horizon =
+        ReplayHorizon::new(setting).map_err(|source| GenerateError::Horizon { task, source })?;
     let dynamic = setting.policy != "static";
     let mut exec = Execution::new(hz);
     let mut rounds: Vec<RoundTrace> = Vec::new();
@@ -292,7 +292,12 @@ mod tests {
             assert_eq!(pair[0].setting, STATIC);
             assert_eq!(pair[1].setting, DYNAMIC);
             assert_eq!(pair[0].total_actions, pair[1].total_actions);
-            assert!(pair[0].rounds.iter().all(|r| r.horizon == w.horizon.static_h));
+            assert!(
+                pair[0]
+                    .rounds
+                    .iter()
+                    .all(|r| r.horizon == w.horizon.static_h)
+            );
             assert!(pair[1].rounds.iter().all(|r| r.horizon >= w.horizon.h_min));
             // Every action is executed exactly once.
             for t in pair {
@@ -321,6 +326,9 @@ mod tests {
         let at_least_2x = ratios.iter().filter(|&&r| r >= 2.0 - 1e-9).count() as f64;
         let share = at_least_2x / ratios.len() as f64;
         // tiny(): P(ratio >= 2) = 0.5 per round (the clamp to chunk_len and rounding blur it).
-        assert!((0.4..0.6).contains(&share), "share of rounds >= 2x: {share}");
+        assert!(
+            (0.4..0.6).contains(&share),
+            "share of rounds >= 2x: {share}"
+        );
     }
 }

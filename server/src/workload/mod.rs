@@ -250,7 +250,10 @@ impl Workload {
             return Err(self.invalid("horizon.phase_mean_s", "must be positive"));
         }
         validate_cdf(&h.ratio_cdf).map_err(|e| self.invalid("horizon.ratio_cdf", e))?;
-        for (field, e) in [("engines.edge", &self.engines.edge), ("engines.cloud", &self.engines.cloud)] {
+        for (field, e) in [
+            ("engines.edge", &self.engines.edge),
+            ("engines.cloud", &self.engines.cloud),
+        ] {
             validate_engine(e).map_err(|reason| self.invalid(field, reason))?;
         }
         let n = &self.network;
@@ -290,7 +293,7 @@ impl Workload {
                 "tasks_per_run and fleet_tasks must be at least 1",
             ));
         }
-        if x.fleet_sizes.is_empty() || x.fleet_sizes.iter().any(|&n| n == 0) {
+        if x.fleet_sizes.is_empty() || x.fleet_sizes.contains(&0) {
             return Err(self.invalid("experiments.fleet_sizes", "must be non-empty, each >= 1"));
         }
         Ok(())
@@ -349,7 +352,7 @@ fn validate_engine(e: &EngineSpecFile) -> Result<(), String> {
         }
     }
     for &[b, ms] in &e.points {
-        if b.fract() != 0.0 || b < 1.0 || b > 4096.0 {
+        if b.fract() != 0.0 || !(1.0..=4096.0).contains(&b) {
             return Err(format!("batch {b} is not a whole number in 1..=4096"));
         }
         if !(ms > 0.0 && ms.is_finite()) {
@@ -366,10 +369,16 @@ fn validate_cdf(points: &[[f64; 2]]) -> Result<(), String> {
     let Some(last) = points.last() else {
         return Err("needs at least one point".into());
     };
-    if points.iter().any(|[r, p]| !(r.is_finite() && *r > 0.0 && (0.0..=1.0).contains(p))) {
+    if points
+        .iter()
+        .any(|[r, p]| !(r.is_finite() && *r > 0.0 && (0.0..=1.0).contains(p)))
+    {
         return Err("ratios must be positive, probabilities in [0, 1]".into());
     }
-    if points.windows(2).any(|w| w[1][0] <= w[0][0] || w[1][1] < w[0][1]) {
+    if points
+        .windows(2)
+        .any(|w| w[1][0] <= w[0][0] || w[1][1] < w[0][1])
+    {
         return Err("ratios must increase and probabilities must not decrease".into());
     }
     if last[1] != 1.0 {
@@ -448,7 +457,6 @@ mod tests {
     use super::tests_support::MINIMAL;
     use super::*;
 
-
     #[test]
     fn minimal_workload_parses() {
         let w = Workload::parse(MINIMAL, "inline").unwrap();
@@ -462,10 +470,26 @@ mod tests {
         let cases = [
             ("static = 6", "static = 60", "horizon.static"),
             ("h_min = 3", "h_min = 7", "horizon.h_min"),
-            ("[[1.0, 0.2], [2.0, 0.5], [3.0, 1.0]]", "[[1.0, 0.2], [2.0, 0.5]]", "ratio_cdf"),
-            ("[[1, 50.0], [4, 80.0]]", "[[1, 50.0], [4, 30.0]]", "engines.edge"),
-            ("rates = [0.5, 1.0]", "rates = [1.0, 0.5]", "experiments.rates"),
-            ("trigger_fraction = 0.5", "trigger_fraction = 0", "trigger_fraction"),
+            (
+                "[[1.0, 0.2], [2.0, 0.5], [3.0, 1.0]]",
+                "[[1.0, 0.2], [2.0, 0.5]]",
+                "ratio_cdf",
+            ),
+            (
+                "[[1, 50.0], [4, 80.0]]",
+                "[[1, 50.0], [4, 30.0]]",
+                "engines.edge",
+            ),
+            (
+                "rates = [0.5, 1.0]",
+                "rates = [1.0, 0.5]",
+                "experiments.rates",
+            ),
+            (
+                "trigger_fraction = 0.5",
+                "trigger_fraction = 0",
+                "trigger_fraction",
+            ),
             ("min_s = 1.0", "min_s = 4.0", "tasks"),
         ];
         for (from, to, field) in cases {
@@ -478,9 +502,12 @@ mod tests {
 
     #[test]
     fn unknown_fields_and_bad_toml_are_refused_with_a_location() {
-        let err = Workload::parse(&MINIMAL.replace("pool = 4", "pool = 4\npoool = 5"), "w.toml")
-            .unwrap_err()
-            .to_string();
+        let err = Workload::parse(
+            &MINIMAL.replace("pool = 4", "pool = 4\npoool = 5"),
+            "w.toml",
+        )
+        .unwrap_err()
+        .to_string();
         assert!(err.contains("w.toml") && err.contains("poool"), "{err}");
         let err = Workload::parse("name = ", "w.toml").unwrap_err();
         assert!(matches!(err, WorkloadError::Parse { .. }));
@@ -507,6 +534,10 @@ mod tests {
                 n += 1;
             }
         }
-        assert!(n >= 6, "expected the six paper workloads in {}", dir.display());
+        assert!(
+            n >= 6,
+            "expected the six paper workloads in {}",
+            dir.display()
+        );
     }
 }

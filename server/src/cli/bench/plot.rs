@@ -42,6 +42,8 @@ struct Panel {
     series: Vec<Series>,
     /// Fixed y range (for CDFs).
     y_range: Option<(f64, f64)>,
+    /// Where the legend goes.
+    legend: SeriesLabelPosition,
 }
 
 fn color(key: &str, fallback: usize) -> RGBColor {
@@ -70,7 +72,12 @@ fn color(key: &str, fallback: usize) -> RGBColor {
 
 /// Panels of an x-sweep experiment, one per workload, for the variants in `keys` (all when
 /// empty).
-fn sweep_panels(report: &Report<'_>, experiment: Experiment, x_desc: &str, keys: &[&str]) -> Vec<Panel> {
+fn sweep_panels(
+    report: &Report<'_>,
+    experiment: Experiment,
+    x_desc: &str,
+    keys: &[&str],
+) -> Vec<Panel> {
     let mut panels = Vec::new();
     for (wi, w) in report.workloads.iter().enumerate() {
         let variants = report.variants(wi, experiment);
@@ -108,6 +115,7 @@ fn sweep_panels(report: &Report<'_>, experiment: Experiment, x_desc: &str, keys:
             x_labels: None,
             series,
             y_range: None,
+            legend: SeriesLabelPosition::UpperLeft,
         });
     }
     panels
@@ -146,6 +154,7 @@ fn category_panels(report: &Report<'_>, experiment: Experiment, x_desc: &str) ->
                 bars: true,
             }],
             y_range: None,
+            legend: SeriesLabelPosition::UpperLeft,
         });
     }
     panels
@@ -186,6 +195,7 @@ fn cdf_panels(report: &Report<'_>, keys: &[&str]) -> Vec<Panel> {
             x_labels: None,
             series,
             y_range: Some((0.0, 1.0)),
+            legend: SeriesLabelPosition::LowerRight,
         });
     }
     panels
@@ -229,7 +239,11 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> a
                 String::new()
             }
         }
-        None => format!("{x}"),
+        None => {
+            // Shortest decimal form, without binary-fraction noise (0.30000000000000004).
+            let v = (x * 1e6).round() / 1e6;
+            format!("{v}")
+        }
     };
     let n_labels = p.x_labels.as_ref().map_or(6, |l| l.len() * 4 + 1);
     chart
@@ -238,6 +252,13 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> a
         .y_desc(p.y_desc.as_str())
         .x_labels(n_labels)
         .x_label_formatter(&x_fmt)
+        .y_label_formatter(&|y: &f64| {
+            if p.y_range.is_some() {
+                format!("{y:.1}")
+            } else {
+                format!("{y:.0}")
+            }
+        })
         .label_style((FAMILY, 12))
         .axis_desc_style((FAMILY, 13))
         .light_line_style(WHITE.mix(0.0))
@@ -266,11 +287,21 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> a
         if s.bars {
             chart
                 .draw_series(s.points.iter().map(|pt| {
-                    ErrorBar::new_vertical(pt.x + dx, pt.lo, pt.mid, pt.hi, s.color.stroke_width(1), 6)
+                    ErrorBar::new_vertical(
+                        pt.x + dx,
+                        pt.lo,
+                        pt.mid,
+                        pt.hi,
+                        s.color.stroke_width(1),
+                        6,
+                    )
                 }))
                 .map_err(err)?;
             chart
-                .draw_series(line.iter().map(|&(x, y)| Circle::new((x, y), 3, s.color.filled())))
+                .draw_series(
+                    line.iter()
+                        .map(|&(x, y)| Circle::new((x, y), 3, s.color.filled())),
+                )
                 .map_err(err)?;
         }
     }
@@ -280,14 +311,17 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> a
             .label_font((FAMILY, 11))
             .background_style(WHITE.mix(0.85))
             .border_style(BLACK.mix(0.3))
-            .position(SeriesLabelPosition::UpperLeft)
+            .position(p.legend.clone())
             .draw()
             .map_err(err)?;
     }
     Ok(())
 }
 
-fn draw_grid<DB: DrawingBackend>(root: DrawingArea<DB, Shift>, panels: &[Panel]) -> anyhow::Result<()> {
+fn draw_grid<DB: DrawingBackend>(
+    root: DrawingArea<DB, Shift>,
+    panels: &[Panel],
+) -> anyhow::Result<()> {
     root.fill(&WHITE).map_err(err)?;
     let cols = panels.len().clamp(1, 3);
     let rows = panels.len().div_ceil(cols).max(1);
@@ -324,11 +358,31 @@ pub fn all(report: &Report<'_>, out: &Path) -> anyhow::Result<()> {
     });
     registered?;
     let main = ["fifo", "autellix", "kairos", "srw", "srw-hint"];
-    render(out, "online", &sweep_panels(report, Experiment::Online, "arrival rate (tasks/s)", &main))?;
-    render(out, "fleet", &sweep_panels(report, Experiment::Fleet, "robots", &[]))?;
-    render(out, "hybrid", &sweep_panels(report, Experiment::Hybrid, "arrival rate (tasks/s)", &[]))?;
-    render(out, "buckets", &category_panels(report, Experiment::Buckets, "wait-ratio buckets"))?;
-    render(out, "intra", &category_panels(report, Experiment::Intra, "intra-bucket order"))?;
+    render(
+        out,
+        "online",
+        &sweep_panels(report, Experiment::Online, "arrival rate (tasks/s)", &main),
+    )?;
+    render(
+        out,
+        "fleet",
+        &sweep_panels(report, Experiment::Fleet, "robots", &[]),
+    )?;
+    render(
+        out,
+        "hybrid",
+        &sweep_panels(report, Experiment::Hybrid, "arrival rate (tasks/s)", &[]),
+    )?;
+    render(
+        out,
+        "buckets",
+        &category_panels(report, Experiment::Buckets, "wait-ratio buckets"),
+    )?;
+    render(
+        out,
+        "intra",
+        &category_panels(report, Experiment::Intra, "intra-bucket order"),
+    )?;
     render(out, "cdf", &cdf_panels(report, &main))?;
     Ok(())
 }
