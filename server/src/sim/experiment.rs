@@ -668,14 +668,14 @@ impl Report<'_> {
     /// Every job as one CSV row.
     pub fn csv(&self) -> String {
         let mut s = String::from(
-            "workload,experiment,x,variant,policy,setting,hints,tasks,p25_s,mean_s,p50_s,p95_s,p99_s,max_s,rounds_per_task,mean_batch,refetch_share,cloud_share,mean_queue_s\n",
+            "workload,experiment,x,variant,policy,setting,hints,tasks,p25_s,mean_s,p50_s,p95_s,p99_s,max_s,rounds_per_task,mean_batch,refetch_share,cloud_share,mean_queue_s,events\n",
         );
         for (j, r) in self.jobs.iter().zip(self.results) {
             let w = &self.workloads[j.workload];
             let m = &r.summary;
             let _ = writeln!(
                 s,
-                "{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.2},{:.3},{:.4},{:.4},{:.4}",
+                "{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.2},{:.3},{:.4},{:.4},{:.4},{}",
                 w.name,
                 j.experiment.name(),
                 j.x,
@@ -694,7 +694,8 @@ impl Report<'_> {
                 r.mean_batch,
                 r.refetch_share,
                 r.cloud_share,
-                r.mean_queue_s
+                r.mean_queue_s,
+                r.events
             );
         }
         s
