@@ -132,10 +132,10 @@ pub struct RoundTrace {
 #[derive(Debug, thiserror::Error)]
 pub enum TraceError {
     /// Reading or writing the file failed.
-    #[error("trace I/O failed: {0}")]
+    #[error("trace I/O failed")]
     Io(#[from] std::io::Error),
     /// A line is not valid JSON for its record type.
-    #[error("line {line}: {source}")]
+    #[error("line {line} is not a valid trace record")]
     Parse {
         /// 1-based line number.
         line: usize,

@@ -130,7 +130,9 @@ async fn agree(latency_ms: u64, horizon: u32, trigger: f32, rounds: u64) {
         ..RunnerConfig::default()
     });
     let summary = runner
-        .run(&mut robot, transport, |event| recorder.on_event(event).unwrap())
+        .run(&mut robot, transport, |event| {
+            recorder.on_event(event).unwrap()
+        })
         .await
         .unwrap();
     let live = TraceSet::read(recorder.finish().unwrap().as_slice()).unwrap();
@@ -166,7 +168,11 @@ async fn agree(latency_ms: u64, horizon: u32, trigger: f32, rounds: u64) {
             .map(|r| (r.issued_at_action, r.horizon, r.executed, r.round_trip_us))
             .collect::<Vec<_>>()
     };
-    assert_eq!(key(replayed), key(recorded), "latency {latency_ms} ms, H {horizon}");
+    assert_eq!(
+        key(replayed),
+        key(recorded),
+        "latency {latency_ms} ms, H {horizon}"
+    );
     let sim_latency_us = (sim.tasks[0].latency_s * 1e6).round() as u64;
     assert_eq!(sim_latency_us, summary.latency_us(), "end-to-end latency");
 }
