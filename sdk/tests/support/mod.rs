@@ -37,6 +37,8 @@ pub struct Behavior {
     pub fetch_observation: bool,
     /// Answer this round with an `Error` frame instead of a reply.
     pub fail_round: Option<(u64, ErrorCode)>,
+    /// QUIC tuning of the server side.
+    pub tuning: TransportTuning,
 }
 
 impl Default for Behavior {
@@ -50,6 +52,7 @@ impl Default for Behavior {
             kill: None,
             fetch_observation: false,
             fail_round: None,
+            tuning: TransportTuning::default(),
         }
     }
 }
@@ -92,7 +95,7 @@ impl Responder {
         let key = PrivateKeyDer::Pkcs8(PrivatePkcs8KeyDer::from(
             certified.signing_key.serialize_der(),
         ));
-        let config = server_config(vec![cert], key, &TransportTuning::default(), 16).unwrap();
+        let config = server_config(vec![cert], key, &behavior.tuning, 64).unwrap();
         let endpoint =
             quinn::Endpoint::server(config, SocketAddr::from(([127, 0, 0, 1], 0))).unwrap();
         let addr = endpoint.local_addr().unwrap();
