@@ -71,6 +71,8 @@ pub struct Seen {
     pub last_exec: Vec<(u64, LastExecInfo)>,
     pub ended: Vec<(u64, TaskOutcome)>,
     pub killed: bool,
+    /// Stream codes of rounds the client abandoned: (round, STOP_SENDING code).
+    pub cancelled: Vec<(u64, u64)>,
 }
 
 pub struct Responder {
@@ -279,7 +281,15 @@ async fn serve_stream(
                     other => panic!("expected FreshObservation, got {other:?}"),
                 }
             }
-            tokio::time::sleep(behavior.generation).await;
+            tokio::select! {
+                () = tokio::time::sleep(behavior.generation) => {}
+                stopped = send.stopped() => {
+                    if let Ok(Some(code)) = stopped {
+                        seen.lock().unwrap().cancelled.push((submit.round, code.into_inner()));
+                    }
+                    return;
+                }
+            }
             let h = behavior.horizon;
             let values: Vec<f32> = (0..h * behavior.action_dim)
                 .map(|i| submit.round as f32 + i as f32 / 1000.0)
