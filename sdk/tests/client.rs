@@ -88,6 +88,20 @@ async fn wrong_token_is_unauthorized() {
 }
 
 #[tokio::test]
+async fn a_server_speaking_another_version_is_refused() {
+    let responder = Responder::start(Behavior {
+        welcome_protocol: 2,
+        ..Behavior::default()
+    });
+    let error = Client::connect(config(&responder)).await.unwrap_err();
+    assert!(
+        matches!(&error, ClientError::VersionMismatch { client: 1, server } if server.contains('2')),
+        "got {error:?}"
+    );
+    assert!(!error.is_retryable());
+}
+
+#[tokio::test]
 async fn connect_to_nothing_times_out() {
     let socket = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
     let addr = socket.local_addr().unwrap();

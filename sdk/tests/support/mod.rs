@@ -39,6 +39,8 @@ pub struct Behavior {
     pub fail_round: Option<(u64, ErrorCode)>,
     /// QUIC tuning of the server side.
     pub tuning: TransportTuning,
+    /// The version `Welcome` announces.
+    pub welcome_protocol: u32,
 }
 
 impl Default for Behavior {
@@ -53,6 +55,7 @@ impl Default for Behavior {
             fetch_observation: false,
             fail_round: None,
             tuning: TransportTuning::default(),
+            welcome_protocol: PROTOCOL_VERSION,
         }
     }
 }
@@ -155,7 +158,7 @@ async fn serve_connection(
         return;
     }
     let welcome = Welcome {
-        protocol: PROTOCOL_VERSION,
+        protocol: behavior.welcome_protocol,
         server: "test-responder".to_owned(),
         robot: "robot-0".to_owned(),
         model: ModelInfo {
