@@ -15,7 +15,7 @@ enum Command {
     /// Print the protocol version and build information.
     Info,
     /// Run a fleet of simulated robots against a server.
-    Robot(kairos_server::cli::robot::RobotArgs),
+    Robot(Box<kairos_server::cli::robot::RobotArgs>),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -30,6 +30,6 @@ fn main() -> anyhow::Result<()> {
             );
             Ok(())
         }
-        Command::Robot(args) => kairos_server::cli::robot::run(args),
+        Command::Robot(args) => kairos_server::cli::robot::run(*args),
     }
 }

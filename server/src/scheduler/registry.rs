@@ -5,7 +5,7 @@
 //! in serde), [`build`] turns it into a policy, validating every parameter.
 //!
 //! Adding a native policy: write `scheduler/<name>.rs` implementing
-//! [`PriorityPolicy`](super::PriorityPolicy), declare it in `scheduler/mod.rs`, and add one
+//! [`PriorityPolicy`], declare it in `scheduler/mod.rs`, and add one
 //! [`PolicyFactory`] line to [`BUILTIN`] whose `build` reads its parameters through
 //! [`PolicySpec::take`] helpers and ends with [`PolicySpec::finish`].
 
