@@ -14,6 +14,7 @@ pub mod client;
 pub mod protocol;
 pub mod robot;
 pub mod tls;
+pub mod trace;
 pub mod transport;
 
 pub use blocking::{BlockingClient, BlockingTask};
