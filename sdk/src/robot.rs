@@ -152,7 +152,7 @@ pub struct ChunkApplied {
     /// Actions of the new chunk that will execute (0 if it was entirely stale).
     pub executable: u32,
     /// The chunk that stopped executing because of this one: (round, actions executed, actions
-    /// dropped unexecuted).
+    /// dropped unexecuted). `None` if no chunk was executing (none yet, or it had run out).
     pub replaced: Option<(u64, u32, u32)>,
 }
 
@@ -271,9 +271,11 @@ impl ChunkExecutor {
                 replaced: None,
             };
         }
+        // A chunk that already ran out ended then; only one still executing is replaced.
         let replaced = self
             .chunk
             .take()
+            .filter(|old| old.remaining() > 0)
             .map(|old| (old.round, as_u32(old.executed()), as_u32(old.remaining())));
         let executable = actions.len() - discarded;
         self.chunk = Some(ActiveChunk {
@@ -1074,7 +1076,10 @@ mod tests {
         assert_eq!(info.exec_started_at_us, 0);
         let applied = executor.reply_arrived(1, chunk(1, 4));
         assert_eq!(applied.discarded, 0);
-        assert_eq!(applied.replaced, Some((0, 2, 0)));
+        assert_eq!(
+            applied.replaced, None,
+            "the old chunk ended when it ran out"
+        );
     }
 
     #[test]

@@ -255,6 +255,15 @@ async fn async_inference_triggers_at_half_and_aligns_chunks() {
         dropped: 2
     }));
     assert!(matches!(events.last(), Some(RunnerEvent::TaskFinished(_))));
+    let mut ended: Vec<u64> = events
+        .iter()
+        .filter_map(|event| match event {
+            RunnerEvent::ChunkEnded { round, .. } => Some(*round),
+            _ => None,
+        })
+        .collect();
+    ended.sort_unstable();
+    assert_eq!(ended, [0, 1, 2], "each chunk ends exactly once");
 }
 
 #[tokio::test(start_paused = true)]
@@ -262,10 +271,23 @@ async fn synchronous_inference_idles_through_every_generation() {
     let transport = Scripted::new(250, 4);
     let seen = transport.seen.clone();
     let mut robot = Recorder::new(transport.clock);
+    let mut ended = Vec::new();
     let summary = runner(1.0, 3)
-        .run(&mut robot, transport, |_| {})
+        .run(&mut robot, transport, |event| {
+            if let RunnerEvent::ChunkEnded {
+                round,
+                executed,
+                dropped,
+                ..
+            } = event
+            {
+                ended.push((*round, *executed, *dropped));
+            }
+        })
         .await
         .unwrap();
+    // Chunks that ran out end once, when their last action starts, not again when replaced.
+    assert_eq!(ended, [(0, 4, 0), (1, 4, 0), (2, 4, 0)]);
     let sent: Vec<u64> = seen.lock().unwrap().iter().map(|s| s.sent_at_ms).collect();
     // Each round: 250 ms generation, then 4 actions at 100 ms; the request follows the last.
     assert_eq!(sent, [0, 550, 1100]);
