@@ -371,7 +371,8 @@ pub enum RunnerEvent {
         /// The Last Exec Info sent.
         last_exec: Option<LastExecInfo>,
     },
-    /// The server asked for a fresher observation and got one.
+    /// The server asked for a fresher observation and got one. The round's chunk is aligned to
+    /// this capture from now on (see the module docs).
     ObservationRefetched {
         /// Task id.
         task: u64,
@@ -379,6 +380,9 @@ pub enum RunnerEvent {
         round: u64,
         /// When.
         at_us: u64,
+        /// Actions the task had executed when the fresh observation was captured: the action
+        /// index the chunk's action 0 now corresponds to.
+        actions_executed: u64,
     },
     /// A round's chunk arrived and was aligned.
     ReplyReceived {
@@ -696,6 +700,7 @@ impl<R: Robot, T: RoundTransport, E: FnMut(&RunnerEvent) + Send> Run<'_, R, T, E
                 task: self.task,
                 round: pending.round,
                 at_us: now_us,
+                actions_executed: self.executor.executed_total(),
             });
         }
         // The round may have ended meanwhile; then nobody needs the observation.

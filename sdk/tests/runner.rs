@@ -312,8 +312,14 @@ async fn a_refetched_observation_moves_the_alignment_point() {
     let mut refetched = Vec::new();
     let summary = runner(0.5, 2)
         .run(&mut robot, transport, |event| {
-            if let RunnerEvent::ObservationRefetched { round, at_us, .. } = event {
-                refetched.push((*round, *at_us / 1000));
+            if let RunnerEvent::ObservationRefetched {
+                round,
+                at_us,
+                actions_executed,
+                ..
+            } = event
+            {
+                refetched.push((*round, *at_us / 1000, *actions_executed));
             }
         })
         .await
@@ -321,7 +327,8 @@ async fn a_refetched_observation_moves_the_alignment_point() {
     // Round 1 is sent at 820 ms (5 actions after 420); re-fetched at 1030 ms, after the actions
     // at 920 and 1020; it arrives at 1240 after those at 1120 and 1220: 2 slots used since the
     // re-fetch, not 4.
-    assert_eq!(refetched, [(1, 1030)]);
+    // 5 actions before the request, 2 more before the re-fetch.
+    assert_eq!(refetched, [(1, 1030, 7)]);
     assert_eq!(summary.rounds[1].discarded, 2);
     assert_eq!(summary.rounds[1].refetches, 1);
 }

@@ -241,6 +241,24 @@ async fn observation_frame_bytes(
     Ok(u32::try_from(bytes).unwrap_or(u32::MAX))
 }
 
+type Recorder = Mutex<RunnerTraceRecorder<std::io::BufWriter<std::fs::File>>>;
+
+/// Feeds `event` to the trace recorder, if recording.
+fn record(recorder: Option<&Recorder>, event: &RunnerEvent) -> Result<(), String> {
+    let Some(recorder) = recorder else {
+        return Ok(());
+    };
+    match recorder.lock() {
+        Ok(mut recorder) => recorder.on_event(event).map_err(|error| error.to_string()),
+        Err(_) => Err("the trace recorder panicked".to_owned()),
+    }
+}
+
+/// Prints a line above the progress bar (or plainly when the bar is hidden, e.g. not a TTY).
+fn note(progress: &ProgressBar, line: String) {
+    progress.suspend(|| eprintln!("{line}"));
+}
+
 /// What the trace records about every task of this run.
 fn record_setup(args: &RobotArgs, obs_bytes: u32) -> RecordSetup {
     let policy = args.horizon.clone().unwrap_or_else(|| "default".to_owned());
@@ -345,14 +363,11 @@ async fn run_fleet(args: &RobotArgs) -> anyhow::Result<FleetOutcome> {
             let task = client.task(rand::random());
             let summary = runner
                 .run(&mut robot, task, |event| {
-                    if let Some(recorder) = &recorder {
-                        let recorded = match recorder.lock() {
-                            Ok(mut recorder) => recorder.on_event(event).map_err(|e| e.to_string()),
-                            Err(_) => Err("the recorder panicked".to_owned()),
-                        };
-                        if let Err(error) = recorded {
-                            progress.println(format!("robot {index}: trace not recorded: {error}"));
-                        }
+                    if let Err(error) = record(recorder.as_deref(), event) {
+                        note(
+                            &progress,
+                            format!("robot {index}: trace not recorded: {error}"),
+                        );
                     }
                     match event {
                         RunnerEvent::ReplyReceived { .. } => progress.inc(1),
@@ -361,10 +376,13 @@ async fn run_fleet(args: &RobotArgs) -> anyhow::Result<FleetOutcome> {
                             error,
                             retrying,
                             ..
-                        } => progress.println(format!(
-                            "robot {index}: round {round} failed ({}): {error}",
-                            if *retrying { "retrying" } else { "giving up" }
-                        )),
+                        } => {
+                            let what = if *retrying { "retrying" } else { "giving up" };
+                            note(
+                                &progress,
+                                format!("robot {index}: round {round} failed ({what}): {error}"),
+                            );
+                        }
                         _ => {}
                     }
                 })
