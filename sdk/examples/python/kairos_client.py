@@ -73,14 +73,23 @@ def observation(state_dim: int, step: int) -> dict:
     }
 
 
-async def request(client, messages, handle=None, finish=False):
-    """Opens a stream, sends `messages` (then finishes the send side if `finish`), and reads
+def finish(writer) -> None:
+    """Finishes our send side, unless the server already stopped it (it may, after an Error:
+    PROTOCOL.md §7); then there is nothing left to finish."""
+    try:
+        writer.write_eof()
+    except RuntimeError:
+        pass
+
+
+async def request(client, messages, handle=None, finish_after=False):
+    """Opens a stream, sends `messages` (then finishes the send side if `finish_after`), and reads
     until a final answer; `handle(kind, body)` yields the answers to anything else."""
     reader, writer = await client.create_stream()
     for kind, body in messages:
         writer.write(frame(kind, body))
-    if finish:
-        writer.write_eof()
+    if finish_after:
+        finish(writer)
     while True:
         message = await read_message(reader)
         if message is None:
@@ -110,7 +119,7 @@ async def main(address: str, pin: str, token: str, rounds: int) -> int:
             return 2
 
         kind, welcome, _ = await request(client, [("Hello", {
-            "protocol": 1, "token": token, "client": "kairos-python-example/1"})], finish=True)
+            "protocol": 1, "token": token, "client": "kairos-python-example/1"})], finish_after=True)
         if kind != "Welcome":
             print(f"refused: {welcome['code']}: {welcome['message']}", file=sys.stderr)
             return 3
@@ -120,19 +129,22 @@ async def main(address: str, pin: str, token: str, rounds: int) -> int:
         task = int.from_bytes(np.random.bytes(8), "little")
         last_exec = None
         for round_id in range(rounds):
+            # Capture first: an observation cannot be captured after the message carrying it
+            # was sent, and the server checks that.
+            captured = observation(model["state_dim"], round_id)
             submit = {"task": task, "round": round_id, "sent_at_us": now_us(),
-                      "observation": observation(model["state_dim"], round_id)}
+                      "observation": captured}
             if last_exec is not None:
                 submit["last_exec"] = last_exec
             refetches = []
 
             def on_fetch(kind, body):
                 refetches.append(body["age_us"])
-                yield "FreshObservation", {"sent_at_us": now_us(),
-                                           "observation": observation(model["state_dim"], round_id)}
+                fresh = observation(model["state_dim"], round_id)
+                yield "FreshObservation", {"sent_at_us": now_us(), "observation": fresh}
 
             kind, answer, writer = await request(client, [("Submit", submit)], on_fetch)
-            writer.write_eof()
+            finish(writer)
             if kind == "Error":
                 print(f"round {round_id}: {answer['code']}: {answer['message']}", file=sys.stderr)
                 return 4
@@ -148,7 +160,7 @@ async def main(address: str, pin: str, token: str, rounds: int) -> int:
 
         kind, ended, _ = await request(client, [("EndTask", {
             "task": task, "outcome": "done", "sent_at_us": now_us(), "last_exec": last_exec})],
-            finish=True)
+            finish_after=True)
         if kind != "TaskEnded":
             print(f"EndTask refused: {ended['code']}", file=sys.stderr)
             return 5

@@ -226,6 +226,15 @@ async fn serve_stream(
         _ => return,
     };
     submit.validate(&limits).unwrap();
+    if submit.observation.captured_at_us > submit.sent_at_us {
+        let error = ErrorReply::new(
+            ErrorCode::InvalidRequest,
+            "observation captured after the message was sent",
+        );
+        let _ = write_message(&mut send, &Message::Error(error), limits.max_frame).await;
+        let _ = send.finish();
+        return;
+    }
     let key = (submit.task, submit.round);
     let kill_here = |point: Kill| {
         let mut seen = seen.lock().unwrap();
