@@ -109,6 +109,12 @@ pub struct RoundTrace {
     /// executed when it sent the request (0 for the first round). Replay issues the request at
     /// this index, whatever the load.
     pub issued_at_action: u32,
+    /// Task-wide action index the chunk's action 0 corresponds to, when that is later than
+    /// `issued_at_action`: the server re-fetched a fresher observation while the request queued,
+    /// and the chunk was generated from that one. Absent means `issued_at_action`. Replay ignores
+    /// it (a re-fetch depends on the load; the simulator models it); validation uses it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub aligned_at_action: Option<u32>,
     /// The horizon `H` the recorded setting chose for this round's chunk.
     pub horizon: u32,
     /// Actions of this chunk the robot executed (after discarding the actions whose time had
@@ -126,6 +132,13 @@ pub struct RoundTrace {
     /// With it, the horizon of any threshold setting can be recomputed on replay.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub confidence: Option<Vec<f32>>,
+}
+
+impl RoundTrace {
+    /// The action index the chunk's action 0 corresponds to (see `aligned_at_action`).
+    pub fn aligned_at_action(&self) -> u32 {
+        self.aligned_at_action.unwrap_or(self.issued_at_action)
+    }
 }
 
 /// Why a trace could not be read, written or recorded.
@@ -199,6 +212,13 @@ impl TaskTrace {
         }
         let mut covered = 0u32;
         for (i, r) in self.rounds.iter().enumerate() {
+            let aligned = r.aligned_at_action();
+            if aligned < r.issued_at_action {
+                return Err(invalid(format!(
+                    "round {i}: aligned at action {aligned} before it was issued ({})",
+                    r.issued_at_action
+                )));
+            }
             if r.horizon == 0 || r.horizon > self.chunk_len {
                 return Err(invalid(format!(
                     "round {i}: horizon {} outside 1..={}",
@@ -242,7 +262,7 @@ impl TaskTrace {
                     )));
                 }
             }
-            covered = covered.max(r.issued_at_action.saturating_add(r.horizon));
+            covered = covered.max(aligned.saturating_add(r.horizon));
         }
         if covered < self.total_actions {
             return Err(invalid(format!(
@@ -384,6 +404,14 @@ pub enum RoundEvent {
         /// Bytes of the observation sent.
         obs_bytes: u32,
     },
+    /// The server asked for a fresher observation before dispatch and got one captured after
+    /// `at_action` actions of the task: the chunk will correspond to that index.
+    Refetched {
+        /// The round id.
+        round: u64,
+        /// Actions executed in the task when the fresh observation was captured.
+        at_action: u32,
+    },
     /// The reply arrived.
     Replied {
         /// The round id.
@@ -429,6 +457,7 @@ pub struct TaskMeta {
 struct OpenRound {
     round: u64,
     issued_at_action: u32,
+    aligned_at_action: Option<u32>,
     sent_at_us: u64,
     obs_bytes: u32,
     reply: Option<(u32, u64, u64, Option<Vec<f32>>)>,
@@ -471,11 +500,27 @@ impl TaskRecording {
                 self.rounds.push(OpenRound {
                     round,
                     issued_at_action: at_action,
+                    aligned_at_action: None,
                     sent_at_us,
                     obs_bytes,
                     reply: None,
                     executed: None,
                 });
+            }
+            RoundEvent::Refetched { round, at_action } => {
+                let r = self.open(round)?;
+                if r.reply.is_some() {
+                    return Err(TraceError::Recorder(format!(
+                        "round {round} re-fetched after its reply"
+                    )));
+                }
+                if at_action < r.issued_at_action {
+                    return Err(TraceError::Recorder(format!(
+                        "round {round} re-fetched at action {at_action}, before it was issued at {}",
+                        r.issued_at_action
+                    )));
+                }
+                r.aligned_at_action = Some(at_action);
             }
             RoundEvent::Replied {
                 round,
@@ -522,6 +567,7 @@ impl TaskRecording {
                 let (horizon, received, inference, confidence) = r.reply?;
                 Some(RoundTrace {
                     issued_at_action: r.issued_at_action,
+                    aligned_at_action: r.aligned_at_action,
                     horizon,
                     executed: r.executed.unwrap_or(0),
                     gen_latency_us: inference,
@@ -620,8 +666,8 @@ struct RunnerTask {
     executed_before: u64,
     /// The chunk now executing: (round, executable actions).
     current: Option<(u64, u32)>,
-    /// Actions counted per ended chunk. The runner reports a chunk that ran out once when its
-    /// last action starts and again when a newer chunk replaces it; the later report wins.
+    /// Actions counted per ended chunk; a repeated report of the same chunk replaces the
+    /// earlier count rather than adding to it.
     ended: BTreeMap<u64, u32>,
 }
 
@@ -737,7 +783,19 @@ impl<W: Write> RunnerTraceRecorder<W> {
                 self.writer.write_task(&trace)?;
                 self.written += 1;
             }
-            E::ObservationRefetched { .. } | E::RoundFailed { .. } | E::Idle { .. } => {}
+            E::ObservationRefetched {
+                task,
+                round,
+                actions_executed,
+                ..
+            } => {
+                let t = self.task(*task)?;
+                t.recording.record(RoundEvent::Refetched {
+                    round: *round,
+                    at_action: u32::try_from(*actions_executed).unwrap_or(u32::MAX),
+                })?;
+            }
+            E::RoundFailed { .. } | E::Idle { .. } => {}
         }
         Ok(())
     }
@@ -761,6 +819,7 @@ mod tests {
     fn round(at: u32, h: u32, executed: u32) -> RoundTrace {
         RoundTrace {
             issued_at_action: at,
+            aligned_at_action: None,
             horizon: h,
             executed,
             gen_latency_us: 40_000,
@@ -1057,5 +1116,110 @@ mod tests {
         assert_eq!(got, vec![(0, 8, 5), (4, 8, 5), (9, 8, 7)]);
         assert_eq!(t.rounds[1].round_trip_us, Some(50_000));
         assert_eq!(t.rounds[2].obs_bytes, 1234);
+    }
+
+    #[test]
+    fn a_refetched_round_is_aligned_at_the_fresh_observation() {
+        use crate::protocol::messages::{LastExecInfo, Timing};
+        use crate::robot::{RoundRecord, RunnerEvent, TaskSummary};
+
+        let setup = RecordSetup {
+            setting: "static".into(),
+            horizon: HorizonSetting {
+                policy: "static".into(),
+                params: BTreeMap::from([("h".to_string(), 8.0)]),
+            },
+            control_hz: 10.0,
+            obs_bytes: 10,
+        };
+        let reply = |round, discarded| RunnerEvent::ReplyReceived {
+            task: 1,
+            record: RoundRecord {
+                round,
+                sent_at_us: 0,
+                received_at_us: 0,
+                attempts: 1,
+                refetches: 0,
+                horizon: 8,
+                chunk_len: 8,
+                discarded,
+                executed: 0,
+                policy: "static".into(),
+                timing: Timing::default(),
+            },
+        };
+        // Round 1 goes out after 4 actions of chunk 0, queues, and the server re-fetches the
+        // observation after 6. Chunk 1 arrives after 7: one action discarded, 7 executed, so the
+        // task reaches action 6 + 8 = 14. Aligned at the request (4) the chunks would only cover
+        // 12 < 14 and the trace would be rejected as inconsistent.
+        let events = [
+            RunnerEvent::RequestSent {
+                task: 1,
+                round: 0,
+                at_us: 0,
+                last_exec: None,
+            },
+            reply(0, 0),
+            RunnerEvent::RequestSent {
+                task: 1,
+                round: 1,
+                at_us: 400_000,
+                last_exec: Some(LastExecInfo {
+                    exec_started_at_us: 0,
+                    actions_remaining: 4,
+                    control_hz: 10.0,
+                }),
+            },
+            RunnerEvent::ObservationRefetched {
+                task: 1,
+                round: 1,
+                at_us: 600_000,
+                actions_executed: 6,
+            },
+            RunnerEvent::ChunkEnded {
+                task: 1,
+                round: 0,
+                executed: 7,
+                dropped: 1,
+            },
+            reply(1, 1),
+            RunnerEvent::ChunkEnded {
+                task: 1,
+                round: 1,
+                executed: 7,
+                dropped: 0,
+            },
+            RunnerEvent::TaskFinished(TaskSummary {
+                task: 1,
+                rounds: Vec::new(),
+                started_at_us: 0,
+                finished_at_us: 1_400_000,
+                actions_executed: 14,
+                idle_us: 0,
+                failed_rounds: 0,
+                server_record: None,
+            }),
+        ];
+        let mut rec = RunnerTraceRecorder::new(Vec::new(), setup).unwrap();
+        for e in &events {
+            rec.on_event(e).unwrap();
+        }
+        assert_eq!(rec.tasks_written(), 1);
+        let set = TraceSet::read(rec.finish().unwrap().as_slice()).unwrap();
+        let r = &set.tasks[0].rounds[1];
+        assert_eq!(
+            (r.issued_at_action, r.aligned_at_action, r.executed),
+            (4, Some(6), 7)
+        );
+    }
+
+    #[test]
+    fn alignment_before_the_request_is_invalid() {
+        let mut t = task();
+        t.rounds[1].aligned_at_action = Some(5);
+        t.validate().unwrap();
+        t.validate().unwrap();
+        t.rounds[1].aligned_at_action = Some(3);
+        assert!(t.validate().is_err());
     }
 }

@@ -78,6 +78,7 @@ fn task(id: u64, total: u32, rounds: &[(u32, u32)]) -> TaskTrace {
         rounds: rounds
             .iter()
             .map(|&(at, h)| RoundTrace {
+                aligned_at_action: None,
                 issued_at_action: at,
                 horizon: h,
                 executed: 0,

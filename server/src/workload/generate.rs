@@ -189,6 +189,7 @@ fn record(
         let reply_at = isolated_reply_at(w, now);
         let target = target_horizon(w, traj, obs_step);
         let mut round = RoundTrace {
+            aligned_at_action: None,
             issued_at_action: obs_step,
             horizon: 0,
             executed: 0,
