@@ -5,3 +5,5 @@ pub mod cli;
 pub mod horizon;
 pub mod scheduler;
 pub mod time;
+pub mod config;
+pub mod pool;
