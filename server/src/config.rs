@@ -14,6 +14,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use kairos_sdk::protocol::Limits;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
@@ -86,8 +87,11 @@ pub struct Config {
     pub scheduler: SchedulerSection,
     /// The horizon policy used when a request names none, and as the fallback when one fails.
     pub horizon: HorizonSection,
-    /// Size and resource limits.
-    pub limits: LimitsConfig,
+    /// Size limits on every message field (the protocol's `Limits`, sent to clients).
+    #[serde(deserialize_with = "strict_limits")]
+    pub limits: Limits,
+    /// Connection limits.
+    pub connections: ConnectionsConfig,
 }
 
 impl Default for Config {
@@ -102,7 +106,8 @@ impl Default for Config {
             engines: Vec::new(),
             scheduler: SchedulerSection::default(),
             horizon: HorizonSection::default(),
-            limits: LimitsConfig::default(),
+            limits: Limits::default(),
+            connections: ConnectionsConfig::default(),
         }
     }
 }
@@ -242,20 +247,10 @@ impl Default for HorizonSection {
     }
 }
 
-/// `[limits]`.
+/// `[connections]`: what one client may hold on the server.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
-pub struct LimitsConfig {
-    /// Largest frame body, bytes.
-    pub max_frame: u32,
-    /// Largest single image payload, bytes.
-    pub max_image_bytes: u32,
-    /// Largest instruction, bytes of UTF-8.
-    pub max_instruction_bytes: u32,
-    /// Most horizon-policy parameters per request.
-    pub max_params: u32,
-    /// Most samples per round.
-    pub max_samples: u32,
+pub struct ConnectionsConfig {
     /// Most concurrent connections; more are closed with a reason.
     pub max_connections: usize,
     /// Most concurrent round streams per connection (QUIC stream credit).
@@ -264,14 +259,9 @@ pub struct LimitsConfig {
     pub hello_timeout_ms: u64,
 }
 
-impl Default for LimitsConfig {
+impl Default for ConnectionsConfig {
     fn default() -> Self {
-        LimitsConfig {
-            max_frame: 8 << 20,
-            max_image_bytes: 4 << 20,
-            max_instruction_bytes: 4096,
-            max_params: 16,
-            max_samples: 8,
+        ConnectionsConfig {
             max_connections: 4096,
             max_streams_per_connection: 64,
             hello_timeout_ms: 5_000,
@@ -279,17 +269,30 @@ impl Default for LimitsConfig {
     }
 }
 
-impl LimitsConfig {
-    /// The limits as announced to clients in `Welcome`.
-    pub fn wire(&self) -> kairos_sdk::protocol::Limits {
-        kairos_sdk::protocol::Limits {
-            max_frame: self.max_frame,
-            max_image_bytes: self.max_image_bytes,
-            max_instruction_bytes: self.max_instruction_bytes,
-            max_params: self.max_params,
-            max_samples: self.max_samples,
-        }
+impl ConnectionsConfig {
+    /// The `Hello` deadline.
+    pub fn hello_timeout(&self) -> Duration {
+        Duration::from_millis(self.hello_timeout_ms)
     }
+}
+
+/// Deserialises `[limits]` into the protocol's [`Limits`] (announced to clients in `Welcome`),
+/// refusing keys it does not have: on the wire unknown keys are tolerated for forward
+/// compatibility, but in a config file they are typos.
+fn strict_limits<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Limits, D::Error> {
+    use serde::de::Error;
+    let table = toml::Table::deserialize(d)?;
+    let known = toml::Table::try_from(Limits::default()).map_err(D::Error::custom)?;
+    if let Some(key) = table.keys().find(|k| !known.contains_key(*k)) {
+        let expected: Vec<&str> = known.keys().map(String::as_str).collect();
+        return Err(D::Error::custom(format!(
+            "unknown field `{key}`, expected one of {}",
+            expected.join(", ")
+        )));
+    }
+    toml::Value::Table(table)
+        .try_into()
+        .map_err(D::Error::custom)
 }
 
 impl Config {
@@ -418,14 +421,15 @@ impl Config {
                 "must be at least 1".into(),
             ));
         }
-        let l = &self.limits;
+        let (l, c) = (&self.limits, &self.connections);
         for (key, value) in [
             ("limits.max_frame", u64::from(l.max_frame)),
             ("limits.max_samples", u64::from(l.max_samples)),
-            ("limits.max_connections", l.max_connections as u64),
+            ("limits.max_state_len", u64::from(l.max_state_len)),
+            ("connections.max_connections", c.max_connections as u64),
             (
-                "limits.max_streams_per_connection",
-                u64::from(l.max_streams_per_connection),
+                "connections.max_streams_per_connection",
+                u64::from(c.max_streams_per_connection),
             ),
         ] {
             if value == 0 {
@@ -618,6 +622,8 @@ mod tests {
             policy = "static"
             params = { h = 10 }
             [limits]
+            max_frame = 1000000
+            [connections]
             max_connections = 10
         "#;
         let mut c = Config::parse(text, Path::new("/etc/kairos/kairos.toml")).unwrap();
@@ -635,8 +641,9 @@ mod tests {
         assert_eq!(c.tls.cert.as_deref(), Some(Path::new("/etc/kairos/cert.pem")));
         assert_eq!(c.data_dir, PathBuf::from("/var/lib/kairos"));
         assert_eq!(c.scheduler.core().stale_after, Duration::from_millis(50));
-        assert_eq!(c.limits.max_connections, 10);
-        assert_eq!(c.limits.max_frame, LimitsConfig::default().max_frame);
+        assert_eq!(c.connections.max_connections, 10);
+        assert_eq!(c.limits.max_frame, 1_000_000);
+        assert_eq!(c.limits.max_image_bytes, Limits::default().max_image_bytes);
     }
 
     #[test]
@@ -646,6 +653,14 @@ mod tests {
             .to_string();
         assert!(err.starts_with("my.toml:"), "{err}");
         assert!(err.contains("stale_afterms"), "{err}");
+    }
+
+    #[test]
+    fn unknown_limit_is_an_error() {
+        let err = Config::parse("[limits]\nmax_fram = 5\n", Path::new("my.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("max_fram"), "{err}");
     }
 
     #[test]
