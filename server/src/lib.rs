@@ -3,6 +3,7 @@
 
 pub mod cli;
 pub mod horizon;
+pub mod lifecycle;
 pub mod scheduler;
 pub mod time;
 pub mod config;

@@ -37,8 +37,12 @@ pub struct PendingView {
     /// Σ_j W_j: the task's wait so far by the dominant-phase rule (paper Fig. "wait_time"),
     /// including the wait accrued in the round still open. See `lifecycle`.
     pub wait: Duration,
-    /// Σ_j |G_j|: generation time the task has received (Autellix's attained service).
+    /// Σ_j |G_j|: generation time the task has received (Autellix's attained service), counting
+    /// every finished generation of the task, answered or not.
     pub attained_service: Duration,
+    /// Σ time the task's requests spent queued before their forward pass started, including this
+    /// request's wait so far: the execution-unaware waiting time Autellix's anti-starvation uses.
+    pub queued: Duration,
     /// |E_last|: duration of the task's most recent execution phase, if any.
     pub last_exec: Option<Duration>,
     /// |G_last|: duration of the task's most recent generation phase, if any.
@@ -51,12 +55,11 @@ pub struct PendingView {
 
 impl PendingView {
     /// Eq. 1: `wait / (now - t_start)`, in `[0, 1]` (0 for a task that started at `now`).
+    ///
+    /// Exactly: both durations in whole microseconds, converted to `f64` and divided once, then
+    /// clamped (see [`crate::lifecycle::wait_ratio_micros`]); plugins reproduce it bit for bit.
     pub fn wait_ratio(&self, now: Timestamp) -> f64 {
-        let life = now.saturating_since(self.task_started_at).as_secs_f64();
-        if life <= 0.0 {
-            return 0.0;
-        }
-        (self.wait.as_secs_f64() / life).clamp(0.0, 1.0)
+        crate::lifecycle::wait_ratio_micros(self.wait, now.saturating_since(self.task_started_at))
     }
 }
 
