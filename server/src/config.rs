@@ -18,6 +18,7 @@ use kairos_sdk::protocol::Limits;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+use crate::scheduler::registry::PolicySpec;
 use crate::scheduler::{SchedulerConfig, Tier};
 
 /// Default listen address: loopback only, so an unconfigured server is not reachable from the
@@ -180,10 +181,9 @@ impl EngineConfig {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SchedulerSection {
-    /// Priority policy name (`kairos`, `fifo`, `plas`, or a plugin).
-    pub policy: String,
-    /// Its parameters, e.g. `{ buckets = 10, aging = 3 }`.
-    pub params: BTreeMap<String, f64>,
+    /// Priority policy and its parameters, `name` or `name:key=value,...`
+    /// (e.g. `kairos:buckets=10,aging=4`); `fifo`, `plas`, `kairos`, or a plugin's name.
+    pub policy: PolicySpec,
     /// An observation older than this at dispatch is re-fetched, in milliseconds.
     pub stale_after_ms: u64,
     /// A task with no request for this long ends as expired, in seconds.
@@ -200,8 +200,7 @@ impl Default for SchedulerSection {
     fn default() -> Self {
         let core = SchedulerConfig::default();
         SchedulerSection {
-            policy: "kairos".into(),
-            params: BTreeMap::new(),
+            policy: PolicySpec::named("kairos"),
             stale_after_ms: u64::try_from(core.stale_after.as_millis()).unwrap_or(u64::MAX),
             task_idle_timeout_s: core.task_idle_timeout.as_secs(),
             max_pending: core.max_pending,
@@ -219,6 +218,7 @@ impl SchedulerSection {
             task_idle_timeout: Duration::from_secs(self.task_idle_timeout_s),
             max_pending: self.max_pending,
             history_rounds: self.history_rounds,
+            ..SchedulerConfig::default()
         }
     }
 
@@ -401,13 +401,8 @@ impl Config {
                 ));
             }
         }
-        for (key, params) in [
-            ("scheduler.params", &self.scheduler.params),
-            ("horizon.params", &self.horizon.params),
-        ] {
-            if let Some((name, _)) = params.iter().find(|(_, v)| !v.is_finite()) {
-                return Err(invalid(format!("{key}.{name}"), "must be finite".into()));
-            }
+        if let Some((name, _)) = self.horizon.params.iter().find(|(_, v)| !v.is_finite()) {
+            return Err(invalid(format!("horizon.params.{name}"), "must be finite".into()));
         }
         if self.scheduler.max_pending == 0 {
             return Err(invalid(
@@ -615,9 +610,8 @@ mod tests {
             rtt_ms = 20
             profile = "profiles/cloud.json"
             [scheduler]
-            policy = "fifo"
+            policy = "kairos:buckets=10,aging=3"
             stale_after_ms = 50
-            params = { buckets = 10, aging = 3 }
             [horizon]
             policy = "static"
             params = { h = 10 }
@@ -641,6 +635,8 @@ mod tests {
         assert_eq!(c.tls.cert.as_deref(), Some(Path::new("/etc/kairos/cert.pem")));
         assert_eq!(c.data_dir, PathBuf::from("/var/lib/kairos"));
         assert_eq!(c.scheduler.core().stale_after, Duration::from_millis(50));
+        assert_eq!(c.scheduler.policy.name, "kairos");
+        assert_eq!(c.scheduler.policy.params["aging"], "3");
         assert_eq!(c.connections.max_connections, 10);
         assert_eq!(c.limits.max_frame, 1_000_000);
         assert_eq!(c.limits.max_image_bytes, Limits::default().max_image_bytes);

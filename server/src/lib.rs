@@ -8,3 +8,7 @@ pub mod scheduler;
 pub mod time;
 pub mod config;
 pub mod pool;
+pub mod registry;
+pub mod action;
+pub mod validation;
+pub mod driver;
