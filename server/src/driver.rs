@@ -437,6 +437,11 @@ impl Driver {
                 break;
             }
         }
+        // Commands that were already queued get their answer (a submit: `shutting_down`).
+        commands.close();
+        while let Ok(command) = commands.try_recv() {
+            self.handle(command);
+        }
         self.stats
     }
 
@@ -952,5 +957,335 @@ async fn sleep_until(deadline: Option<Instant>) {
     match deadline {
         Some(deadline) => tokio::time::sleep_until(deadline.into()).await,
         None => std::future::pending().await,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Mutex;
+
+    use kairos_engine::{ActionChunk, ActionModel, ActionRequest, EngineError, ModelSpec};
+    use kairos_sdk::protocol::{
+        EndTask, ErrorCode, LastExecInfo, Limits, Observation, Submit, TaskOutcome, Tensor,
+    };
+
+    use super::*;
+    use crate::pool::test_model::LinearFlow;
+    use crate::pool::{EngineInstance, LocalEngine};
+    use crate::registry::native_horizon_policies;
+    use crate::scheduler::SchedulerConfig;
+    use crate::scheduler::fifo::Fifo;
+    use crate::validation::Validator;
+
+    /// LinearFlow that blocks each batch until the test lets it through.
+    struct Gated {
+        inner: LinearFlow,
+        gate: Mutex<std::sync::mpsc::Receiver<()>>,
+    }
+
+    impl ActionModel for Gated {
+        fn spec(&self) -> &ModelSpec {
+            &self.inner.spec
+        }
+        fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
+            if let Ok(gate) = self.gate.lock() {
+                let _ = gate.recv();
+            }
+            self.inner.generate(batch)
+        }
+    }
+
+    struct Fixture {
+        driver: DriverHandle,
+        join: tokio::task::JoinHandle<DriverStats>,
+        stop: Option<oneshot::Sender<()>>,
+        gate: std::sync::mpsc::Sender<()>,
+        validator: Validator,
+        actions: Arc<ActionManager>,
+        /// The simulated robot's clock: 1 s ahead of the driver's, so the mapping is exercised.
+        client_clock: ClockMap,
+    }
+
+    fn fixture(stale_after: Duration) -> Fixture {
+        let (gate, gate_rx) = std::sync::mpsc::channel();
+        let model = Gated {
+            inner: LinearFlow::new(),
+            gate: Mutex::new(gate_rx),
+        };
+        let spec = model.inner.spec.clone();
+        let profile = kairos_engine::EngineProfile {
+            model: spec.name.clone(),
+            device: "cpu".into(),
+            points: vec![kairos_engine::ProfilePoint {
+                batch: 1,
+                latency_ms: 1.0,
+            }],
+            max_batch: 1,
+        };
+        let engine: Arc<dyn EngineInstance> =
+            Arc::new(LocalEngine::start("gated", Arc::new(model), profile));
+        let pool = EnginePool::new(vec![engine]).unwrap();
+        let config = SchedulerConfig {
+            stale_after,
+            ..SchedulerConfig::default()
+        };
+        let scheduler = Scheduler::new(config, pool.specs(), Box::new(Fifo));
+        let natives = native_horizon_policies();
+        let actions = Arc::new(
+            ActionManager::new(
+                natives.clone(),
+                &natives,
+                "static",
+                [("h".to_string(), 3.0)].into(),
+            )
+            .unwrap(),
+        );
+        let (stop, stop_rx) = oneshot::channel::<()>();
+        let (driver, join) = spawn(
+            scheduler,
+            pool,
+            actions.clone(),
+            DriverConfig {
+                refetch_timeout: Duration::from_millis(200),
+                ..DriverConfig::default()
+            },
+            async move {
+                let _ = stop_rx.await;
+            },
+        );
+        let client_clock = ClockMap::new(driver.clock().now(), 1_000_000, Duration::ZERO);
+        Fixture {
+            client_clock,
+            driver,
+            join,
+            stop: Some(stop),
+            gate,
+            validator: Validator {
+                spec,
+                limits: Limits::default(),
+            },
+            actions,
+        }
+    }
+
+    fn wire_submit(
+        f: &Fixture,
+        task: u64,
+        round: u64,
+        state0: f32,
+        last_exec: Option<LastExecInfo>,
+    ) -> Submit {
+        let now = f.client_now();
+        Submit {
+            task,
+            round,
+            sent_at_us: now,
+            observation: Observation {
+                captured_at_us: now,
+                state: Tensor::from_f32(vec![3], &[state0, 0.0, 0.0]).unwrap(),
+                images: Vec::new(),
+                instruction: String::new(),
+            },
+            last_exec,
+            horizon: None,
+            remaining: None,
+            attempt: 0,
+        }
+    }
+
+    impl Fixture {
+        fn client_now(&self) -> u64 {
+            self.client_clock.to_client(self.driver.clock().now())
+        }
+
+        async fn submit(
+            &self,
+            robot: u32,
+            submit: Submit,
+        ) -> (PendingRound, mpsc::Receiver<RefetchAsk>) {
+            let valid = self
+                .validator
+                .submit(submit, RobotId(robot), &self.actions, self.client_clock)
+                .unwrap();
+            let (link, asks) = mpsc::channel(1);
+            (self.driver.submit(valid, link).await.unwrap(), asks)
+        }
+
+        fn open(&self, n: usize) {
+            for _ in 0..n {
+                self.gate.send(()).unwrap();
+            }
+        }
+
+        async fn end(&self, robot: u32, task: u64) -> Result<TaskEnded, ErrorReply> {
+            let now = self.client_now();
+            let end = EndTask {
+                task,
+                outcome: TaskOutcome::Done,
+                sent_at_us: now,
+                last_exec: Some(LastExecInfo {
+                    exec_started_at_us: now,
+                    actions_remaining: 0,
+                    control_hz: 10.0,
+                }),
+            };
+            let valid = self.validator.end_task(end, self.client_clock).unwrap();
+            self.driver.end_task(RobotId(robot), valid).await.unwrap()
+        }
+    }
+
+    #[tokio::test]
+    async fn rounds_are_answered_and_a_resent_finished_round_gets_the_cached_reply() {
+        let f = fixture(Duration::from_secs(10));
+        f.open(1);
+        let (round, _asks) = f.submit(0, wire_submit(&f, 1, 0, 1.0, None)).await;
+        let reply = round.answer.await.unwrap().unwrap();
+        assert_eq!((reply.task, reply.round, reply.horizon), (1, 0, 3));
+        assert_eq!(reply.policy, "static");
+        assert_eq!(reply.actions.shape, vec![3, 2]);
+        assert_eq!(reply.timing.batch_size, 1);
+        assert!(reply.timing.total_us >= reply.timing.inference_us);
+
+        let (again, _asks) = f.submit(0, wire_submit(&f, 1, 0, 1.0, None)).await;
+        assert_eq!(again.answer.await.unwrap().unwrap(), reply);
+        let stats = f.driver.stats().await.unwrap();
+        assert_eq!((stats.replies, stats.cached_replies), (1, 1));
+        let snapshot = f.driver.snapshot(TaskId(1)).await.unwrap().unwrap();
+        assert_eq!(snapshot.generated.get(&0), Some(&1));
+        assert_eq!(snapshot.rounds_completed, 1);
+    }
+
+    #[tokio::test]
+    async fn a_round_resent_while_queued_attaches_and_is_generated_once() {
+        let f = fixture(Duration::from_secs(10));
+        // Task 1 occupies the only engine; task 2's round waits.
+        let (busy, _a) = f.submit(0, wire_submit(&f, 1, 0, 1.0, None)).await;
+        let (first, _b) = f.submit(0, wire_submit(&f, 2, 0, 2.0, None)).await;
+        let (second, _c) = f.submit(0, wire_submit(&f, 2, 0, 2.0, None)).await;
+        f.open(2);
+        busy.answer.await.unwrap().unwrap();
+        let a = first.answer.await.unwrap().unwrap();
+        let b = second.answer.await.unwrap().unwrap();
+        assert_eq!(a, b);
+        let stats = f.driver.stats().await.unwrap();
+        assert_eq!(stats.attached, 1);
+        assert_eq!(stats.replies, 2, "one generation per round");
+    }
+
+    #[tokio::test]
+    async fn detaching_the_last_waiter_withdraws_a_queued_round() {
+        let f = fixture(Duration::from_secs(10));
+        let (busy, _a) = f.submit(0, wire_submit(&f, 1, 0, 1.0, None)).await;
+        let (queued, _b) = f.submit(0, wire_submit(&f, 2, 0, 2.0, None)).await;
+        f.driver.detach(&queued).await;
+        assert_eq!(f.driver.stats().await.unwrap().cancelled, 1);
+        // The robot may send the same round again after a withdrawal.
+        let (again, _c) = f.submit(0, wire_submit(&f, 2, 0, 2.0, None)).await;
+        f.open(2);
+        busy.answer.await.unwrap().unwrap();
+        assert_eq!(again.answer.await.unwrap().unwrap().round, 0);
+    }
+
+    #[tokio::test]
+    async fn another_robot_can_neither_advance_nor_read_a_task() {
+        let f = fixture(Duration::from_secs(10));
+        f.open(1);
+        let (own, _a) = f.submit(0, wire_submit(&f, 1, 0, 1.0, None)).await;
+        own.answer.await.unwrap().unwrap();
+        // Robot 1 re-sends robot 0's finished round: no cached reply for it.
+        let (read, _b) = f.submit(1, wire_submit(&f, 1, 0, 1.0, None)).await;
+        assert_eq!(read.answer.await.unwrap().unwrap_err().code, ErrorCode::Forbidden);
+        let (advance, _c) = f.submit(1, wire_submit(&f, 1, 1, 1.0, None)).await;
+        assert_eq!(
+            advance.answer.await.unwrap().unwrap_err().code,
+            ErrorCode::Forbidden
+        );
+        assert_eq!(f.end(1, 1).await.unwrap_err().code, ErrorCode::Forbidden);
+        assert_eq!(f.end(0, 1).await.unwrap().rounds, 1);
+    }
+
+    #[tokio::test]
+    async fn task_end_returns_the_history_and_later_rounds_are_refused() {
+        let f = fixture(Duration::from_secs(10));
+        f.open(2);
+        let (r0, _a) = f.submit(0, wire_submit(&f, 7, 0, 1.0, None)).await;
+        r0.answer.await.unwrap().unwrap();
+        let exec_start = f.client_now();
+        let exec = LastExecInfo {
+            exec_started_at_us: exec_start,
+            actions_remaining: 1,
+            control_hz: 10.0,
+        };
+        let submit1 = wire_submit(&f, 7, 1, 1.0, Some(exec));
+        let sent1 = submit1.sent_at_us;
+        let (r1, _b) = f.submit(0, submit1).await;
+        r1.answer.await.unwrap().unwrap();
+        let ended = f.end(0, 7).await.unwrap();
+        assert_eq!(ended.rounds, 2);
+        assert_eq!(ended.history.len(), 2);
+        assert!(ended.history.iter().all(|r| r.generation.is_some()));
+        let first_exec = ended.history[0].execution.unwrap();
+        assert_eq!(first_exec.start_us, exec_start, "E_0 maps back to the robot's clock");
+        assert_eq!(
+            first_exec.end_us - sent1,
+            100_000,
+            "E_0 ends one action (100 ms at 10 Hz) after round 1 was sent"
+        );
+        assert!(ended.history[1].execution.is_some(), "the end report closes E_1");
+        let (late, _c) = f.submit(0, wire_submit(&f, 7, 2, 1.0, None)).await;
+        assert_eq!(late.answer.await.unwrap().unwrap_err().code, ErrorCode::UnknownTask);
+        let snapshot = f.driver.snapshot(TaskId(7)).await.unwrap().unwrap();
+        assert!(snapshot.ended);
+        assert_eq!(snapshot.history.len(), 2);
+    }
+
+    #[tokio::test]
+    async fn stale_observations_are_refetched_through_the_round_link() {
+        let f = fixture(Duration::ZERO);
+        f.open(2);
+        let (round, mut asks) = f.submit(0, wire_submit(&f, 3, 0, 1.0, None)).await;
+        let ask = asks.recv().await.unwrap();
+        let now = f.client_now();
+        let fresh = kairos_sdk::protocol::FreshObservation {
+            sent_at_us: now,
+            observation: Observation {
+                captured_at_us: now,
+                state: Tensor::from_f32(vec![3], &[50.0, 0.0, 0.0]).unwrap(),
+                images: Vec::new(),
+                instruction: String::new(),
+            },
+        };
+        let valid = f.validator.fresh(fresh, f.client_clock).unwrap();
+        ask.reply.send(valid).unwrap();
+        let reply = round.answer.await.unwrap().unwrap();
+        // LinearFlow pulls actions towards state[0]: 50 now, not 1.
+        let actions = reply.actions.to_f32().unwrap();
+        assert!(actions[0] > 10.0, "{actions:?}");
+        assert!(reply.timing.refetch_us > 0);
+
+        // A client that never answers: the queued observation is used after the deadline.
+        let (round, mut asks) = f.submit(0, wire_submit(&f, 3, 1, 1.0, None)).await;
+        let _ignored = asks.recv().await.unwrap();
+        let reply = round.answer.await.unwrap().unwrap();
+        assert!(reply.timing.refetch_us >= 200_000);
+        let stats = f.driver.stats().await.unwrap();
+        assert_eq!((stats.refetch_asked, stats.refetch_used), (2, 1));
+    }
+
+    #[tokio::test]
+    async fn shutdown_answers_accepted_rounds_and_refuses_new_ones() {
+        let mut f = fixture(Duration::from_secs(10));
+        let (running, _a) = f.submit(0, wire_submit(&f, 1, 0, 1.0, None)).await;
+        let (queued, _b) = f.submit(0, wire_submit(&f, 2, 0, 1.0, None)).await;
+        // A round trip through the driver: both rounds are accepted before the shutdown.
+        assert_eq!(f.driver.stats().await.unwrap().accepted, 2);
+        f.stop.take().unwrap().send(()).unwrap();
+        let (late, _c) = f.submit(0, wire_submit(&f, 3, 0, 1.0, None)).await;
+        assert_eq!(late.answer.await.unwrap().unwrap_err().code, ErrorCode::ShuttingDown);
+        f.open(2);
+        assert!(running.answer.await.unwrap().is_ok());
+        assert!(queued.answer.await.unwrap().is_ok());
+        let stats = f.join.await.unwrap();
+        assert_eq!(stats.replies, 2);
     }
 }
