@@ -86,32 +86,17 @@ impl Message {
 
     /// The whole frame, header included, if the body is at most `max_body` bytes.
     pub fn encode(&self, max_body: u32) -> Result<Vec<u8>, EncodeError> {
-        let kind = self.kind();
-        let mut out = vec![0u8; HEADER_LEN];
-        let written = match self {
-            Message::Hello(m) => write_body(&mut out, m),
-            Message::Welcome(m) => write_body(&mut out, m),
-            Message::Submit(m) => write_body(&mut out, m),
-            Message::FetchObservation(m) => write_body(&mut out, m),
-            Message::FreshObservation(m) => write_body(&mut out, m),
-            Message::Reply(m) => write_body(&mut out, m),
-            Message::EndTask(m) => write_body(&mut out, m),
-            Message::TaskEnded(m) => write_body(&mut out, m),
-            Message::Error(m) => write_body(&mut out, m),
-        };
-        written.map_err(|source| EncodeError::Serialize { kind, source })?;
-        let len = out.len() - HEADER_LEN;
-        let too_large = || EncodeError::TooLarge {
-            kind,
-            len,
-            max: max_body,
-        };
-        let body_len = u32::try_from(len)
-            .ok()
-            .filter(|&body_len| body_len <= max_body)
-            .ok_or_else(too_large)?;
-        out[..HEADER_LEN].copy_from_slice(&encode_header(kind, body_len));
-        Ok(out)
+        match self {
+            Message::Hello(m) => encode_body(m, max_body),
+            Message::Welcome(m) => encode_body(m, max_body),
+            Message::Submit(m) => encode_body(m, max_body),
+            Message::FetchObservation(m) => encode_body(m, max_body),
+            Message::FreshObservation(m) => encode_body(m, max_body),
+            Message::Reply(m) => encode_body(m, max_body),
+            Message::EndTask(m) => encode_body(m, max_body),
+            Message::TaskEnded(m) => encode_body(m, max_body),
+            Message::Error(m) => encode_body(m, max_body),
+        }
     }
 
     /// The message as a [`Frame`] (header not materialised).
@@ -149,37 +134,56 @@ impl Message {
     }
 }
 
-macro_rules! message_from {
-    ($($variant:ident),*) => {$(
-        impl From<$variant> for Message {
-            fn from(message: $variant) -> Message {
+/// A message body type and the frame kind it travels as.
+pub trait WireBody: Serialize + DeserializeOwned {
+    /// The frame kind.
+    const KIND: MessageKind;
+}
+
+macro_rules! wire_body {
+    ($($variant:ident => $body:ident),*) => {$(
+        impl WireBody for $body {
+            const KIND: MessageKind = MessageKind::$variant;
+        }
+
+        impl From<$body> for Message {
+            fn from(message: $body) -> Message {
                 Message::$variant(message)
             }
         }
     )*};
 }
-message_from!(
-    Hello,
-    Welcome,
-    Submit,
-    FetchObservation,
-    FreshObservation,
-    Reply,
-    EndTask,
-    TaskEnded
+wire_body!(
+    Hello => Hello,
+    Welcome => Welcome,
+    Submit => Submit,
+    FetchObservation => FetchObservation,
+    FreshObservation => FreshObservation,
+    Reply => Reply,
+    EndTask => EndTask,
+    TaskEnded => TaskEnded,
+    Error => ErrorReply
 );
 
-impl From<ErrorReply> for Message {
-    fn from(message: ErrorReply) -> Message {
-        Message::Error(message)
-    }
-}
-
-fn write_body<T: Serialize>(
-    out: &mut Vec<u8>,
-    message: &T,
-) -> Result<(), rmp_serde::encode::Error> {
-    rmp_serde::encode::write_named(out, message)
+/// One body as a whole frame, header included, without building a [`Message`] (so no copy of
+/// the body's images).
+pub fn encode_body<T: WireBody>(body: &T, max_body: u32) -> Result<Vec<u8>, EncodeError> {
+    let kind = T::KIND;
+    let mut out = vec![0u8; HEADER_LEN];
+    rmp_serde::encode::write_named(&mut out, body)
+        .map_err(|source| EncodeError::Serialize { kind, source })?;
+    let len = out.len() - HEADER_LEN;
+    let too_large = || EncodeError::TooLarge {
+        kind,
+        len,
+        max: max_body,
+    };
+    let body_len = u32::try_from(len)
+        .ok()
+        .filter(|&body_len| body_len <= max_body)
+        .ok_or_else(too_large)?;
+    out[..HEADER_LEN].copy_from_slice(&encode_header(kind, body_len));
+    Ok(out)
 }
 
 /// Decodes one message body: exactly one MessagePack map, at most [`MAX_DEPTH`] deep.

@@ -3,7 +3,7 @@
 use bytes::BytesMut;
 use quinn::{ReadError, ReadExactError, RecvStream, SendStream, WriteError};
 
-use super::codec::{EncodeError, Message};
+use super::codec::{EncodeError, Message, WireBody, encode_body};
 use super::frame::{Frame, FrameError, HEADER_LEN, parse_header};
 use super::limits::Limits;
 
@@ -100,6 +100,17 @@ pub async fn write_message(
     max_body: u32,
 ) -> Result<(), WriteFrameError> {
     let bytes = message.encode(max_body)?;
+    send.write_all(&bytes).await?;
+    Ok(())
+}
+
+/// Encodes and writes one message body (see [`encode_body`]).
+pub async fn write_body<T: WireBody>(
+    send: &mut SendStream,
+    body: &T,
+    max_body: u32,
+) -> Result<(), WriteFrameError> {
+    let bytes = encode_body(body, max_body)?;
     send.write_all(&bytes).await?;
     Ok(())
 }

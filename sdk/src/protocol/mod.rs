@@ -20,10 +20,11 @@ pub mod limits;
 pub mod messages;
 mod tensor;
 
-pub use codec::{EncodeError, MAX_DEPTH, Message};
+pub use codec::{EncodeError, MAX_DEPTH, Message, WireBody, encode_body};
 pub use frame::{Frame, FrameError, HEADER_LEN};
 pub use io::{
-    ReadFrameError, WriteFrameError, read_frame, read_message, write_frame, write_message,
+    ReadFrameError, WriteFrameError, read_frame, read_message, write_body, write_frame,
+    write_message,
 };
 pub use limits::{Limits, Validate, ValidationError};
 pub use messages::*;
