@@ -12,3 +12,4 @@ pub mod registry;
 pub mod action;
 pub mod validation;
 pub mod driver;
+pub mod transport;
