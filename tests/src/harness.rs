@@ -422,3 +422,83 @@ pub fn compare_records(log: &TaskLog) -> anyhow::Result<RecordError> {
     }
     Ok(error)
 }
+
+/// A hand-driven protocol connection: real QUIC and TLS (pinned), but frames written byte by
+/// byte by the test, for malformed-input and authentication tests.
+pub struct RawConnection {
+    /// The connection.
+    pub connection: quinn::Connection,
+    endpoint: quinn::Endpoint,
+}
+
+impl RawConnection {
+    /// Connects to `server` without saying `Hello`.
+    pub async fn open(server: &TestServer) -> anyhow::Result<RawConnection> {
+        let trust = kairos_sdk::tls::ServerTrust::Pinned(server.pin);
+        let config = kairos_sdk::transport::client_config(
+            &trust,
+            &kairos_sdk::transport::TransportTuning::default(),
+        )?;
+        let mut endpoint = quinn::Endpoint::client("127.0.0.1:0".parse()?)?;
+        endpoint.set_default_client_config(config);
+        let connection = endpoint.connect(server.addr, "kairos")?.await?;
+        Ok(RawConnection {
+            connection,
+            endpoint,
+        })
+    }
+
+    /// Connects and authenticates with `token`; returns the connection and the server's answer
+    /// to `Hello` (`Welcome` or `Error`).
+    pub async fn hello(
+        server: &TestServer,
+        token: &str,
+    ) -> anyhow::Result<(RawConnection, kairos_sdk::protocol::Message)> {
+        use kairos_sdk::protocol::{Hello, Message, PROTOCOL_VERSION};
+        let raw = RawConnection::open(server).await?;
+        let hello = Message::Hello(Hello {
+            protocol: PROTOCOL_VERSION,
+            token: token.to_string(),
+            client: "raw-test".into(),
+        });
+        let answer = raw.exchange(&hello.encode(u32::MAX)?, true).await?;
+        Ok((raw, answer))
+    }
+
+    /// Opens a stream, writes `bytes` (finishing the stream if `finish`) and reads one message.
+    pub async fn exchange(
+        &self,
+        bytes: &[u8],
+        finish: bool,
+    ) -> anyhow::Result<kairos_sdk::protocol::Message> {
+        let (mut send, mut recv) = self.connection.open_bi().await?;
+        send.write_all(bytes).await?;
+        if finish {
+            send.finish()?;
+        }
+        let limits = kairos_sdk::protocol::Limits::default();
+        let message = kairos_sdk::protocol::read_message(&mut recv, &limits)
+            .await?
+            .context("the server finished the stream without answering")?;
+        Ok(message)
+    }
+
+    /// Closes the connection.
+    pub async fn close(self) {
+        self.connection.close(quinn::VarInt::from_u32(0), b"done");
+        let _ = tokio::time::timeout(Duration::from_secs(1), self.endpoint.wait_idle()).await;
+    }
+}
+
+/// Runs one round of robot `client` (task `task`, round id `round` via a fresh task handle) and
+/// returns its reply: a check that the server still serves.
+pub async fn one_round(
+    client: &Client,
+    task: u64,
+    round: u64,
+) -> Result<kairos_sdk::client::RoundReply, kairos_sdk::client::ClientError> {
+    let mut handle = client.task_from(task, round);
+    handle
+        .submit(RoundRequest::new(observation(client, 0.0)), &mut NoRefetch)
+        .await
+}

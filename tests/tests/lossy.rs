@@ -1,0 +1,108 @@
+//! Robots behind a lossy link: 5% loss each way, delay with jitter that reorders packets, a few
+//! duplicates, and every robot rebinding to a new local port in the middle of its task (a Wi-Fi
+//! roam). Every round of every robot completes exactly once.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use kairos_sdk::protocol::HorizonSelection;
+use kairos_server::scheduler::TaskId;
+use kairos_tests::harness::{Hook, RobotPlan, ServerOptions, TestServer, run_task};
+use kairos_tests::proxy::{Impairment, Proxy, ProxyConfig};
+
+const ROBOTS: u64 = 8;
+const ROUNDS: u64 = 10;
+const REBIND_AFTER_ROUND: u64 = 4;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_round_completes_exactly_once_through_loss_reordering_and_rebinding() {
+    let server = TestServer::start(ServerOptions::default()).await.unwrap();
+    let link = Impairment {
+        loss: 0.05,
+        delay: Duration::from_millis(2),
+        jitter: Duration::from_millis(4),
+        duplicate: 0.01,
+    };
+    let proxy = Proxy::start(server.addr, ProxyConfig::symmetric(link, 2026))
+        .await
+        .unwrap();
+
+    let rebind: Hook = Arc::new(|client, round| {
+        if round == REBIND_AFTER_ROUND {
+            let socket = std::net::UdpSocket::bind("127.0.0.1:0").expect("a fresh local port");
+            client.rebind(socket).expect("rebind");
+        }
+    });
+    let mut robots = Vec::new();
+    for i in 0..ROBOTS {
+        let client = kairos_sdk::client::Client::connect(
+            server.client_config(proxy.addr(), &server.token),
+        )
+        .await
+        .unwrap();
+        let plan = RobotPlan {
+            task: 500 + i,
+            rounds: ROUNDS,
+            control_hz: 200.0,
+            send_ahead: 3,
+            horizon: Some(HorizonSelection {
+                policy: "static".into(),
+                params: BTreeMap::from([("h".to_string(), 6.0)]),
+                samples: 1,
+            }),
+            state1: 0.0,
+        };
+        let hook = rebind.clone();
+        robots.push(tokio::spawn(async move {
+            let before = client.local_addr().unwrap();
+            let log = run_task(&client, &plan, Some(hook)).await;
+            let after = client.local_addr().unwrap();
+            client.close().await;
+            (log, before, after)
+        }));
+    }
+
+    let mut resent = 0;
+    for robot in robots {
+        let (log, before, after) = robot.await.unwrap();
+        let log = log.unwrap();
+        assert_ne!(before.port(), after.port(), "task {} rebound", log.task);
+        let rounds: Vec<u64> = log.rounds.iter().map(|r| r.round).collect();
+        assert_eq!(rounds, (0..ROUNDS).collect::<Vec<_>>(), "task {}", log.task);
+        resent += log.rounds.iter().filter(|r| r.attempts > 1).count();
+        assert_eq!(u64::from(log.ended.rounds), ROUNDS, "task {}", log.task);
+        let snapshot = server
+            .server()
+            .driver
+            .snapshot(TaskId(log.task))
+            .await
+            .unwrap()
+            .unwrap();
+        let once: BTreeMap<u64, u32> = (0..ROUNDS).map(|r| (r, 1)).collect();
+        assert_eq!(snapshot.generated, once, "task {}: generations per round", log.task);
+    }
+
+    let stats = proxy.stats();
+    let lost_up = stats.to_server.lost.load(Ordering::Relaxed);
+    let lost_down = stats.to_client.lost.load(Ordering::Relaxed);
+    let reordered = stats.to_server.reordered.load(Ordering::Relaxed)
+        + stats.to_client.reordered.load(Ordering::Relaxed);
+    println!(
+        "proxy: {} packets up ({lost_up} lost), {} down ({lost_down} lost), {reordered} reordered, \
+         {} flows; {resent} rounds re-sent",
+        stats.to_server.received.load(Ordering::Relaxed),
+        stats.to_client.received.load(Ordering::Relaxed),
+        stats.flows.load(Ordering::Relaxed),
+    );
+    assert!(lost_up > 0 && lost_down > 0, "the link lost packets both ways");
+    assert!(reordered > 0, "the link reordered packets");
+    assert!(
+        stats.flows.load(Ordering::Relaxed) >= 2 * ROBOTS,
+        "every robot appeared from a second address"
+    );
+
+    let report = server.shutdown().await;
+    assert_eq!(report.driver.replies, ROBOTS * ROUNDS, "one generation per round");
+}
