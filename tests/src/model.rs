@@ -6,6 +6,10 @@
 //! action towards the state and, on the last step, pushes actions later in the chunk by
 //! `(n / N) · state[1]`, so the §3.1 threshold policy cuts the chunk at a position the robot
 //! controls through `state[1]` (0 = every action converges, `H = N`).
+//!
+//! [`TestFlow::with_latency`] makes every batch take a fixed extra time on the engine thread, to
+//! emulate a model whose forward pass is slow (e.g. to keep a round in flight while a test drops
+//! the connection); tests that use it say so.
 
 use kairos_engine::{ActionChunk, ActionModel, ActionRequest, EngineError, ModelSpec};
 use rand::{Rng, SeedableRng};
@@ -14,6 +18,7 @@ use rand::{Rng, SeedableRng};
 #[derive(Clone, Debug)]
 pub struct TestFlow {
     spec: ModelSpec,
+    latency: std::time::Duration,
 }
 
 impl TestFlow {
@@ -28,6 +33,15 @@ impl TestFlow {
                 steps: 4,
                 max_images: 2,
             },
+            latency: std::time::Duration::ZERO,
+        }
+    }
+
+    /// The same model, with every batch taking at least `latency` (emulated forward-pass time).
+    pub fn with_latency(latency: std::time::Duration) -> TestFlow {
+        TestFlow {
+            latency,
+            ..TestFlow::new()
         }
     }
 }
@@ -45,6 +59,9 @@ impl ActionModel for TestFlow {
 
     fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
         let s = &self.spec;
+        if !self.latency.is_zero() {
+            std::thread::sleep(self.latency);
+        }
         batch
             .iter()
             .map(|request| {

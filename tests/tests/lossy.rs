@@ -106,3 +106,97 @@ async fn every_round_completes_exactly_once_through_loss_reordering_and_rebindin
     let report = server.shutdown().await;
     assert_eq!(report.driver.replies, ROBOTS * ROUNDS, "one generation per round");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_connection_lost_mid_round_resumes_without_a_second_generation() {
+    // A forward pass of 200 ms (emulated by the test model) keeps each round in flight long
+    // enough for the connection to drop, the client to reconnect (50 ms backoff) and re-send.
+    let model = Arc::new(kairos_tests::model::TestFlow::with_latency(
+        Duration::from_millis(200),
+    ));
+    let server = TestServer::start_with_model(ServerOptions::default(), model)
+        .await
+        .unwrap();
+    let link = Impairment {
+        loss: 0.05,
+        delay: Duration::from_millis(1),
+        jitter: Duration::from_millis(2),
+        duplicate: 0.0,
+    };
+    let proxy = Proxy::start(server.addr, ProxyConfig::symmetric(link, 7))
+        .await
+        .unwrap();
+    const DROP_AFTER: u64 = 1;
+    // After round 1 the next request leaves (200 Hz, 6 actions, 3 sent ahead) 15 ms into the
+    // chunk; 40 ms in, that round is generating on the server.
+    let drop_mid_round: Hook = Arc::new(|client, round| {
+        if round == DROP_AFTER {
+            let client = client.clone();
+            tokio::spawn(async move {
+                tokio::time::sleep(Duration::from_millis(40)).await;
+                client.drop_connection().await;
+            });
+        }
+    });
+    let mut robots = Vec::new();
+    for i in 0..4u64 {
+        let client = kairos_sdk::client::Client::connect(
+            server.client_config(proxy.addr(), &server.token),
+        )
+        .await
+        .unwrap();
+        let plan = RobotPlan {
+            task: 700 + i,
+            rounds: 4,
+            control_hz: 200.0,
+            send_ahead: 3,
+            horizon: Some(HorizonSelection {
+                policy: "static".into(),
+                params: BTreeMap::from([("h".to_string(), 6.0)]),
+                samples: 1,
+            }),
+            state1: 0.0,
+        };
+        let hook = drop_mid_round.clone();
+        robots.push(tokio::spawn(async move {
+            let log = run_task(&client, &plan, Some(hook)).await;
+            let stats = client.stats();
+            client.close().await;
+            (log, stats)
+        }));
+    }
+    for robot in robots {
+        let (log, stats) = robot.await.unwrap();
+        let log = log.unwrap();
+        assert_eq!(log.rounds.len(), 4);
+        assert!(
+            log.rounds[DROP_AFTER as usize + 1].attempts > 1,
+            "task {}: round {} was re-sent on a new connection",
+            log.task,
+            DROP_AFTER + 1
+        );
+        assert!(stats.connects >= 2, "task {} reconnected", log.task);
+        let snapshot = server
+            .server()
+            .driver
+            .snapshot(TaskId(log.task))
+            .await
+            .unwrap()
+            .unwrap();
+        let once: BTreeMap<u64, u32> = (0..4).map(|r| (r, 1)).collect();
+        assert_eq!(snapshot.generated, once, "task {}", log.task);
+    }
+    // A re-sent round found its first copy queued (withdrawn when the old connection died, then
+    // accepted again), running (attached) or answered (cached reply) — or, when the loss ate the
+    // first copy before it arrived, nothing. Never a second generation: every extra acceptance
+    // is a withdrawal.
+    let stats = server.server().driver.stats().await.unwrap();
+    assert_eq!(stats.accepted, 16 + stats.cancelled, "{stats:?}");
+    assert!(
+        stats.attached + stats.cached_replies + stats.cancelled >= 1,
+        "no re-sent round met its first copy: {stats:?}"
+    );
+    println!("driver after the drops: {stats:?}");
+    let report = server.shutdown().await;
+    assert_eq!(report.driver.replies, 16);
+}
