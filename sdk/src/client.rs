@@ -35,6 +35,34 @@ use crate::protocol::{
 use crate::tls::{Fingerprint, PinMismatchSlot, ServerTrust, TlsConfigError};
 use crate::transport::TransportTuning;
 
+/// The client's clock: a monotonic clock (tokio's, so tests can pause it) counted in µs from an
+/// arbitrary origin. The server never compares it with its own clock directly; it maps client
+/// timestamps through each message's `sent_at_us`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Clock {
+    origin: Instant,
+}
+
+impl Clock {
+    /// A clock whose origin is now.
+    pub fn start() -> Clock {
+        Clock {
+            origin: Instant::now(),
+        }
+    }
+
+    /// Microseconds since the origin.
+    pub fn now_us(&self) -> u64 {
+        self.to_us(Instant::now())
+    }
+
+    /// An instant in µs since the origin (0 for instants before it).
+    pub fn to_us(&self, instant: Instant) -> u64 {
+        u64::try_from(instant.saturating_duration_since(self.origin).as_micros())
+            .unwrap_or(u64::MAX)
+    }
+}
+
 /// Application close codes (QUIC `CONNECTION_CLOSE` of type application) used by Kairos.
 pub mod close_code {
     /// The client or server is done with the connection.
@@ -45,11 +73,30 @@ pub mod close_code {
     pub const UNAUTHORIZED: u32 = 2;
     /// The server is shutting down; reconnect later.
     pub const SHUTTING_DOWN: u32 = 3;
+    /// The server is at its connection limit; reconnect later.
+    pub const AT_CAPACITY: u32 = 4;
 }
 
 /// Stream error code a client uses to stop a round stream it abandons (`STOP_SENDING`), so the
 /// server can drop the queued round.
 pub const ROUND_CANCELLED: u32 = 0x10;
+
+/// Stream error code a server may stop a client's send side with after answering a request with
+/// an error, so a client still uploading (e.g. an oversized frame) stops.
+pub const STREAM_REFUSED: u32 = 0x11;
+
+/// Whether a connection that ended this way is worth reconnecting (and resending) for: not when
+/// this side closed it, nor when the server closed it for a protocol violation or a bad token.
+fn reconnect_helps(error: &ConnectionError) -> bool {
+    match error {
+        ConnectionError::LocallyClosed | ConnectionError::VersionMismatch => false,
+        ConnectionError::ApplicationClosed(close) => !matches!(
+            u32::try_from(close.error_code.into_inner()),
+            Ok(close_code::PROTOCOL_ERROR | close_code::UNAUTHORIZED)
+        ),
+        _ => true,
+    }
+}
 
 /// How the client retries after losing its connection.
 #[derive(Clone, Debug, PartialEq)]
@@ -204,10 +251,7 @@ impl ClientError {
     /// server marked retryable.
     pub fn is_retryable(&self) -> bool {
         match self {
-            ClientError::Connection(error) => !matches!(
-                error,
-                ConnectionError::LocallyClosed | ConnectionError::VersionMismatch
-            ),
+            ClientError::Connection(error) => reconnect_helps(error),
             ClientError::Timeout { .. } => true,
             ClientError::Server(reply) => reply.retryable,
             _ => false,
@@ -250,7 +294,7 @@ struct Inner {
     mismatch: Option<Arc<PinMismatchSlot>>,
     session: Mutex<Option<Session>>,
     closed: AtomicBool,
-    epoch: Instant,
+    clock: Clock,
     counters: Counters,
 }
 
@@ -433,7 +477,7 @@ impl Client {
                 mismatch: tls.mismatch,
                 session: Mutex::new(None),
                 closed: AtomicBool::new(false),
-                epoch: Instant::now(),
+                clock: Clock::start(),
                 counters: Counters::default(),
             }),
         };
@@ -442,20 +486,15 @@ impl Client {
         Ok(client)
     }
 
-    /// Microseconds on this client's clock (a monotonic clock starting at `connect`). Every
-    /// timestamp sent to the server, observation capture times included, must use it.
+    /// Microseconds on this client's clock. Every timestamp sent to the server, observation
+    /// capture times included, must be on it.
     pub fn now_us(&self) -> u64 {
-        self.instant_to_us(Instant::now())
+        self.inner.clock.now_us()
     }
 
-    /// An instant on this client's clock, in µs.
-    pub fn instant_to_us(&self, instant: Instant) -> u64 {
-        u64::try_from(
-            instant
-                .saturating_duration_since(self.inner.epoch)
-                .as_micros(),
-        )
-        .unwrap_or(u64::MAX)
+    /// This client's clock.
+    pub fn clock(&self) -> Clock {
+        self.inner.clock
     }
 
     /// The `Welcome` of the current connection (model shapes, limits), if connected.
@@ -579,6 +618,15 @@ impl Client {
                 after: timeout,
             }),
         };
+        // A server that refuses the token may close the connection before its error frame is
+        // read; the close code says the same thing.
+        if let Err(ClientError::Connection(ConnectionError::ApplicationClosed(close))) = &result
+            && close.error_code.into_inner() == u64::from(close_code::UNAUTHORIZED)
+        {
+            return Err(ClientError::Unauthorized(
+                String::from_utf8_lossy(&close.reason).into_owned(),
+            ));
+        }
         // A failed handshake reports a TLS alert; the verifier knows whether it was the pin.
         if result.is_err()
             && let (Some(slot), ServerTrust::Pinned(expected)) =
@@ -818,6 +866,10 @@ impl Client {
                 Err(AttemptError::Fatal(error)) => return Err(error),
                 Err(AttemptError::ConnectionLost(error)) => {
                     self.invalidate(&session).await;
+                    if !reconnect_helps(&error) && !matches!(error, ConnectionError::LocallyClosed)
+                    {
+                        return Err(error.into());
+                    }
                     lost += 1;
                     if lost > self.inner.config.reconnect.max_attempts {
                         return Err(error.into());
@@ -921,6 +973,13 @@ impl Task {
                         if client.inner.closed.load(Ordering::Relaxed) {
                             return Err(ClientError::Closed);
                         }
+                        // `drop_connection` closes locally on purpose; any other local close
+                        // is the client going away.
+                        if !reconnect_helps(&error)
+                            && !matches!(error, ConnectionError::LocallyClosed)
+                        {
+                            return Err(ClientError::Connection(error));
+                        }
                         submit.attempt += 1;
                         if submit.attempt > client.inner.config.reconnect.max_attempts {
                             return Err(ClientError::Connection(error));
@@ -998,6 +1057,18 @@ mod tests {
     #[test]
     fn retryability() {
         assert!(ClientError::Connection(ConnectionError::TimedOut).is_retryable());
+        let closed = |code: u32| {
+            ClientError::Connection(ConnectionError::ApplicationClosed(
+                quinn::ApplicationClose {
+                    error_code: VarInt::from_u32(code),
+                    reason: bytes::Bytes::from_static(b"why"),
+                },
+            ))
+        };
+        assert!(closed(close_code::SHUTTING_DOWN).is_retryable());
+        assert!(closed(close_code::AT_CAPACITY).is_retryable());
+        assert!(!closed(close_code::UNAUTHORIZED).is_retryable());
+        assert!(!closed(close_code::PROTOCOL_ERROR).is_retryable());
         assert!(!ClientError::Connection(ConnectionError::LocallyClosed).is_retryable());
         assert!(!ClientError::Unauthorized("no".into()).is_retryable());
         assert!(ClientError::Server(ErrorReply::new(ErrorCode::Overloaded, "busy")).is_retryable());

@@ -2,5 +2,6 @@
 
 pub mod client;
 pub mod protocol;
+pub mod robot;
 pub mod tls;
 pub mod transport;

@@ -49,17 +49,20 @@ impl fmt::Debug for Fingerprint {
     }
 }
 
-/// A pin string that is not `sha256:` followed by 64 hex digits.
+/// A pin string that is not 64 hex digits, optionally prefixed `sha256:`.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 #[error("a certificate pin is `sha256:` followed by 64 hex digits, got {0:?}")]
 pub struct BadFingerprint(pub String);
 
+/// Parses `sha256:<64 hex digits>`; the bare 64 digits are accepted too (what `sha256sum`
+/// prints), since a SHA-256 digest is unambiguous either way. Surrounding whitespace is ignored.
 impl FromStr for Fingerprint {
     type Err = BadFingerprint;
 
     fn from_str(text: &str) -> Result<Fingerprint, BadFingerprint> {
         let bad = || BadFingerprint(text.to_owned());
-        let digits = text.trim().strip_prefix("sha256:").ok_or_else(bad)?;
+        let trimmed = text.trim();
+        let digits = trimmed.strip_prefix("sha256:").unwrap_or(trimmed);
         let mut bytes = [0u8; 32];
         hex::decode_to_slice(digits, &mut bytes).map_err(|_| bad())?;
         Ok(Fingerprint(bytes))
@@ -311,9 +314,11 @@ mod tests {
 
     #[test]
     fn malformed_pins_are_refused() {
-        for bad in ["", "sha256:", "sha256:abcd", "md5:00", &"0".repeat(64)] {
+        for bad in ["", "sha256:", "sha256:abcd", "md5:00", &"g".repeat(64)] {
             assert!(bad.parse::<Fingerprint>().is_err(), "{bad:?}");
         }
+        let bare = format!("{}\n", "ab".repeat(32));
+        assert_eq!(bare.parse::<Fingerprint>(), Ok(Fingerprint([0xab; 32])));
         let long = format!("sha256:{}", "0".repeat(66));
         assert!(long.parse::<Fingerprint>().is_err());
     }

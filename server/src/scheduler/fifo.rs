@@ -5,12 +5,15 @@
 //! `(arrived_at, request)` ascending — arrival time in microseconds, ties broken by the smaller
 //! `RequestId`. Nothing about the task is consulted.
 
-use super::policy::{PendingView, PolicyError, PriorityPolicy};
+use super::RequestId;
+use super::policy::{PendingView, PolicyError, PriorityPolicy, order_by_key};
 use crate::time::Timestamp;
 
 /// First come, first served.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct Fifo;
+#[derive(Clone, Debug, Default)]
+pub struct Fifo {
+    scratch: Vec<((Timestamp, RequestId), usize)>,
+}
 
 impl PriorityPolicy for Fifo {
     fn name(&self) -> &str {
@@ -23,8 +26,9 @@ impl PriorityPolicy for Fifo {
         pending: &[PendingView],
         order: &mut Vec<usize>,
     ) -> Result<(), PolicyError> {
-        order.extend(0..pending.len());
-        order.sort_unstable_by_key(|&i| (pending[i].arrived_at, pending[i].request));
+        order_by_key(pending, order, &mut self.scratch, |v| {
+            (v.arrived_at, v.request)
+        });
         Ok(())
     }
 }

@@ -27,7 +27,10 @@
 //! request with no reported execution has `ê = 0` forever and can be passed by every top-bucket
 //! request with an execution phase. docs/SCHEDULER.md derives the bound and this caveat.
 
-use super::policy::{PendingView, PolicyError, PriorityPolicy};
+use std::cmp::Reverse;
+
+use super::RequestId;
+use super::policy::{PendingView, PolicyError, PriorityPolicy, order_by_key};
 use crate::time::{Timestamp, duration_micros};
 
 /// Default number of wait-ratio buckets `B` (paper §3.2).
@@ -65,20 +68,14 @@ impl Default for KairosConfig {
     }
 }
 
-/// Sort key: priority (bucket or ratio bits) and `ê`, both descending, then arrival, id, index.
-type Key = (
-    std::cmp::Reverse<u64>,
-    std::cmp::Reverse<u128>,
-    Timestamp,
-    u64,
-    u32,
-);
+/// Sort key: priority (bucket or ratio bits) and `ê`, both descending, then arrival and id.
+type Key = (Reverse<u64>, Reverse<u128>, Timestamp, RequestId);
 
 /// Algorithm 1, phases 1–2.
 #[derive(Clone, Debug)]
 pub struct Kairos {
     config: KairosConfig,
-    keys: Vec<Key>,
+    scratch: Vec<(Key, usize)>,
 }
 
 impl Kairos {
@@ -86,7 +83,7 @@ impl Kairos {
     pub fn new(config: KairosConfig) -> Self {
         Kairos {
             config,
-            keys: Vec::new(),
+            scratch: Vec::new(),
         }
     }
 
@@ -130,27 +127,20 @@ impl PriorityPolicy for Kairos {
         pending: &[PendingView],
         order: &mut Vec<usize>,
     ) -> Result<(), PolicyError> {
-        use std::cmp::Reverse;
-        let mut keys = std::mem::take(&mut self.keys);
-        keys.clear();
-        for (i, view) in pending.iter().enumerate() {
-            let index = u32::try_from(i)
-                .map_err(|_| PolicyError::Failed("more than 2^32 pending requests".into()))?;
+        let mut scratch = std::mem::take(&mut self.scratch);
+        order_by_key(pending, order, &mut scratch, |v| {
             let exec = match self.config.intra {
-                IntraBucket::LongestExecFirst => Kairos::estimated_exec(view),
+                IntraBucket::LongestExecFirst => Kairos::estimated_exec(v),
                 IntraBucket::Fifo => 0,
             };
-            keys.push((
-                Reverse(self.priority(now, view)),
+            (
+                Reverse(self.priority(now, v)),
                 Reverse(exec),
-                view.arrived_at,
-                view.request.0,
-                index,
-            ));
-        }
-        keys.sort_unstable();
-        order.extend(keys.iter().map(|k| k.4 as usize));
-        self.keys = keys;
+                v.arrived_at,
+                v.request,
+            )
+        });
+        self.scratch = scratch;
         Ok(())
     }
 }

@@ -30,7 +30,8 @@
 //! retrieved here; β = 8 is the FastServe-derived value of the public vLLM reimplementation
 //! (kungfu-team/autellix, `plas_scheduler.py`), whose doubling thresholds we also follow.
 
-use super::policy::{PendingView, PolicyError, PriorityPolicy};
+use super::RequestId;
+use super::policy::{PendingView, PolicyError, PriorityPolicy, order_by_key};
 use crate::time::{Timestamp, duration_micros};
 
 /// PLAS configuration.
@@ -62,7 +63,7 @@ impl Default for PlasConfig {
 pub struct Plas {
     config: PlasConfig,
     thresholds: Vec<u64>,
-    keys: Vec<(u32, Timestamp, u64, u32)>,
+    scratch: Vec<((u32, Timestamp, RequestId), usize)>,
 }
 
 impl Plas {
@@ -79,7 +80,7 @@ impl Plas {
         Plas {
             config,
             thresholds,
-            keys: Vec::new(),
+            scratch: Vec::new(),
         }
     }
 
@@ -112,16 +113,11 @@ impl PriorityPolicy for Plas {
         pending: &[PendingView],
         order: &mut Vec<usize>,
     ) -> Result<(), PolicyError> {
-        let mut keys = std::mem::take(&mut self.keys);
-        keys.clear();
-        for (i, view) in pending.iter().enumerate() {
-            let index = u32::try_from(i)
-                .map_err(|_| PolicyError::Failed("more than 2^32 pending requests".into()))?;
-            keys.push((self.queue_of(view), view.arrived_at, view.request.0, index));
-        }
-        keys.sort_unstable();
-        order.extend(keys.iter().map(|k| k.3 as usize));
-        self.keys = keys;
+        let mut scratch = std::mem::take(&mut self.scratch);
+        order_by_key(pending, order, &mut scratch, |v| {
+            (self.queue_of(v), v.arrived_at, v.request)
+        });
+        self.scratch = scratch;
         Ok(())
     }
 }

@@ -107,6 +107,21 @@ pub struct FinishedTask {
     pub wait: Duration,
 }
 
+/// Fills `order` with the indices of `pending` sorted ascending by `key`, reusing `scratch`
+/// between calls. End every key with the request id: keys are then unique, the order is total,
+/// and it does not depend on the sort algorithm (what plugin twins rely on).
+pub fn order_by_key<K: Ord>(
+    pending: &[PendingView],
+    order: &mut Vec<usize>,
+    scratch: &mut Vec<(K, usize)>,
+    mut key: impl FnMut(&PendingView) -> K,
+) {
+    scratch.clear();
+    scratch.extend(pending.iter().enumerate().map(|(i, v)| (key(v), i)));
+    scratch.sort_unstable();
+    order.extend(scratch.iter().map(|&(_, i)| i));
+}
+
 /// Checks that `order` is a permutation of `0..len`: nothing omitted, nothing repeated.
 pub fn validate_order(len: usize, order: &[usize]) -> Result<(), PolicyError> {
     if order.len() != len {

@@ -252,7 +252,7 @@ pub fn parse_real(s: &str, min_exclusive: f64) -> Result<f64, String> {
 
 fn build_fifo(spec: PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
     spec.finish()?;
-    Ok(Box::new(Fifo))
+    Ok(Box::new(Fifo::default()))
 }
 
 fn build_plas(mut spec: PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
