@@ -10,10 +10,16 @@
 
 pub mod chunk;
 pub mod error;
+pub mod kernels;
 pub mod model;
+pub mod options;
 pub mod profile;
+pub mod sampler;
+pub mod smolvla;
+pub mod weights;
 
 pub use chunk::ActionChunk;
 pub use error::EngineError;
 pub use model::{ActionModel, ActionRequest, ImageFormat, ImageInput, ModelSpec};
+pub use options::{DeviceKind, EngineOptions, Kernels};
 pub use profile::{EngineProfile, ProfilePoint};

@@ -35,10 +35,14 @@ impl EngineProfile {
             return Duration::ZERO;
         }
         let ms = match self.points.iter().position(|p| p.batch >= batch) {
-            Some(0) => self.points[0].latency_ms * f64::from(batch) / f64::from(self.points[0].batch.max(1)),
+            Some(0) => {
+                self.points[0].latency_ms * f64::from(batch)
+                    / f64::from(self.points[0].batch.max(1))
+            }
             Some(i) => lerp(self.points[i - 1], self.points[i], batch),
             None if self.points.len() == 1 => {
-                self.points[0].latency_ms * f64::from(batch) / f64::from(self.points[0].batch.max(1))
+                self.points[0].latency_ms * f64::from(batch)
+                    / f64::from(self.points[0].batch.max(1))
             }
             None => {
                 let n = self.points.len();
@@ -67,9 +71,18 @@ mod tests {
             model: "m".into(),
             device: "cpu".into(),
             points: vec![
-                ProfilePoint { batch: 1, latency_ms: 100.0 },
-                ProfilePoint { batch: 4, latency_ms: 160.0 },
-                ProfilePoint { batch: 8, latency_ms: 300.0 },
+                ProfilePoint {
+                    batch: 1,
+                    latency_ms: 100.0,
+                },
+                ProfilePoint {
+                    batch: 4,
+                    latency_ms: 160.0,
+                },
+                ProfilePoint {
+                    batch: 8,
+                    latency_ms: 300.0,
+                },
             ],
             max_batch: 4,
         }
