@@ -1,8 +1,8 @@
 //! `C = init + A · B` in f32 with `B` packed once into column panels.
 //!
 //! `A` is any row-major matrix (an activation, read in place); `B` is a [`PackedMatrix`]: the
-//! right operand cut into panels of [`NR`] columns, each panel stored as `k` rows of `NR`
-//! contiguous floats, 64-byte aligned. The micro-kernel keeps an `MR x NR` block of `C` in 12
+//! right operand cut into panels of [`NR`] columns, each stored as rows of `NR` contiguous
+//! floats (64 bytes: one cache line), in blocks of `KC` rows (see [`offset`]). The micro-kernel keeps an `MR x NR` block of `C` in 12
 //! AVX2 registers and streams one panel row (two vector loads) and `MR` broadcasts of `A` per
 //! step of `k`: 12 FMAs per 8 loads. Blocking: `KC` rows of a panel (16 KiB) stay in L1 while all
 //! row tiles of an `MC`-row block of `A` (in L2) pass over them.
@@ -77,12 +77,12 @@ impl PackedMatrix {
         self.resize(k, n);
         let panels = self.panels();
         let dst = self.buf.as_mut_slice();
-        for p in 0..panels {
-            let c0 = p * NR;
-            let w = NR.min(n - c0);
-            let panel = &mut dst[p * k * NR..(p + 1) * k * NR];
-            for kk in 0..k {
-                let row = &mut panel[kk * NR..kk * NR + NR];
+        for kk in 0..k {
+            for p in 0..panels {
+                let c0 = p * NR;
+                let w = NR.min(n - c0);
+                let at = offset(k, panels, p, kk);
+                let row = &mut dst[at..at + NR];
                 row[..w].copy_from_slice(&b[kk * ldb + c0..kk * ldb + c0 + w]);
                 row[w..].fill(0.0);
             }
@@ -98,25 +98,33 @@ impl PackedMatrix {
         for p in 0..panels {
             let c0 = p * NR;
             let width = NR.min(n - c0);
-            let panel = &mut dst[p * k * NR..(p + 1) * k * NR];
-            for j in 0..NR {
-                if j < width {
-                    let src = &w[(c0 + j) * ldw..(c0 + j) * ldw + k];
-                    for (kk, &v) in src.iter().enumerate() {
-                        panel[kk * NR + j] = v;
-                    }
-                } else {
-                    for kk in 0..k {
-                        panel[kk * NR + j] = 0.0;
-                    }
+            for kk in 0..k {
+                let at = offset(k, panels, p, kk);
+                let row = &mut dst[at..at + NR];
+                for (j, v) in row.iter_mut().enumerate() {
+                    *v = if j < width {
+                        w[(c0 + j) * ldw + kk]
+                    } else {
+                        0.0
+                    };
                 }
             }
         }
     }
 
+    /// The `kc` rows of panel `p` from row `k0` (a multiple of `KC`), contiguous.
     fn panel_ptr(&self, p: usize, k0: usize) -> *const f32 {
-        self.buf.as_slice()[p * self.k * NR + k0 * NR..].as_ptr()
+        self.buf.as_slice()[offset(self.k, self.panels(), p, k0)..].as_ptr()
     }
+}
+
+/// Where row `kk` of panel `p` lives. The matrix is stored in `KC`-row blocks, each block all
+/// panels one after another, so the kernels' (block, panel) order reads memory sequentially
+/// and the hardware prefetcher streams the weights.
+fn offset(k: usize, panels: usize, p: usize, kk: usize) -> usize {
+    let block = kk / KC;
+    let kc = KC.min(k - block * KC);
+    block * KC * panels * NR + p * kc * NR + (kk - block * KC) * NR
 }
 
 /// What `C` starts from.
@@ -183,6 +191,11 @@ fn check(a: &[f32], lda: usize, m: usize, b: &PackedMatrix, c: &[f32], ldc: usiz
     }
 }
 
+thread_local! {
+    /// Per-thread buffer for one packed `MC x KC` block of `A`.
+    static A_PACK: std::cell::RefCell<AlignedBuf> = std::cell::RefCell::new(AlignedBuf::zeros(MC * KC));
+}
+
 /// # Safety
 /// `a` holds `m` rows of stride `lda` with at least `b.k` values each, `c` points to `m` rows of
 /// stride `ldc` with at least `b.n` values each, and no other thread touches the columns of
@@ -203,7 +216,7 @@ unsafe fn gemm_panels(
     if m == 0 || panels.is_empty() {
         return;
     }
-    // Initialise C: the first K block then always accumulates.
+    // Initialise C: every K block then accumulates.
     for p in panels.clone() {
         let c0 = p * NR;
         let w = NR.min(b.n - c0);
@@ -220,49 +233,83 @@ unsafe fn gemm_panels(
     if k == 0 {
         return;
     }
-    let mut m0 = 0;
-    while m0 < m {
-        let mb = MC.min(m - m0);
-        let mut k0 = 0;
-        while k0 < k {
-            let kc = KC.min(k - k0);
-            for p in panels.clone() {
-                let c0 = p * NR;
-                let w = NR.min(b.n - c0);
-                let bp = b.panel_ptr(p, k0);
-                let mut r0 = 0;
-                while r0 < mb {
-                    let rows = MR.min(mb - r0);
-                    let ap = a[(m0 + r0) * lda + k0..].as_ptr();
-                    // SAFETY: the tile lies inside C (rows m0+r0.., columns c0..c0+w).
-                    let cp = unsafe { c.add((m0 + r0) * ldc + c0) };
-                    // SAFETY: A rows and the panel hold kc values from k0; C as above.
-                    unsafe { tile(isa, rows, kc, ap, lda, bp, cp, ldc, w) };
-                    r0 += rows;
+    A_PACK.with(|buf| {
+        let mut buf = buf.borrow_mut();
+        let apack = buf.as_mut_slice();
+        let mut m0 = 0;
+        while m0 < m {
+            let mb = MC.min(m - m0);
+            let mut k0 = 0;
+            while k0 < k {
+                let kc = KC.min(k - k0);
+                pack_a(&a[m0 * lda + k0..], lda, mb, kc, apack);
+                for p in panels.clone() {
+                    let c0 = p * NR;
+                    let w = NR.min(b.n - c0);
+                    let bp = b.panel_ptr(p, k0);
+                    // While the first row tile of this panel runs, pull the next panel's rows in.
+                    let next = if p + 1 < panels.end {
+                        b.panel_ptr(p + 1, k0)
+                    } else {
+                        std::ptr::null()
+                    };
+                    let mut r0 = 0;
+                    while r0 < mb {
+                        let rows = MR.min(mb - r0);
+                        let ap = apack[(r0 / MR) * kc * MR..].as_ptr();
+                        // SAFETY: the tile lies inside C (rows m0+r0.., columns c0..c0+w).
+                        let cp = unsafe { c.add((m0 + r0) * ldc + c0) };
+                        let pf = if r0 == 0 { next } else { std::ptr::null() };
+                        // SAFETY: the packed A tile and the panel hold kc rows; C as above.
+                        unsafe { tile(isa, rows, kc, ap, bp, cp, ldc, w, pf) };
+                        r0 += rows;
+                    }
+                }
+                k0 += kc;
+            }
+            m0 += mb;
+        }
+    });
+}
+
+/// Pack `rows x kc` of `A` into row tiles of `MR`: tile `t` is `kc` groups of `MR` values (rows
+/// `t*MR..`), zero-padded past `rows`. The kernel then broadcasts from one moving pointer.
+fn pack_a(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
+    for t in 0..rows.div_ceil(MR) {
+        let tile = &mut out[t * kc * MR..(t + 1) * kc * MR];
+        for r in 0..MR {
+            let row = t * MR + r;
+            if row < rows {
+                let src = &a[row * lda..row * lda + kc];
+                for (kk, &v) in src.iter().enumerate() {
+                    tile[kk * MR + r] = v;
+                }
+            } else {
+                for kk in 0..kc {
+                    tile[kk * MR + r] = 0.0;
                 }
             }
-            k0 += kc;
         }
-        m0 += mb;
     }
 }
 
-/// One `rows x w` tile (`rows <= MR`, `w <= NR`): `C += A · B` over `kc`.
+/// One `rows x w` tile (`rows <= MR`, `w <= NR`): `C += A · B` over `kc`, `A` packed by
+/// [`pack_a`]. `prefetch`, if not null, is a panel whose `kc` rows to pull into cache.
 ///
 /// # Safety
-/// `a` has `rows` rows of stride `lda` with `kc` values, `b` has `kc` rows of `NR` values, `c`
-/// has `rows` rows of stride `ldc` with `w` values.
+/// `a` has `kc * MR` values, `b` has `kc` rows of `NR` values, `c` has `rows` rows of stride
+/// `ldc` with `w` values; `prefetch` is null or points into a panel with `kc` rows.
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile(
     isa: Isa,
     rows: usize,
     kc: usize,
     a: *const f32,
-    lda: usize,
     b: *const f32,
     c: *mut f32,
     ldc: usize,
     w: usize,
+    prefetch: *const f32,
 ) {
     if w < NR {
         // Edge panel: run the full-width kernel on a scratch tile, copy the valid columns.
@@ -274,7 +321,7 @@ unsafe fn tile(
             }
         }
         // SAFETY: scratch is a full MR x NR tile.
-        unsafe { tile(isa, rows, kc, a, lda, b, scratch.as_mut_ptr(), NR, NR) };
+        unsafe { tile(isa, rows, kc, a, b, scratch.as_mut_ptr(), NR, NR, prefetch) };
         for r in 0..rows {
             for j in 0..w {
                 // SAFETY: inside the caller's C tile.
@@ -284,21 +331,21 @@ unsafe fn tile(
         return;
     }
     macro_rules! dispatch {
-        ($f:ident) => {
+        ($f:ident $(, $extra:expr)?) => {
             match rows {
-                6 => $f::<6>(kc, a, lda, b, c, ldc),
-                5 => $f::<5>(kc, a, lda, b, c, ldc),
-                4 => $f::<4>(kc, a, lda, b, c, ldc),
-                3 => $f::<3>(kc, a, lda, b, c, ldc),
-                2 => $f::<2>(kc, a, lda, b, c, ldc),
-                _ => $f::<1>(kc, a, lda, b, c, ldc),
+                6 => $f::<6>(kc, a, b, c, ldc $(, $extra)?),
+                5 => $f::<5>(kc, a, b, c, ldc $(, $extra)?),
+                4 => $f::<4>(kc, a, b, c, ldc $(, $extra)?),
+                3 => $f::<3>(kc, a, b, c, ldc $(, $extra)?),
+                2 => $f::<2>(kc, a, b, c, ldc $(, $extra)?),
+                _ => $f::<1>(kc, a, b, c, ldc $(, $extra)?),
             }
         };
     }
     match isa {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: Isa::Avx2Fma is only reported when the CPU has AVX2 and FMA.
-        Isa::Avx2Fma => unsafe { dispatch!(kernel_avx2) },
+        Isa::Avx2Fma => unsafe { dispatch!(kernel_avx2, prefetch) },
         // SAFETY: same pointer contract.
         _ => unsafe { dispatch!(kernel_portable) },
     }
@@ -311,10 +358,10 @@ unsafe fn tile(
 unsafe fn kernel_avx2<const R: usize>(
     kc: usize,
     a: *const f32,
-    lda: usize,
     b: *const f32,
     c: *mut f32,
     ldc: usize,
+    prefetch: *const f32,
 ) {
     use std::arch::x86_64::*;
     let mut acc = [[_mm256_setzero_ps(); 2]; R];
@@ -325,24 +372,52 @@ unsafe fn kernel_avx2<const R: usize>(
             row[1] = _mm256_loadu_ps(c.add(r * ldc + 8));
         }
     }
-    let mut ap = [a; R];
-    for (r, p) in ap.iter_mut().enumerate() {
-        // SAFETY: row r of A.
-        *p = unsafe { a.add(r * lda) };
-    }
-    let mut bp = b;
-    for kk in 0..kc {
-        // SAFETY: kk < kc: inside the panel rows and the A rows.
-        unsafe {
-            let b0 = _mm256_load_ps(bp);
-            let b1 = _mm256_load_ps(bp.add(8));
-            for r in 0..R {
-                let av = _mm256_broadcast_ss(&*ap[r].add(kk));
-                acc[r][0] = _mm256_fmadd_ps(av, b0, acc[r][0]);
-                acc[r][1] = _mm256_fmadd_ps(av, b1, acc[r][1]);
+    macro_rules! step {
+        ($kk:expr) => {{
+            // SAFETY: $kk < kc: inside the panel and the packed A tile.
+            unsafe {
+                let b0 = _mm256_load_ps(b.add($kk * NR));
+                let b1 = _mm256_load_ps(b.add($kk * NR + 8));
+                for r in 0..R {
+                    let av = _mm256_broadcast_ss(&*a.add($kk * MR + r));
+                    acc[r][0] = _mm256_fmadd_ps(av, b0, acc[r][0]);
+                    acc[r][1] = _mm256_fmadd_ps(av, b1, acc[r][1]);
+                }
             }
-            bp = bp.add(NR);
+        }};
+    }
+    let mut kk = 0;
+    if prefetch.is_null() {
+        while kk + 4 <= kc {
+            step!(kk);
+            step!(kk + 1);
+            step!(kk + 2);
+            step!(kk + 3);
+            kk += 4;
         }
+    } else {
+        while kk + 4 <= kc {
+            // One panel row is one cache line: fetch the next panel's rows as we go.
+            // SAFETY: prefetch never faults; the address is inside the next panel.
+            unsafe {
+                _mm_prefetch::<_MM_HINT_T0>(prefetch.add(kk * NR) as *const i8);
+                _mm_prefetch::<_MM_HINT_T0>(prefetch.add((kk + 2) * NR) as *const i8);
+            }
+            step!(kk);
+            step!(kk + 1);
+            // SAFETY: as above.
+            unsafe {
+                _mm_prefetch::<_MM_HINT_T0>(prefetch.add((kk + 1) * NR) as *const i8);
+                _mm_prefetch::<_MM_HINT_T0>(prefetch.add((kk + 3) * NR) as *const i8);
+            }
+            step!(kk + 2);
+            step!(kk + 3);
+            kk += 4;
+        }
+    }
+    while kk < kc {
+        step!(kk);
+        kk += 1;
     }
     for (r, row) in acc.iter().enumerate() {
         // SAFETY: row r of the C tile has NR values.
@@ -358,7 +433,6 @@ unsafe fn kernel_avx2<const R: usize>(
 unsafe fn kernel_portable<const R: usize>(
     kc: usize,
     a: *const f32,
-    lda: usize,
     b: *const f32,
     c: *mut f32,
     ldc: usize,
@@ -371,11 +445,14 @@ unsafe fn kernel_portable<const R: usize>(
         }
     }
     for kk in 0..kc {
-        // SAFETY: kk < kc: inside the panel.
-        let brow = unsafe { std::slice::from_raw_parts(b.add(kk * NR), NR) };
-        for (r, row) in acc.iter_mut().enumerate() {
-            // SAFETY: inside row r of A.
-            let av = unsafe { *a.add(r * lda + kk) };
+        // SAFETY: kk < kc: inside the panel and the packed A tile.
+        let (brow, arow) = unsafe {
+            (
+                std::slice::from_raw_parts(b.add(kk * NR), NR),
+                std::slice::from_raw_parts(a.add(kk * MR), R),
+            )
+        };
+        for (row, &av) in acc.iter_mut().zip(arow) {
             for (v, &bv) in row.iter_mut().zip(brow) {
                 *v += av * bv;
             }

@@ -47,20 +47,55 @@ pub fn exp_approx(x: f32) -> f32 {
     y * f32::from_bits(((n + 127) as u32) << 23)
 }
 
+/// Sum with 8 independent partial sums (lane `i` takes elements `i mod 8`), so that the loop
+/// vectorises; float addition is not associative, so LLVM will not reorder a plain running sum.
+#[inline(always)]
+fn sum_lanes(x: &[f32]) -> f32 {
+    let mut lanes = [0.0f32; 8];
+    let chunks = x.chunks_exact(8);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for i in 0..8 {
+            lanes[i] += c[i];
+        }
+    }
+    for (i, &v) in rest.iter().enumerate() {
+        lanes[i] += v;
+    }
+    ((lanes[0] + lanes[4]) + (lanes[1] + lanes[5]))
+        + ((lanes[2] + lanes[6]) + (lanes[3] + lanes[7]))
+}
+
+/// Maximum, vectorised like [`sum_lanes`].
+#[inline(always)]
+fn max_lanes(x: &[f32]) -> f32 {
+    let mut lanes = [f32::NEG_INFINITY; 8];
+    let chunks = x.chunks_exact(8);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for i in 0..8 {
+            lanes[i] = if c[i] > lanes[i] { c[i] } else { lanes[i] };
+        }
+    }
+    for (i, &v) in rest.iter().enumerate() {
+        lanes[i] = if v > lanes[i] { v } else { lanes[i] };
+    }
+    lanes
+        .iter()
+        .fold(f32::NEG_INFINITY, |m, &v| if v > m { v } else { m })
+}
+
 multiversion! {
     /// Softmax of `row * scale` in place, over the whole row.
     pub fn softmax_scaled(row: &mut [f32], scale: f32) {
-        let mut max = f32::NEG_INFINITY;
         for v in row.iter_mut() {
             *v *= scale;
-            max = max.max(*v);
         }
-        let mut sum = 0.0f32;
+        let max = max_lanes(row);
         for v in row.iter_mut() {
             *v = exp_approx(*v - max);
-            sum += *v;
         }
-        let inv = 1.0 / sum;
+        let inv = 1.0 / sum_lanes(row);
         for v in row.iter_mut() {
             *v *= inv;
         }
@@ -90,11 +125,12 @@ multiversion! {
     /// `weight * (x / sqrt(mean(x^2) + eps))`.
     pub fn rms_norm(x: &[f32], weight: &[f32], eps: f32, out: &mut [f32]) {
         let h = weight.len();
+        let mut squares = vec![0.0f32; h];
         for (xr, or) in x.chunks_exact(h).zip(out.chunks_exact_mut(h)) {
-            let mut ss = 0.0f32;
-            for &v in xr {
-                ss += v * v;
+            for (s, &v) in squares.iter_mut().zip(xr) {
+                *s = v * v;
             }
+            let ss = sum_lanes(&squares);
             let inv = 1.0 / (ss / h as f32 + eps).sqrt();
             for ((o, &v), &w) in or.iter_mut().zip(xr).zip(weight) {
                 *o = w * (v * inv);
