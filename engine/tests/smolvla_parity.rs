@@ -196,3 +196,50 @@ fn portable_kernels_match_lerobot() {
 fn candle_matches_lerobot() {
     check(Kernels::Candle);
 }
+
+/// LeRobot's batch has prefixes of 21, 16 and 12 valid tokens (padded to 21): each row must get
+/// what it gets alone. The fast kernels drop padding and compute every row in a fixed order, so
+/// they agree bit for bit; Candle pads and masks like LeRobot, so it agrees to rounding.
+fn batch_equals_singles(kernels: Kernels, exact: bool) {
+    let options = EngineOptions {
+        kernels,
+        threads: 2,
+        ..Default::default()
+    };
+    let expert = SmolVlaExpert::load(&golden_dir(), &options).unwrap();
+    let g = load_golden(&expert);
+    let inputs: Vec<ExpertInput<'_>> = g
+        .prefixes
+        .iter()
+        .zip(&g.noise)
+        .map(|(prefix, noise)| ExpertInput {
+            prefix,
+            noise: std::slice::from_ref(noise),
+        })
+        .collect();
+    let batched = expert.sample(&inputs).unwrap();
+    for (input, b) in inputs.iter().zip(&batched) {
+        let single = expert
+            .sample(std::slice::from_ref(input))
+            .unwrap()
+            .remove(0);
+        if exact {
+            assert_eq!(b, &single, "{kernels:?}");
+        } else {
+            assert!(
+                max_abs_diff(&b.velocities, &single.velocities) < 1e-5,
+                "{kernels:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn fast_batch_equals_singles() {
+    batch_equals_singles(Kernels::Fast, true);
+}
+
+#[test]
+fn candle_batch_equals_singles() {
+    batch_equals_singles(Kernels::Candle, false);
+}

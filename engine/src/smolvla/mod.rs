@@ -13,6 +13,7 @@
 
 pub mod config;
 pub mod prefix;
+pub mod serving;
 pub mod weights;
 
 mod candle_backend;

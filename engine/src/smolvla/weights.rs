@@ -222,6 +222,65 @@ impl ExpertWeights {
         })
     }
 
+    /// Every tensor under its LeRobot name, for writing a checkpoint.
+    pub fn tensors(&self) -> Vec<(String, Vec<usize>, &[f32])> {
+        let mut out: Vec<(String, Vec<usize>, &[f32])> = Vec::new();
+        fn push<'a>(
+            out: &mut Vec<(String, Vec<usize>, &'a [f32])>,
+            key: &str,
+            l: &'a LinearWeights,
+        ) {
+            out.push((
+                format!("{key}.weight"),
+                vec![l.out_dim, l.in_dim],
+                &l.weight,
+            ));
+            if let Some(b) = &l.bias {
+                out.push((format!("{key}.bias"), vec![l.out_dim], b));
+            }
+        }
+        let h = self.dims.hidden;
+        for (i, l) in self.layers.iter().enumerate() {
+            let p = format!("{EXPERT_PREFIX}.layers.{i}");
+            out.push((
+                format!("{p}.input_layernorm.weight"),
+                vec![h],
+                &l.input_norm,
+            ));
+            out.push((
+                format!("{p}.post_attention_layernorm.weight"),
+                vec![h],
+                &l.post_norm,
+            ));
+            push(&mut out, &format!("{p}.self_attn.q_proj"), &l.q_proj);
+            push(&mut out, &format!("{p}.self_attn.k_proj"), &l.k_proj);
+            push(&mut out, &format!("{p}.self_attn.v_proj"), &l.v_proj);
+            push(&mut out, &format!("{p}.self_attn.o_proj"), &l.o_proj);
+            push(&mut out, &format!("{p}.mlp.gate_proj"), &l.gate_proj);
+            push(&mut out, &format!("{p}.mlp.up_proj"), &l.up_proj);
+            push(&mut out, &format!("{p}.mlp.down_proj"), &l.down_proj);
+        }
+        out.push((
+            format!("{EXPERT_PREFIX}.norm.weight"),
+            vec![h],
+            &self.final_norm,
+        ));
+        push(&mut out, "model.state_proj", &self.state_proj);
+        push(&mut out, "model.action_in_proj", &self.action_in_proj);
+        push(
+            &mut out,
+            "model.action_time_mlp_in",
+            &self.action_time_mlp_in,
+        );
+        push(
+            &mut out,
+            "model.action_time_mlp_out",
+            &self.action_time_mlp_out,
+        );
+        push(&mut out, "model.action_out_proj", &self.action_out_proj);
+        out
+    }
+
     /// Seeded random weights of the given shapes (benches; the default-size expert).
     pub fn random(dims: &ExpertDims, seed: u64) -> Self {
         let (h, kv, q, i) = (
