@@ -48,6 +48,21 @@ pub enum Kernels {
     Candle,
 }
 
+impl std::str::FromStr for Kernels {
+    type Err = EngineError;
+
+    /// `auto`, `fast`, `portable` or `candle`.
+    fn from_str(s: &str) -> Result<Self, EngineError> {
+        match s {
+            "auto" => Ok(Kernels::Auto),
+            "fast" => Ok(Kernels::Fast),
+            "portable" => Ok(Kernels::Portable),
+            "candle" => Ok(Kernels::Candle),
+            _ => Err(EngineError::InvalidInput(format!("unknown kernels `{s}` (auto, fast, portable, candle)"))),
+        }
+    }
+}
+
 /// How to run a model.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct EngineOptions {
@@ -68,6 +83,11 @@ pub(crate) enum Target {
 }
 
 impl EngineOptions {
+    /// What these options run on, e.g. `cpu, fast kernels Avx2Fma, 2 threads` (for profiles).
+    pub fn describe(&self) -> Result<String, EngineError> {
+        Ok(self.target()?.describe())
+    }
+
     pub(crate) fn target(&self) -> Result<Target, EngineError> {
         match (self.device, self.kernels) {
             (DeviceKind::Cpu, Kernels::Auto | Kernels::Fast) => {
