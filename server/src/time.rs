@@ -91,7 +91,10 @@ mod tests {
     #[test]
     fn arithmetic_saturates_instead_of_wrapping() {
         let t = Timestamp::from_micros(10);
-        assert_eq!(t.saturating_since(Timestamp::from_micros(25)), Duration::ZERO);
+        assert_eq!(
+            t.saturating_since(Timestamp::from_micros(25)),
+            Duration::ZERO
+        );
         assert_eq!(t - Duration::from_micros(30), Timestamp::ZERO);
         assert_eq!(
             (t + Duration::from_millis(2)).as_micros(),
