@@ -12,8 +12,8 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
-use kairos_engine::profile::{measure, MeasureEvent, MeasureOptions, DEFAULT_MIN_GAIN};
-use kairos_engine::{builtin, DeviceKind, EngineOptions, Kernels};
+use kairos_engine::profile::{DEFAULT_MIN_GAIN, MeasureEvent, MeasureOptions, measure};
+use kairos_engine::{DeviceKind, EngineOptions, Kernels, builtin};
 
 /// Arguments of `kairos profile`.
 #[derive(clap::Args, Debug, Clone)]
@@ -48,12 +48,22 @@ pub struct ProfileArgs {
 pub fn run(args: ProfileArgs) -> anyhow::Result<()> {
     let device: DeviceKind = args.device.parse().context("--device")?;
     let kernels: Kernels = args.kernels.parse().context("--kernels")?;
-    let options = EngineOptions { device, kernels, threads: args.threads };
-    anyhow::ensure!(!args.batches.is_empty() && !args.batches.contains(&0), "--batches must be positive");
+    let options = EngineOptions {
+        device,
+        kernels,
+        threads: args.threads,
+    };
+    anyhow::ensure!(
+        !args.batches.is_empty() && !args.batches.contains(&0),
+        "--batches must be positive"
+    );
     anyhow::ensure!(args.iterations > 0, "--iterations must be at least 1");
-    let out = args.out.clone().unwrap_or_else(|| PathBuf::from("profiles").join(format!("{}.json", builtin::model_slug(&args.model))));
+    let out = args.out.clone().unwrap_or_else(|| {
+        PathBuf::from("profiles").join(format!("{}.json", builtin::model_slug(&args.model)))
+    });
 
-    let model = builtin::resolve_model(&args.model, &options).with_context(|| format!("loading model `{}`", args.model))?;
+    let model = builtin::resolve_model(&args.model, &options)
+        .with_context(|| format!("loading model `{}`", args.model))?;
     let device_desc = match device {
         DeviceKind::Cpu => format!("{} ({})", cpu_name(), options.describe()?),
         DeviceKind::Cuda(_) => options.describe()?,
@@ -67,17 +77,27 @@ pub fn run(args: ProfileArgs) -> anyhow::Result<()> {
 
     let bar = ProgressBar::new(0);
     bar.set_style(
-        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} runs  {msg}")
-            .context("progress bar template")?,
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} runs  {msg}",
+        )
+        .context("progress bar template")?,
     );
     bar.set_message(format!("{} on {device_desc}", model.spec().name));
     let profile = measure(model.as_ref(), &measure_options, |event| match event {
         MeasureEvent::Started { runs } => bar.set_length(runs as u64),
         MeasureEvent::Run { batch, latency } => {
-            bar.set_message(format!("batch {batch}: {:.1} ms", latency.as_secs_f64() * 1e3));
+            bar.set_message(format!(
+                "batch {batch}: {:.1} ms",
+                latency.as_secs_f64() * 1e3
+            ));
             bar.inc(1);
         }
-        MeasureEvent::Point(p) => bar.println(format!("  batch {:>4}: {:>9.1} ms  ({:.1} req/s)", p.batch, p.latency_ms, 1e3 * f64::from(p.batch) / p.latency_ms)),
+        MeasureEvent::Point(p) => bar.println(format!(
+            "  batch {:>4}: {:>9.1} ms  ({:.1} req/s)",
+            p.batch,
+            p.latency_ms,
+            1e3 * f64::from(p.batch) / p.latency_ms
+        )),
     })
     .context("measuring the profile")?;
     bar.finish_and_clear();
@@ -87,7 +107,12 @@ pub fn run(args: ProfileArgs) -> anyhow::Result<()> {
     }
     let json = serde_json::to_string_pretty(&profile).context("serialising the profile")?;
     std::fs::write(&out, json + "\n").with_context(|| format!("writing {}", out.display()))?;
-    println!("{}: saturation batch {} -> {}", profile.model, profile.max_batch, out.display());
+    println!(
+        "{}: saturation batch {} -> {}",
+        profile.model,
+        profile.max_batch,
+        out.display()
+    );
     Ok(())
 }
 
@@ -95,7 +120,12 @@ pub fn run(args: ProfileArgs) -> anyhow::Result<()> {
 fn cpu_name() -> String {
     std::fs::read_to_string("/proc/cpuinfo")
         .ok()
-        .and_then(|s| s.lines().find(|l| l.starts_with("model name")).and_then(|l| l.split(':').nth(1)).map(|n| n.trim().to_string()))
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|n| n.trim().to_string())
+        })
         .unwrap_or_else(|| std::env::consts::ARCH.to_string())
 }
 
@@ -119,9 +149,13 @@ mod tests {
             out: Some(out.clone()),
         })
         .unwrap();
-        let profile: EngineProfile = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+        let profile: EngineProfile =
+            serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
         assert_eq!(profile.model, "flow-head-small");
-        assert_eq!(profile.points.iter().map(|p| p.batch).collect::<Vec<_>>(), vec![1, 2]);
+        assert_eq!(
+            profile.points.iter().map(|p| p.batch).collect::<Vec<_>>(),
+            vec![1, 2]
+        );
         assert!(profile.points.iter().all(|p| p.latency_ms > 0.0));
         assert!([1, 2].contains(&profile.max_batch));
         assert!(profile.device.contains("threads"));
@@ -139,8 +173,26 @@ mod tests {
             min_gain: 0.05,
             out: None,
         };
-        assert!(run(args.clone()).unwrap_err().to_string().contains("builtin:nope"));
-        assert!(run(ProfileArgs { device: "tpu".into(), ..args.clone() }).is_err());
-        assert!(run(ProfileArgs { batches: vec![0], model: builtin::DEFAULT_MODEL.into(), ..args }).is_err());
+        assert!(
+            run(args.clone())
+                .unwrap_err()
+                .to_string()
+                .contains("builtin:nope")
+        );
+        assert!(
+            run(ProfileArgs {
+                device: "tpu".into(),
+                ..args.clone()
+            })
+            .is_err()
+        );
+        assert!(
+            run(ProfileArgs {
+                batches: vec![0],
+                model: builtin::DEFAULT_MODEL.into(),
+                ..args
+            })
+            .is_err()
+        );
     }
 }
