@@ -58,7 +58,9 @@ impl std::str::FromStr for Kernels {
             "fast" => Ok(Kernels::Fast),
             "portable" => Ok(Kernels::Portable),
             "candle" => Ok(Kernels::Candle),
-            _ => Err(EngineError::InvalidInput(format!("unknown kernels `{s}` (auto, fast, portable, candle)"))),
+            _ => Err(EngineError::InvalidInput(format!(
+                "unknown kernels `{s}` (auto, fast, portable, candle)"
+            ))),
         }
     }
 }

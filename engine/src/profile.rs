@@ -111,13 +111,17 @@ pub fn synthetic_batch(model: &dyn ActionModel, batch: usize) -> Vec<ActionReque
     let spec = model.spec();
     (0..batch)
         .map(|i| ActionRequest {
-            state: (0..spec.state_dim).map(|j| ((i * 31 + j) as f32 * 0.1).sin()).collect(),
+            state: (0..spec.state_dim)
+                .map(|j| ((i * 31 + j) as f32 * 0.1).sin())
+                .collect(),
             images: (0..spec.max_images)
                 .map(|c| ImageInput::RawU8 {
                     height: 224,
                     width: 224,
                     channels: 3,
-                    data: (0..224 * 224 * 3).map(|p| ((p * 7 + i * 13 + c * 29) % 251) as u8).collect(),
+                    data: (0..224 * 224 * 3)
+                        .map(|p| ((p * 7 + i * 13 + c * 29) % 251) as u8)
+                        .collect(),
                 })
                 .collect(),
             instruction: "pick up the red cube and place it".into(),
@@ -138,12 +142,16 @@ pub fn measure(
     mut progress: impl FnMut(MeasureEvent),
 ) -> Result<EngineProfile, EngineError> {
     if options.batches.is_empty() || options.iterations == 0 || options.batches.contains(&0) {
-        return Err(EngineError::InvalidInput("profile needs batch sizes >= 1 and at least one iteration".into()));
+        return Err(EngineError::InvalidInput(
+            "profile needs batch sizes >= 1 and at least one iteration".into(),
+        ));
     }
     let mut batches = options.batches.clone();
     batches.sort_unstable();
     batches.dedup();
-    progress(MeasureEvent::Started { runs: batches.len() * options.iterations });
+    progress(MeasureEvent::Started {
+        runs: batches.len() * options.iterations,
+    });
     let mut points = Vec::with_capacity(batches.len());
     for &batch in &batches {
         let requests = synthetic_batch(model, batch as usize);
@@ -154,13 +162,19 @@ pub fn measure(
             let chunks = model.generate(&requests)?;
             let latency = start.elapsed();
             if chunks.len() != requests.len() {
-                return Err(EngineError::InvalidInput(format!("model returned {} chunks for {batch}", chunks.len())));
+                return Err(EngineError::InvalidInput(format!(
+                    "model returned {} chunks for {batch}",
+                    chunks.len()
+                )));
             }
             progress(MeasureEvent::Run { batch, latency });
             runs.push(latency.as_secs_f64() * 1e3);
         }
         runs.sort_by(f64::total_cmp);
-        let point = ProfilePoint { batch, latency_ms: runs[runs.len() / 2] };
+        let point = ProfilePoint {
+            batch,
+            latency_ms: runs[runs.len() / 2],
+        };
         progress(MeasureEvent::Point(point));
         points.push(point);
     }
@@ -208,7 +222,10 @@ mod tests {
     }
 
     fn points(latencies: &[(u32, f64)]) -> Vec<ProfilePoint> {
-        latencies.iter().map(|&(batch, latency_ms)| ProfilePoint { batch, latency_ms }).collect()
+        latencies
+            .iter()
+            .map(|&(batch, latency_ms)| ProfilePoint { batch, latency_ms })
+            .collect()
     }
 
     #[test]
@@ -219,11 +236,20 @@ mod tests {
         // A stricter rule keeps the 2.5% gain of 16.
         assert_eq!(saturation_batch(&p, 0.01), 16);
         // Linear latency (no batching gain) saturates at once.
-        assert_eq!(saturation_batch(&points(&[(1, 100.0), (2, 200.0), (4, 400.0)]), 0.05), 1);
+        assert_eq!(
+            saturation_batch(&points(&[(1, 100.0), (2, 200.0), (4, 400.0)]), 0.05),
+            1
+        );
         // Still improving at the largest measured batch: that batch.
-        assert_eq!(saturation_batch(&points(&[(1, 100.0), (2, 110.0), (4, 120.0)]), 0.05), 4);
+        assert_eq!(
+            saturation_batch(&points(&[(1, 100.0), (2, 110.0), (4, 120.0)]), 0.05),
+            4
+        );
         // A dip then a rise: the later gain counts.
-        assert_eq!(saturation_batch(&points(&[(1, 100.0), (2, 210.0), (4, 200.0)]), 0.05), 4);
+        assert_eq!(
+            saturation_batch(&points(&[(1, 100.0), (2, 210.0), (4, 200.0)]), 0.05),
+            4
+        );
         assert_eq!(saturation_batch(&[], 0.05), 1);
     }
 
