@@ -4,7 +4,6 @@
 
 use kairos_sdk::client::{ClientError, close_code};
 use kairos_sdk::protocol::{ErrorCode, Message};
-use kairos_server::transport::CLOSE_AT_CAPACITY;
 use kairos_tests::harness::{RawConnection, ServerOptions, TestServer, one_round};
 
 fn two_robots() -> ServerOptions {
@@ -125,7 +124,7 @@ async fn connections_over_the_limit_or_without_hello_are_closed_with_a_reason() 
 
     let third = RawConnection::open(&server).await.unwrap();
     let (code, reason) = application_close_code(third.connection.closed().await);
-    assert_eq!(code, u64::from(CLOSE_AT_CAPACITY));
+    assert_eq!(code, u64::from(close_code::AT_CAPACITY));
     assert!(reason.contains("capacity"), "{reason}");
 
     // A slot frees when a robot leaves; a connection that never says Hello is closed.
@@ -137,7 +136,7 @@ async fn connections_over_the_limit_or_without_hello_are_closed_with_a_reason() 
         {
             Ok(error) => {
                 let (code, reason) = application_close_code(error);
-                if code == u64::from(CLOSE_AT_CAPACITY) {
+                if code == u64::from(close_code::AT_CAPACITY) {
                     // The server has not noticed `b` leaving yet.
                     tokio::time::sleep(std::time::Duration::from_millis(20)).await;
                     continue;

@@ -3,7 +3,7 @@
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use kairos_sdk::client::close_code;
+use kairos_sdk::client::{STREAM_REFUSED, close_code};
 use kairos_sdk::protocol::{
     ErrorReply, FetchObservation, Message, PROTOCOL_VERSION, ReadFrameError, Welcome,
     read_message, write_message,
@@ -12,14 +12,10 @@ use quinn::{Connection, RecvStream, SendStream, VarInt};
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinSet;
 
-use super::{CLOSE_AT_CAPACITY, ServerContext};
+use super::ServerContext;
 use crate::driver::RefetchAsk;
 use crate::scheduler::RobotId;
 use crate::validation::{ClockEstimator, ClockMap, RequestError};
-
-/// Stream error code the server stops a client's send side with after refusing its request, so a
-/// client still uploading an oversized frame stops.
-const STREAM_REFUSED: u32 = 0x11;
 
 /// How long the server waits for a client to acknowledge a final error before closing.
 const LINGER: Duration = Duration::from_secs(1);
@@ -53,7 +49,7 @@ pub(super) async fn refuse_at_capacity(incoming: quinn::Incoming, limit: usize) 
     };
     if let Ok(connection) = connecting.await {
         let reason = format!("server at capacity ({limit} connections); retry later");
-        connection.close(VarInt::from_u32(CLOSE_AT_CAPACITY), reason.as_bytes());
+        connection.close(VarInt::from_u32(close_code::AT_CAPACITY), reason.as_bytes());
     }
 }
 

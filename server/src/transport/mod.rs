@@ -3,7 +3,7 @@
 //! [`run`] takes a bound quinn endpoint and a shutdown future (mini-redis's `run(listener,
 //! shutdown)`). Each incoming connection is admitted against a semaphore of
 //! `connections.max_connections` permits; over the cap it is accepted only to be closed at once
-//! with [`CLOSE_AT_CAPACITY`] and a reason the client can show. An admitted connection has
+//! with `close_code::AT_CAPACITY` and a reason the client can show. An admitted connection has
 //! `connections.hello_timeout_ms` to open its first stream and send `Hello`; a wrong token gets an
 //! `unauthorized` error frame and the connection is closed with `UNAUTHORIZED`. After that every
 //! bidirectional stream the robot opens is served by its own task (`Submit` or `EndTask`), so a
@@ -39,9 +39,6 @@ use crate::config::{ConnectionsConfig, RobotCredential};
 use crate::driver::DriverHandle;
 use crate::scheduler::RobotId;
 use crate::validation::Validator;
-
-/// Application close code: the server is at its connection limit; retry later or elsewhere.
-pub const CLOSE_AT_CAPACITY: u32 = 4;
 
 /// How long shutdown waits for connections to deliver the answers of accepted rounds.
 pub const DRAIN_TIMEOUT: Duration = Duration::from_secs(10);
