@@ -59,7 +59,9 @@ pub struct HorizonChoice {
 /// Neither the requested policy nor the native fallback produced a horizon (only possible for a
 /// chunk whose buffers do not match its dimensions, which the engine pool already refuses).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("no horizon: the requested policy failed ({requested}) and so did the fallback ({fallback})")]
+#[error(
+    "no horizon: the requested policy failed ({requested}) and so did the fallback ({fallback})"
+)]
 pub struct NoHorizon {
     /// The requested policy's error.
     pub requested: HorizonError,

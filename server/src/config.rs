@@ -149,8 +149,9 @@ pub struct EngineConfig {
     pub profile: Option<PathBuf>,
     /// Caps the batch size below the profile's saturation point.
     pub max_batch: Option<u32>,
-    /// Extra round trip added to every batch on this engine, in milliseconds. Non-zero values
-    /// emulate a remote (cloud) link on one machine; the scheduler plans with it.
+    /// For a cloud engine: the round trip added to every batch, in milliseconds. The instance
+    /// runs on this machine behind an *emulated* link (`pool::EmulatedLinkEngine`), so the
+    /// edge/cloud placement can be exercised on one machine; the scheduler plans with it.
     pub rtt_ms: f64,
     /// Largest batch size measured when profiling at start.
     pub profile_max_batch: u32,
@@ -400,9 +401,18 @@ impl Config {
                     "must be a finite number >= 0".into(),
                 ));
             }
+            if engine.tier == Tier::Edge && engine.rtt_ms > 0.0 {
+                return Err(invalid(
+                    format!("engine[{i}].rtt_ms"),
+                    "only a cloud engine has a link round trip (set tier = \"cloud\")".into(),
+                ));
+            }
         }
         if let Some((name, _)) = self.horizon.params.iter().find(|(_, v)| !v.is_finite()) {
-            return Err(invalid(format!("horizon.params.{name}"), "must be finite".into()));
+            return Err(invalid(
+                format!("horizon.params.{name}"),
+                "must be finite".into(),
+            ));
         }
         if self.scheduler.max_pending == 0 {
             return Err(invalid(
@@ -627,12 +637,14 @@ mod tests {
         assert_eq!(c.engines[1].tier, Tier::Cloud);
         assert_eq!(c.engines[1].rtt(), Duration::from_millis(20));
         assert_eq!(
-            c.engines[1].model,
-            "/etc/kairos/ckpt/model.safetensors",
+            c.engines[1].model, "/etc/kairos/ckpt/model.safetensors",
             "relative checkpoint paths resolve against the config file's directory"
         );
         assert_eq!(c.engines[0].model, "builtin:tiny");
-        assert_eq!(c.tls.cert.as_deref(), Some(Path::new("/etc/kairos/cert.pem")));
+        assert_eq!(
+            c.tls.cert.as_deref(),
+            Some(Path::new("/etc/kairos/cert.pem"))
+        );
         assert_eq!(c.data_dir, PathBuf::from("/var/lib/kairos"));
         assert_eq!(c.scheduler.core().stale_after, Duration::from_millis(50));
         assert_eq!(c.scheduler.policy.name, "kairos");
@@ -670,6 +682,7 @@ mod tests {
             ("[tls]\ncert = \"c.pem\"\n", "tls"),
             ("[limits]\nmax_samples = 0\n", "limits.max_samples"),
             ("[[engine]]\nrtt_ms = -1\n", "engine[0].rtt_ms"),
+            ("[[engine]]\nrtt_ms = 5\n", "engine[0].rtt_ms"),
         ];
         for (text, key) in cases {
             let err = Config::parse(text, Path::new("k.toml")).unwrap_err();

@@ -62,7 +62,9 @@ impl Clock {
 
     /// `instant` on the server clock.
     pub fn at(&self, instant: Instant) -> Timestamp {
-        Timestamp::from_micros(duration_micros(instant.saturating_duration_since(self.epoch)))
+        Timestamp::from_micros(duration_micros(
+            instant.saturating_duration_since(self.epoch),
+        ))
     }
 
     /// The instant of a server timestamp.
@@ -591,11 +593,7 @@ impl Driver {
         }
     }
 
-    fn on_end_task(
-        &mut self,
-        robot: RobotId,
-        end: ValidEndTask,
-    ) -> Result<TaskEnded, ErrorReply> {
+    fn on_end_task(&mut self, robot: RobotId, end: ValidEndTask) -> Result<TaskEnded, ErrorReply> {
         let now = self.clock.now();
         let mut snapshot = self
             .snapshot(end.task)
@@ -1029,7 +1027,7 @@ mod tests {
             stale_after,
             ..SchedulerConfig::default()
         };
-        let scheduler = Scheduler::new(config, pool.specs(), Box::new(Fifo));
+        let scheduler = Scheduler::new(config, pool.specs(), Box::new(Fifo::default()));
         let natives = native_horizon_policies();
         let actions = Arc::new(
             ActionManager::new(
@@ -1194,7 +1192,10 @@ mod tests {
         own.answer.await.unwrap().unwrap();
         // Robot 1 re-sends robot 0's finished round: no cached reply for it.
         let (read, _b) = f.submit(1, wire_submit(&f, 1, 0, 1.0, None)).await;
-        assert_eq!(read.answer.await.unwrap().unwrap_err().code, ErrorCode::Forbidden);
+        assert_eq!(
+            read.answer.await.unwrap().unwrap_err().code,
+            ErrorCode::Forbidden
+        );
         let (advance, _c) = f.submit(1, wire_submit(&f, 1, 1, 1.0, None)).await;
         assert_eq!(
             advance.answer.await.unwrap().unwrap_err().code,
@@ -1225,15 +1226,24 @@ mod tests {
         assert_eq!(ended.history.len(), 2);
         assert!(ended.history.iter().all(|r| r.generation.is_some()));
         let first_exec = ended.history[0].execution.unwrap();
-        assert_eq!(first_exec.start_us, exec_start, "E_0 maps back to the robot's clock");
+        assert_eq!(
+            first_exec.start_us, exec_start,
+            "E_0 maps back to the robot's clock"
+        );
         assert_eq!(
             first_exec.end_us - sent1,
             100_000,
             "E_0 ends one action (100 ms at 10 Hz) after round 1 was sent"
         );
-        assert!(ended.history[1].execution.is_some(), "the end report closes E_1");
+        assert!(
+            ended.history[1].execution.is_some(),
+            "the end report closes E_1"
+        );
         let (late, _c) = f.submit(0, wire_submit(&f, 7, 2, 1.0, None)).await;
-        assert_eq!(late.answer.await.unwrap().unwrap_err().code, ErrorCode::UnknownTask);
+        assert_eq!(
+            late.answer.await.unwrap().unwrap_err().code,
+            ErrorCode::UnknownTask
+        );
         let snapshot = f.driver.snapshot(TaskId(7)).await.unwrap().unwrap();
         assert!(snapshot.ended);
         assert_eq!(snapshot.history.len(), 2);
@@ -1281,7 +1291,10 @@ mod tests {
         assert_eq!(f.driver.stats().await.unwrap().accepted, 2);
         f.stop.take().unwrap().send(()).unwrap();
         let (late, _c) = f.submit(0, wire_submit(&f, 3, 0, 1.0, None)).await;
-        assert_eq!(late.answer.await.unwrap().unwrap_err().code, ErrorCode::ShuttingDown);
+        assert_eq!(
+            late.answer.await.unwrap().unwrap_err().code,
+            ErrorCode::ShuttingDown
+        );
         f.open(2);
         assert!(running.answer.await.unwrap().is_ok());
         assert!(queued.answer.await.unwrap().is_ok());

@@ -107,14 +107,12 @@ pub fn build_priority(
     registry: &PriorityRegistry,
     spec: &PolicySpec,
 ) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
-    registry
-        .build(&spec.name, spec)
-        .unwrap_or_else(|| {
-            Err(PolicySpecError::UnknownPolicy {
-                name: spec.name.clone(),
-                known: registry.names().collect::<Vec<_>>().join(", "),
-            })
+    registry.build(&spec.name, spec).unwrap_or_else(|| {
+        Err(PolicySpecError::UnknownPolicy {
+            name: spec.name.clone(),
+            known: registry.names().collect::<Vec<_>>().join(", "),
         })
+    })
 }
 
 /// The native horizon policies (`threshold`, `static`, `spread`).

@@ -33,7 +33,9 @@ use kairos_sdk::protocol::{
 
 use crate::action::{ActionManager, PolicyLookupError, RoundPolicy};
 use crate::pool::PoolError;
-use crate::scheduler::{AdmitError, ExecReport, RemainingWork, RobotId, RoundSubmit, TaskEnd, TaskId};
+use crate::scheduler::{
+    AdmitError, ExecReport, RemainingWork, RobotId, RoundSubmit, TaskEnd, TaskId,
+};
 use crate::time::{Timestamp, duration_micros};
 
 /// Maps one robot's clock onto the server's, for one request.
@@ -354,11 +356,7 @@ impl Validator {
     }
 
     /// Checks an `EndTask`.
-    pub fn end_task(
-        &self,
-        end: EndTask,
-        clock: ClockMap,
-    ) -> Result<ValidEndTask, RequestError> {
+    pub fn end_task(&self, end: EndTask, clock: ClockMap) -> Result<ValidEndTask, RequestError> {
         end.validate(&self.limits)?;
         let exec = end
             .last_exec
@@ -606,7 +604,12 @@ mod tests {
         let map = est.observe(Timestamp::from_micros(3_040_000), 40_000, rtt, false);
         assert_eq!(map.to_server(40_000).as_micros(), 1_040_030);
         for i in 0..ClockEstimator::WINDOW as u64 {
-            est.observe(Timestamp::from_micros(1_100_000 + i * 10 + 200), 100_000 + i * 10, rtt, true);
+            est.observe(
+                Timestamp::from_micros(1_100_000 + i * 10 + 200),
+                100_000 + i * 10,
+                rtt,
+                true,
+            );
         }
         let map = est.observe(Timestamp::from_micros(1_200_200), 200_000, rtt, true);
         assert_eq!(
@@ -720,9 +723,18 @@ mod tests {
     fn admit_errors_map_to_their_wire_codes() {
         let cases = [
             (AdmitError::Overloaded { pending: 3 }, ErrorCode::Overloaded),
-            (AdmitError::Forbidden { task: TaskId(1) }, ErrorCode::Forbidden),
-            (AdmitError::UnknownTask { task: TaskId(1) }, ErrorCode::UnknownTask),
-            (AdmitError::TaskEnded { task: TaskId(1) }, ErrorCode::UnknownTask),
+            (
+                AdmitError::Forbidden { task: TaskId(1) },
+                ErrorCode::Forbidden,
+            ),
+            (
+                AdmitError::UnknownTask { task: TaskId(1) },
+                ErrorCode::UnknownTask,
+            ),
+            (
+                AdmitError::TaskEnded { task: TaskId(1) },
+                ErrorCode::UnknownTask,
+            ),
             (
                 AdmitError::RoundOutOfOrder { last: 3, got: 2 },
                 ErrorCode::RoundOutOfOrder,
@@ -737,9 +749,8 @@ mod tests {
             assert_eq!(reply.code, expected);
             assert_eq!(reply.retryable, expected == ErrorCode::Overloaded);
         }
-        let overloaded = ErrorReply::from(&RequestError::from(AdmitError::Overloaded {
-            pending: 1,
-        }));
+        let overloaded =
+            ErrorReply::from(&RequestError::from(AdmitError::Overloaded { pending: 1 }));
         assert_eq!(overloaded.retry_after_ms, Some(OVERLOADED_RETRY_AFTER_MS));
         assert_eq!(
             ErrorReply::from(&RequestError::Unauthorized).code,
@@ -756,7 +767,11 @@ mod tests {
             client: "c".into(),
         };
         assert_eq!(v.hello(&hello(1)).unwrap(), 1);
-        assert_eq!(v.hello(&hello(7)).unwrap(), 1, "newer clients speak v1 to us");
+        assert_eq!(
+            v.hello(&hello(7)).unwrap(),
+            1,
+            "newer clients speak v1 to us"
+        );
         assert!(matches!(
             v.hello(&hello(0)),
             Err(RequestError::UnsupportedVersion(0))

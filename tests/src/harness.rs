@@ -267,8 +267,8 @@ pub async fn run_task(
     };
     for round in 0..plan.rounds {
         if let Some((start, horizon)) = executing {
-            let send_at = start
-                + (f64::from(horizon.saturating_sub(plan.send_ahead)) * us_per_action) as u64;
+            let send_at =
+                start + (f64::from(horizon.saturating_sub(plan.send_ahead)) * us_per_action) as u64;
             sleep_until_us(client, send_at).await;
         }
         let last_exec = exec_info(executing, client.now_us());
@@ -316,7 +316,11 @@ pub async fn run_task(
     }
     // Let the last chunk run halfway, then end the task with what is left.
     if let Some((start, horizon)) = executing {
-        sleep_until_us(client, start + (f64::from(horizon / 2) * us_per_action) as u64).await;
+        sleep_until_us(
+            client,
+            start + (f64::from(horizon / 2) * us_per_action) as u64,
+        )
+        .await;
     }
     let now = client.now_us();
     let last_exec = exec_info(executing, now);
@@ -371,7 +375,11 @@ impl RecordError {
 pub fn compare_records(log: &TaskLog) -> anyhow::Result<RecordError> {
     let ended = &log.ended;
     if ended.task != log.task {
-        bail!("TaskEnded for task {} in task {}'s log", ended.task, log.task);
+        bail!(
+            "TaskEnded for task {} in task {}'s log",
+            ended.task,
+            log.task
+        );
     }
     if ended.rounds as usize != log.rounds.len() {
         bail!(
@@ -393,7 +401,12 @@ pub fn compare_records(log: &TaskLog) -> anyhow::Result<RecordError> {
     let mut error = RecordError::default();
     for (server, robot) in ended.history.iter().zip(&log.rounds) {
         if server.round != robot.round {
-            bail!("task {}: server round {} vs robot round {}", log.task, server.round, robot.round);
+            bail!(
+                "task {}: server round {} vs robot round {}",
+                log.task,
+                server.round,
+                robot.round
+            );
         }
         if server.horizon != Some(robot.horizon) {
             bail!(

@@ -92,7 +92,8 @@ impl ActionModel for TestFlow {
                                     u += (n as f32 / s.chunk_len as f32) * request.state[1];
                                 }
                                 actions[i] += u;
-                                updates[((sample * s.steps + k) * s.chunk_len + n) * s.action_dim
+                                updates[((sample * s.steps + k) * s.chunk_len + n)
+                                    * s.action_dim
                                     + d] = u;
                             }
                         }

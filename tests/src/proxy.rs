@@ -338,7 +338,9 @@ async fn front_loop(
                 continue;
             }
         };
-        let Ok((len, client)) = received else { continue };
+        let Ok((len, client)) = received else {
+            continue;
+        };
         let upstream = match flows.get(&client) {
             Some(socket) => socket.clone(),
             None => {
@@ -439,7 +441,8 @@ mod tests {
             let client = UdpSocket::bind("127.0.0.1:0").await.unwrap();
             let got = exchange(&client, proxy.addr(), 500, Duration::from_millis(200)).await;
             let s = proxy.stats();
-            let lost = s.to_server.lost.load(Ordering::Relaxed) + s.to_client.lost.load(Ordering::Relaxed);
+            let lost =
+                s.to_server.lost.load(Ordering::Relaxed) + s.to_client.lost.load(Ordering::Relaxed);
             assert_eq!(got.len() as u64, 500 - lost);
             // Two independent 20% drops: 36% expected; 500 packets keep it well inside 25–47%.
             assert!((125..=235).contains(&lost), "lost {lost}");

@@ -87,7 +87,11 @@ async fn a_robot_cannot_read_advance_or_end_another_robots_task() {
     // The owner is unaffected: a re-sent finished round gets its cached chunk, the next round is
     // served, and the task's record has exactly its three rounds.
     let resent = one_round(&owner, TASK, 0).await.unwrap_err();
-    assert_eq!(server_code(resent), ErrorCode::RoundOutOfOrder, "only the last round is cached");
+    assert_eq!(
+        server_code(resent),
+        ErrorCode::RoundOutOfOrder,
+        "only the last round is cached"
+    );
     let cached = one_round(&owner, TASK, 1).await.unwrap();
     assert_eq!(cached.reply.round, 1);
     assert_eq!(first.reply.round, 0);

@@ -6,7 +6,9 @@ use std::collections::BTreeMap;
 
 use kairos_sdk::protocol::HorizonSelection;
 use kairos_server::scheduler::TaskId;
-use kairos_tests::harness::{RecordError, RobotPlan, ServerOptions, TestServer, compare_records, run_task};
+use kairos_tests::harness::{
+    RecordError, RobotPlan, ServerOptions, TestServer, compare_records, run_task,
+};
 
 const ROBOTS: u64 = 20;
 const ROUNDS: u64 = 6;
@@ -94,4 +96,70 @@ async fn twenty_robots_complete_multi_round_tasks_and_records_match() {
     assert_eq!(report.driver.cached_replies, 0);
     assert_eq!(report.driver.tasks_ended, ROBOTS);
     assert_eq!(report.transport.admitted, ROBOTS);
+}
+
+/// `kairos serve` with no config file: built-in model (profiled at start), generated certificate
+/// and `default` robot token in the data dir, found there the way `kairos robot` finds them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn serve_with_defaults_answers_a_robot_that_reads_the_data_dir() {
+    use kairos_sdk::client::{Client, ClientConfig, NoRefetch, RoundRequest};
+    use kairos_sdk::protocol::{Observation, Tensor};
+    use kairos_server::cli::serve::{ServeArgs, config, start_engines};
+    use kairos_server::config::{DEFAULT_ROBOT, TokensFile};
+    use kairos_server::transport::launch::{Policies, start};
+
+    let dir = tempfile::tempdir().unwrap();
+    let args = ServeArgs {
+        config: None,
+        listen: Some("127.0.0.1:0".parse().unwrap()),
+        data_dir: Some(dir.path().join("kairos-data")),
+    };
+    let config = config(&args).unwrap();
+    let pool = tokio::task::spawn_blocking({
+        let config = config.clone();
+        move || start_engines(&config)
+    })
+    .await
+    .unwrap()
+    .unwrap();
+    let server = start(&config, pool, Policies::default()).await.unwrap();
+    assert_eq!(server.model.name, "flow-head-small");
+
+    let data_dir = dir.path().join("kairos-data");
+    let pin = std::fs::read_to_string(data_dir.join("fingerprint.txt")).unwrap();
+    let token = TokensFile::read(&data_dir.join("tokens.toml"))
+        .unwrap()
+        .token(DEFAULT_ROBOT)
+        .unwrap()
+        .to_string();
+    let client = Client::connect(ClientConfig::pinned(
+        server.local_addr,
+        pin.trim().parse().unwrap(),
+        token,
+    ))
+    .await
+    .unwrap();
+    let spec = &server.model;
+    let mut task = client.task(1);
+    let observation = Observation {
+        captured_at_us: client.now_us(),
+        state: Tensor::from_f32(vec![spec.state_dim], &vec![0.1; spec.state_dim as usize]).unwrap(),
+        images: Vec::new(),
+        instruction: "pick up the cube".into(),
+    };
+    let reply = task
+        .submit(RoundRequest::new(observation), &mut NoRefetch)
+        .await
+        .unwrap();
+    assert!(reply.reply.horizon >= 1 && reply.reply.horizon <= spec.chunk_len);
+    assert_eq!(
+        reply.reply.policy, "threshold",
+        "the default horizon policy"
+    );
+    assert_eq!(
+        reply.reply.actions.shape,
+        vec![reply.reply.horizon, spec.action_dim]
+    );
+    client.close().await;
+    server.shutdown().await;
 }

@@ -37,11 +37,10 @@ async fn every_round_completes_exactly_once_through_loss_reordering_and_rebindin
     });
     let mut robots = Vec::new();
     for i in 0..ROBOTS {
-        let client = kairos_sdk::client::Client::connect(
-            server.client_config(proxy.addr(), &server.token),
-        )
-        .await
-        .unwrap();
+        let client =
+            kairos_sdk::client::Client::connect(server.client_config(proxy.addr(), &server.token))
+                .await
+                .unwrap();
         let plan = RobotPlan {
             task: 500 + i,
             rounds: ROUNDS,
@@ -81,7 +80,11 @@ async fn every_round_completes_exactly_once_through_loss_reordering_and_rebindin
             .unwrap()
             .unwrap();
         let once: BTreeMap<u64, u32> = (0..ROUNDS).map(|r| (r, 1)).collect();
-        assert_eq!(snapshot.generated, once, "task {}: generations per round", log.task);
+        assert_eq!(
+            snapshot.generated, once,
+            "task {}: generations per round",
+            log.task
+        );
     }
 
     let stats = proxy.stats();
@@ -96,7 +99,10 @@ async fn every_round_completes_exactly_once_through_loss_reordering_and_rebindin
         stats.to_client.received.load(Ordering::Relaxed),
         stats.flows.load(Ordering::Relaxed),
     );
-    assert!(lost_up > 0 && lost_down > 0, "the link lost packets both ways");
+    assert!(
+        lost_up > 0 && lost_down > 0,
+        "the link lost packets both ways"
+    );
     assert!(reordered > 0, "the link reordered packets");
     assert!(
         stats.flows.load(Ordering::Relaxed) >= 2 * ROBOTS,
@@ -104,7 +110,11 @@ async fn every_round_completes_exactly_once_through_loss_reordering_and_rebindin
     );
 
     let report = server.shutdown().await;
-    assert_eq!(report.driver.replies, ROBOTS * ROUNDS, "one generation per round");
+    assert_eq!(
+        report.driver.replies,
+        ROBOTS * ROUNDS,
+        "one generation per round"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -140,11 +150,10 @@ async fn a_connection_lost_mid_round_resumes_without_a_second_generation() {
     });
     let mut robots = Vec::new();
     for i in 0..4u64 {
-        let client = kairos_sdk::client::Client::connect(
-            server.client_config(proxy.addr(), &server.token),
-        )
-        .await
-        .unwrap();
+        let client =
+            kairos_sdk::client::Client::connect(server.client_config(proxy.addr(), &server.token))
+                .await
+                .unwrap();
         let plan = RobotPlan {
             task: 700 + i,
             rounds: 4,

@@ -2,8 +2,8 @@
 //! and the server keeps serving — the same connection and another robot alike.
 
 use kairos_sdk::protocol::{
-    EndTask, ErrorCode, Image, ImagePayload, Message, MessageKind, Observation,
-    Submit, TaskOutcome, Tensor, Welcome, frame::encode_header,
+    EndTask, ErrorCode, Image, ImagePayload, Message, MessageKind, Observation, Submit,
+    TaskOutcome, Tensor, Welcome, frame::encode_header,
 };
 use kairos_tests::harness::{RawConnection, ServerOptions, TestServer, one_round};
 
@@ -63,7 +63,10 @@ async fn each_malformed_input_class_gets_its_error_and_the_server_keeps_serving(
 
     // A valid round first, so "round id going backwards" has something to go back from.
     match raw
-        .exchange(&frame(Message::Submit(submit(5, 5, good_state(), Vec::new()))), false)
+        .exchange(
+            &frame(Message::Submit(submit(5, 5, good_state(), Vec::new()))),
+            false,
+        )
         .await
         .unwrap()
     {
@@ -157,34 +160,88 @@ async fn each_malformed_input_class_gets_its_error_and_the_server_keeps_serving(
         ("truncated frame", truncated, true, ErrorCode::BadFrame),
         ("oversize frame", oversize_frame, false, ErrorCode::TooLarge),
         ("oversize image", oversize_image, false, ErrorCode::TooLarge),
-        ("wrong state dtype", wrong_dtype, false, ErrorCode::InvalidObservation),
-        ("wrong state length", wrong_state_len, false, ErrorCode::InvalidObservation),
-        ("wrong image shape", wrong_image_shape, false, ErrorCode::InvalidObservation),
-        ("too many images", too_many_images, false, ErrorCode::TooLarge),
-        ("round id going backwards", backwards, false, ErrorCode::RoundOutOfOrder),
-        ("EndTask for an unknown task", unknown_task, false, ErrorCode::UnknownTask),
-        ("unknown frame kind", unknown_kind, true, ErrorCode::BadFrame),
-        ("body is not MessagePack", not_msgpack, true, ErrorCode::BadFrame),
-        ("server message sent by a client", wrong_direction, true, ErrorCode::BadFrame),
+        (
+            "wrong state dtype",
+            wrong_dtype,
+            false,
+            ErrorCode::InvalidObservation,
+        ),
+        (
+            "wrong state length",
+            wrong_state_len,
+            false,
+            ErrorCode::InvalidObservation,
+        ),
+        (
+            "wrong image shape",
+            wrong_image_shape,
+            false,
+            ErrorCode::InvalidObservation,
+        ),
+        (
+            "too many images",
+            too_many_images,
+            false,
+            ErrorCode::TooLarge,
+        ),
+        (
+            "round id going backwards",
+            backwards,
+            false,
+            ErrorCode::RoundOutOfOrder,
+        ),
+        (
+            "EndTask for an unknown task",
+            unknown_task,
+            false,
+            ErrorCode::UnknownTask,
+        ),
+        (
+            "unknown frame kind",
+            unknown_kind,
+            true,
+            ErrorCode::BadFrame,
+        ),
+        (
+            "body is not MessagePack",
+            not_msgpack,
+            true,
+            ErrorCode::BadFrame,
+        ),
+        (
+            "server message sent by a client",
+            wrong_direction,
+            true,
+            ErrorCode::BadFrame,
+        ),
     ];
     for (name, bytes, finish, expected) in cases {
         match raw.exchange(&bytes, finish).await {
             Ok(Message::Error(error)) => {
                 assert_eq!(error.code, expected, "{name}: {}", error.message);
                 assert!(!error.message.is_empty(), "{name}: the error says why");
-                assert!(!error.retryable, "{name}: a malformed request is not retryable");
+                assert!(
+                    !error.retryable,
+                    "{name}: a malformed request is not retryable"
+                );
             }
             Ok(other) => panic!("{name}: expected an Error, got {}", other.kind()),
             Err(error) => panic!("{name}: no answer: {error}"),
         }
         // Another robot is still served...
         let reply = one_round(&bystander, 900, bystander_round).await;
-        assert!(reply.is_ok(), "{name}: the bystander was not served: {reply:?}");
+        assert!(
+            reply.is_ok(),
+            "{name}: the bystander was not served: {reply:?}"
+        );
         bystander_round += 1;
     }
     // ...and so is the connection that sent all of the above.
     match raw
-        .exchange(&frame(Message::Submit(submit(5, 6, good_state(), Vec::new()))), false)
+        .exchange(
+            &frame(Message::Submit(submit(5, 6, good_state(), Vec::new()))),
+            false,
+        )
         .await
         .unwrap()
     {

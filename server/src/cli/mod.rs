@@ -2,3 +2,4 @@
 //! `run` function. `main.rs` only parses and dispatches.
 pub mod profile;
 pub mod robot;
+pub mod serve;

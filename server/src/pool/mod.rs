@@ -11,9 +11,9 @@
 //! The scheduler plans with [`EnginePool::specs`], built from each instance's profile, tier and
 //! round trip.
 
+mod build;
 mod link;
 mod local;
-pub mod profile;
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -21,6 +21,7 @@ use std::time::Duration;
 use futures::future::BoxFuture;
 use kairos_engine::{ActionChunk, ActionRequest, EngineError, EngineProfile, ModelSpec};
 
+pub use build::{BuildEvent, PoolConfigError, build_pool};
 pub use link::EmulatedLinkEngine;
 pub use local::LocalEngine;
 
@@ -86,6 +87,14 @@ pub struct EnginePool {
     instances: Vec<Arc<dyn EngineInstance>>,
 }
 
+impl std::fmt::Debug for EnginePool {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_list()
+            .entries(self.instances.iter().map(|i| i.name()))
+            .finish()
+    }
+}
+
 /// The pool cannot be formed.
 #[derive(Debug, thiserror::Error)]
 pub enum PoolBuildError {
@@ -110,7 +119,10 @@ impl EnginePool {
     /// A pool of instances that all serve the same model shapes.
     pub fn new(instances: Vec<Arc<dyn EngineInstance>>) -> Result<EnginePool, PoolBuildError> {
         let first = instances.first().ok_or(PoolBuildError::Empty)?;
-        if let Some(other) = instances.iter().find(|i| !same_shapes(i.spec(), first.spec())) {
+        if let Some(other) = instances
+            .iter()
+            .find(|i| !same_shapes(i.spec(), first.spec()))
+        {
             return Err(PoolBuildError::SpecMismatch {
                 first: first.name().to_string(),
                 engine: other.name().to_string(),

@@ -5,8 +5,8 @@ use std::time::Duration;
 
 use kairos_sdk::client::{STREAM_REFUSED, close_code};
 use kairos_sdk::protocol::{
-    ErrorReply, FetchObservation, Message, PROTOCOL_VERSION, ReadFrameError, Welcome,
-    read_message, write_message,
+    ErrorReply, FetchObservation, Message, PROTOCOL_VERSION, ReadFrameError, Welcome, read_message,
+    write_message,
 };
 use quinn::{Connection, RecvStream, SendStream, VarInt};
 use tokio::sync::{mpsc, watch};
@@ -128,10 +128,7 @@ pub(super) async fn serve(
 
 /// The `Hello`/`Welcome` exchange on the connection's first stream. On refusal returns the close
 /// code and reason, after the error frame has been delivered (or `LINGER` has passed).
-async fn hello(
-    connection: &Connection,
-    context: &ServerContext,
-) -> Result<RobotId, (u32, String)> {
+async fn hello(connection: &Connection, context: &ServerContext) -> Result<RobotId, (u32, String)> {
     let protocol_error = |reason: String| (close_code::PROTOCOL_ERROR, reason);
     let (mut send, mut recv) = connection
         .accept_bi()
@@ -200,7 +197,9 @@ async fn stream(
     mut recv: RecvStream,
 ) {
     let outcome = match read_message(&mut recv, context.limits()).await {
-        Ok(Some(Message::Submit(submit))) => round(&peer, &context, submit, &mut send, &mut recv).await,
+        Ok(Some(Message::Submit(submit))) => {
+            round(&peer, &context, submit, &mut send, &mut recv).await
+        }
         Ok(Some(Message::EndTask(end))) => end_task(&peer, &context, end, &mut send).await,
         Ok(Some(other)) => Err(RequestError::UnexpectedMessage {
             expected: "Submit or EndTask",

@@ -65,9 +65,7 @@ impl RobotTable {
     /// The robot whose token this is. Only the token's SHA-256 is compared, so the lookup's
     /// timing says nothing about how close a guess was to a real token.
     pub fn authenticate(&self, token: &str) -> Option<RobotId> {
-        self.by_hash
-            .get(&crate::config::hash_token(token))
-            .copied()
+        self.by_hash.get(&crate::config::hash_token(token)).copied()
     }
 
     /// The robot's configured name.

@@ -173,7 +173,8 @@ impl ServerIdentity {
 }
 
 fn is_der(path: &Path) -> bool {
-    path.extension().is_some_and(|e| e.eq_ignore_ascii_case("der"))
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("der"))
 }
 
 fn read(path: &Path) -> Result<Vec<u8>, TlsError> {
