@@ -2,6 +2,8 @@
 //! neither read nor advance nor end another robot's task; admission closes connections over the
 //! limit with a reason.
 
+#![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
+
 use kairos_sdk::client::{ClientError, close_code};
 use kairos_sdk::protocol::{ErrorCode, Message};
 use kairos_tests::harness::{RawConnection, ServerOptions, TestServer, one_round};

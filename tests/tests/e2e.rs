@@ -2,6 +2,8 @@
 //! multi-round task with asynchronous inference. Every round is answered exactly once, and the
 //! G/E records the server keeps match what each robot did.
 
+#![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
+
 use std::collections::BTreeMap;
 
 use kairos_sdk::protocol::HorizonSelection;

@@ -2,6 +2,8 @@
 //! duplicates, and every robot rebinding to a new local port in the middle of its task (a Wi-Fi
 //! roam). Every round of every robot completes exactly once.
 
+#![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
+
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;

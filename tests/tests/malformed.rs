@@ -1,6 +1,8 @@
 //! Malformed input over a real QUIC stream: each class gets its typed error on its own stream,
 //! and the server keeps serving — the same connection and another robot alike.
 
+#![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
+
 use kairos_sdk::protocol::{
     EndTask, ErrorCode, Image, ImagePayload, Message, MessageKind, Observation, Submit,
     TaskOutcome, Tensor, Welcome, frame::encode_header,
