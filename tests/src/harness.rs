@@ -156,6 +156,24 @@ impl TestServer {
         Ok(Client::connect(self.client_config(self.addr, token)).await?)
     }
 
+    /// Checks the server's side of "exactly once": the ended task `task` had exactly one chunk
+    /// generated for each of its rounds `0..rounds`.
+    pub async fn assert_generated_once(&self, task: u64, rounds: u64) {
+        let snapshot = self
+            .server()
+            .driver
+            .snapshot(kairos_server::scheduler::TaskId(task))
+            .await
+            .expect("driver running")
+            .unwrap_or_else(|| panic!("no record of task {task}"));
+        assert!(snapshot.ended, "task {task} has ended");
+        let once: std::collections::BTreeMap<u64, u32> = (0..rounds).map(|r| (r, 1)).collect();
+        assert_eq!(
+            snapshot.generated, once,
+            "task {task}: generations per round"
+        );
+    }
+
     /// Shuts the server down gracefully and returns what it did.
     pub async fn shutdown(mut self) -> ServerReport {
         match self.server.take() {
@@ -188,6 +206,25 @@ pub struct RobotPlan {
     pub horizon: Option<HorizonSelection>,
     /// `state[1]` of every observation (how far [`TestFlow`]'s chunks converge).
     pub state1: f32,
+}
+
+impl RobotPlan {
+    /// A robot at 200 Hz that sends its next request 3 actions before its chunk runs out and
+    /// asks for a static horizon of `h`: short, regular rounds for transport tests.
+    pub fn static_horizon(task: u64, rounds: u64, h: u32) -> RobotPlan {
+        RobotPlan {
+            task,
+            rounds,
+            control_hz: 200.0,
+            send_ahead: 3,
+            horizon: Some(HorizonSelection {
+                policy: "static".into(),
+                params: [("h".to_string(), f64::from(h))].into(),
+                samples: 1,
+            }),
+            state1: 0.0,
+        }
+    }
 }
 
 /// What the robot did in one round, on its own clock (µs).

@@ -7,7 +7,6 @@
 use std::collections::BTreeMap;
 
 use kairos_sdk::protocol::HorizonSelection;
-use kairos_server::scheduler::TaskId;
 use kairos_tests::harness::{
     RecordError, RobotPlan, ServerOptions, TestServer, compare_records, run_task,
 };
@@ -77,16 +76,7 @@ async fn twenty_robots_complete_multi_round_tasks_and_records_match() {
         }
         worst = worst.max(compare_records(log).unwrap());
         // Server side: one generation per (task, round).
-        let snapshot = server
-            .server()
-            .driver
-            .snapshot(TaskId(log.task))
-            .await
-            .unwrap()
-            .unwrap();
-        assert!(snapshot.ended);
-        let expected: BTreeMap<u64, u32> = (0..ROUNDS).map(|r| (r, 1)).collect();
-        assert_eq!(snapshot.generated, expected, "task {}", log.task);
+        server.assert_generated_once(log.task, ROUNDS).await;
     }
     println!("largest record error vs robot logs: {worst:?}");
     assert!(worst.generation_outside_us <= TOLERANCE_US, "{worst:?}");

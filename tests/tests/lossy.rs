@@ -4,13 +4,10 @@
 
 #![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
 
-use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use kairos_sdk::protocol::HorizonSelection;
-use kairos_server::scheduler::TaskId;
 use kairos_tests::harness::{Hook, RobotPlan, ServerOptions, TestServer, run_task};
 use kairos_tests::proxy::{Impairment, Proxy, ProxyConfig};
 
@@ -43,18 +40,7 @@ async fn every_round_completes_exactly_once_through_loss_reordering_and_rebindin
             kairos_sdk::client::Client::connect(server.client_config(proxy.addr(), &server.token))
                 .await
                 .unwrap();
-        let plan = RobotPlan {
-            task: 500 + i,
-            rounds: ROUNDS,
-            control_hz: 200.0,
-            send_ahead: 3,
-            horizon: Some(HorizonSelection {
-                policy: "static".into(),
-                params: BTreeMap::from([("h".to_string(), 6.0)]),
-                samples: 1,
-            }),
-            state1: 0.0,
-        };
+        let plan = RobotPlan::static_horizon(500 + i, ROUNDS, 6);
         let hook = rebind.clone();
         robots.push(tokio::spawn(async move {
             let before = client.local_addr().unwrap();
@@ -74,19 +60,7 @@ async fn every_round_completes_exactly_once_through_loss_reordering_and_rebindin
         assert_eq!(rounds, (0..ROUNDS).collect::<Vec<_>>(), "task {}", log.task);
         resent += log.rounds.iter().filter(|r| r.attempts > 1).count();
         assert_eq!(u64::from(log.ended.rounds), ROUNDS, "task {}", log.task);
-        let snapshot = server
-            .server()
-            .driver
-            .snapshot(TaskId(log.task))
-            .await
-            .unwrap()
-            .unwrap();
-        let once: BTreeMap<u64, u32> = (0..ROUNDS).map(|r| (r, 1)).collect();
-        assert_eq!(
-            snapshot.generated, once,
-            "task {}: generations per round",
-            log.task
-        );
+        server.assert_generated_once(log.task, ROUNDS).await;
     }
 
     let stats = proxy.stats();
@@ -156,18 +130,7 @@ async fn a_connection_lost_mid_round_resumes_without_a_second_generation() {
             kairos_sdk::client::Client::connect(server.client_config(proxy.addr(), &server.token))
                 .await
                 .unwrap();
-        let plan = RobotPlan {
-            task: 700 + i,
-            rounds: 4,
-            control_hz: 200.0,
-            send_ahead: 3,
-            horizon: Some(HorizonSelection {
-                policy: "static".into(),
-                params: BTreeMap::from([("h".to_string(), 6.0)]),
-                samples: 1,
-            }),
-            state1: 0.0,
-        };
+        let plan = RobotPlan::static_horizon(700 + i, 4, 6);
         let hook = drop_mid_round.clone();
         robots.push(tokio::spawn(async move {
             let log = run_task(&client, &plan, Some(hook)).await;
@@ -187,15 +150,7 @@ async fn a_connection_lost_mid_round_resumes_without_a_second_generation() {
             DROP_AFTER + 1
         );
         assert!(stats.connects >= 2, "task {} reconnected", log.task);
-        let snapshot = server
-            .server()
-            .driver
-            .snapshot(TaskId(log.task))
-            .await
-            .unwrap()
-            .unwrap();
-        let once: BTreeMap<u64, u32> = (0..4).map(|r| (r, 1)).collect();
-        assert_eq!(snapshot.generated, once, "task {}", log.task);
+        server.assert_generated_once(log.task, 4).await;
     }
     // A re-sent round found its first copy queued (withdrawn when the old connection died, then
     // accepted again), running (attached) or answered (cached reply) — or, when the loss ate the
