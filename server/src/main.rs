@@ -14,6 +14,8 @@ struct Cli {
 enum Command {
     /// Print the protocol version and build information.
     Info,
+    /// Run a fleet of simulated robots against a server.
+    Robot(kairos_server::cli::robot::RobotArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -28,5 +30,6 @@ fn main() -> anyhow::Result<()> {
             );
             Ok(())
         }
+        Command::Robot(args) => kairos_server::cli::robot::run(args),
     }
 }
