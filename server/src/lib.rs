@@ -1,8 +1,15 @@
 //! Kairos server: the execution-aware scheduler, horizon policies, plugin host, engine pool,
 //! QUIC transport and the `kairos` command line.
 
+pub mod action;
 pub mod cli;
+pub mod config;
+pub mod driver;
 pub mod horizon;
 pub mod lifecycle;
+pub mod pool;
+pub mod registry;
 pub mod scheduler;
 pub mod time;
+pub mod transport;
+pub mod validation;
