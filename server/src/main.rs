@@ -16,6 +16,8 @@ enum Command {
     Info,
     /// Run a fleet of simulated robots against a server.
     Robot(Box<kairos_server::cli::robot::RobotArgs>),
+    /// Evaluation tools: simulate workloads, generate traces.
+    Bench(kairos_server::cli::bench::BenchArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -31,5 +33,6 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         Command::Robot(args) => kairos_server::cli::robot::run(*args),
+        Command::Bench(args) => kairos_server::cli::bench::run(args),
     }
 }

@@ -43,6 +43,7 @@ mod placement;
 pub mod plas;
 pub mod policy;
 pub mod registry;
+pub mod srw;
 #[cfg(test)]
 mod tests;
 
