@@ -14,6 +14,7 @@
 mod build;
 mod link;
 mod local;
+pub mod replay;
 
 use std::sync::Arc;
 use std::time::Duration;
