@@ -37,7 +37,7 @@ pub enum BenchCommand {
     Calibrate(CalibrateArgs),
     /// Replay the same traces live: simulated robots over QUIC against a real server with the
     /// trace-replay engine, side by side with the simulation (`cli::bench_live`).
-    Live(super::bench_live::LiveArgs),
+    Live(Box<super::bench_live::LiveArgs>),
 }
 
 /// `kairos bench calibrate`
@@ -124,7 +124,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
         BenchCommand::Sim(a) => run_sim(a),
         BenchCommand::Traces(a) => run_traces(a),
         BenchCommand::Calibrate(a) => run_calibrate(a),
-        BenchCommand::Live(a) => super::bench_live::run(a),
+        BenchCommand::Live(a) => super::bench_live::run(*a),
     }
 }
 

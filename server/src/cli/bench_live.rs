@@ -360,9 +360,9 @@ pub async fn start_replay_server(
         u64::try_from(job.config.scheduler.stale_after.as_millis()).unwrap_or(u64::MAX);
     config.scheduler.max_pending = job.config.scheduler.max_pending;
     config.scheduler.history_rounds = job.config.scheduler.history_rounds;
-    Ok(start(&config, pool, Policies::default())
+    start(&config, pool, Policies::default())
         .await
-        .context("starting the replay server")?)
+        .context("starting the replay server")
 }
 
 /// Replays `job`'s schedule over `traces` (both scaled) against `target`, one QUIC connection
@@ -812,4 +812,97 @@ fn write_outputs(
     println!("\n{summary}");
     println!("Outputs in {}", args.out.display());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: LiveArgs,
+    }
+
+    fn parse(extra: &[&str]) -> Result<LiveArgs, clap::Error> {
+        Cli::try_parse_from(std::iter::once("live").chain(extra.iter().copied())).map(|c| c.args)
+    }
+
+    fn workload() -> Workload {
+        Workload::load(Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../workloads/libero-smolvla.toml"
+        )))
+        .unwrap()
+    }
+
+    #[test]
+    fn arguments_parse_and_remote_runs_need_a_pin_and_token() {
+        let args = parse(&["--variants", "fifo,kairos", "--tasks", "12"]).unwrap();
+        assert_eq!(args.variants, ["fifo", "kairos"]);
+        assert_eq!(args.sim_network, SimNetworkMode::Measured);
+        assert!(parse(&["--server", "127.0.0.1:4433"]).is_err());
+        assert!(parse(&["--tasks", "0"]).is_err());
+        assert!(parse(&["--serve", "127.0.0.1:1", "--server", "127.0.0.1:2"]).is_err());
+        assert!(variant("kairos").is_ok());
+        let unknown = variant("lottery").unwrap_err().to_string();
+        assert!(unknown.contains("fifo"), "{unknown}");
+    }
+
+    #[test]
+    fn the_simulation_does_not_depend_on_the_time_scale() {
+        // Scaling time is what makes live runs short; the simulation of a scaled run, scaled
+        // back, must be the unscaled simulation (up to µs rounding), or the side-by-side would
+        // compare different systems.
+        let w = workload();
+        let set = generate::generate(&w, 42).unwrap();
+        for key in ["fifo", "kairos"] {
+            let v = variant(key).unwrap();
+            let at = |k: f64| {
+                let job = live_job(&w, &v, 5.0, 30, 3, k);
+                simulate_scaled(&job, &scale_traces(&set, k), k).unwrap()
+            };
+            let (one, four) = (at(1.0), at(4.0));
+            assert_eq!(one.summary.n, 30);
+            assert!(
+                (four.summary.mean / one.summary.mean - 1.0).abs() < 0.005,
+                "{key}: {} vs {}",
+                four.summary.mean,
+                one.summary.mean
+            );
+            assert!((four.rounds_per_task / one.rounds_per_task - 1.0).abs() < 0.01);
+        }
+    }
+
+    #[test]
+    fn a_live_job_is_the_scaled_online_run_on_loopback() {
+        let w = workload();
+        let job = live_job(&w, &variant("kairos").unwrap(), 5.0, 30, 3, 4.0);
+        assert_eq!(
+            job.config.load,
+            Load::Poisson {
+                rate: 20.0,
+                tasks: 30
+            }
+        );
+        assert_eq!(job.config.network, LOOPBACK);
+        assert_eq!(job.config.scheduler.stale_after, Duration::from_millis(25));
+        let edge = &job.config.engines[0].profile;
+        assert_eq!(edge.latency(1), w.edge_profile().latency(1).div_f64(4.0));
+        assert_eq!(job.x, 5.0, "reported at the recording's rate");
+        let set = generate::generate(&w, 42).unwrap();
+        let scaled = scale_traces(&set, 4.0);
+        assert_eq!(scaled.tasks[0].control_hz, set.tasks[0].control_hz * 4.0);
+        assert_eq!(scaled.tasks[0].rounds, {
+            let mut r = set.tasks[0].rounds.clone();
+            for round in &mut r {
+                round.gen_latency_us = (round.gen_latency_us as f64 / 4.0).round() as u64;
+                round.round_trip_us = round
+                    .round_trip_us
+                    .map(|us| (us as f64 / 4.0).round() as u64);
+            }
+            r
+        });
+    }
 }

@@ -2,6 +2,7 @@
 //! `run` function. `main.rs` only parses and dispatches.
 pub mod bench;
 pub mod bench_live;
+pub mod demo;
 pub mod profile;
 pub mod robot;
 pub mod serve;

@@ -137,3 +137,130 @@ pub fn replay_state(round: &RoundTrace, chunk_len: usize) -> Vec<f32> {
         _ => vec![1.0; chunk_len],
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::action::{ActionManager, RoundContext};
+    use crate::horizon::PolicyParams;
+    use crate::registry::{HorizonRegistry, native_horizon_policies};
+    use crate::sim::horizon::{ReplayHorizon, confidence_for_target};
+    use kairos_engine::ProfilePoint;
+    use kairos_sdk::trace::HorizonSetting;
+
+    fn profile() -> EngineProfile {
+        EngineProfile {
+            model: "modelled".into(),
+            device: "test".into(),
+            points: vec![
+                ProfilePoint {
+                    batch: 1,
+                    latency_ms: 20.0,
+                },
+                ProfilePoint {
+                    batch: 4,
+                    latency_ms: 50.0,
+                },
+            ],
+            max_batch: 4,
+        }
+    }
+
+    fn request(state: Vec<f32>) -> ActionRequest {
+        ActionRequest {
+            state,
+            images: Vec::new(),
+            instruction: String::new(),
+            samples: 1,
+            seed: 0,
+        }
+    }
+
+    fn round(confidence: Option<Vec<f32>>, horizon: u32) -> RoundTrace {
+        RoundTrace {
+            issued_at_action: 0,
+            horizon,
+            executed: horizon,
+            gen_latency_us: 0,
+            round_trip_us: None,
+            obs_bytes: 100,
+            confidence,
+        }
+    }
+
+    #[test]
+    fn the_live_horizon_from_a_replayed_chunk_is_the_simulators() {
+        let n = 50;
+        let model = TraceReplayModel::new(n, profile()).unwrap();
+        let params = PolicyParams::from([("t".to_string(), 0.4), ("h_min".to_string(), 5.0)]);
+        let manager = ActionManager::new(
+            HorizonRegistry::new(),
+            &native_horizon_policies(),
+            "threshold",
+            params.clone(),
+        )
+        .unwrap();
+        let setting = HorizonSetting {
+            policy: "threshold".into(),
+            params: params.clone(),
+        };
+        let mut sim = ReplayHorizon::new(&setting).unwrap();
+        for target in [1, 5, 9, 17, 33, 50] {
+            let recorded = round(Some(confidence_for_target(target, 0.4, n as u32)), target);
+            let chunk = &model
+                .generate(&[request(replay_state(&recorded, n))])
+                .unwrap()[0];
+            let mut policy = manager.build(Some("threshold"), Some(&params)).unwrap();
+            let live = manager
+                .choose(
+                    &mut policy,
+                    chunk,
+                    RoundContext {
+                        control_hz: 20.0,
+                        round_index: 0,
+                        recent_horizons: &[],
+                    },
+                )
+                .unwrap();
+            let simulated = sim.choose(&recorded, 0, n as u32, 20.0).unwrap();
+            assert_eq!(live.horizon as u32, simulated, "target {target}");
+            assert_eq!(live.horizon, (target as usize).max(5));
+        }
+    }
+
+    #[test]
+    fn a_batch_takes_its_profiled_time_and_every_request_its_own_chunk() {
+        let model = TraceReplayModel::new(3, profile()).unwrap();
+        assert_eq!(model.spec().state_dim, 3);
+        let batch = vec![request(vec![1.0, 2.0, 3.0]), request(vec![0.5, 0.5, 0.5])];
+        let started = Instant::now();
+        let chunks = model.generate(&batch).unwrap();
+        let took = started.elapsed();
+        assert!(
+            took >= model.profile().latency(2),
+            "{took:?} < {:?}",
+            model.profile().latency(2)
+        );
+        assert_eq!(chunks.len(), 2);
+        assert_eq!(chunks[0].updates, [1.0, 1.0, 1.0, 1.0, 2.0, 3.0]);
+        assert_eq!(chunks[1].sample_updates(0)[3..], [0.5, 0.5, 0.5]);
+        for c in &chunks {
+            // noise + Σ updates = actions (zeros), the chunk invariant.
+            for i in 0..3 {
+                assert_eq!(c.noise[i] + c.updates[i] + c.updates[3 + i], c.actions[i]);
+            }
+        }
+        let wrong_length = model.generate(&[request(vec![1.0; 4])]);
+        assert!(wrong_length.is_err());
+        let negative = model.generate(&[request(vec![1.0, -1.0, 1.0])]);
+        assert!(negative.is_err());
+        assert!(TraceReplayModel::new(0, profile()).is_err());
+    }
+
+    #[test]
+    fn a_round_without_confidence_is_replayed_with_nothing_cut() {
+        assert_eq!(replay_state(&round(None, 7), 4), vec![1.0; 4]);
+        let with = round(Some(vec![1.0, 1.2, 3.0, 4.0]), 2);
+        assert_eq!(replay_state(&with, 4), vec![1.0, 1.2, 3.0, 4.0]);
+    }
+}
