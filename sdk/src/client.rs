@@ -244,6 +244,9 @@ pub enum ClientError {
     /// The client was closed.
     #[error("the client is closed")]
     Closed,
+    /// The blocking client's runtime could not be started.
+    #[error("cannot start the client runtime: {0}")]
+    Runtime(#[source] std::io::Error),
 }
 
 impl ClientError {

@@ -152,7 +152,7 @@ pub struct ChunkApplied {
     /// Actions of the new chunk that will execute (0 if it was entirely stale).
     pub executable: u32,
     /// The chunk that stopped executing because of this one: (round, actions executed, actions
-    /// dropped unexecuted).
+    /// dropped unexecuted). `None` if no chunk was executing (none yet, or it had run out).
     pub replaced: Option<(u64, u32, u32)>,
 }
 
@@ -271,9 +271,11 @@ impl ChunkExecutor {
                 replaced: None,
             };
         }
+        // A chunk that already ran out ended then; only one still executing is replaced.
         let replaced = self
             .chunk
             .take()
+            .filter(|old| old.remaining() > 0)
             .map(|old| (old.round, as_u32(old.executed()), as_u32(old.remaining())));
         let executable = actions.len() - discarded;
         self.chunk = Some(ActiveChunk {
@@ -369,7 +371,8 @@ pub enum RunnerEvent {
         /// The Last Exec Info sent.
         last_exec: Option<LastExecInfo>,
     },
-    /// The server asked for a fresher observation and got one.
+    /// The server asked for a fresher observation and got one. The round's chunk is aligned to
+    /// this capture from now on (see the module docs).
     ObservationRefetched {
         /// Task id.
         task: u64,
@@ -377,6 +380,9 @@ pub enum RunnerEvent {
         round: u64,
         /// When.
         at_us: u64,
+        /// Actions the task had executed when the fresh observation was captured: the action
+        /// index the chunk's action 0 now corresponds to.
+        actions_executed: u64,
     },
     /// A round's chunk arrived and was aligned.
     ReplyReceived {
@@ -694,6 +700,7 @@ impl<R: Robot, T: RoundTransport, E: FnMut(&RunnerEvent) + Send> Run<'_, R, T, E
                 task: self.task,
                 round: pending.round,
                 at_us: now_us,
+                actions_executed: self.executor.executed_total(),
             });
         }
         // The round may have ended meanwhile; then nobody needs the observation.
@@ -1074,7 +1081,10 @@ mod tests {
         assert_eq!(info.exec_started_at_us, 0);
         let applied = executor.reply_arrived(1, chunk(1, 4));
         assert_eq!(applied.discarded, 0);
-        assert_eq!(applied.replaced, Some((0, 2, 0)));
+        assert_eq!(
+            applied.replaced, None,
+            "the old chunk ended when it ran out"
+        );
     }
 
     #[test]

@@ -132,10 +132,10 @@ pub struct RoundTrace {
 #[derive(Debug, thiserror::Error)]
 pub enum TraceError {
     /// Reading or writing the file failed.
-    #[error("trace I/O failed: {0}")]
+    #[error("trace I/O failed")]
     Io(#[from] std::io::Error),
     /// A line is not valid JSON for its record type.
-    #[error("line {line}: {source}")]
+    #[error("line {line} is not a valid trace record")]
     Parse {
         /// 1-based line number.
         line: usize,
@@ -620,6 +620,9 @@ struct RunnerTask {
     executed_before: u64,
     /// The chunk now executing: (round, executable actions).
     current: Option<(u64, u32)>,
+    /// Actions counted per ended chunk. The runner reports a chunk that ran out once when its
+    /// last action starts and again when a newer chunk replaces it; the later report wins.
+    ended: BTreeMap<u64, u32>,
 }
 
 /// Records the [`RunnerEvent`](crate::robot::RunnerEvent)s of `RobotRunner`s (one or many
@@ -675,6 +678,7 @@ impl<W: Write> RunnerTraceRecorder<W> {
                     }),
                     executed_before: 0,
                     current: None,
+                    ended: BTreeMap::new(),
                 });
                 let in_current = match (t.current, last_exec) {
                     (Some((_, executable)), Some(info)) => {
@@ -718,7 +722,8 @@ impl<W: Write> RunnerTraceRecorder<W> {
                     round: *round,
                     executed: *executed,
                 })?;
-                t.executed_before += u64::from(*executed);
+                let counted = t.ended.insert(*round, *executed).unwrap_or(0);
+                t.executed_before = t.executed_before - u64::from(counted) + u64::from(*executed);
                 if t.current.is_some_and(|(r, _)| r == *round) {
                     t.current = None;
                 }
@@ -1019,6 +1024,8 @@ mod tests {
             sent(1, 350_000, Some(4)),
             ended(0, 5),
             reply(1, 400_000, 1),
+            // The runner may report an ended chunk twice (ran out, then replaced): count it once.
+            ended(0, 5),
             sent(2, 800_000, Some(3)),
             ended(1, 5),
             reply(2, 850_000, 1),

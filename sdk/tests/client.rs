@@ -6,7 +6,9 @@ mod support;
 
 use std::time::Duration;
 
-use kairos_sdk::client::{Client, ClientConfig, ClientError, NoRefetch, RoundRequest};
+use kairos_sdk::client::{
+    Client, ClientConfig, ClientError, NoRefetch, ROUND_CANCELLED, RoundRequest,
+};
 use kairos_sdk::protocol::{ErrorCode, FetchObservation, Observation, TaskOutcome};
 use kairos_sdk::tls::Fingerprint;
 use support::{Behavior, Kill, Responder, observation};
@@ -80,6 +82,20 @@ async fn wrong_token_is_unauthorized() {
     let error = Client::connect(config).await.unwrap_err();
     assert!(
         matches!(error, ClientError::Unauthorized(_)),
+        "got {error:?}"
+    );
+    assert!(!error.is_retryable());
+}
+
+#[tokio::test]
+async fn a_server_speaking_another_version_is_refused() {
+    let responder = Responder::start(Behavior {
+        welcome_protocol: 2,
+        ..Behavior::default()
+    });
+    let error = Client::connect(config(&responder)).await.unwrap_err();
+    assert!(
+        matches!(&error, ClientError::VersionMismatch { client: 1, server } if server.contains('2')),
         "got {error:?}"
     );
     assert!(!error.is_retryable());
@@ -279,4 +295,60 @@ async fn closed_client_refuses_rounds() {
         .await
         .unwrap_err();
     assert!(matches!(error, ClientError::Closed), "{error:?}");
+}
+
+#[tokio::test]
+async fn an_abandoned_round_is_cancelled_on_the_server() {
+    let responder = Responder::start(Behavior {
+        generation: Duration::from_secs(5),
+        ..Behavior::default()
+    });
+    let mut config = config(&responder);
+    config.round_timeout = Some(Duration::from_millis(200));
+    let client = Client::connect(config).await.unwrap();
+    let mut task = client.task(6);
+    let error = task
+        .submit(RoundRequest::new(observation(0)), &mut NoRefetch)
+        .await
+        .unwrap_err();
+    assert!(
+        matches!(error, ClientError::Timeout { what: "round", .. }),
+        "{error:?}"
+    );
+    assert!(error.is_retryable());
+    // The stream's STOP_SENDING reaches the responder within a round trip.
+    for _ in 0..100 {
+        if !responder.seen().cancelled.is_empty() {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert_eq!(
+        responder.seen().cancelled,
+        [(0, u64::from(ROUND_CANCELLED))]
+    );
+    assert_eq!(task.next_round(), 1, "the abandoned round's id is used up");
+}
+
+#[test]
+fn blocking_client_runs_rounds_from_a_plain_thread() {
+    let server = tokio::runtime::Runtime::new().unwrap();
+    let responder = server.block_on(async { Responder::start(Behavior::default()) });
+    let client = kairos_sdk::BlockingClient::connect(config(&responder)).unwrap();
+    assert_eq!(client.welcome().unwrap().robot, "robot-0");
+    let mut task = client.task(12);
+    for round in 0..2 {
+        let reply = task
+            .submit(
+                RoundRequest::new(observation(client.now_us())),
+                &mut NoRefetch,
+            )
+            .unwrap();
+        assert_eq!(reply.reply.round, round);
+        // The connection keeps being driven while the caller is away.
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert_eq!(task.end(TaskOutcome::Done, None).unwrap().rounds, 2);
+    client.close();
+    assert_eq!(server.block_on(async { responder.seen().submits.len() }), 2);
 }

@@ -255,6 +255,15 @@ async fn async_inference_triggers_at_half_and_aligns_chunks() {
         dropped: 2
     }));
     assert!(matches!(events.last(), Some(RunnerEvent::TaskFinished(_))));
+    let mut ended: Vec<u64> = events
+        .iter()
+        .filter_map(|event| match event {
+            RunnerEvent::ChunkEnded { round, .. } => Some(*round),
+            _ => None,
+        })
+        .collect();
+    ended.sort_unstable();
+    assert_eq!(ended, [0, 1, 2], "each chunk ends exactly once");
 }
 
 #[tokio::test(start_paused = true)]
@@ -262,10 +271,23 @@ async fn synchronous_inference_idles_through_every_generation() {
     let transport = Scripted::new(250, 4);
     let seen = transport.seen.clone();
     let mut robot = Recorder::new(transport.clock);
+    let mut ended = Vec::new();
     let summary = runner(1.0, 3)
-        .run(&mut robot, transport, |_| {})
+        .run(&mut robot, transport, |event| {
+            if let RunnerEvent::ChunkEnded {
+                round,
+                executed,
+                dropped,
+                ..
+            } = event
+            {
+                ended.push((*round, *executed, *dropped));
+            }
+        })
         .await
         .unwrap();
+    // Chunks that ran out end once, when their last action starts, not again when replaced.
+    assert_eq!(ended, [(0, 4, 0), (1, 4, 0), (2, 4, 0)]);
     let sent: Vec<u64> = seen.lock().unwrap().iter().map(|s| s.sent_at_ms).collect();
     // Each round: 250 ms generation, then 4 actions at 100 ms; the request follows the last.
     assert_eq!(sent, [0, 550, 1100]);
@@ -290,8 +312,14 @@ async fn a_refetched_observation_moves_the_alignment_point() {
     let mut refetched = Vec::new();
     let summary = runner(0.5, 2)
         .run(&mut robot, transport, |event| {
-            if let RunnerEvent::ObservationRefetched { round, at_us, .. } = event {
-                refetched.push((*round, *at_us / 1000));
+            if let RunnerEvent::ObservationRefetched {
+                round,
+                at_us,
+                actions_executed,
+                ..
+            } = event
+            {
+                refetched.push((*round, *at_us / 1000, *actions_executed));
             }
         })
         .await
@@ -299,7 +327,8 @@ async fn a_refetched_observation_moves_the_alignment_point() {
     // Round 1 is sent at 820 ms (5 actions after 420); re-fetched at 1030 ms, after the actions
     // at 920 and 1020; it arrives at 1240 after those at 1120 and 1220: 2 slots used since the
     // re-fetch, not 4.
-    assert_eq!(refetched, [(1, 1030)]);
+    // 5 actions before the request, 2 more before the re-fetch.
+    assert_eq!(refetched, [(1, 1030, 7)]);
     assert_eq!(summary.rounds[1].discarded, 2);
     assert_eq!(summary.rounds[1].refetches, 1);
 }

@@ -37,6 +37,10 @@ pub struct Behavior {
     pub fetch_observation: bool,
     /// Answer this round with an `Error` frame instead of a reply.
     pub fail_round: Option<(u64, ErrorCode)>,
+    /// QUIC tuning of the server side.
+    pub tuning: TransportTuning,
+    /// The version `Welcome` announces.
+    pub welcome_protocol: u32,
 }
 
 impl Default for Behavior {
@@ -50,6 +54,8 @@ impl Default for Behavior {
             kill: None,
             fetch_observation: false,
             fail_round: None,
+            tuning: TransportTuning::default(),
+            welcome_protocol: PROTOCOL_VERSION,
         }
     }
 }
@@ -68,6 +74,8 @@ pub struct Seen {
     pub last_exec: Vec<(u64, LastExecInfo)>,
     pub ended: Vec<(u64, TaskOutcome)>,
     pub killed: bool,
+    /// Stream codes of rounds the client abandoned: (round, STOP_SENDING code).
+    pub cancelled: Vec<(u64, u64)>,
 }
 
 pub struct Responder {
@@ -92,7 +100,7 @@ impl Responder {
         let key = PrivateKeyDer::Pkcs8(PrivatePkcs8KeyDer::from(
             certified.signing_key.serialize_der(),
         ));
-        let config = server_config(vec![cert], key, &TransportTuning::default(), 16).unwrap();
+        let config = server_config(vec![cert], key, &behavior.tuning, 64).unwrap();
         let endpoint =
             quinn::Endpoint::server(config, SocketAddr::from(([127, 0, 0, 1], 0))).unwrap();
         let addr = endpoint.local_addr().unwrap();
@@ -150,7 +158,7 @@ async fn serve_connection(
         return;
     }
     let welcome = Welcome {
-        protocol: PROTOCOL_VERSION,
+        protocol: behavior.welcome_protocol,
         server: "test-responder".to_owned(),
         robot: "robot-0".to_owned(),
         model: ModelInfo {
@@ -218,6 +226,15 @@ async fn serve_stream(
         _ => return,
     };
     submit.validate(&limits).unwrap();
+    if submit.observation.captured_at_us > submit.sent_at_us {
+        let error = ErrorReply::new(
+            ErrorCode::InvalidRequest,
+            "observation captured after the message was sent",
+        );
+        let _ = write_message(&mut send, &Message::Error(error), limits.max_frame).await;
+        let _ = send.finish();
+        return;
+    }
     let key = (submit.task, submit.round);
     let kill_here = |point: Kill| {
         let mut seen = seen.lock().unwrap();
@@ -276,7 +293,15 @@ async fn serve_stream(
                     other => panic!("expected FreshObservation, got {other:?}"),
                 }
             }
-            tokio::time::sleep(behavior.generation).await;
+            tokio::select! {
+                () = tokio::time::sleep(behavior.generation) => {}
+                stopped = send.stopped() => {
+                    if let Ok(Some(code)) = stopped {
+                        seen.lock().unwrap().cancelled.push((submit.round, code.into_inner()));
+                    }
+                    return;
+                }
+            }
             let h = behavior.horizon;
             let values: Vec<f32> = (0..h * behavior.action_dim)
                 .map(|i| submit.round as f32 + i as f32 / 1000.0)

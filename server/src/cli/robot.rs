@@ -11,16 +11,21 @@
 //! `run` is synchronous: it builds its own multi-threaded tokio runtime.
 
 use std::collections::BTreeMap;
+use std::io::Write;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use anyhow::{Context, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use kairos_sdk::client::{Client, ClientConfig};
-use kairos_sdk::protocol::HorizonSelection;
-use kairos_sdk::robot::{RobotRunner, RunnerConfig, RunnerEvent, SimulatedRobot, TaskSummary};
+use kairos_sdk::protocol::{HorizonSelection, Submit, encode_body};
+use kairos_sdk::robot::{
+    Robot, RobotRunner, RunnerConfig, RunnerEvent, SimulatedRobot, TaskSummary,
+};
 use kairos_sdk::tls::{Fingerprint, ServerTrust};
+use kairos_sdk::trace::{HorizonSetting, RecordSetup, RunnerTraceRecorder};
 use serde::Deserialize;
 
 /// Certificate fingerprint a local `kairos serve` writes into its data directory.
@@ -87,6 +92,13 @@ pub struct RobotArgs {
     /// Delay between robot starts, ms.
     #[arg(long, default_value_t = 0)]
     pub stagger_ms: u64,
+    /// Record every task as a trace (docs/TRACES.md) into this file.
+    #[arg(long)]
+    pub record: Option<PathBuf>,
+    /// Setting label of the recorded tasks (default: `static` for the static policy,
+    /// `dynamic` for any other, `default` when the server's default policy is used).
+    #[arg(long, requires = "record")]
+    pub record_setting: Option<String>,
 }
 
 fn parse_positive(text: &str) -> Result<f32, String> {
@@ -204,6 +216,71 @@ pub fn run(args: RobotArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Bytes of one observation as the simulated robots send it: a whole `Submit` frame, whose other
+/// fields are a few dozen bytes.
+async fn observation_frame_bytes(
+    state_dim: usize,
+    cameras: usize,
+    height: u32,
+    width: u32,
+) -> anyhow::Result<u32> {
+    let observation = SimulatedRobot::new(state_dim, cameras, height, width)
+        .get_obs(0)
+        .await?;
+    let submit = Submit {
+        task: 0,
+        round: 0,
+        sent_at_us: 0,
+        observation,
+        last_exec: None,
+        horizon: None,
+        remaining: None,
+        attempt: 0,
+    };
+    let bytes = encode_body(&submit, u32::MAX)?.len();
+    Ok(u32::try_from(bytes).unwrap_or(u32::MAX))
+}
+
+type Recorder = Mutex<RunnerTraceRecorder<std::io::BufWriter<std::fs::File>>>;
+
+/// Feeds `event` to the trace recorder, if recording.
+fn record(recorder: Option<&Recorder>, event: &RunnerEvent) -> Result<(), String> {
+    let Some(recorder) = recorder else {
+        return Ok(());
+    };
+    match recorder.lock() {
+        Ok(mut recorder) => recorder.on_event(event).map_err(|error| error.to_string()),
+        Err(_) => Err("the trace recorder panicked".to_owned()),
+    }
+}
+
+/// Prints a line above the progress bar (or plainly when the bar is hidden, e.g. not a TTY).
+fn note(progress: &ProgressBar, line: String) {
+    progress.suspend(|| eprintln!("{line}"));
+}
+
+/// What the trace records about every task of this run.
+fn record_setup(args: &RobotArgs, obs_bytes: u32) -> RecordSetup {
+    let policy = args.horizon.clone().unwrap_or_else(|| "default".to_owned());
+    let setting = args.record_setting.clone().unwrap_or_else(|| {
+        match args.horizon.as_deref() {
+            None => "default",
+            Some("static") => "static",
+            Some(_) => "dynamic",
+        }
+        .to_owned()
+    });
+    RecordSetup {
+        setting,
+        horizon: HorizonSetting {
+            policy,
+            params: args.params.iter().cloned().collect(),
+        },
+        control_hz: args.control_hz,
+        obs_bytes,
+    }
+}
+
 struct FleetOutcome {
     summaries: Vec<TaskSummary>,
     errors: Vec<anyhow::Error>,
@@ -257,10 +334,25 @@ async fn run_fleet(args: &RobotArgs) -> anyhow::Result<FleetOutcome> {
     let cameras = args.cameras.min(welcome.model.max_images) as usize;
     let state_dim = welcome.model.state_dim as usize;
     let (height, width) = args.image;
+    let recorder = match &args.record {
+        Some(path) => {
+            let obs_bytes = observation_frame_bytes(state_dim, cameras, height, width).await?;
+            let file = std::fs::File::create(path)
+                .with_context(|| format!("cannot create {}", path.display()))?;
+            let recorder = RunnerTraceRecorder::new(
+                std::io::BufWriter::new(file),
+                record_setup(args, obs_bytes),
+            )
+            .with_context(|| format!("cannot write {}", path.display()))?;
+            Some(Arc::new(Mutex::new(recorder)))
+        }
+        None => None,
+    };
 
     let mut robots = tokio::task::JoinSet::new();
     for index in 0..args.robots {
         let (config, runner, progress) = (config.clone(), runner.clone(), progress.clone());
+        let recorder = recorder.clone();
         let delay = Duration::from_millis(args.stagger_ms.saturating_mul(u64::from(index)));
         robots.spawn(async move {
             tokio::time::sleep(delay).await;
@@ -270,18 +362,29 @@ async fn run_fleet(args: &RobotArgs) -> anyhow::Result<FleetOutcome> {
             let mut robot = SimulatedRobot::new(state_dim, cameras, height, width);
             let task = client.task(rand::random());
             let summary = runner
-                .run(&mut robot, task, |event| match event {
-                    RunnerEvent::ReplyReceived { .. } => progress.inc(1),
-                    RunnerEvent::RoundFailed {
-                        round,
-                        error,
-                        retrying,
-                        ..
-                    } => progress.println(format!(
-                        "robot {index}: round {round} failed ({}): {error}",
-                        if *retrying { "retrying" } else { "giving up" }
-                    )),
-                    _ => {}
+                .run(&mut robot, task, |event| {
+                    if let Err(error) = record(recorder.as_deref(), event) {
+                        note(
+                            &progress,
+                            format!("robot {index}: trace not recorded: {error}"),
+                        );
+                    }
+                    match event {
+                        RunnerEvent::ReplyReceived { .. } => progress.inc(1),
+                        RunnerEvent::RoundFailed {
+                            round,
+                            error,
+                            retrying,
+                            ..
+                        } => {
+                            let what = if *retrying { "retrying" } else { "giving up" };
+                            note(
+                                &progress,
+                                format!("robot {index}: round {round} failed ({what}): {error}"),
+                            );
+                        }
+                        _ => {}
+                    }
                 })
                 .await
                 .with_context(|| format!("robot {index}"))?;
@@ -301,6 +404,20 @@ async fn run_fleet(args: &RobotArgs) -> anyhow::Result<FleetOutcome> {
         }
     }
     progress.finish_and_clear();
+    if let (Some(recorder), Some(path)) = (recorder, &args.record) {
+        let recorder = Arc::try_unwrap(recorder)
+            .map_err(|_| anyhow::anyhow!("a robot still holds the trace recorder"))?
+            .into_inner()
+            .map_err(|_| anyhow::anyhow!("the trace recorder panicked"))?;
+        let tasks = recorder.tasks_written();
+        let mut writer = recorder
+            .finish()
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        writer
+            .flush()
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        eprintln!("recorded {tasks} task(s) to {}", path.display());
+    }
     outcome
         .summaries
         .sort_by_key(|summary| summary.started_at_us);
@@ -518,6 +635,37 @@ mod tests {
         let nothing = parse(&["--data-dir", empty.path().to_str().unwrap()]).unwrap();
         let error = format!("{:#}", resolve_trust(&nothing).unwrap_err());
         assert!(error.contains("fingerprint.txt"), "{error}");
+    }
+
+    #[tokio::test]
+    async fn recording_setup_follows_the_horizon_flags() {
+        let args = parse(&[
+            "--record",
+            "t.jsonl",
+            "--horizon",
+            "static",
+            "--param",
+            "h=10",
+            "--control-hz",
+            "50",
+        ])
+        .unwrap();
+        let setup = record_setup(&args, 123);
+        assert_eq!(setup.setting, "static");
+        assert_eq!(setup.horizon.policy, "static");
+        assert_eq!(
+            setup.horizon.params,
+            BTreeMap::from([("h".to_owned(), 10.0)])
+        );
+        assert_eq!((setup.control_hz, setup.obs_bytes), (50.0, 123));
+        let threshold = parse(&["--record", "t", "--horizon", "threshold"]).unwrap();
+        assert_eq!(record_setup(&threshold, 0).setting, "dynamic");
+        let labelled = parse(&["--record", "t", "--record-setting", "h8"]).unwrap();
+        assert_eq!(record_setup(&labelled, 0).setting, "h8");
+        assert!(parse(&["--record-setting", "x"]).is_err(), "needs --record");
+        // 2 cameras of 8×8×3 raw bytes plus a 4-float state, and the frame around them.
+        let bytes = observation_frame_bytes(4, 2, 8, 8).await.unwrap();
+        assert!((2 * 192 + 16..2 * 192 + 400).contains(&bytes), "{bytes}");
     }
 
     #[test]

@@ -75,35 +75,26 @@ impl ReplayHorizon {
             updates: &self.updates,
             actions: &self.actions,
         };
-        let h = if round.confidence.is_some() {
-            let input = HorizonInput {
-                chunk,
-                h_min: 1,
-                h_max: n,
-                control_hz,
-                round_index,
-                recent_horizons: &self.recent,
-                // The policy was built with the setting's parameters; empty means "use them".
-                params: &self.no_params,
-            };
-            let h = self.policy.choose(&input)?;
-            crate::horizon::validate_horizon(h, &input)?
+        let (policy, params) = if round.confidence.is_some() {
+            // The policy was built with the setting's parameters; empty means "use them".
+            (&mut self.policy, &self.no_params)
         } else {
             // Without the updates the only faithful replay is the recorded decision.
             self.fallback_params
                 .insert("h".to_string(), f64::from(round.horizon));
-            let input = HorizonInput {
-                chunk,
-                h_min: 1,
-                h_max: n,
-                control_hz,
-                round_index,
-                recent_horizons: &self.recent,
-                params: &self.fallback_params,
-            };
-            let h = self.fallback.choose(&input)?;
-            crate::horizon::validate_horizon(h, &input)?
+            (&mut self.fallback, &self.fallback_params)
         };
+        let input = HorizonInput {
+            chunk,
+            h_min: 1,
+            h_max: n,
+            control_hz,
+            round_index,
+            recent_horizons: &self.recent,
+            params,
+        };
+        let h = policy.choose(&input)?;
+        let h = crate::horizon::validate_horizon(h, &input)?;
         let h = u32::try_from(h).unwrap_or(chunk_len);
         if self.recent.len() == RECENT {
             self.recent.remove(0);

@@ -111,7 +111,7 @@ pub enum SimError {
     Horizon(#[from] ReplayHorizonError),
     /// The scheduler refused something the robots did. A simulated robot follows the protocol,
     /// so this is a bug in the simulator or the scheduler, never load.
-    #[error("scheduler refused a {what} at {at}: {source}")]
+    #[error("scheduler refused a {what} at {at}")]
     Admit {
         /// What was refused.
         what: &'static str,
@@ -124,7 +124,7 @@ pub enum SimError {
     #[error("invalid configuration: {0}")]
     Config(String),
     /// Recording a replayed task failed (the replay broke a trace invariant).
-    #[error("recording: {0}")]
+    #[error("recording a replayed task failed")]
     Record(#[from] kairos_sdk::trace::TraceError),
 }
 

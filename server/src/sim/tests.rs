@@ -105,6 +105,19 @@ fn latencies(r: &SimResult) -> BTreeMap<u64, u64> {
         .collect()
 }
 
+/// Runs hand-written static-horizon `traces` on one engine of 100 ms per batch of 1 and returns
+/// the latency (ms) per task.
+fn run_on_one_engine(
+    traces: &TraceSet,
+    policy: &str,
+    hints: bool,
+    load: Load,
+) -> BTreeMap<u64, u64> {
+    let mut cfg = config(policy, STATIC, load, vec![flat_engine(100.0, 1)]);
+    cfg.hints = hints;
+    latencies(&simulate(traces, &cfg).unwrap())
+}
+
 #[test]
 fn replaying_a_recording_alone_reproduces_it_exactly() {
     let w = tiny();
@@ -184,15 +197,11 @@ fn one_robot_alone_executes_then_waits_for_each_round() {
     //          starts at once: actions 4..7 at 500, 600, 700, 800.
     // Latency: first request (0) to the last action (800) = 800 ms.
     let traces = set(vec![task(1, 8, &[(0, 4), (4, 4)])]);
-    let cfg = config(
-        "fifo",
-        STATIC,
-        Load::Explicit(vec![(ms(0), 1)]),
-        vec![flat_engine(100.0, 1)],
+    let load = Load::Explicit(vec![(ms(0), 1)]);
+    assert_eq!(
+        run_on_one_engine(&traces, "fifo", false, load),
+        BTreeMap::from([(1, 800)])
     );
-    let r = simulate(&traces, &cfg).unwrap();
-    assert_eq!(latencies(&r), BTreeMap::from([(1, 800)]));
-    assert_eq!(r.requests, 2);
 }
 
 #[test]
@@ -205,15 +214,11 @@ fn a_request_sent_before_the_new_chunk_starts_is_accepted() {
     //   Round 2 (observation after 2 starts) covers [2, 6); actions keep their 100 ms ticks:
     //   the last (5) at 600 -> 600 ms.
     let traces = set(vec![task(1, 6, &[(0, 4), (1, 4), (2, 4)])]);
-    let cfg = config(
-        "kairos",
-        STATIC,
-        Load::Explicit(vec![(ms(0), 1)]),
-        vec![flat_engine(100.0, 1)],
+    let load = Load::Explicit(vec![(ms(0), 1)]);
+    assert_eq!(
+        run_on_one_engine(&traces, "kairos", false, load),
+        BTreeMap::from([(1, 600)])
     );
-    let r = simulate(&traces, &cfg).unwrap();
-    assert_eq!(latencies(&r), BTreeMap::from([(1, 600)]));
-    assert_eq!(r.requests, 3);
 }
 
 #[test]
@@ -228,14 +233,11 @@ fn two_robots_contend_for_one_engine_first_come_first_served() {
         task(1, 8, &[(0, 4), (4, 4)]),
         task(2, 8, &[(0, 4), (4, 4)]),
     ]);
-    let cfg = config(
-        "fifo",
-        STATIC,
-        Load::Explicit(vec![(ms(0), 1), (ms(50), 2)]),
-        vec![flat_engine(100.0, 1)],
+    let load = Load::Explicit(vec![(ms(0), 1), (ms(50), 2)]);
+    assert_eq!(
+        run_on_one_engine(&traces, "fifo", false, load),
+        BTreeMap::from([(1, 800), (2, 850)])
     );
-    let r = simulate(&traces, &cfg).unwrap();
-    assert_eq!(latencies(&r), BTreeMap::from([(1, 800), (2, 850)]));
 }
 
 /// Three tasks at 10 Hz, one engine, batches of 1, 100 ms per batch:
@@ -262,18 +264,8 @@ fn fifo_serves_the_earlier_request_first() {
     // FIFO at 390 takes A's round 1 (arrived first): it runs 390..490; A idled from 400 and
     // resumes at 490: actions 3..5 at 490, 590, 690 -> A 690 ms. B's round 0 runs 490..590:
     // actions at 590, 690, 790 -> B 790 − 320 = 470 ms. C: actions at 390, 490, 590 -> 300 ms.
-    let r = simulate(
-        &contention(),
-        &config(
-            "fifo",
-            STATIC,
-            contention_load(),
-            vec![flat_engine(100.0, 1)],
-        ),
-    )
-    .unwrap();
     assert_eq!(
-        latencies(&r),
+        run_on_one_engine(&contention(), "fifo", false, contention_load()),
         BTreeMap::from([(1, 690), (2, 470), (3, 300)])
     );
 }
@@ -285,18 +277,8 @@ fn kairos_serves_the_higher_wait_ratio_first() {
     // started at 100, 0 actions left at 300), execution-dominated (200 ms vs G_0 = 100 ms), so
     // W = 390 − 300 = 90 ms of a 390 ms life, ratio 0.23, bucket 2. B runs 390..490 (actions at
     // 490, 590, 690 -> 370 ms); A runs 490..590 (actions at 590, 690, 790 -> 790 ms); C 300 ms.
-    let r = simulate(
-        &contention(),
-        &config(
-            "kairos",
-            STATIC,
-            contention_load(),
-            vec![flat_engine(100.0, 1)],
-        ),
-    )
-    .unwrap();
     assert_eq!(
-        latencies(&r),
+        run_on_one_engine(&contention(), "kairos", false, contention_load()),
         BTreeMap::from([(1, 790), (2, 370), (3, 300)])
     );
 }
@@ -307,22 +289,12 @@ fn srw_serves_due_requests_by_remaining_work_aged_by_waiting() {
     // the hint both have 1 round left; B's wait ratio 1 divides its urgency by 0.01, A's 0.23 by
     // 0.77: B first, as Kairos. Without hints (and no finished tasks to learn from) both
     // urgencies are 0 and arrival order decides, as FIFO.
-    let mut cfg = config(
-        "srw",
-        STATIC,
-        contention_load(),
-        vec![flat_engine(100.0, 1)],
-    );
-    cfg.hints = true;
-    let with_hint = simulate(&contention(), &cfg).unwrap();
     assert_eq!(
-        latencies(&with_hint),
+        run_on_one_engine(&contention(), "srw", true, contention_load()),
         BTreeMap::from([(1, 790), (2, 370), (3, 300)])
     );
-    cfg.hints = false;
-    let without = simulate(&contention(), &cfg).unwrap();
     assert_eq!(
-        latencies(&without),
+        run_on_one_engine(&contention(), "srw", false, contention_load()),
         BTreeMap::from([(1, 690), (2, 470), (3, 300)])
     );
 }
@@ -349,22 +321,12 @@ fn srw_lets_a_request_with_slack_wait_for_one_that_is_due() {
         task(3, 1, &[(0, 1)]),
     ]);
     let load = Load::Explicit(vec![(ms(0), 1), (ms(0), 2), (ms(150), 3)]);
-    let fifo = simulate(
-        &traces,
-        &config("fifo", STATIC, load.clone(), vec![flat_engine(100.0, 1)]),
-    )
-    .unwrap();
     assert_eq!(
-        latencies(&fifo),
+        run_on_one_engine(&traces, "fifo", false, load.clone()),
         BTreeMap::from([(1, 1200), (2, 500), (3, 150)])
     );
-    let srw = simulate(
-        &traces,
-        &config("srw", STATIC, load, vec![flat_engine(100.0, 1)]),
-    )
-    .unwrap();
     assert_eq!(
-        latencies(&srw),
+        run_on_one_engine(&traces, "srw", false, load),
         BTreeMap::from([(1, 1200), (2, 400), (3, 150)])
     );
 }

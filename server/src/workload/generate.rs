@@ -34,7 +34,7 @@ pub const DYNAMIC: &str = "dynamic";
 #[derive(Debug, thiserror::Error)]
 pub enum GenerateError {
     /// A horizon policy failed on a generated chunk.
-    #[error("task {task}: {source}")]
+    #[error("task {task}: a horizon policy failed")]
     Horizon {
         /// The task.
         task: u64,
