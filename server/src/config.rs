@@ -258,6 +258,10 @@ pub struct ConnectionsConfig {
     pub max_streams_per_connection: u32,
     /// Time a client has to send `Hello` after connecting, in ms.
     pub hello_timeout_ms: u64,
+    /// Receive and send buffer of the server's UDP socket, bytes (the kernel caps it at
+    /// `net.core.rmem_max`/`wmem_max`). The default 4 MiB absorbs a burst of a thousand robots'
+    /// packets (e.g. everyone reconnecting at once) where the usual 208 KiB would drop them.
+    pub socket_buffer_bytes: usize,
 }
 
 impl Default for ConnectionsConfig {
@@ -266,6 +270,7 @@ impl Default for ConnectionsConfig {
             max_connections: 4096,
             max_streams_per_connection: 64,
             hello_timeout_ms: 5_000,
+            socket_buffer_bytes: 4 << 20,
         }
     }
 }

@@ -156,6 +156,76 @@ pub struct DriverStats {
     pub batches: u64,
     /// Tasks ended (explicitly or by expiry).
     pub tasks_ended: u64,
+    /// Server-added latency of recent replies: `timing.total − timing.inference` (queueing
+    /// behind other batches included).
+    pub overhead: LatencySummary,
+    /// The part of `overhead` that is the server's own processing: `total − inference − queue −
+    /// refetch` (validation, driver, dispatch, horizon policy, reply), µs.
+    pub processing: LatencySummary,
+}
+
+/// Percentiles of a latency over the most recent [`RECENT_LATENCIES`] replies, µs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LatencySummary {
+    /// Replies summarised.
+    pub count: u64,
+    /// Median.
+    pub p50_us: u64,
+    /// 99th percentile (nearest rank).
+    pub p99_us: u64,
+    /// Largest.
+    pub max_us: u64,
+}
+
+/// Replies the latency summaries cover.
+pub const RECENT_LATENCIES: usize = 1 << 16;
+
+impl LatencySummary {
+    /// Nearest-rank percentiles of `values`.
+    pub fn of(values: impl Iterator<Item = u64>) -> LatencySummary {
+        let mut sorted: Vec<u64> = values.collect();
+        if sorted.is_empty() {
+            return LatencySummary::default();
+        }
+        sorted.sort_unstable();
+        let rank = |p: f64| {
+            let index = ((p * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
+            sorted[index]
+        };
+        LatencySummary {
+            count: sorted.len() as u64,
+            p50_us: rank(0.50),
+            p99_us: rank(0.99),
+            max_us: sorted[sorted.len() - 1],
+        }
+    }
+}
+
+/// The latest [`RECENT_LATENCIES`] values of server-added latency.
+#[derive(Default)]
+struct RecentLatencies {
+    /// `(overhead, processing)` per reply, µs.
+    values: VecDeque<(u64, u64)>,
+}
+
+impl RecentLatencies {
+    fn record(&mut self, timing: &Timing) {
+        if self.values.len() >= RECENT_LATENCIES {
+            self.values.pop_front();
+        }
+        let overhead = timing.total_us.saturating_sub(timing.inference_us);
+        let processing = overhead
+            .saturating_sub(timing.queue_us)
+            .saturating_sub(timing.refetch_us);
+        self.values.push_back((overhead, processing));
+    }
+
+    fn summaries(&self) -> (LatencySummary, LatencySummary) {
+        (
+            LatencySummary::of(self.values.iter().map(|v| v.0)),
+            LatencySummary::of(self.values.iter().map(|v| v.1)),
+        )
+    }
 }
 
 /// Messages to the driver.
@@ -368,6 +438,7 @@ struct Driver {
     batches: HashMap<BatchId, BatchState>,
     ended: VecDeque<TaskSnapshot>,
     stats: DriverStats,
+    latencies: RecentLatencies,
     draining: bool,
     reports: mpsc::WeakSender<Command>,
 }
@@ -400,6 +471,7 @@ pub fn spawn(
         batches: HashMap::new(),
         ended: VecDeque::new(),
         stats: DriverStats::default(),
+        latencies: RecentLatencies::default(),
         draining: false,
         reports: tx.downgrade(),
     };
@@ -444,7 +516,16 @@ impl Driver {
         while let Ok(command) = commands.try_recv() {
             self.handle(command);
         }
-        self.stats
+        self.stats()
+    }
+
+    fn stats(&self) -> DriverStats {
+        let (overhead, processing) = self.latencies.summaries();
+        DriverStats {
+            overhead,
+            processing,
+            ..self.stats
+        }
     }
 
     fn handle(&mut self, command: Command) {
@@ -467,7 +548,7 @@ impl Driver {
                 let _ = answer.send(self.snapshot(task));
             }
             Command::Stats { answer } => {
-                let _ = answer.send(self.stats);
+                let _ = answer.send(self.stats());
             }
             Command::Refetched {
                 batch,
@@ -908,6 +989,7 @@ impl Driver {
             match &answer {
                 Ok(reply) => {
                     self.stats.replies += 1;
+                    self.latencies.record(&reply.timing);
                     if let Some(task) = self.tasks.get_mut(&state.task) {
                         *task.generated.entry(state.round).or_insert(0) += 1;
                         let keep = self.scheduler.config().history_rounds.max(1);
@@ -1132,6 +1214,19 @@ mod tests {
         }
     }
 
+    #[test]
+    fn latency_summary_uses_nearest_rank() {
+        let s = LatencySummary::of((1..=200).rev());
+        assert_eq!(
+            (s.count, s.p50_us, s.p99_us, s.max_us),
+            (200, 100, 198, 200)
+        );
+        assert_eq!(
+            LatencySummary::of(std::iter::empty()),
+            LatencySummary::default()
+        );
+    }
+
     #[tokio::test]
     async fn rounds_are_answered_and_a_resent_finished_round_gets_the_cached_reply() {
         let f = fixture(Duration::from_secs(10));
@@ -1300,5 +1395,8 @@ mod tests {
         assert!(queued.answer.await.unwrap().is_ok());
         let stats = f.join.await.unwrap();
         assert_eq!(stats.replies, 2);
+        assert_eq!(stats.overhead.count, 2);
+        assert!(stats.overhead.p50_us <= stats.overhead.p99_us);
+        assert!(stats.processing.max_us <= stats.overhead.max_us);
     }
 }
