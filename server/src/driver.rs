@@ -159,8 +159,10 @@ pub struct DriverStats {
     /// Server-added latency of recent replies: `timing.total − timing.inference` (queueing
     /// behind other batches included).
     pub overhead: LatencySummary,
-    /// The part of `overhead` that is the server's own processing: `total − inference − queue −
-    /// refetch` (validation, driver, dispatch, horizon policy, reply), µs.
+    /// The part of `overhead` that is the server's own work, without waiting for an engine or a
+    /// re-fetched observation: from the `Submit` frame read to the scheduler accepting it
+    /// (validation, the driver's queue), plus from dispatch to the reply handed to the stream
+    /// (batch start, engine hand-off, horizon policy, trim, driver), less the forward pass.
     pub processing: LatencySummary,
 }
 
@@ -209,15 +211,12 @@ struct RecentLatencies {
 }
 
 impl RecentLatencies {
-    fn record(&mut self, timing: &Timing) {
+    fn record(&mut self, timing: &Timing, processing_us: u64) {
         if self.values.len() >= RECENT_LATENCIES {
             self.values.pop_front();
         }
         let overhead = timing.total_us.saturating_sub(timing.inference_us);
-        let processing = overhead
-            .saturating_sub(timing.queue_us)
-            .saturating_sub(timing.refetch_us);
-        self.values.push_back((overhead, processing));
+        self.values.push_back((overhead, processing_us));
     }
 
     fn summaries(&self) -> (LatencySummary, LatencySummary) {
@@ -233,6 +232,7 @@ impl RecentLatencies {
 enum Command {
     Submit {
         submit: Box<ValidSubmit>,
+        received: Instant,
         waiter: WaiterId,
         link: mpsc::Sender<RefetchAsk>,
         answer: oneshot::Sender<RoundAnswer>,
@@ -298,10 +298,12 @@ impl DriverHandle {
         self.clock
     }
 
-    /// Hands a validated round to the driver. `link` receives re-fetch asks for it.
+    /// Hands a validated round to the driver. `received` is when its `Submit` frame was read
+    /// (replies' timing counts from there); `link` receives re-fetch asks for it.
     pub async fn submit(
         &self,
         submit: ValidSubmit,
+        received: Instant,
         link: mpsc::Sender<RefetchAsk>,
     ) -> Result<PendingRound, DriverGone> {
         let (answer_tx, answer) = oneshot::channel();
@@ -310,6 +312,7 @@ impl DriverHandle {
         self.commands
             .send(Command::Submit {
                 submit: Box::new(submit),
+                received,
                 waiter,
                 link,
                 answer: answer_tx,
@@ -401,7 +404,10 @@ struct Waiter {
 struct RequestState {
     task: TaskId,
     round: u64,
-    arrived: Instant,
+    /// When its `Submit` frame was read off the stream.
+    received: Instant,
+    /// When the scheduler accepted it.
+    accepted: Instant,
     observation: Option<ValidObservation>,
     policy: Option<RoundPolicy>,
     control_hz: f32,
@@ -532,10 +538,11 @@ impl Driver {
         match command {
             Command::Submit {
                 submit,
+                received,
                 waiter,
                 link,
                 answer,
-            } => self.on_submit(*submit, waiter, link, answer),
+            } => self.on_submit(*submit, received, waiter, link, answer),
             Command::Detach {
                 task,
                 round,
@@ -566,6 +573,7 @@ impl Driver {
     fn on_submit(
         &mut self,
         submit: ValidSubmit,
+        received: Instant,
         waiter: WaiterId,
         link: mpsc::Sender<RefetchAsk>,
         answer: oneshot::Sender<RoundAnswer>,
@@ -608,7 +616,8 @@ impl Driver {
                     RequestState {
                         task,
                         round,
-                        arrived: self.clock.instant(now),
+                        received,
+                        accepted: self.clock.instant(now),
                         observation: Some(submit.observation),
                         policy: Some(submit.policy),
                         control_hz,
@@ -975,13 +984,13 @@ impl Driver {
             let Some(state) = self.remove_request(request) else {
                 continue;
             };
+            let dispatched = state.dispatched.unwrap_or(state.accepted);
             let answer = result.map(|mut reply| {
-                let dispatched = state.dispatched.unwrap_or(state.arrived);
                 reply.timing = Timing {
-                    queue_us: micros(dispatched.saturating_duration_since(state.arrived)),
+                    queue_us: micros(dispatched.saturating_duration_since(state.received)),
                     refetch_us: micros(state.refetch),
                     inference_us: micros(inference),
-                    total_us: micros(sent_at.saturating_duration_since(state.arrived)),
+                    total_us: micros(sent_at.saturating_duration_since(state.received)),
                     batch_size: state.batch_size,
                 };
                 reply
@@ -989,7 +998,14 @@ impl Driver {
             match &answer {
                 Ok(reply) => {
                     self.stats.replies += 1;
-                    self.latencies.record(&reply.timing);
+                    // The server's own work: reading to acceptance, and dispatch to reply, less
+                    // the re-fetch wait and the forward pass.
+                    let own = state.accepted.saturating_duration_since(state.received)
+                        + sent_at
+                            .saturating_duration_since(dispatched)
+                            .saturating_sub(state.refetch)
+                            .saturating_sub(inference);
+                    self.latencies.record(&reply.timing, micros(own));
                     if let Some(task) = self.tasks.get_mut(&state.task) {
                         *task.generated.entry(state.round).or_insert(0) += 1;
                         let keep = self.scheduler.config().history_rounds.max(1);
@@ -1188,7 +1204,13 @@ mod tests {
                 .submit(submit, RobotId(robot), &self.actions, self.client_clock)
                 .unwrap();
             let (link, asks) = mpsc::channel(1);
-            (self.driver.submit(valid, link).await.unwrap(), asks)
+            (
+                self.driver
+                    .submit(valid, Instant::now(), link)
+                    .await
+                    .unwrap(),
+                asks,
+            )
         }
 
         fn open(&self, n: usize) {

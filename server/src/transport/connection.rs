@@ -197,9 +197,11 @@ async fn stream(
     mut send: SendStream,
     mut recv: RecvStream,
 ) {
-    let outcome = match read_message(&mut recv, context.limits()).await {
+    let message = read_message(&mut recv, context.limits()).await;
+    let received = std::time::Instant::now();
+    let outcome = match message {
         Ok(Some(Message::Submit(submit))) => {
-            round(&peer, &context, submit, &mut send, &mut recv).await
+            round(&peer, &context, submit, received, &mut send, &mut recv).await
         }
         Ok(Some(Message::EndTask(end))) => end_task(&peer, &context, end, &mut send).await,
         Ok(Some(other)) => Err(RequestError::UnexpectedMessage {
@@ -244,6 +246,7 @@ async fn round(
     peer: &Peer,
     context: &ServerContext,
     submit: kairos_sdk::protocol::Submit,
+    received: std::time::Instant,
     send: &mut SendStream,
     recv: &mut RecvStream,
 ) -> Result<(), RequestError> {
@@ -255,7 +258,7 @@ async fn round(
     let (link, mut asks) = mpsc::channel::<RefetchAsk>(1);
     let mut pending = context
         .driver
-        .submit(valid, link)
+        .submit(valid, received, link)
         .await
         .map_err(|_| RequestError::ShuttingDown)?;
     let stopped = send.stopped();
