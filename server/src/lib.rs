@@ -10,6 +10,8 @@ pub mod lifecycle;
 pub mod pool;
 pub mod registry;
 pub mod scheduler;
+pub mod sim;
 pub mod time;
 pub mod transport;
 pub mod validation;
+pub mod workload;
