@@ -660,6 +660,22 @@ mod tests {
     }
 
     #[test]
+    fn the_example_in_docs_server_md_parses() {
+        let doc = include_str!("../../docs/SERVER.md");
+        let start = doc
+            .find("```toml\n")
+            .expect("docs/SERVER.md has a toml example");
+        let body = &doc[start + "```toml\n".len()..];
+        let example = &body[..body.find("```").expect("the example block ends")];
+        let config = Config::parse(example, Path::new("docs/SERVER.md")).unwrap();
+        assert_eq!(config.robots.len(), 2);
+        assert_eq!(config.engines.len(), 2);
+        assert_eq!(config.engines[1].tier, Tier::Cloud);
+        assert_eq!(config.limits, Limits::default(), "the example lists the defaults");
+        assert_eq!(config.connections, ConnectionsConfig::default());
+    }
+
+    #[test]
     fn unknown_key_error_names_file_and_key() {
         let err = Config::parse("[scheduler]\nstale_afterms = 5\n", Path::new("my.toml"))
             .unwrap_err()
