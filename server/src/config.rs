@@ -671,7 +671,11 @@ mod tests {
         assert_eq!(config.robots.len(), 2);
         assert_eq!(config.engines.len(), 2);
         assert_eq!(config.engines[1].tier, Tier::Cloud);
-        assert_eq!(config.limits, Limits::default(), "the example lists the defaults");
+        assert_eq!(
+            config.limits,
+            Limits::default(),
+            "the example lists the defaults"
+        );
         assert_eq!(config.connections, ConnectionsConfig::default());
     }
 
