@@ -258,6 +258,10 @@ pub struct ConnectionsConfig {
     pub max_streams_per_connection: u32,
     /// Time a client has to send `Hello` after connecting, in ms.
     pub hello_timeout_ms: u64,
+    /// Receive and send buffer of the server's UDP socket, bytes (the kernel caps it at
+    /// `net.core.rmem_max`/`wmem_max`). The default 4 MiB absorbs a burst of a thousand robots'
+    /// packets (e.g. everyone reconnecting at once) where the usual 208 KiB would drop them.
+    pub socket_buffer_bytes: usize,
 }
 
 impl Default for ConnectionsConfig {
@@ -266,6 +270,7 @@ impl Default for ConnectionsConfig {
             max_connections: 4096,
             max_streams_per_connection: 64,
             hello_timeout_ms: 5_000,
+            socket_buffer_bytes: 4 << 20,
         }
     }
 }
@@ -652,6 +657,26 @@ mod tests {
         assert_eq!(c.connections.max_connections, 10);
         assert_eq!(c.limits.max_frame, 1_000_000);
         assert_eq!(c.limits.max_image_bytes, Limits::default().max_image_bytes);
+    }
+
+    #[test]
+    fn the_example_in_docs_server_md_parses() {
+        let doc = include_str!("../../docs/SERVER.md");
+        let start = doc
+            .find("```toml\n")
+            .expect("docs/SERVER.md has a toml example");
+        let body = &doc[start + "```toml\n".len()..];
+        let example = &body[..body.find("```").expect("the example block ends")];
+        let config = Config::parse(example, Path::new("docs/SERVER.md")).unwrap();
+        assert_eq!(config.robots.len(), 2);
+        assert_eq!(config.engines.len(), 2);
+        assert_eq!(config.engines[1].tier, Tier::Cloud);
+        assert_eq!(
+            config.limits,
+            Limits::default(),
+            "the example lists the defaults"
+        );
+        assert_eq!(config.connections, ConnectionsConfig::default());
     }
 
     #[test]

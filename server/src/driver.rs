@@ -156,6 +156,75 @@ pub struct DriverStats {
     pub batches: u64,
     /// Tasks ended (explicitly or by expiry).
     pub tasks_ended: u64,
+    /// Server-added latency of recent replies: `timing.total − timing.inference` (queueing
+    /// behind other batches included).
+    pub overhead: LatencySummary,
+    /// The part of `overhead` that is the server's own work, without waiting for an engine or a
+    /// re-fetched observation: from the `Submit` frame read to the scheduler accepting it
+    /// (validation, the driver's queue), plus from dispatch to the reply handed to the stream
+    /// (batch start, engine hand-off, horizon policy, trim, driver), less the forward pass.
+    pub processing: LatencySummary,
+}
+
+/// Percentiles of a latency over the most recent [`RECENT_LATENCIES`] replies, µs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LatencySummary {
+    /// Replies summarised.
+    pub count: u64,
+    /// Median.
+    pub p50_us: u64,
+    /// 99th percentile (nearest rank).
+    pub p99_us: u64,
+    /// Largest.
+    pub max_us: u64,
+}
+
+/// Replies the latency summaries cover.
+pub const RECENT_LATENCIES: usize = 1 << 16;
+
+impl LatencySummary {
+    /// Nearest-rank percentiles of `values`.
+    pub fn of(values: impl Iterator<Item = u64>) -> LatencySummary {
+        let mut sorted: Vec<u64> = values.collect();
+        if sorted.is_empty() {
+            return LatencySummary::default();
+        }
+        sorted.sort_unstable();
+        let rank = |p: f64| {
+            let index = ((p * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
+            sorted[index]
+        };
+        LatencySummary {
+            count: sorted.len() as u64,
+            p50_us: rank(0.50),
+            p99_us: rank(0.99),
+            max_us: sorted[sorted.len() - 1],
+        }
+    }
+}
+
+/// The latest [`RECENT_LATENCIES`] values of server-added latency.
+#[derive(Default)]
+struct RecentLatencies {
+    /// `(overhead, processing)` per reply, µs.
+    values: VecDeque<(u64, u64)>,
+}
+
+impl RecentLatencies {
+    fn record(&mut self, timing: &Timing, processing_us: u64) {
+        if self.values.len() >= RECENT_LATENCIES {
+            self.values.pop_front();
+        }
+        let overhead = timing.total_us.saturating_sub(timing.inference_us);
+        self.values.push_back((overhead, processing_us));
+    }
+
+    fn summaries(&self) -> (LatencySummary, LatencySummary) {
+        (
+            LatencySummary::of(self.values.iter().map(|v| v.0)),
+            LatencySummary::of(self.values.iter().map(|v| v.1)),
+        )
+    }
 }
 
 /// Messages to the driver.
@@ -163,6 +232,7 @@ pub struct DriverStats {
 enum Command {
     Submit {
         submit: Box<ValidSubmit>,
+        received: Instant,
         waiter: WaiterId,
         link: mpsc::Sender<RefetchAsk>,
         answer: oneshot::Sender<RoundAnswer>,
@@ -228,10 +298,12 @@ impl DriverHandle {
         self.clock
     }
 
-    /// Hands a validated round to the driver. `link` receives re-fetch asks for it.
+    /// Hands a validated round to the driver. `received` is when its `Submit` frame was read
+    /// (replies' timing counts from there); `link` receives re-fetch asks for it.
     pub async fn submit(
         &self,
         submit: ValidSubmit,
+        received: Instant,
         link: mpsc::Sender<RefetchAsk>,
     ) -> Result<PendingRound, DriverGone> {
         let (answer_tx, answer) = oneshot::channel();
@@ -240,6 +312,7 @@ impl DriverHandle {
         self.commands
             .send(Command::Submit {
                 submit: Box::new(submit),
+                received,
                 waiter,
                 link,
                 answer: answer_tx,
@@ -331,7 +404,10 @@ struct Waiter {
 struct RequestState {
     task: TaskId,
     round: u64,
-    arrived: Instant,
+    /// When its `Submit` frame was read off the stream.
+    received: Instant,
+    /// When the scheduler accepted it.
+    accepted: Instant,
     observation: Option<ValidObservation>,
     policy: Option<RoundPolicy>,
     control_hz: f32,
@@ -368,6 +444,7 @@ struct Driver {
     batches: HashMap<BatchId, BatchState>,
     ended: VecDeque<TaskSnapshot>,
     stats: DriverStats,
+    latencies: RecentLatencies,
     draining: bool,
     reports: mpsc::WeakSender<Command>,
 }
@@ -400,6 +477,7 @@ pub fn spawn(
         batches: HashMap::new(),
         ended: VecDeque::new(),
         stats: DriverStats::default(),
+        latencies: RecentLatencies::default(),
         draining: false,
         reports: tx.downgrade(),
     };
@@ -444,17 +522,27 @@ impl Driver {
         while let Ok(command) = commands.try_recv() {
             self.handle(command);
         }
-        self.stats
+        self.stats()
+    }
+
+    fn stats(&self) -> DriverStats {
+        let (overhead, processing) = self.latencies.summaries();
+        DriverStats {
+            overhead,
+            processing,
+            ..self.stats
+        }
     }
 
     fn handle(&mut self, command: Command) {
         match command {
             Command::Submit {
                 submit,
+                received,
                 waiter,
                 link,
                 answer,
-            } => self.on_submit(*submit, waiter, link, answer),
+            } => self.on_submit(*submit, received, waiter, link, answer),
             Command::Detach {
                 task,
                 round,
@@ -467,7 +555,7 @@ impl Driver {
                 let _ = answer.send(self.snapshot(task));
             }
             Command::Stats { answer } => {
-                let _ = answer.send(self.stats);
+                let _ = answer.send(self.stats());
             }
             Command::Refetched {
                 batch,
@@ -485,6 +573,7 @@ impl Driver {
     fn on_submit(
         &mut self,
         submit: ValidSubmit,
+        received: Instant,
         waiter: WaiterId,
         link: mpsc::Sender<RefetchAsk>,
         answer: oneshot::Sender<RoundAnswer>,
@@ -527,7 +616,8 @@ impl Driver {
                     RequestState {
                         task,
                         round,
-                        arrived: self.clock.instant(now),
+                        received,
+                        accepted: self.clock.instant(now),
                         observation: Some(submit.observation),
                         policy: Some(submit.policy),
                         control_hz,
@@ -894,13 +984,13 @@ impl Driver {
             let Some(state) = self.remove_request(request) else {
                 continue;
             };
+            let dispatched = state.dispatched.unwrap_or(state.accepted);
             let answer = result.map(|mut reply| {
-                let dispatched = state.dispatched.unwrap_or(state.arrived);
                 reply.timing = Timing {
-                    queue_us: micros(dispatched.saturating_duration_since(state.arrived)),
+                    queue_us: micros(dispatched.saturating_duration_since(state.received)),
                     refetch_us: micros(state.refetch),
                     inference_us: micros(inference),
-                    total_us: micros(sent_at.saturating_duration_since(state.arrived)),
+                    total_us: micros(sent_at.saturating_duration_since(state.received)),
                     batch_size: state.batch_size,
                 };
                 reply
@@ -908,6 +998,14 @@ impl Driver {
             match &answer {
                 Ok(reply) => {
                     self.stats.replies += 1;
+                    // The server's own work: reading to acceptance, and dispatch to reply, less
+                    // the re-fetch wait and the forward pass.
+                    let own = state.accepted.saturating_duration_since(state.received)
+                        + sent_at
+                            .saturating_duration_since(dispatched)
+                            .saturating_sub(state.refetch)
+                            .saturating_sub(inference);
+                    self.latencies.record(&reply.timing, micros(own));
                     if let Some(task) = self.tasks.get_mut(&state.task) {
                         *task.generated.entry(state.round).or_insert(0) += 1;
                         let keep = self.scheduler.config().history_rounds.max(1);
@@ -1106,7 +1204,13 @@ mod tests {
                 .submit(submit, RobotId(robot), &self.actions, self.client_clock)
                 .unwrap();
             let (link, asks) = mpsc::channel(1);
-            (self.driver.submit(valid, link).await.unwrap(), asks)
+            (
+                self.driver
+                    .submit(valid, Instant::now(), link)
+                    .await
+                    .unwrap(),
+                asks,
+            )
         }
 
         fn open(&self, n: usize) {
@@ -1130,6 +1234,19 @@ mod tests {
             let valid = self.validator.end_task(end, self.client_clock).unwrap();
             self.driver.end_task(RobotId(robot), valid).await.unwrap()
         }
+    }
+
+    #[test]
+    fn latency_summary_uses_nearest_rank() {
+        let s = LatencySummary::of((1..=200).rev());
+        assert_eq!(
+            (s.count, s.p50_us, s.p99_us, s.max_us),
+            (200, 100, 198, 200)
+        );
+        assert_eq!(
+            LatencySummary::of(std::iter::empty()),
+            LatencySummary::default()
+        );
     }
 
     #[tokio::test]
@@ -1300,5 +1417,8 @@ mod tests {
         assert!(queued.answer.await.unwrap().is_ok());
         let stats = f.join.await.unwrap();
         assert_eq!(stats.replies, 2);
+        assert_eq!(stats.overhead.count, 2);
+        assert!(stats.overhead.p50_us <= stats.overhead.p99_us);
+        assert!(stats.processing.max_us <= stats.overhead.max_us);
     }
 }

@@ -73,6 +73,20 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         report.driver.failed,
         report.driver.tasks_ended
     );
+    let latency = |name: &str, s: crate::driver::LatencySummary| {
+        println!(
+            "  {name:<34} p50 {:>7.3} ms  p99 {:>7.3} ms  max {:>7.3} ms  ({} replies)",
+            s.p50_us as f64 / 1e3,
+            s.p99_us as f64 / 1e3,
+            s.max_us as f64 / 1e3,
+            s.count
+        );
+    };
+    latency("server-added (total - inference)", report.driver.overhead);
+    latency(
+        "  of it processing (- queue, refetch)",
+        report.driver.processing,
+    );
     Ok(())
 }
 
@@ -97,18 +111,20 @@ pub fn start_engines(config: &Config) -> anyhow::Result<EnginePool> {
             bar.set_position(done as u64);
             bar.set_message(format!("engine {index}: profiling batch {batch}"));
         }
-        BuildEvent::Ready { index, profile } => bar.println(format!(
-            "engine {index}: {} on {}, batches up to {} ({})",
-            profile.model,
-            profile.device,
-            profile.max_batch,
-            profile
-                .points
-                .iter()
-                .map(|p| format!("{}: {:.1} ms", p.batch, p.latency_ms))
-                .collect::<Vec<_>>()
-                .join(", ")
-        )),
+        BuildEvent::Ready { index, profile } => bar.suspend(|| {
+            println!(
+                "engine {index}: {} on {}, batches up to {} ({})",
+                profile.model,
+                profile.device,
+                profile.max_batch,
+                profile
+                    .points
+                    .iter()
+                    .map(|p| format!("batch {}: {:.2} ms", p.batch, p.latency_ms))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        }),
     })
     .context("starting the engines")?;
     bar.finish_and_clear();

@@ -17,7 +17,8 @@ use crate::driver::RefetchAsk;
 use crate::scheduler::RobotId;
 use crate::validation::{ClockEstimator, ClockMap, RequestError};
 
-/// How long the server waits for a client to acknowledge a final error before closing.
+/// How long the server waits, after a stream's final frame, for the client to acknowledge it or
+/// finish its own side.
 const LINGER: Duration = Duration::from_secs(1);
 
 /// The per-connection state shared by its stream tasks.
@@ -196,9 +197,11 @@ async fn stream(
     mut send: SendStream,
     mut recv: RecvStream,
 ) {
-    let outcome = match read_message(&mut recv, context.limits()).await {
+    let message = read_message(&mut recv, context.limits()).await;
+    let received = std::time::Instant::now();
+    let outcome = match message {
         Ok(Some(Message::Submit(submit))) => {
-            round(&peer, &context, submit, &mut send, &mut recv).await
+            round(&peer, &context, submit, received, &mut send, &mut recv).await
         }
         Ok(Some(Message::EndTask(end))) => end_task(&peer, &context, end, &mut send).await,
         Ok(Some(other)) => Err(RequestError::UnexpectedMessage {
@@ -243,6 +246,7 @@ async fn round(
     peer: &Peer,
     context: &ServerContext,
     submit: kairos_sdk::protocol::Submit,
+    received: std::time::Instant,
     send: &mut SendStream,
     recv: &mut RecvStream,
 ) -> Result<(), RequestError> {
@@ -254,7 +258,7 @@ async fn round(
     let (link, mut asks) = mpsc::channel::<RefetchAsk>(1);
     let mut pending = context
         .driver
-        .submit(valid, link)
+        .submit(valid, received, link)
         .await
         .map_err(|_| RequestError::ShuttingDown)?;
     let stopped = send.stopped();
@@ -280,7 +284,18 @@ async fn round(
     };
     let _ = write_message(send, &message, context.limits().max_frame).await;
     let _ = send.finish();
+    drain(recv).await;
     Ok(())
+}
+
+/// Reads and discards what the client still sends on a finished round (a `FreshObservation`
+/// that missed the re-fetch deadline) until it finishes its side, which the client does on
+/// reading the reply. Dropping the stream earlier would stop the client's send side mid-write.
+async fn drain(recv: &mut RecvStream) {
+    let discard = async { while let Ok(Some(_)) = recv.read_chunk(usize::MAX, false).await {} };
+    if tokio::time::timeout(LINGER, discard).await.is_err() {
+        let _ = recv.stop(VarInt::from_u32(STREAM_REFUSED));
+    }
 }
 
 /// Asks the client for a fresher observation on the round's stream and hands it to the driver.

@@ -151,12 +151,21 @@ pub async fn start(
     let scheduler = Scheduler::new(config.scheduler.core(), pool.specs(), priority);
 
     let server_config = quinn_server_config(&identity, config)?;
-    let endpoint = quinn::Endpoint::server(server_config, config.listen).map_err(|source| {
-        LaunchError::Bind {
-            addr: config.listen,
-            source,
-        }
-    })?;
+    let bind_error = |source| LaunchError::Bind {
+        addr: config.listen,
+        source,
+    };
+    let socket =
+        bind_udp(config.listen, config.connections.socket_buffer_bytes).map_err(bind_error)?;
+    let runtime = quinn::default_runtime()
+        .ok_or_else(|| bind_error(std::io::Error::other("no async runtime for quinn")))?;
+    let endpoint = quinn::Endpoint::new(
+        quinn::EndpointConfig::default(),
+        Some(server_config),
+        socket,
+        runtime,
+    )
+    .map_err(bind_error)?;
     let local_addr = endpoint.local_addr().map_err(|source| LaunchError::Bind {
         addr: config.listen,
         source,
@@ -208,6 +217,25 @@ pub async fn start(
         stop,
         task,
     })
+}
+
+/// The server's UDP socket, with `buffer` bytes of kernel buffer each way (best effort: the kernel
+/// caps it).
+fn bind_udp(addr: SocketAddr, buffer: usize) -> std::io::Result<std::net::UdpSocket> {
+    use socket2::{Domain, Protocol, Socket, Type};
+    let socket = Socket::new(Domain::for_address(addr), Type::DGRAM, Some(Protocol::UDP))?;
+    if addr.is_ipv6() {
+        // `[::]` serves IPv4 robots too.
+        let _ = socket.set_only_v6(false);
+    }
+    if let Err(error) = socket.set_recv_buffer_size(buffer) {
+        tracing::warn!(%error, buffer, "cannot size the UDP receive buffer");
+    }
+    if let Err(error) = socket.set_send_buffer_size(buffer) {
+        tracing::warn!(%error, buffer, "cannot size the UDP send buffer");
+    }
+    socket.bind(&addr.into())?;
+    Ok(socket.into())
 }
 
 /// The quinn server config: the identity's TLS (see `tls`), the SDK's tuned transport, the
