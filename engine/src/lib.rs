@@ -8,12 +8,23 @@
 //!
 //! The server talks to models only through [`ActionModel`]; it never sees tensors.
 
+pub mod builtin;
 pub mod chunk;
 pub mod error;
+pub mod flow_head;
+pub mod image_features;
+pub mod kernels;
 pub mod model;
+pub mod options;
+pub mod prefix_encoder;
 pub mod profile;
+pub mod sampler;
+pub mod smolvla;
+pub mod weights;
 
+pub use builtin::{default_model, load_model, load_model_with, resolve_model};
 pub use chunk::ActionChunk;
 pub use error::EngineError;
 pub use model::{ActionModel, ActionRequest, ImageFormat, ImageInput, ModelSpec};
+pub use options::{DeviceKind, EngineOptions, Kernels};
 pub use profile::{EngineProfile, ProfilePoint};

@@ -2,7 +2,7 @@
 //! virtual time and reproduces the paper's experiments (tables, CSV, plots); `traces` turns a
 //! workload file into a trace file.
 
-mod plot;
+pub(crate) mod plot;
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -35,6 +35,9 @@ pub enum BenchCommand {
     /// Find the arrival rate at which a policy's average latency reaches a multiple of its
     /// unloaded value (how the shipped workloads' peak rates were placed).
     Calibrate(CalibrateArgs),
+    /// Replay the same traces live: simulated robots over QUIC against a real server with the
+    /// trace-replay engine, side by side with the simulation (`cli::bench_live`).
+    Live(Box<super::bench_live::LiveArgs>),
 }
 
 /// `kairos bench calibrate`
@@ -121,6 +124,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
         BenchCommand::Sim(a) => run_sim(a),
         BenchCommand::Traces(a) => run_traces(a),
         BenchCommand::Calibrate(a) => run_calibrate(a),
+        BenchCommand::Live(a) => super::bench_live::run(*a),
     }
 }
 

@@ -429,6 +429,7 @@ async fn run_fleet(args: &RobotArgs) -> anyhow::Result<FleetOutcome> {
 struct Percentiles {
     p50: f64,
     p95: f64,
+    p99: f64,
     mean: f64,
     max: f64,
 }
@@ -448,6 +449,7 @@ impl Percentiles {
         Some(Percentiles {
             p50: rank(0.50),
             p95: rank(0.95),
+            p99: rank(0.99),
             mean: sorted.iter().map(|&v| v as f64).sum::<f64>() / sorted.len() as f64,
             max: sorted[sorted.len() - 1] as f64,
         })
@@ -462,6 +464,11 @@ fn ms(us: f64) -> String {
     } else {
         format!("{:.1} ms", us / 1e3)
     }
+}
+
+/// Milliseconds with microsecond resolution, for sub-millisecond latencies.
+fn ms3(us: f64) -> String {
+    format!("{:.3} ms", us / 1e3)
 }
 
 fn mean(values: impl Iterator<Item = f64>) -> f64 {
@@ -495,6 +502,32 @@ fn report(args: &RobotArgs, summaries: &[TaskSummary]) -> String {
     out.push_str("task latency = first request to last action; round latency = request to reply\n");
     out.push_str(&line("task latency", Percentiles::of(&tasks)));
     out.push_str(&line("round latency", Percentiles::of(&round_latencies)));
+    let tail = |name: &str, values: Vec<u64>| match Percentiles::of(&values) {
+        Some(p) => format!(
+            "{name:<15} p50 {:>9}  p99 {:>9}  max {:>9}\n",
+            ms3(p.p50),
+            ms3(p.p99),
+            ms3(p.max)
+        ),
+        None => format!("{name:<15} no data\n"),
+    };
+    out.push_str(
+        "server-added = reply timing total - inference; network + client = round latency - server total\n",
+    );
+    out.push_str(&tail(
+        "server-added",
+        rounds
+            .iter()
+            .map(|r| r.timing.total_us.saturating_sub(r.timing.inference_us))
+            .collect(),
+    ));
+    out.push_str(&tail(
+        "network+client",
+        rounds
+            .iter()
+            .map(|r| r.latency_us().saturating_sub(r.timing.total_us))
+            .collect(),
+    ));
     if !rounds.is_empty() {
         let server_total = mean(rounds.iter().map(|r| r.timing.total_us as f64));
         let _ = writeln!(
@@ -714,6 +747,15 @@ mod tests {
         assert!(text.contains("round latency   p50  100.0 ms"), "{text}");
         assert!(text.contains("queue 30.0 ms"), "{text}");
         assert!(text.contains("network + client 30.0 ms"), "{text}");
+        // total 80 ms - inference 50 ms; round latency 100/120 ms - total 80 ms.
+        assert!(
+            text.contains("server-added    p50 30.000 ms  p99 30.000 ms"),
+            "{text}"
+        );
+        assert!(
+            text.contains("network+client  p50 20.000 ms  p99 40.000 ms"),
+            "{text}"
+        );
         assert!(text.contains("0000000000000abc"), "{text}");
         assert!(text.contains("2.50 s"), "{text}");
     }

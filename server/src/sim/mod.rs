@@ -633,6 +633,56 @@ impl<'a> Sim<'a> {
     }
 }
 
+/// `tasks` picks from `pool` (uniform, with replacement), the first at time 0 and the others
+/// after exponential gaps of mean `1 / rate`: a Poisson process.
+fn poisson_arrivals<'a>(
+    pool: &[&'a TaskTrace],
+    rate: f64,
+    tasks: usize,
+    rng: &mut StdRng,
+) -> Vec<(Timestamp, &'a TaskTrace)> {
+    let mut out = Vec::with_capacity(tasks);
+    if pool.is_empty() {
+        return out;
+    }
+    let mut t = 0.0f64;
+    for _ in 0..tasks {
+        let pick = pool[rng.random_range(0..pool.len())];
+        out.push((Timestamp::from_secs_f64(t), pick));
+        let u: f64 = rng.random::<f64>();
+        t += -(1.0 - u).ln() / rate;
+    }
+    out
+}
+
+/// The arrival schedule [`simulate`] replays for an online `cfg` (its load must be
+/// [`Load::Poisson`]): which tasks of `traces` under `cfg.setting` start when. A function of
+/// the seed only, so the live replay (`kairos bench live`) starts exactly the tasks the
+/// simulator replays, at the same instants.
+pub fn online_schedule<'a>(
+    traces: &'a TraceSet,
+    cfg: &SimConfig,
+) -> Result<Vec<(Timestamp, &'a TaskTrace)>, SimError> {
+    let Load::Poisson { rate, tasks } = cfg.load else {
+        return Err(SimError::Config("not an online (Poisson) load".into()));
+    };
+    if !(rate.is_finite() && rate > 0.0) {
+        return Err(SimError::Config(format!(
+            "arrival rate {rate} must be positive"
+        )));
+    }
+    let pool: Vec<&TaskTrace> = traces
+        .tasks
+        .iter()
+        .filter(|t| t.setting == cfg.setting)
+        .collect();
+    if pool.is_empty() {
+        return Err(SimError::NoTasks(cfg.setting.clone()));
+    }
+    let mut rng = StdRng::seed_from_u64(cfg.seed);
+    Ok(poisson_arrivals(&pool, rate, tasks, &mut rng))
+}
+
 /// Runs one simulation of `traces` under `cfg`.
 pub fn simulate(traces: &TraceSet, cfg: &SimConfig) -> Result<SimResult, SimError> {
     let pool: Vec<&TaskTrace> = traces.variant(&cfg.setting).collect();
@@ -662,18 +712,9 @@ pub fn simulate(traces: &TraceSet, cfg: &SimConfig) -> Result<SimResult, SimErro
     // every policy and setting sees the same tasks arriving at the same times.
     let mut rng = StdRng::seed_from_u64(cfg.seed);
     match cfg.load {
-        Load::Poisson { rate, tasks } => {
-            if !(rate.is_finite() && rate > 0.0) {
-                return Err(SimError::Config(format!(
-                    "arrival rate {rate} must be positive"
-                )));
-            }
-            let mut t = 0.0f64;
-            for n in 0..tasks {
-                let pick = pool[rng.random_range(0..pool.len())];
-                sim.spawn(pick, RobotId(n as u32), Timestamp::from_secs_f64(t))?;
-                let u: f64 = rng.random::<f64>();
-                t += -(1.0 - u).ln() / rate;
+        Load::Poisson { .. } => {
+            for (n, (at, pick)) in online_schedule(traces, cfg)?.into_iter().enumerate() {
+                sim.spawn(pick, RobotId(n as u32), at)?;
             }
         }
         Load::Fleet { robots, tasks } => {

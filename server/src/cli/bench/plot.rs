@@ -348,15 +348,93 @@ fn render(out: &Path, name: &str, panels: &[Panel]) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Every plot the report has data for, into `out`.
-pub fn all(report: &Report<'_>, out: &Path) -> anyhow::Result<()> {
+fn register_font() -> anyhow::Result<()> {
     static REGISTER: Once = Once::new();
     let mut registered = Ok(());
     REGISTER.call_once(|| {
         registered = plotters::style::register_font(FAMILY, FontStyle::Normal, FONT)
             .map_err(|_| anyhow!("the embedded font is not a valid TrueType file"));
     });
-    registered?;
+    registered
+}
+
+/// One system of a [`comparison`] plot.
+pub struct Compared<'a> {
+    /// Its key (picks the colour, as in the simulator's plots: `fifo`, `autellix`, `kairos`, `srw`).
+    pub key: &'a str,
+    /// Its label.
+    pub label: &'a str,
+    /// Its latency summary, seconds.
+    pub summary: &'a crate::sim::stats::Summary,
+    /// Every task's latency, seconds.
+    pub latencies: &'a [f64],
+}
+
+/// Two panels into `out/<name>.png` (and `.svg`): each system's average end-to-end latency with
+/// P25–P95 bars, and the latency CDFs. Returns the PNG's path.
+pub fn comparison(
+    out: &Path,
+    name: &str,
+    title: &str,
+    systems: &[Compared<'_>],
+) -> anyhow::Result<std::path::PathBuf> {
+    register_font()?;
+    let bars = Panel {
+        title: title.to_string(),
+        x_desc: "scheduler".into(),
+        y_desc: "E2E latency (s)".into(),
+        x_labels: Some(systems.iter().map(|s| s.label.to_string()).collect()),
+        series: vec![Series {
+            label: "avg (bars P25–P95)".into(),
+            color: color("kairos", 0),
+            points: systems
+                .iter()
+                .enumerate()
+                .map(|(i, s)| Point {
+                    x: i as f64,
+                    lo: s.summary.p25,
+                    mid: s.summary.mean,
+                    hi: s.summary.p95,
+                })
+                .collect(),
+            bars: true,
+        }],
+        y_range: None,
+        legend: SeriesLabelPosition::UpperLeft,
+    };
+    let cdf = Panel {
+        title: "task latency CDF".into(),
+        x_desc: "E2E latency (s)".into(),
+        y_desc: "CDF".into(),
+        x_labels: None,
+        series: systems
+            .iter()
+            .enumerate()
+            .map(|(i, s)| Series {
+                label: s.label.to_string(),
+                color: color(s.key, i),
+                points: ecdf(s.latencies, 200)
+                    .into_iter()
+                    .map(|(x, y)| Point {
+                        x,
+                        lo: y,
+                        mid: y,
+                        hi: y,
+                    })
+                    .collect(),
+                bars: false,
+            })
+            .collect(),
+        y_range: Some((0.0, 1.0)),
+        legend: SeriesLabelPosition::LowerRight,
+    };
+    render(out, name, &[bars, cdf])?;
+    Ok(out.join(format!("{name}.png")))
+}
+
+/// Every plot the report has data for, into `out`.
+pub fn all(report: &Report<'_>, out: &Path) -> anyhow::Result<()> {
+    register_font()?;
     let main = ["fifo", "autellix", "kairos", "srw", "srw-hint"];
     render(
         out,

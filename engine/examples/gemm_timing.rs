@@ -1,0 +1,101 @@
+//! GEMM throughput of the fast kernels on the SmolVLA expert's shapes, against this core's FMA
+//! peak measured in the same run. Single-threaded, and timed in this thread's CPU time (Linux
+//! /proc) as well as wall time, so that a shared machine's load cancels out.
+//!
+//! `cargo run --release -p kairos-engine --example gemm_timing -- [m=50]`
+
+use std::time::Instant;
+
+use kairos_engine::kernels::gemm::gemm;
+use kairos_engine::kernels::{Init, Isa, PackedMatrix};
+
+fn main() {
+    let args: Vec<usize> = std::env::args()
+        .skip(1)
+        .filter_map(|a| a.parse().ok())
+        .collect();
+    let m = args.first().copied().unwrap_or(50);
+    let isa = Isa::detect();
+    for &(k, n, what) in &[
+        (720, 1600, "qkv"),
+        (720, 960, "q"),
+        (960, 720, "o"),
+        (720, 4096, "gate_up"),
+        (2048, 720, "down"),
+    ] {
+        let a: Vec<f32> = (0..m * k).map(|i| (i % 97) as f32 / 97.0).collect();
+        let w: Vec<f32> = (0..n * k).map(|i| (i % 89) as f32 / 89.0).collect();
+        let b = PackedMatrix::from_linear_weight(&w, n, k);
+        let mut c = vec![0.0; m * n];
+        let reps = (50e9 / (2.0 * (m * k * n) as f64)).ceil() as usize;
+        let peak = fma_peak_gflops();
+        let (t, cpu) = (Instant::now(), thread_cpu_s());
+        for _ in 0..reps {
+            gemm(isa, &a, k, m, &b, &mut c, n, Init::Zero);
+        }
+        let flop = 2.0 * (m * k * n * reps) as f64;
+        let (wall, cpu) = (t.elapsed().as_secs_f64(), thread_cpu_s() - cpu);
+        println!(
+            "{what:8} m={m} k={k} n={n}: {:6.1} GFLOP/s per CPU-second = {:.0}% of FMA peak {peak:.0} ({:.1} wall)",
+            flop / cpu / 1e9,
+            100.0 * flop / cpu / 1e9 / peak,
+            flop / wall / 1e9
+        );
+    }
+}
+
+/// One core's FMA throughput: 12 independent chains of 256-bit FMAs.
+fn fma_peak_gflops() -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx2,fma")]
+        fn chains(n: usize) -> f32 {
+            use std::arch::x86_64::*;
+            let mut acc = [_mm256_set1_ps(0.0); 12];
+            let b = _mm256_set1_ps(0.999_999);
+            let c = _mm256_set1_ps(1e-7);
+            for _ in 0..n {
+                for a in acc.iter_mut() {
+                    *a = _mm256_fmadd_ps(*a, b, c);
+                }
+            }
+            let mut out = [0.0f32; 8];
+            let s = acc
+                .iter()
+                .fold(_mm256_setzero_ps(), |s, a| _mm256_add_ps(s, *a));
+            // SAFETY: out holds 8 floats.
+            unsafe { _mm256_storeu_ps(out.as_mut_ptr(), s) };
+            out[0]
+        }
+        let n = 100_000_000;
+        let t = thread_cpu_s();
+        // SAFETY: the example is only meaningful on AVX2 machines; it checks first.
+        let r = if std::arch::is_x86_feature_detected!("fma") {
+            unsafe { chains(n) }
+        } else {
+            0.0
+        };
+        std::hint::black_box(r);
+        return (n * 12 * 16) as f64 / (thread_cpu_s() - t) / 1e9;
+    }
+    #[allow(unreachable_code)]
+    0.0
+}
+
+/// CPU time of the calling thread in seconds (Linux /proc, 10 ms resolution).
+fn thread_cpu_s() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/thread-self/stat") else {
+        return 0.0;
+    };
+    let Some(rest) = stat.rsplit(')').next() else {
+        return 0.0;
+    };
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| {
+        fields
+            .get(i - 3)
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or(0.0)
+    };
+    (ticks(14) + ticks(15)) / 100.0
+}

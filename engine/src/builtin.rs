@@ -1,0 +1,117 @@
+//! The models Kairos can run without further code: built-ins and checkpoints on disk.
+//!
+//! | `--model` | what |
+//! |---|---|
+//! | `builtin:flow-head-small` (default) | [`FlowHead`] with [`FlowHeadConfig::default`] and seeded random weights |
+//! | `builtin:smolvla-random` | the full-size SmolVLA expert (`lerobot/smolvla_base` shapes) with seeded random weights, fed by the labelled stand-in prefix ([`SmolVlaStandIn`]) |
+//! | a directory (or its `config.json`) | a checkpoint: `"type": "kairos_flow_head"` or LeRobot's `"type": "smolvla"` |
+
+use std::path::{Path, PathBuf};
+
+use crate::flow_head::{FLOW_HEAD_TYPE, FlowHead, FlowHeadConfig};
+use crate::smolvla::config::{ExpertDims, read_json};
+use crate::smolvla::serving::SmolVlaStandIn;
+use crate::smolvla::{ExpertWeights, SmolVlaExpert};
+use crate::{ActionModel, EngineError, EngineOptions};
+
+/// Seed of the built-in models' random weights.
+pub const DEFAULT_SEED: u64 = 0x4B41_4952_4F53;
+/// Name of the default model.
+pub const DEFAULT_MODEL: &str = "builtin:flow-head-small";
+
+/// The default model: the small flow head with seeded random weights.
+pub fn default_model(options: &EngineOptions) -> Result<Box<dyn ActionModel>, EngineError> {
+    Ok(Box::new(FlowHead::random(
+        FlowHeadConfig::default(),
+        DEFAULT_SEED,
+        options,
+    )?))
+}
+
+/// Load a checkpoint directory (or its `config.json`) with default options.
+pub fn load_model(path: &Path) -> Result<Box<dyn ActionModel>, EngineError> {
+    load_model_with(path, &EngineOptions::default())
+}
+
+/// Load a checkpoint directory (or its `config.json`), dispatching on the config's `type`.
+pub fn load_model_with(
+    path: &Path,
+    options: &EngineOptions,
+) -> Result<Box<dyn ActionModel>, EngineError> {
+    let dir: PathBuf = if path.is_file() {
+        path.parent().map(Path::to_path_buf).unwrap_or_default()
+    } else {
+        path.to_path_buf()
+    };
+    #[derive(serde::Deserialize)]
+    struct Probe {
+        #[serde(rename = "type")]
+        model_type: Option<String>,
+        #[serde(default)]
+        input_features: std::collections::BTreeMap<String, crate::smolvla::config::Feature>,
+    }
+    let probe: Probe = read_json(&dir.join("config.json"))?;
+    match probe.model_type.as_deref() {
+        Some(FLOW_HEAD_TYPE) => Ok(Box::new(FlowHead::load(&dir, options)?)),
+        Some("smolvla") => {
+            let cameras = probe
+                .input_features
+                .values()
+                .filter(|f| f.kind == "VISUAL")
+                .count();
+            Ok(Box::new(SmolVlaStandIn::load(
+                &dir,
+                options,
+                if cameras == 0 { 2 } else { cameras },
+            )?))
+        }
+        other => Err(EngineError::Load {
+            path: dir.join("config.json").display().to_string(),
+            reason: format!(
+                "unknown model type {other:?}; expected `{FLOW_HEAD_TYPE}` or `smolvla`"
+            ),
+        }),
+    }
+}
+
+/// Resolve a `--model` argument: a built-in name or a checkpoint path.
+pub fn resolve_model(
+    name: &str,
+    options: &EngineOptions,
+) -> Result<Box<dyn ActionModel>, EngineError> {
+    match name {
+        "builtin" | DEFAULT_MODEL => default_model(options),
+        "builtin:smolvla-random" => {
+            let dims = ExpertDims::smolvla_base();
+            let expert =
+                SmolVlaExpert::from_weights(&ExpertWeights::random(&dims, DEFAULT_SEED), options)?;
+            Ok(Box::new(SmolVlaStandIn::new(expert, 2)))
+        }
+        other if other.starts_with("builtin:") => Err(EngineError::InvalidInput(format!(
+            "unknown built-in model `{other}` (builtin:flow-head-small, builtin:smolvla-random)"
+        ))),
+        path => load_model_with(Path::new(path), options),
+    }
+}
+
+/// A short file-system-safe name for a `--model` argument (e.g. for `profiles/<model>.json`).
+pub fn model_slug(name: &str) -> String {
+    let base = name.strip_prefix("builtin:").unwrap_or_else(|| {
+        let p = Path::new(name);
+        let p = if p.file_name().is_some_and(|f| f == "config.json") {
+            p.parent().unwrap_or(p)
+        } else {
+            p
+        };
+        p.file_name().and_then(|f| f.to_str()).unwrap_or(name)
+    });
+    base.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' || c == '.' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}

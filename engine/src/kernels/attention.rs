@@ -1,0 +1,166 @@
+//! Scaled dot-product attention of one query head over keys given in segments.
+//!
+//! A segment is a block of keys and values packed for the GEMM ([`KvSegment`]): the keys as
+//! `Kᵀ` (`head_dim x len`), the values as `V` (`len x head_dim`). The SmolVLA expert's keys are
+//! the VLM prefix (packed once per request) followed, in self-attention layers, by the action
+//! tokens of the current step (packed every step, causal). Keys that the attention mask hides
+//! are simply absent from the segments: LeRobot's masked scores become exactly 0 after its
+//! softmax, so leaving them out changes no sum.
+
+use super::gemm::{Init, PackedMatrix, gemm};
+use super::{Isa, vecmath};
+
+/// Keys and values of one attention segment.
+#[derive(Clone, Copy, Debug)]
+pub struct KvSegment<'a> {
+    /// `Kᵀ`, packed: `k = head_dim`, `n = len`.
+    pub keys_t: &'a PackedMatrix,
+    /// `V`, packed: `k = len`, `n = head_dim`.
+    pub values: &'a PackedMatrix,
+    /// Causal segment: query `i` sees keys `0..=i` only (the segment is as long as the queries).
+    pub causal: bool,
+}
+
+impl KvSegment<'_> {
+    fn len(&self) -> usize {
+        self.keys_t.n()
+    }
+}
+
+/// `out[i] = softmax(scale * q[i] · Kᵀ) V` for the `nq` query rows of `q` (row stride
+/// `head_dim`), over the concatenation of `segments`. `out` has row stride `ldo`; `scores` is
+/// scratch space, grown as needed.
+#[allow(clippy::too_many_arguments)]
+pub fn attend(
+    isa: Isa,
+    q: &[f32],
+    nq: usize,
+    head_dim: usize,
+    segments: &[KvSegment<'_>],
+    scale: f32,
+    scores: &mut Vec<f32>,
+    out: &mut [f32],
+    ldo: usize,
+) {
+    let total: usize = segments.iter().map(KvSegment::len).sum();
+    scores.resize(nq * total, 0.0);
+    let mut col = 0;
+    for seg in segments {
+        gemm(
+            isa,
+            q,
+            head_dim,
+            nq,
+            seg.keys_t,
+            &mut scores[col..],
+            total,
+            Init::Zero,
+        );
+        col += seg.len();
+    }
+    for i in 0..nq {
+        let row = &mut scores[i * total..(i + 1) * total];
+        // Visible keys form a prefix of the row when only the last segment is causal, which is
+        // how the expert uses it; hidden causal entries are zeroed after the softmax.
+        let visible = visible_len(segments, i, total);
+        let (seen, hidden) = row.split_at_mut(visible);
+        vecmath::softmax_scaled(isa, seen, scale);
+        hidden.fill(0.0);
+    }
+    let mut col = 0;
+    for (s, seg) in segments.iter().enumerate() {
+        let init = if s == 0 { Init::Zero } else { Init::Accumulate };
+        gemm(isa, &scores[col..], total, nq, seg.values, out, ldo, init);
+        col += seg.len();
+    }
+}
+
+fn visible_len(segments: &[KvSegment<'_>], query: usize, total: usize) -> usize {
+    match segments.last() {
+        Some(last) if last.causal => total - last.len() + (query + 1).min(last.len()),
+        _ => total,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn data(len: usize, seed: u64) -> Vec<f32> {
+        let mut s = seed;
+        (0..len)
+            .map(|_| {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+            })
+            .collect()
+    }
+
+    #[test]
+    fn matches_masked_softmax_reference() {
+        let (d, lp, nq) = (16, 11, 5);
+        let q = data(nq * d, 1);
+        let kp = data(lp * d, 2);
+        let vp = data(lp * d, 3);
+        let ks = data(nq * d, 4);
+        let vs = data(nq * d, 5);
+        let mut pk = PackedMatrix::default();
+        pk.pack_transposed(&kp, d, lp, d);
+        let mut pv = PackedMatrix::default();
+        pv.pack_rows(&vp, d, lp, d);
+        let mut sk = PackedMatrix::default();
+        sk.pack_transposed(&ks, d, nq, d);
+        let mut sv = PackedMatrix::default();
+        sv.pack_rows(&vs, d, nq, d);
+        let segs = [
+            KvSegment {
+                keys_t: &pk,
+                values: &pv,
+                causal: false,
+            },
+            KvSegment {
+                keys_t: &sk,
+                values: &sv,
+                causal: true,
+            },
+        ];
+        let mut out = vec![0.0; nq * d];
+        attend(
+            Isa::detect(),
+            &q,
+            nq,
+            d,
+            &segs,
+            0.25,
+            &mut Vec::new(),
+            &mut out,
+            d,
+        );
+        for i in 0..nq {
+            let keys: Vec<(&[f32], &[f32])> = (0..lp)
+                .map(|j| (&kp[j * d..(j + 1) * d], &vp[j * d..(j + 1) * d]))
+                .chain((0..=i).map(|j| (&ks[j * d..(j + 1) * d], &vs[j * d..(j + 1) * d])))
+                .collect();
+            let s: Vec<f64> = keys
+                .iter()
+                .map(|(k, _)| {
+                    0.25 * (0..d)
+                        .map(|t| f64::from(q[i * d + t]) * f64::from(k[t]))
+                        .sum::<f64>()
+                })
+                .collect();
+            let max = s.iter().cloned().fold(f64::MIN, f64::max);
+            let z: f64 = s.iter().map(|v| (v - max).exp()).sum();
+            for t in 0..d {
+                let want: f64 = keys
+                    .iter()
+                    .zip(&s)
+                    .map(|((_, v), sc)| (sc - max).exp() / z * f64::from(v[t]))
+                    .sum();
+                assert!((f64::from(out[i * d + t]) - want).abs() < 1e-5, "q{i} d{t}");
+            }
+        }
+    }
+}

@@ -1,0 +1,582 @@
+//! `C = init + A · B` in f32 with `B` packed once into column panels.
+//!
+//! `A` is any row-major matrix (an activation, read in place); `B` is a [`PackedMatrix`]: the
+//! right operand cut into panels of [`NR`] columns, each stored as rows of `NR` contiguous
+//! floats (64 bytes: one cache line), in blocks of `KC` rows (see [`offset`]). The micro-kernel keeps an `MR x NR` block of `C` in 12
+//! AVX2 registers and streams one panel row (two vector loads) and `MR` broadcasts of `A` per
+//! step of `k`: 12 FMAs per 8 loads. Blocking: `KC` rows of a panel (16 KiB) stay in L1 while all
+//! row tiles of an `MC`-row block of `A` (in L2) pass over them.
+//!
+//! Every element of `C` accumulates its `k` products in increasing `k` order, one FMA each, in
+//! `KC`-sized blocks. That order depends on neither `m`, the row tile an element falls in, nor
+//! the thread split, so results do not depend on the batch size.
+
+use std::ops::Range;
+
+use super::{AlignedBuf, Isa, Pool, SharedMut};
+
+/// Columns per packed panel (two AVX2 vectors).
+pub const NR: usize = 16;
+/// Rows per micro-kernel tile.
+pub const MR: usize = 6;
+/// Depth of one cache block.
+const KC: usize = 256;
+/// Rows of `A` per cache block (a multiple of `MR`).
+const MC: usize = 120;
+
+/// The right-hand operand of a GEMM, packed into `NR`-column panels.
+#[derive(Clone, Debug, Default)]
+pub struct PackedMatrix {
+    k: usize,
+    n: usize,
+    buf: AlignedBuf,
+}
+
+impl PackedMatrix {
+    /// Pack the weight of a PyTorch `Linear` (`w` is `[n][k]`, out x in, row-major) so that
+    /// `A · B = A · wᵀ`, i.e. `y = x wᵀ`.
+    pub fn from_linear_weight(w: &[f32], n: usize, k: usize) -> Self {
+        let mut p = PackedMatrix::default();
+        p.pack_transposed(w, k, n, k);
+        p
+    }
+
+    /// Pack several `Linear` weights with the same input size side by side (`[w0; w1; ..]` along
+    /// the output dimension), e.g. the q, k and v projections into one GEMM.
+    pub fn from_linear_weights(ws: &[(&[f32], usize)], k: usize) -> Self {
+        let n: usize = ws.iter().map(|(_, n)| n).sum();
+        let mut stacked = Vec::with_capacity(n * k);
+        for (w, rows) in ws {
+            stacked.extend_from_slice(&w[..rows * k]);
+        }
+        Self::from_linear_weight(&stacked, n, k)
+    }
+
+    /// Depth (rows of `B`).
+    pub fn k(&self) -> usize {
+        self.k
+    }
+
+    /// Width (columns of `B`).
+    pub fn n(&self) -> usize {
+        self.n
+    }
+
+    fn panels(&self) -> usize {
+        self.n.div_ceil(NR)
+    }
+
+    fn resize(&mut self, k: usize, n: usize) {
+        self.k = k;
+        self.n = n;
+        self.buf.ensure(n.div_ceil(NR) * NR * k);
+    }
+
+    /// Pack `B` given as `k` rows of `n` values with row stride `ldb`. Reuses the allocation.
+    pub fn pack_rows(&mut self, b: &[f32], ldb: usize, k: usize, n: usize) {
+        self.resize(k, n);
+        let panels = self.panels();
+        let dst = self.buf.as_mut_slice();
+        for kk in 0..k {
+            for p in 0..panels {
+                let c0 = p * NR;
+                let w = NR.min(n - c0);
+                let at = offset(k, panels, p, kk);
+                let row = &mut dst[at..at + NR];
+                row[..w].copy_from_slice(&b[kk * ldb + c0..kk * ldb + c0 + w]);
+                row[w..].fill(0.0);
+            }
+        }
+    }
+
+    /// Pack `B = wᵀ` where `w` has `n` rows of `k` values with row stride `ldw`. Reuses the
+    /// allocation.
+    pub fn pack_transposed(&mut self, w: &[f32], ldw: usize, n: usize, k: usize) {
+        self.resize(k, n);
+        let panels = self.panels();
+        let dst = self.buf.as_mut_slice();
+        for p in 0..panels {
+            let c0 = p * NR;
+            let width = NR.min(n - c0);
+            for kk in 0..k {
+                let at = offset(k, panels, p, kk);
+                let row = &mut dst[at..at + NR];
+                for (j, v) in row.iter_mut().enumerate() {
+                    *v = if j < width {
+                        w[(c0 + j) * ldw + kk]
+                    } else {
+                        0.0
+                    };
+                }
+            }
+        }
+    }
+
+    /// The `kc` rows of panel `p` from row `k0` (a multiple of `KC`), contiguous.
+    fn panel_ptr(&self, p: usize, k0: usize) -> *const f32 {
+        self.buf.as_slice()[offset(self.k, self.panels(), p, k0)..].as_ptr()
+    }
+}
+
+/// Where row `kk` of panel `p` lives. The matrix is stored in `KC`-row blocks, each block all
+/// panels one after another, so the kernels' (block, panel) order reads memory sequentially
+/// and the hardware prefetcher streams the weights.
+fn offset(k: usize, panels: usize, p: usize, kk: usize) -> usize {
+    let block = kk / KC;
+    let kc = KC.min(k - block * KC);
+    block * KC * panels * NR + p * kc * NR + (kk - block * KC) * NR
+}
+
+/// What `C` starts from.
+#[derive(Clone, Copy, Debug)]
+pub enum Init<'a> {
+    /// `C = A · B`.
+    Zero,
+    /// `C += A · B` (residual connections).
+    Accumulate,
+    /// `C = bias + A · B`, `bias` broadcast over rows (`n` values).
+    Bias(&'a [f32]),
+}
+
+/// `C[..m][..n] = init + A[..m][..k] · B` on the calling thread, with `isa`'s kernels. `A` has row stride `lda`, `C`
+/// row stride `ldc`.
+#[allow(clippy::too_many_arguments)]
+pub fn gemm(
+    isa: Isa,
+    a: &[f32],
+    lda: usize,
+    m: usize,
+    b: &PackedMatrix,
+    c: &mut [f32],
+    ldc: usize,
+    init: Init<'_>,
+) {
+    check(a, lda, m, b, c, ldc, init);
+    // SAFETY: `check` verified every access stays inside `a` and `c`; one thread owns all of `c`.
+    unsafe { gemm_panels(isa, a, lda, m, b, 0..b.panels(), c.as_mut_ptr(), ldc, init) }
+}
+
+/// [`gemm`] with the output columns split across the pool's threads.
+#[allow(clippy::too_many_arguments)]
+pub fn gemm_par(
+    pool: &Pool,
+    a: &[f32],
+    lda: usize,
+    m: usize,
+    b: &PackedMatrix,
+    c: &mut [f32],
+    ldc: usize,
+    init: Init<'_>,
+) {
+    check(a, lda, m, b, c, ldc, init);
+    let panels = b.panels();
+    let parts = pool.threads().min(panels).max(1);
+    let out = SharedMut::new(c);
+    pool.run(parts, |t| {
+        let range = panels * t / parts..panels * (t + 1) / parts;
+        // SAFETY: `check` verified the bounds; part `t` writes only the columns of its panels.
+        unsafe { gemm_panels(pool.isa(), a, lda, m, b, range, out.ptr(), ldc, init) }
+    });
+}
+
+fn check(a: &[f32], lda: usize, m: usize, b: &PackedMatrix, c: &[f32], ldc: usize, init: Init<'_>) {
+    if m == 0 || b.n == 0 {
+        return;
+    }
+    assert!(lda >= b.k && ldc >= b.n, "gemm strides too small");
+    assert!(a.len() >= (m - 1) * lda + b.k, "gemm: A too short");
+    assert!(c.len() >= (m - 1) * ldc + b.n, "gemm: C too short");
+    if let Init::Bias(bias) = init {
+        assert!(bias.len() >= b.n, "gemm: bias too short");
+    }
+}
+
+thread_local! {
+    /// Per-thread buffer for one packed `MC x KC` block of `A`.
+    static A_PACK: std::cell::RefCell<AlignedBuf> = std::cell::RefCell::new(AlignedBuf::zeros(MC * KC));
+}
+
+/// # Safety
+/// `a` holds `m` rows of stride `lda` with at least `b.k` values each, `c` points to `m` rows of
+/// stride `ldc` with at least `b.n` values each, and no other thread touches the columns of
+/// `panels` in those rows.
+#[allow(clippy::too_many_arguments)]
+unsafe fn gemm_panels(
+    isa: Isa,
+    a: &[f32],
+    lda: usize,
+    m: usize,
+    b: &PackedMatrix,
+    panels: Range<usize>,
+    c: *mut f32,
+    ldc: usize,
+    init: Init<'_>,
+) {
+    let k = b.k;
+    if m == 0 || panels.is_empty() {
+        return;
+    }
+    // Initialise C: every K block then accumulates.
+    for p in panels.clone() {
+        let c0 = p * NR;
+        let w = NR.min(b.n - c0);
+        for r in 0..m {
+            // SAFETY: row r, columns c0..c0+w are inside C and owned by this call.
+            let row = unsafe { std::slice::from_raw_parts_mut(c.add(r * ldc + c0), w) };
+            match init {
+                Init::Zero => row.fill(0.0),
+                Init::Accumulate => {}
+                Init::Bias(bias) => row.copy_from_slice(&bias[c0..c0 + w]),
+            }
+        }
+    }
+    if k == 0 {
+        return;
+    }
+    A_PACK.with(|buf| {
+        let mut buf = buf.borrow_mut();
+        let apack = buf.as_mut_slice();
+        let mut m0 = 0;
+        while m0 < m {
+            let mb = MC.min(m - m0);
+            let mut k0 = 0;
+            while k0 < k {
+                let kc = KC.min(k - k0);
+                pack_a(&a[m0 * lda + k0..], lda, mb, kc, apack);
+                for p in panels.clone() {
+                    let c0 = p * NR;
+                    let w = NR.min(b.n - c0);
+                    let bp = b.panel_ptr(p, k0);
+                    // While the first row tile of this panel runs, pull the next panel's rows in.
+                    let next = if p + 1 < panels.end {
+                        b.panel_ptr(p + 1, k0)
+                    } else {
+                        std::ptr::null()
+                    };
+                    let mut r0 = 0;
+                    while r0 < mb {
+                        let rows = MR.min(mb - r0);
+                        let ap = apack[(r0 / MR) * kc * MR..].as_ptr();
+                        // SAFETY: the tile lies inside C (rows m0+r0.., columns c0..c0+w).
+                        let cp = unsafe { c.add((m0 + r0) * ldc + c0) };
+                        let pf = if r0 == 0 { next } else { std::ptr::null() };
+                        // SAFETY: the packed A tile and the panel hold kc rows; C as above.
+                        unsafe { tile(isa, rows, kc, ap, bp, cp, ldc, w, pf) };
+                        r0 += rows;
+                    }
+                }
+                k0 += kc;
+            }
+            m0 += mb;
+        }
+    });
+}
+
+/// Pack `rows x kc` of `A` into row tiles of `MR`: tile `t` is `kc` groups of `MR` values (rows
+/// `t*MR..`), zero-padded past `rows`. The kernel then broadcasts from one moving pointer.
+fn pack_a(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
+    for t in 0..rows.div_ceil(MR) {
+        let tile = &mut out[t * kc * MR..(t + 1) * kc * MR];
+        for r in 0..MR {
+            let row = t * MR + r;
+            if row < rows {
+                let src = &a[row * lda..row * lda + kc];
+                for (kk, &v) in src.iter().enumerate() {
+                    tile[kk * MR + r] = v;
+                }
+            } else {
+                for kk in 0..kc {
+                    tile[kk * MR + r] = 0.0;
+                }
+            }
+        }
+    }
+}
+
+/// One `rows x w` tile (`rows <= MR`, `w <= NR`): `C += A · B` over `kc`, `A` packed by
+/// [`pack_a`]. `prefetch`, if not null, is a panel whose `kc` rows to pull into cache.
+///
+/// # Safety
+/// `a` has `kc * MR` values, `b` has `kc` rows of `NR` values, `c` has `rows` rows of stride
+/// `ldc` with `w` values; `prefetch` is null or points into a panel with `kc` rows.
+#[allow(clippy::too_many_arguments)]
+unsafe fn tile(
+    isa: Isa,
+    rows: usize,
+    kc: usize,
+    a: *const f32,
+    b: *const f32,
+    c: *mut f32,
+    ldc: usize,
+    w: usize,
+    prefetch: *const f32,
+) {
+    if w < NR {
+        // Edge panel: run the full-width kernel on a scratch tile, copy the valid columns.
+        let mut scratch = [0.0f32; MR * NR];
+        for r in 0..rows {
+            for j in 0..w {
+                // SAFETY: inside the caller's C tile.
+                scratch[r * NR + j] = unsafe { *c.add(r * ldc + j) };
+            }
+        }
+        // SAFETY: scratch is a full MR x NR tile.
+        unsafe { tile(isa, rows, kc, a, b, scratch.as_mut_ptr(), NR, NR, prefetch) };
+        for r in 0..rows {
+            for j in 0..w {
+                // SAFETY: inside the caller's C tile.
+                unsafe { *c.add(r * ldc + j) = scratch[r * NR + j] };
+            }
+        }
+        return;
+    }
+    macro_rules! dispatch {
+        ($f:ident $(, $extra:expr)?) => {
+            match rows {
+                6 => $f::<6>(kc, a, b, c, ldc $(, $extra)?),
+                5 => $f::<5>(kc, a, b, c, ldc $(, $extra)?),
+                4 => $f::<4>(kc, a, b, c, ldc $(, $extra)?),
+                3 => $f::<3>(kc, a, b, c, ldc $(, $extra)?),
+                2 => $f::<2>(kc, a, b, c, ldc $(, $extra)?),
+                _ => $f::<1>(kc, a, b, c, ldc $(, $extra)?),
+            }
+        };
+    }
+    match isa {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: Isa::Avx2Fma is only reported when the CPU has AVX2 and FMA.
+        Isa::Avx2Fma => unsafe { dispatch!(kernel_avx2, prefetch) },
+        // SAFETY: same pointer contract.
+        _ => unsafe { dispatch!(kernel_portable) },
+    }
+}
+
+/// # Safety
+/// See [`tile`]; requires AVX2 and FMA.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn kernel_avx2<const R: usize>(
+    kc: usize,
+    a: *const f32,
+    b: *const f32,
+    c: *mut f32,
+    ldc: usize,
+    prefetch: *const f32,
+) {
+    use std::arch::x86_64::*;
+    let mut acc = [[_mm256_setzero_ps(); 2]; R];
+    for (r, row) in acc.iter_mut().enumerate() {
+        // SAFETY: row r of the C tile has NR values.
+        unsafe {
+            row[0] = _mm256_loadu_ps(c.add(r * ldc));
+            row[1] = _mm256_loadu_ps(c.add(r * ldc + 8));
+        }
+    }
+    macro_rules! step {
+        ($kk:expr) => {{
+            // SAFETY: $kk < kc: inside the panel and the packed A tile.
+            unsafe {
+                let b0 = _mm256_load_ps(b.add($kk * NR));
+                let b1 = _mm256_load_ps(b.add($kk * NR + 8));
+                for r in 0..R {
+                    let av = _mm256_broadcast_ss(&*a.add($kk * MR + r));
+                    acc[r][0] = _mm256_fmadd_ps(av, b0, acc[r][0]);
+                    acc[r][1] = _mm256_fmadd_ps(av, b1, acc[r][1]);
+                }
+            }
+        }};
+    }
+    let mut kk = 0;
+    if prefetch.is_null() {
+        while kk + 4 <= kc {
+            step!(kk);
+            step!(kk + 1);
+            step!(kk + 2);
+            step!(kk + 3);
+            kk += 4;
+        }
+    } else {
+        while kk + 4 <= kc {
+            // One panel row is one cache line: fetch the next panel's rows as we go.
+            // SAFETY: prefetch never faults; the address is inside the next panel.
+            unsafe {
+                _mm_prefetch::<_MM_HINT_T0>(prefetch.add(kk * NR) as *const i8);
+                _mm_prefetch::<_MM_HINT_T0>(prefetch.add((kk + 2) * NR) as *const i8);
+            }
+            step!(kk);
+            step!(kk + 1);
+            // SAFETY: as above.
+            unsafe {
+                _mm_prefetch::<_MM_HINT_T0>(prefetch.add((kk + 1) * NR) as *const i8);
+                _mm_prefetch::<_MM_HINT_T0>(prefetch.add((kk + 3) * NR) as *const i8);
+            }
+            step!(kk + 2);
+            step!(kk + 3);
+            kk += 4;
+        }
+    }
+    while kk < kc {
+        step!(kk);
+        kk += 1;
+    }
+    for (r, row) in acc.iter().enumerate() {
+        // SAFETY: row r of the C tile has NR values.
+        unsafe {
+            _mm256_storeu_ps(c.add(r * ldc), row[0]);
+            _mm256_storeu_ps(c.add(r * ldc + 8), row[1]);
+        }
+    }
+}
+
+/// # Safety
+/// See [`tile`].
+unsafe fn kernel_portable<const R: usize>(
+    kc: usize,
+    a: *const f32,
+    b: *const f32,
+    c: *mut f32,
+    ldc: usize,
+) {
+    let mut acc = [[0.0f32; NR]; R];
+    for (r, row) in acc.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            // SAFETY: row r of the C tile has NR values.
+            *v = unsafe { *c.add(r * ldc + j) };
+        }
+    }
+    for kk in 0..kc {
+        // SAFETY: kk < kc: inside the panel and the packed A tile.
+        let (brow, arow) = unsafe {
+            (
+                std::slice::from_raw_parts(b.add(kk * NR), NR),
+                std::slice::from_raw_parts(a.add(kk * MR), R),
+            )
+        };
+        for (row, &av) in acc.iter_mut().zip(arow) {
+            for (v, &bv) in row.iter_mut().zip(brow) {
+                *v += av * bv;
+            }
+        }
+    }
+    for (r, row) in acc.iter().enumerate() {
+        for (j, v) in row.iter().enumerate() {
+            // SAFETY: row r of the C tile has NR values.
+            unsafe { *c.add(r * ldc + j) = *v };
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn naive(a: &[f32], m: usize, k: usize, w: &[f32], n: usize) -> Vec<f32> {
+        let mut c = vec![0.0f64; m * n];
+        for i in 0..m {
+            for j in 0..n {
+                for kk in 0..k {
+                    c[i * n + j] += f64::from(a[i * k + kk]) * f64::from(w[j * k + kk]);
+                }
+            }
+        }
+        c.into_iter().map(|v| v as f32).collect()
+    }
+
+    fn data(len: usize, seed: u64) -> Vec<f32> {
+        let mut s = seed;
+        (0..len)
+            .map(|_| {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                ((s >> 40) as f32 / (1u64 << 24) as f32) - 0.5
+            })
+            .collect()
+    }
+
+    #[test]
+    fn matches_naive_on_ragged_shapes_for_both_isas() {
+        for &(m, k, n) in &[
+            (1, 1, 1),
+            (7, 300, 33),
+            (50, 720, 40),
+            (13, 5, 16),
+            (121, 257, 17),
+        ] {
+            let a = data(m * k, 1);
+            let w = data(n * k, 2);
+            let bias = data(n, 3);
+            let packed = PackedMatrix::from_linear_weight(&w, n, k);
+            let want = naive(&a, m, k, &w, n);
+            for isa in [Isa::Avx2Fma, Isa::Portable]
+                .into_iter()
+                .filter(|i| i.available())
+            {
+                let pool = Pool::with_isa(2, isa).unwrap();
+                let mut c = vec![f32::NAN; m * n];
+                gemm_par(&pool, &a, k, m, &packed, &mut c, n, Init::Zero);
+                let mut cb = vec![0.0; m * n];
+                gemm(isa, &a, k, m, &packed, &mut cb, n, Init::Bias(&bias));
+                gemm(isa, &a, k, m, &packed, &mut cb, n, Init::Accumulate);
+                for i in 0..m * n {
+                    let tol = 1e-5 * (k as f32).sqrt();
+                    assert!(
+                        (c[i] - want[i]).abs() <= tol,
+                        "{m}x{k}x{n} {isa:?} [{i}] {} vs {}",
+                        c[i],
+                        want[i]
+                    );
+                    let wb = bias[i % n] + 2.0 * want[i];
+                    assert!(
+                        (cb[i] - wb).abs() <= 2.0 * tol,
+                        "bias+acc {m}x{k}x{n} [{i}]"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn row_results_do_not_depend_on_m_or_threads() {
+        let (k, n) = (700, 70);
+        let a = data(50 * k, 4);
+        let w = data(n * k, 5);
+        let packed = PackedMatrix::from_linear_weight(&w, n, k);
+        let mut full = vec![0.0; 50 * n];
+        let pool = Pool::new(2).unwrap();
+        gemm_par(&pool, &a, k, 50, &packed, &mut full, n, Init::Zero);
+        for start in [0, 7, 49] {
+            let mut one = vec![0.0; n];
+            gemm(
+                pool.isa(),
+                &a[start * k..],
+                k,
+                1,
+                &packed,
+                &mut one,
+                n,
+                Init::Zero,
+            );
+            assert_eq!(one, full[start * n..(start + 1) * n]);
+        }
+    }
+
+    #[test]
+    fn pack_rows_equals_pack_transposed() {
+        let (k, n) = (9, 21);
+        let w = data(n * k, 6);
+        let mut bt = vec![0.0; k * n];
+        for j in 0..n {
+            for kk in 0..k {
+                bt[kk * n + j] = w[j * k + kk];
+            }
+        }
+        let mut p = PackedMatrix::default();
+        p.pack_rows(&bt, n, k, n);
+        let q = PackedMatrix::from_linear_weight(&w, n, k);
+        assert_eq!(
+            p.buf.as_slice()[..p.panels() * k * NR],
+            q.buf.as_slice()[..q.panels() * k * NR]
+        );
+    }
+}

@@ -1,0 +1,212 @@
+//! CPU kernels of the fast path: packed f32 GEMM, attention, and the vector maths around them.
+//!
+//! Candle's CPU matmul (the `gemm` crate) repacks both operands on every call and its other ops
+//! allocate a fresh tensor each; in the denoise loop the same weights are multiplied 10 times
+//! by a 50-row activation, so the fast path packs every weight once at load into the layout
+//! the micro-kernel streams ([`PackedMatrix`]), reuses one workspace for all steps, and splits
+//! each GEMM's output columns across a fixed thread pool ([`Pool`]).
+//!
+//! Everything is exact IEEE f32 arithmetic (FMA accumulation in a fixed order); only the
+//! summation order differs from PyTorch's. The micro-kernels use AVX2+FMA when the CPU has them
+//! (runtime detection) and portable Rust otherwise; both give the same results up to rounding,
+//! and each output element is computed in an order that does not depend on the batch size or the
+//! thread count, so a request gets bit-identical results alone or in a batch.
+
+pub mod attention;
+pub mod gemm;
+pub mod vecmath;
+
+pub use gemm::{Init, PackedMatrix};
+
+/// Which instruction set the kernels use.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Isa {
+    /// x86-64 AVX2 with FMA (256-bit vectors).
+    Avx2Fma,
+    /// Portable Rust, any CPU.
+    Portable,
+}
+
+impl Isa {
+    /// The best instruction set this CPU supports.
+    pub fn detect() -> Isa {
+        if Isa::Avx2Fma.available() {
+            Isa::Avx2Fma
+        } else {
+            Isa::Portable
+        }
+    }
+
+    /// Whether this CPU can run `self`.
+    pub fn available(self) -> bool {
+        match self {
+            Isa::Portable => true,
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2Fma => {
+                std::arch::is_x86_feature_detected!("avx2")
+                    && std::arch::is_x86_feature_detected!("fma")
+            }
+            #[cfg(not(target_arch = "x86_64"))]
+            Isa::Avx2Fma => false,
+        }
+    }
+}
+
+/// A fixed set of worker threads that run the parts of one kernel call.
+///
+/// Work is split into exactly `threads()` parts by the caller (output-column ranges of a GEMM,
+/// heads of an attention), so the partition, and with it every result, is deterministic.
+pub struct Pool {
+    pool: rayon::ThreadPool,
+    threads: usize,
+    isa: Isa,
+}
+
+impl std::fmt::Debug for Pool {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Pool")
+            .field("threads", &self.threads)
+            .field("isa", &self.isa)
+            .finish()
+    }
+}
+
+impl Pool {
+    /// A pool of `threads` workers (0 = [`default_threads`]) using the best instruction set.
+    pub fn new(threads: usize) -> Result<Pool, crate::EngineError> {
+        Pool::with_isa(threads, Isa::detect())
+    }
+
+    /// A pool whose kernels use `isa` (tests compare the portable and SIMD kernels).
+    pub fn with_isa(threads: usize, isa: Isa) -> Result<Pool, crate::EngineError> {
+        if !isa.available() {
+            return Err(crate::EngineError::InvalidInput(format!(
+                "this CPU cannot run {isa:?} kernels"
+            )));
+        }
+        let threads = if threads == 0 {
+            default_threads()
+        } else {
+            threads
+        };
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(|i| format!("kairos-engine-{i}"))
+            .build()
+            .map_err(|e| {
+                crate::EngineError::InvalidInput(format!(
+                    "cannot start {threads} engine threads: {e}"
+                ))
+            })?;
+        Ok(Pool { pool, threads, isa })
+    }
+
+    /// The instruction set of the kernels run on this pool.
+    pub fn isa(&self) -> Isa {
+        self.isa
+    }
+
+    /// Number of worker threads.
+    pub fn threads(&self) -> usize {
+        self.threads
+    }
+
+    /// Run `op` on one of the pool's threads, so that the [`Pool::run`] calls inside it hand
+    /// parts to the other workers without a round trip through the calling thread.
+    pub fn install<R: Send>(&self, op: impl FnOnce() -> R + Send) -> R {
+        self.pool.install(op)
+    }
+
+    /// Run `f(part)` for `part in 0..parts` (part 0 on the calling thread) and wait for all.
+    pub fn run(&self, parts: usize, f: impl Fn(usize) + Sync) {
+        if parts <= 1 || self.threads == 1 {
+            for p in 0..parts {
+                f(p);
+            }
+            return;
+        }
+        let f = &f;
+        self.pool.in_place_scope(|s| {
+            for p in 1..parts {
+                s.spawn(move |_| f(p));
+            }
+            f(0);
+        });
+    }
+}
+
+/// One per available core, or `KAIROS_ENGINE_THREADS` when set.
+pub fn default_threads() -> usize {
+    std::env::var("KAIROS_ENGINE_THREADS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .filter(|&n: &usize| n > 0)
+        .unwrap_or_else(|| {
+            std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(1)
+        })
+}
+
+/// A raw pointer that worker threads may share; every user writes a disjoint region.
+#[derive(Clone, Copy)]
+pub(crate) struct SharedMut(*mut f32);
+// SAFETY: callers partition the pointee so that no two threads touch the same element.
+unsafe impl Send for SharedMut {}
+// SAFETY: as above.
+unsafe impl Sync for SharedMut {}
+
+impl SharedMut {
+    pub(crate) fn new(s: &mut [f32]) -> Self {
+        SharedMut(s.as_mut_ptr())
+    }
+
+    /// The pointer (a method, so that closures capture the whole `Sync` wrapper).
+    pub(crate) fn ptr(&self) -> *mut f32 {
+        self.0
+    }
+}
+
+/// An `f32` buffer whose first element is 64-byte aligned (one cache line), so packed panel rows
+/// never straddle cache lines.
+#[derive(Clone, Default)]
+pub struct AlignedBuf {
+    raw: Vec<f32>,
+    offset: usize,
+    len: usize,
+}
+
+impl std::fmt::Debug for AlignedBuf {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("AlignedBuf")
+            .field("len", &self.len)
+            .finish()
+    }
+}
+
+impl AlignedBuf {
+    /// `len` zeros.
+    pub fn zeros(len: usize) -> Self {
+        let raw = vec![0.0f32; len + 16];
+        let misalign = (raw.as_ptr() as usize / 4) % 16;
+        let offset = if misalign == 0 { 0 } else { 16 - misalign };
+        AlignedBuf { raw, offset, len }
+    }
+
+    /// Grow (never shrink) to at least `len` elements; contents are unspecified afterwards.
+    pub fn ensure(&mut self, len: usize) {
+        if self.len < len {
+            *self = AlignedBuf::zeros(len);
+        }
+    }
+
+    /// The buffer.
+    pub fn as_slice(&self) -> &[f32] {
+        &self.raw[self.offset..self.offset + self.len]
+    }
+
+    /// The buffer, mutable.
+    pub fn as_mut_slice(&mut self) -> &mut [f32] {
+        &mut self.raw[self.offset..self.offset + self.len]
+    }
+}

@@ -1,0 +1,137 @@
+//! Where and how a model runs: device, kernels, threads.
+
+use crate::EngineError;
+use crate::kernels::{Isa, Pool};
+
+/// The device a model runs on.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DeviceKind {
+    /// The host CPU (default).
+    #[default]
+    Cpu,
+    /// CUDA device with this ordinal; needs the `cuda` cargo feature.
+    Cuda(usize),
+}
+
+impl std::str::FromStr for DeviceKind {
+    type Err = EngineError;
+
+    /// `cpu`, `cuda` or `cuda:N`.
+    fn from_str(s: &str) -> Result<Self, EngineError> {
+        match s {
+            "cpu" => Ok(DeviceKind::Cpu),
+            "cuda" => Ok(DeviceKind::Cuda(0)),
+            _ => s
+                .strip_prefix("cuda:")
+                .and_then(|n| n.parse().ok())
+                .map(DeviceKind::Cuda)
+                .ok_or_else(|| {
+                    EngineError::InvalidInput(format!("unknown device `{s}` (cpu, cuda, cuda:N)"))
+                }),
+        }
+    }
+}
+
+/// Which implementation of the model's maths to use.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Kernels {
+    /// The fast CPU kernels on the CPU, Candle on CUDA (default).
+    #[default]
+    Auto,
+    /// The fast CPU kernels with the best instruction set (AVX2+FMA when present).
+    Fast,
+    /// The fast CPU kernels without SIMD intrinsics (what a CPU without AVX2 runs).
+    Portable,
+    /// Plain Candle tensor ops (the reference implementation; the only one on CUDA).
+    Candle,
+}
+
+impl std::str::FromStr for Kernels {
+    type Err = EngineError;
+
+    /// `auto`, `fast`, `portable` or `candle`.
+    fn from_str(s: &str) -> Result<Self, EngineError> {
+        match s {
+            "auto" => Ok(Kernels::Auto),
+            "fast" => Ok(Kernels::Fast),
+            "portable" => Ok(Kernels::Portable),
+            "candle" => Ok(Kernels::Candle),
+            _ => Err(EngineError::InvalidInput(format!(
+                "unknown kernels `{s}` (auto, fast, portable, candle)"
+            ))),
+        }
+    }
+}
+
+/// How to run a model.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct EngineOptions {
+    /// Device.
+    pub device: DeviceKind,
+    /// Kernels.
+    pub kernels: Kernels,
+    /// CPU threads for the fast kernels (0: one per core, or `KAIROS_ENGINE_THREADS`).
+    pub threads: usize,
+}
+
+/// A resolved execution target.
+pub(crate) enum Target {
+    /// The fast CPU kernels on this pool.
+    Fast(Pool),
+    /// Candle ops on this device.
+    Candle(candle_core::Device),
+}
+
+impl EngineOptions {
+    /// What these options run on, e.g. `cpu, fast kernels Avx2Fma, 2 threads` (for profiles).
+    pub fn describe(&self) -> Result<String, EngineError> {
+        Ok(self.target()?.describe())
+    }
+
+    pub(crate) fn target(&self) -> Result<Target, EngineError> {
+        match (self.device, self.kernels) {
+            (DeviceKind::Cpu, Kernels::Auto | Kernels::Fast) => {
+                Ok(Target::Fast(Pool::new(self.threads)?))
+            }
+            (DeviceKind::Cpu, Kernels::Portable) => {
+                Ok(Target::Fast(Pool::with_isa(self.threads, Isa::Portable)?))
+            }
+            (DeviceKind::Cpu, Kernels::Candle) => Ok(Target::Candle(candle_core::Device::Cpu)),
+            (DeviceKind::Cuda(i), Kernels::Auto | Kernels::Candle) => {
+                Ok(Target::Candle(cuda_device(i)?))
+            }
+            (DeviceKind::Cuda(_), k) => Err(EngineError::InvalidInput(format!(
+                "{k:?} kernels run on the CPU only; use auto or candle on CUDA"
+            ))),
+        }
+    }
+}
+
+impl Target {
+    /// Human-readable description, e.g. `cpu fast avx2 (2 threads)`.
+    pub(crate) fn describe(&self) -> String {
+        match self {
+            Target::Fast(pool) => format!(
+                "cpu, fast kernels {:?}, {} threads",
+                pool.isa(),
+                pool.threads()
+            ),
+            Target::Candle(candle_core::Device::Cpu) => "cpu, candle".to_string(),
+            Target::Candle(d) => format!("{d:?}, candle"),
+        }
+    }
+}
+
+#[cfg(feature = "cuda")]
+fn cuda_device(ordinal: usize) -> Result<candle_core::Device, EngineError> {
+    Ok(candle_core::Device::new_cuda(ordinal)?)
+}
+
+#[cfg(not(feature = "cuda"))]
+fn cuda_device(ordinal: usize) -> Result<candle_core::Device, EngineError> {
+    Err(EngineError::InvalidInput(format!(
+        "cuda:{ordinal} requested but kairos-engine was built without the `cuda` feature"
+    )))
+}

@@ -1,0 +1,210 @@
+//! The flow-matching sampler shared by every model: seeded noise, LeRobot's Euler schedule, and
+//! the per-step updates `U`.
+//!
+//! LeRobot (`policies/common/flow_matching.py::euler_integrate`, from openpi) integrates the
+//! learned velocity from `t = 1` (noise) to `t = 0` (actions): `dt = -1/K`, `t_k = 1 + k dt`
+//! (computed in f64, passed to the model as f32), `x <- x + dt * v(x, t_k)` in f32. Kairos
+//! records each `dt * v` as the update `U[k]`, so `noise + U[0] + .. + U[K-1]` is the chunk,
+//! exactly, when summed in that order.
+
+use crate::{ActionChunk, EngineError};
+
+/// LeRobot's Euler schedule with `steps` steps.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Schedule {
+    /// Number of Euler steps `K`.
+    pub steps: usize,
+}
+
+impl Schedule {
+    /// The step `dt = -1/K` as the f32 factor the update multiplies by.
+    pub fn dt(&self) -> f32 {
+        (-1.0f64 / self.steps as f64) as f32
+    }
+
+    /// The time `t_k = 1 + k dt` at which step `k` evaluates the velocity.
+    pub fn time(&self, k: usize) -> f32 {
+        (1.0f64 + k as f64 * (-1.0f64 / self.steps as f64)) as f32
+    }
+}
+
+/// Integrate `rows` independent samples, each `len` values, from `x` (the noise, overwritten by
+/// the result). `velocity(k, t_k, x, v)` writes the velocity of all rows into `v`;
+/// `updates` receives `U`, laid out `[row][k][len]`.
+pub fn integrate(
+    schedule: Schedule,
+    rows: usize,
+    len: usize,
+    x: &mut [f32],
+    updates: &mut [f32],
+    mut velocity: impl FnMut(usize, f32, &[f32], &mut [f32]) -> Result<(), EngineError>,
+) -> Result<(), EngineError> {
+    let steps = schedule.steps;
+    assert_eq!(x.len(), rows * len);
+    assert_eq!(updates.len(), rows * steps * len);
+    let dt = schedule.dt();
+    let mut v = vec![0.0f32; rows * len];
+    for k in 0..steps {
+        velocity(k, schedule.time(k), x, &mut v)?;
+        for r in 0..rows {
+            let xr = &mut x[r * len..(r + 1) * len];
+            let vr = &v[r * len..(r + 1) * len];
+            let ur = &mut updates[(r * steps + k) * len..(r * steps + k + 1) * len];
+            for ((xi, &vi), ui) in xr.iter_mut().zip(vr).zip(ur.iter_mut()) {
+                *ui = dt * vi;
+                *xi += *ui;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Standard-normal noise for sample `sample` of a request with `seed`: `len` values.
+///
+/// The generator is specified here, not borrowed from a crate whose stream may change between
+/// versions: SplitMix64 seeded with `seed ^ (sample+1) * 0x9E3779B97F4A7C15`, two 53-bit
+/// uniforms per pair of outputs, Box–Muller in f64, rounded to f32. The same (seed, sample)
+/// gives the same noise in every batch and every Kairos version.
+pub fn gaussian_noise(seed: u64, sample: usize, len: usize) -> Vec<f32> {
+    let mut state = seed ^ (sample as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    let mut next = move || {
+        state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    };
+    let mut out = Vec::with_capacity(len + 1);
+    while out.len() < len {
+        // u1 in (0, 1], u2 in [0, 1).
+        let u1 = ((next() >> 11) as f64 + 1.0) / (1u64 << 53) as f64;
+        let u2 = (next() >> 11) as f64 / (1u64 << 53) as f64;
+        let radius = (-2.0 * u1.ln()).sqrt();
+        let angle = 2.0 * std::f64::consts::PI * u2;
+        out.push((radius * angle.cos()) as f32);
+        out.push((radius * angle.sin()) as f32);
+    }
+    out.truncate(len);
+    out
+}
+
+/// Per-row results of a batched generation, cut into one [`ActionChunk`] per request.
+///
+/// Rows are `[request][sample]` in order; each row holds `chunk_len x full_dim` values of which
+/// the first `action_dim` per action are the robot's (SmolVLA pads actions to 32).
+pub struct RowLayout {
+    /// Samples of each request, in order.
+    pub samples: Vec<usize>,
+    /// `K`.
+    pub steps: usize,
+    /// `N`.
+    pub chunk_len: usize,
+    /// Values per action in the model (padded).
+    pub full_dim: usize,
+    /// Values per action returned (`<= full_dim`).
+    pub action_dim: usize,
+}
+
+impl RowLayout {
+    /// Total rows.
+    pub fn rows(&self) -> usize {
+        self.samples.iter().sum()
+    }
+
+    /// Split row-major `noise`, `actions` (`[row][N][full]`) and `updates` (`[row][K][N][full]`)
+    /// into chunks cut to `action_dim`.
+    pub fn chunks(&self, noise: &[f32], actions: &[f32], updates: &[f32]) -> Vec<ActionChunk> {
+        let (n, full, d, k) = (self.chunk_len, self.full_dim, self.action_dim, self.steps);
+        let cut = |src: &[f32], out: &mut Vec<f32>| {
+            for a in src.chunks_exact(full) {
+                out.extend_from_slice(&a[..d]);
+            }
+        };
+        let mut row = 0;
+        self.samples
+            .iter()
+            .map(|&s| {
+                let mut chunk = ActionChunk {
+                    samples: s,
+                    steps: k,
+                    chunk_len: n,
+                    action_dim: d,
+                    actions: Vec::with_capacity(s * n * d),
+                    updates: Vec::with_capacity(s * k * n * d),
+                    noise: Vec::with_capacity(s * n * d),
+                };
+                for _ in 0..s {
+                    cut(
+                        &noise[row * n * full..(row + 1) * n * full],
+                        &mut chunk.noise,
+                    );
+                    cut(
+                        &actions[row * n * full..(row + 1) * n * full],
+                        &mut chunk.actions,
+                    );
+                    cut(
+                        &updates[row * k * n * full..(row + 1) * k * n * full],
+                        &mut chunk.updates,
+                    );
+                    row += 1;
+                }
+                chunk
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lerobot_schedule() {
+        let s = Schedule { steps: 10 };
+        assert_eq!(s.dt(), -0.1f32);
+        assert_eq!(s.time(0), 1.0);
+        assert_eq!(s.time(3), 0.7f32);
+        assert_eq!(s.time(9), (1.0f64 - 0.9f64) as f32);
+    }
+
+    #[test]
+    fn noise_is_standard_normal_and_reproducible() {
+        let a = gaussian_noise(7, 0, 100_001);
+        assert_eq!(a, gaussian_noise(7, 0, 100_001));
+        assert_ne!(a[..10], gaussian_noise(7, 1, 10)[..]);
+        assert_ne!(a[..10], gaussian_noise(8, 0, 10)[..]);
+        let mean = a.iter().map(|&v| f64::from(v)).sum::<f64>() / a.len() as f64;
+        let var = a
+            .iter()
+            .map(|&v| (f64::from(v) - mean).powi(2))
+            .sum::<f64>()
+            / a.len() as f64;
+        assert!(
+            mean.abs() < 0.01 && (var - 1.0).abs() < 0.02,
+            "mean {mean} var {var}"
+        );
+    }
+
+    #[test]
+    fn updates_sum_to_the_result() {
+        let noise = gaussian_noise(1, 0, 12);
+        let mut x = noise.clone();
+        let mut u = vec![0.0; 2 * 5 * 6];
+        integrate(Schedule { steps: 5 }, 2, 6, &mut x, &mut u, |k, t, x, v| {
+            for (vi, xi) in v.iter_mut().zip(x) {
+                *vi = xi * t + k as f32;
+            }
+            Ok(())
+        })
+        .unwrap();
+        for r in 0..2 {
+            for i in 0..6 {
+                let mut acc = noise[r * 6 + i];
+                for k in 0..5 {
+                    acc += u[(r * 5 + k) * 6 + i];
+                }
+                assert_eq!(acc, x[r * 6 + i]);
+            }
+        }
+    }
+}

@@ -1,0 +1,517 @@
+//! The expert on the CPU fast path: packed weights, one workspace for all steps, and the
+//! prefix-dependent work (cross-attention K/V projections, packed prefix keys, RoPE tables)
+//! done once per request instead of once per step.
+
+use std::sync::Mutex;
+
+use super::config::{ExpertDims, LayerKind};
+use super::prefix::PrefixKv;
+use super::weights::{ExpertWeights, LinearWeights, time_embedding};
+use crate::EngineError;
+use crate::kernels::attention::{KvSegment, attend};
+use crate::kernels::gemm::{gemm, gemm_par};
+use crate::kernels::{Init, PackedMatrix, Pool, SharedMut, vecmath};
+
+struct Linear {
+    w: PackedMatrix,
+    bias: Option<Vec<f32>>,
+}
+
+impl Linear {
+    fn new(l: &LinearWeights) -> Self {
+        Linear {
+            w: PackedMatrix::from_linear_weight(&l.weight, l.out_dim, l.in_dim),
+            bias: l.bias.clone(),
+        }
+    }
+
+    fn init(&self) -> Init<'_> {
+        self.bias.as_deref().map_or(Init::Zero, Init::Bias)
+    }
+}
+
+struct Layer {
+    kind: LayerKind,
+    input_norm: Vec<f32>,
+    post_norm: Vec<f32>,
+    /// Self-attention: `[q | k | v]` in one GEMM; cross-attention: `q` only.
+    qkv: PackedMatrix,
+    /// Cross-attention: the projections applied to the prefix K/V once per request.
+    kv_cross: Option<(PackedMatrix, PackedMatrix)>,
+    o: PackedMatrix,
+    /// `[gate | up]` in one GEMM.
+    gate_up: PackedMatrix,
+    down: PackedMatrix,
+}
+
+/// The packed expert.
+pub(crate) struct CpuExpert {
+    dims: ExpertDims,
+    layers: Vec<Layer>,
+    final_norm: Vec<f32>,
+    action_in: Linear,
+    /// `action_time_mlp_in` split by input: the action half, and the time half plus bias (the
+    /// time embedding is the same for every token of a step, so its product is computed once).
+    time_in_action: PackedMatrix,
+    time_in_time: Linear,
+    time_out: Linear,
+    out: Linear,
+    state: Linear,
+}
+
+/// One request's prefix, prepared for the attention kernels.
+struct PreparedPrefix {
+    /// Position of the first action token.
+    offset: usize,
+    /// Per layer, per KV head: packed `Kᵀ` and `V` of the valid prefix tokens (after the
+    /// expert's projection for cross-attention layers).
+    layers: Vec<Vec<(PackedMatrix, PackedMatrix)>>,
+}
+
+impl CpuExpert {
+    pub(crate) fn new(w: &ExpertWeights) -> Self {
+        let h = w.dims.hidden;
+        let layers = w
+            .layers
+            .iter()
+            .map(|l| {
+                let qkv = match l.kind {
+                    LayerKind::SelfAttention => PackedMatrix::from_linear_weights(
+                        &[
+                            (&l.q_proj.weight, l.q_proj.out_dim),
+                            (&l.k_proj.weight, l.k_proj.out_dim),
+                            (&l.v_proj.weight, l.v_proj.out_dim),
+                        ],
+                        h,
+                    ),
+                    LayerKind::CrossAttention => {
+                        PackedMatrix::from_linear_weight(&l.q_proj.weight, l.q_proj.out_dim, h)
+                    }
+                };
+                let kv_cross = (l.kind == LayerKind::CrossAttention).then(|| {
+                    (
+                        PackedMatrix::from_linear_weight(
+                            &l.k_proj.weight,
+                            l.k_proj.out_dim,
+                            l.k_proj.in_dim,
+                        ),
+                        PackedMatrix::from_linear_weight(
+                            &l.v_proj.weight,
+                            l.v_proj.out_dim,
+                            l.v_proj.in_dim,
+                        ),
+                    )
+                });
+                Layer {
+                    kind: l.kind,
+                    input_norm: l.input_norm.clone(),
+                    post_norm: l.post_norm.clone(),
+                    qkv,
+                    kv_cross,
+                    o: PackedMatrix::from_linear_weight(
+                        &l.o_proj.weight,
+                        l.o_proj.out_dim,
+                        l.o_proj.in_dim,
+                    ),
+                    gate_up: PackedMatrix::from_linear_weights(
+                        &[
+                            (&l.gate_proj.weight, l.gate_proj.out_dim),
+                            (&l.up_proj.weight, l.up_proj.out_dim),
+                        ],
+                        h,
+                    ),
+                    down: PackedMatrix::from_linear_weight(
+                        &l.down_proj.weight,
+                        l.down_proj.out_dim,
+                        l.down_proj.in_dim,
+                    ),
+                }
+            })
+            .collect();
+        let mlp_in = &w.action_time_mlp_in;
+        let (mut wa, mut wt) = (Vec::with_capacity(h * h), Vec::with_capacity(h * h));
+        for row in mlp_in.weight.chunks_exact(2 * h) {
+            wa.extend_from_slice(&row[..h]);
+            wt.extend_from_slice(&row[h..]);
+        }
+        CpuExpert {
+            dims: w.dims.clone(),
+            layers,
+            final_norm: w.final_norm.clone(),
+            action_in: Linear::new(&w.action_in_proj),
+            time_in_action: PackedMatrix::from_linear_weight(&wa, h, h),
+            time_in_time: Linear {
+                w: PackedMatrix::from_linear_weight(&wt, h, h),
+                bias: mlp_in.bias.clone(),
+            },
+            time_out: Linear::new(&w.action_time_mlp_out),
+            out: Linear::new(&w.action_out_proj),
+            state: Linear::new(&w.state_proj),
+        }
+    }
+
+    /// `state_proj` of padded states, `[rows][vlm_hidden]`.
+    pub(crate) fn embed_state(&self, pool: &Pool, states: &[f32], rows: usize) -> Vec<f32> {
+        let mut out = vec![0.0; rows * self.dims.vlm_hidden];
+        gemm_par(
+            pool,
+            states,
+            self.dims.state_pad,
+            rows,
+            &self.state.w,
+            &mut out,
+            self.dims.vlm_hidden,
+            self.state.init(),
+        );
+        out
+    }
+
+    fn prepare(&self, pool: &Pool, prefix: &PrefixKv) -> PreparedPrefix {
+        let d = &self.dims;
+        let (kvw, hd) = (d.kv_width(), d.head_dim);
+        let layers = self
+            .layers
+            .iter()
+            .enumerate()
+            .map(|(l, layer)| {
+                let (mut k, mut v) = prefix.compact(l, kvw);
+                let tokens = k.len() / kvw;
+                if let Some((wk, wv)) = &layer.kv_cross {
+                    let (mut kp, mut vp) = (vec![0.0; tokens * kvw], vec![0.0; tokens * kvw]);
+                    gemm_par(pool, &k, kvw, tokens, wk, &mut kp, kvw, Init::Zero);
+                    gemm_par(pool, &v, kvw, tokens, wv, &mut vp, kvw, Init::Zero);
+                    (k, v) = (kp, vp);
+                }
+                (0..d.kv_heads)
+                    .map(|g| {
+                        let mut kt = PackedMatrix::default();
+                        kt.pack_transposed(&k[g * hd..], kvw, tokens, hd);
+                        let mut vv = PackedMatrix::default();
+                        vv.pack_rows(&v[g * hd..], kvw, tokens, hd);
+                        (kt, vv)
+                    })
+                    .collect()
+            })
+            .collect();
+        PreparedPrefix {
+            offset: prefix.valid_len(),
+            layers,
+        }
+    }
+
+    /// Run the sampler for `rows` samples. `row_prefix[r]` is the request of row `r`; `x` holds
+    /// the noise (`[rows][chunk][action_pad]`) and receives the result; `velocities` and
+    /// `updates` receive `[rows][K][chunk][action_pad]`.
+    pub(crate) fn sample(
+        &self,
+        pool: &Pool,
+        prefixes: &[&PrefixKv],
+        row_prefix: &[usize],
+        x: &mut [f32],
+        velocities: &mut [f32],
+        updates: &mut [f32],
+    ) -> Result<(), EngineError> {
+        let d = &self.dims;
+        let rows = row_prefix.len();
+        let prepared: Vec<PreparedPrefix> =
+            prefixes.iter().map(|p| self.prepare(pool, p)).collect();
+        let mut ws = Workspace::new(d, rows, pool.threads());
+        // RoPE tables: self-attention positions continue after each prefix; cross-attention
+        // positions restart at 0 (LeRobot subtracts the minimum position).
+        let half = d.head_dim / 2;
+        let table = |offset: usize| -> (Vec<f32>, Vec<f32>) {
+            let (mut c, mut s) = (vec![0.0; d.chunk * half], vec![0.0; d.chunk * half]);
+            for n in 0..d.chunk {
+                let (cn, sn) = (
+                    &mut c[n * half..(n + 1) * half],
+                    &mut s[n * half..(n + 1) * half],
+                );
+                vecmath::rope_table((offset + n) as f32, d.head_dim, cn, sn);
+            }
+            (c, s)
+        };
+        let self_rope: Vec<(Vec<f32>, Vec<f32>)> =
+            prepared.iter().map(|p| table(p.offset)).collect();
+        let cross_rope = table(0);
+        let ctx = StepContext {
+            prepared: &prepared,
+            row_prefix,
+            self_rope: &self_rope,
+            cross_rope: &cross_rope,
+        };
+        let len = d.chunk * d.action_pad;
+        let steps = d.steps;
+        let schedule = crate::sampler::Schedule { steps };
+        crate::sampler::integrate(schedule, rows, len, x, updates, |k, t, xt, v| {
+            self.velocity(pool, &ctx, &mut ws, t, xt, v);
+            for r in 0..rows {
+                velocities[(r * steps + k) * len..(r * steps + k + 1) * len]
+                    .copy_from_slice(&v[r * len..(r + 1) * len]);
+            }
+            Ok(())
+        })
+    }
+
+    /// One evaluation of the velocity field for all rows at time `t`.
+    fn velocity(
+        &self,
+        pool: &Pool,
+        ctx: &StepContext<'_>,
+        ws: &mut Workspace,
+        t: f32,
+        xt: &[f32],
+        v: &mut [f32],
+    ) {
+        let d = &self.dims;
+        let (h, tokens) = (d.hidden, ws.tokens);
+        let isa = pool.isa();
+        // Suffix embedding: action_time_mlp_out(silu(action_time_mlp_in([action_in_proj(x); time_emb]))).
+        gemm_par(
+            pool,
+            xt,
+            d.action_pad,
+            tokens,
+            &self.action_in.w,
+            &mut ws.h,
+            h,
+            self.action_in.init(),
+        );
+        let temb = time_embedding(t, h, d.min_period, d.max_period);
+        gemm(
+            isa,
+            &temb,
+            h,
+            1,
+            &self.time_in_time.w,
+            &mut ws.time_bias,
+            h,
+            self.time_in_time.init(),
+        );
+        gemm_par(
+            pool,
+            &ws.h,
+            h,
+            tokens,
+            &self.time_in_action,
+            &mut ws.x,
+            h,
+            Init::Bias(&ws.time_bias),
+        );
+        vecmath::silu_inplace(isa, &mut ws.x);
+        std::mem::swap(&mut ws.x, &mut ws.h);
+        gemm_par(
+            pool,
+            &ws.h,
+            h,
+            tokens,
+            &self.time_out.w,
+            &mut ws.x,
+            h,
+            self.time_out.init(),
+        );
+
+        for (l, layer) in self.layers.iter().enumerate() {
+            self.attention_block(pool, ctx, ws, l, layer);
+            vecmath::rms_norm(isa, &ws.x, &layer.post_norm, d.rms_eps, &mut ws.h);
+            let i = d.intermediate;
+            gemm_par(
+                pool,
+                &ws.h,
+                h,
+                tokens,
+                &layer.gate_up,
+                &mut ws.gate_up,
+                2 * i,
+                Init::Zero,
+            );
+            for (gu, act) in ws
+                .gate_up
+                .chunks_exact(2 * i)
+                .zip(ws.act.chunks_exact_mut(i))
+            {
+                let (g, u) = gu.split_at(i);
+                vecmath::silu_mul(isa, g, u, act);
+            }
+            gemm_par(
+                pool,
+                &ws.act,
+                i,
+                tokens,
+                &layer.down,
+                &mut ws.x,
+                h,
+                Init::Accumulate,
+            );
+        }
+        vecmath::rms_norm(isa, &ws.x, &self.final_norm, d.rms_eps, &mut ws.h);
+        gemm_par(
+            pool,
+            &ws.h,
+            h,
+            tokens,
+            &self.out.w,
+            v,
+            d.action_pad,
+            self.out.init(),
+        );
+    }
+
+    fn attention_block(
+        &self,
+        pool: &Pool,
+        ctx: &StepContext<'_>,
+        ws: &mut Workspace,
+        l: usize,
+        layer: &Layer,
+    ) {
+        let d = &self.dims;
+        let (h, hd, n, tokens) = (d.hidden, d.head_dim, d.chunk, ws.tokens);
+        let (qw, kvw, half) = (d.q_width(), d.kv_width(), d.head_dim / 2);
+        let isa = pool.isa();
+        vecmath::rms_norm(isa, &ws.x, &layer.input_norm, d.rms_eps, &mut ws.h);
+        let ld = layer.qkv.n();
+        gemm_par(
+            pool,
+            &ws.h,
+            h,
+            tokens,
+            &layer.qkv,
+            &mut ws.qkv[..tokens * ld],
+            ld,
+            Init::Zero,
+        );
+        let rows = ctx.row_prefix.len();
+        // RoPE, and queries regrouped head-major per row so each head is one contiguous A.
+        for r in 0..rows {
+            let (cos, sin) = match layer.kind {
+                LayerKind::SelfAttention => &ctx.self_rope[ctx.row_prefix[r]],
+                LayerKind::CrossAttention => ctx.cross_rope,
+            };
+            for t in 0..n {
+                let (c, s) = (
+                    &cos[t * half..(t + 1) * half],
+                    &sin[t * half..(t + 1) * half],
+                );
+                let tok = &mut ws.qkv[(r * n + t) * ld..(r * n + t + 1) * ld];
+                for head in 0..d.heads {
+                    let qh = &mut tok[head * hd..(head + 1) * hd];
+                    vecmath::rope(isa, qh, c, s);
+                    let dst = ((r * d.heads + head) * n + t) * hd;
+                    ws.q_heads[dst..dst + hd].copy_from_slice(qh);
+                }
+                if layer.kind == LayerKind::SelfAttention {
+                    for g in 0..d.kv_heads {
+                        vecmath::rope(isa, &mut tok[qw + g * hd..qw + (g + 1) * hd], c, s);
+                    }
+                }
+            }
+            if layer.kind == LayerKind::SelfAttention {
+                let base = r * n * ld;
+                for g in 0..d.kv_heads {
+                    let (kt, vv) = &mut ws.suffix_kv[r * d.kv_heads + g];
+                    kt.pack_transposed(&ws.qkv[base + qw + g * hd..], ld, n, hd);
+                    vv.pack_rows(&ws.qkv[base + qw + kvw + g * hd..], ld, n, hd);
+                }
+            }
+        }
+        // Attention, one task per (row, head), split evenly over the pool.
+        let tasks = rows * d.heads;
+        let parts = pool.threads().min(tasks).max(1);
+        let groups = d.heads / d.kv_heads;
+        let scale = (hd as f64).powf(-0.5) as f32;
+        let out = SharedMut::new(&mut ws.attn);
+        let (q_heads, suffix_kv, scratch) = (&ws.q_heads, &ws.suffix_kv, &ws.scores);
+        pool.run(parts, |p| {
+            let mut scores = match scratch[p].lock() {
+                Ok(g) => g,
+                Err(poisoned) => poisoned.into_inner(),
+            };
+            for task in tasks * p / parts..tasks * (p + 1) / parts {
+                let (r, head) = (task / d.heads, task % d.heads);
+                let g = head / groups;
+                let (pk, pv) = &ctx.prepared[ctx.row_prefix[r]].layers[l][g];
+                let prefix = KvSegment {
+                    keys_t: pk,
+                    values: pv,
+                    causal: false,
+                };
+                let q = &q_heads[(r * d.heads + head) * n * hd..(r * d.heads + head + 1) * n * hd];
+                // SAFETY: task (r, head) writes rows r*n..(r+1)*n, columns head*hd..(head+1)*hd of
+                // `attn` only; tasks are disjoint.
+                let dst = unsafe {
+                    std::slice::from_raw_parts_mut(
+                        out.ptr().add(r * n * qw + head * hd),
+                        (n - 1) * qw + hd,
+                    )
+                };
+                match layer.kind {
+                    LayerKind::SelfAttention => {
+                        let (sk, sv) = &suffix_kv[r * d.kv_heads + g];
+                        let own = KvSegment {
+                            keys_t: sk,
+                            values: sv,
+                            causal: true,
+                        };
+                        attend(isa, q, n, hd, &[prefix, own], scale, &mut scores, dst, qw);
+                    }
+                    LayerKind::CrossAttention => {
+                        attend(isa, q, n, hd, &[prefix], scale, &mut scores, dst, qw)
+                    }
+                }
+            }
+        });
+        gemm_par(
+            pool,
+            &ws.attn,
+            qw,
+            tokens,
+            &layer.o,
+            &mut ws.x,
+            h,
+            Init::Accumulate,
+        );
+    }
+}
+
+struct StepContext<'a> {
+    prepared: &'a [PreparedPrefix],
+    row_prefix: &'a [usize],
+    self_rope: &'a [(Vec<f32>, Vec<f32>)],
+    cross_rope: &'a (Vec<f32>, Vec<f32>),
+}
+
+/// Buffers reused by every layer of every step.
+struct Workspace {
+    tokens: usize,
+    x: Vec<f32>,
+    h: Vec<f32>,
+    time_bias: Vec<f32>,
+    qkv: Vec<f32>,
+    q_heads: Vec<f32>,
+    attn: Vec<f32>,
+    gate_up: Vec<f32>,
+    act: Vec<f32>,
+    suffix_kv: Vec<(PackedMatrix, PackedMatrix)>,
+    scores: Vec<Mutex<Vec<f32>>>,
+}
+
+impl Workspace {
+    fn new(d: &ExpertDims, rows: usize, threads: usize) -> Self {
+        let tokens = rows * d.chunk;
+        Workspace {
+            tokens,
+            x: vec![0.0; tokens * d.hidden],
+            h: vec![0.0; tokens * d.hidden],
+            time_bias: vec![0.0; d.hidden],
+            qkv: vec![0.0; tokens * (d.q_width() + 2 * d.kv_width())],
+            q_heads: vec![0.0; tokens * d.q_width()],
+            attn: vec![0.0; tokens * d.q_width()],
+            gate_up: vec![0.0; tokens * 2 * d.intermediate],
+            act: vec![0.0; tokens * d.intermediate],
+            suffix_kv: (0..rows * d.kv_heads).map(|_| Default::default()).collect(),
+            scores: (0..threads.max(1))
+                .map(|_| Mutex::new(Vec::new()))
+                .collect(),
+        }
+    }
+}

@@ -1,0 +1,152 @@
+#!/usr/bin/env python3
+"""Time LeRobot's PyTorch SmolVLA denoise loop and Kairos's expert on the same shapes, side by side.
+
+    python3 engine/tools/bench_vs_pytorch.py [--batch 1,4,16] [--threads 2] [--iters 5] [--rounds 2]
+
+Shapes are `lerobot/smolvla_base`'s: SmolVLM2-500M text config (hidden 960, 15/5 heads of 64),
+16 layers, expert hidden 720, prefix 177 tokens (2 cameras x 64 + 48 language + 1 state),
+chunk 50, 10 Euler steps; both sides use random weights and a random prefix KV cache.
+
+PyTorch side: LeRobot 0.6.1's own `VLAFlowMatching`, and exactly the loop `sample_actions` runs
+after the VLM prefill: `euler_integrate(denoise_step, noise, num_steps)` over a filled
+`DynamicCache`, under `torch.no_grad()`, `torch.set_num_threads(threads)`.
+
+Kairos side: `cargo run --release -p kairos-engine --example expert_timing` with the same batch
+sizes and thread count. Batch sizes alternate between the two so that both see the same machine
+load; every cell is the median of `iters` runs after one warm-up, and with `--rounds > 1` the
+lower median of the rounds.
+"""
+
+import argparse
+import json
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from lerobot_env import REPO, ensure_venv  # noqa: E402
+
+ensure_venv()
+
+import torch  # noqa: E402
+
+PREFIX = 177
+TEXT_CONFIG = dict(  # HuggingFaceTB/SmolVLM2-500M-Video-Instruct text_config
+    model_type="llama",
+    hidden_size=960,
+    intermediate_size=2560,
+    num_hidden_layers=32,
+    num_attention_heads=15,
+    num_key_value_heads=5,
+    head_dim=64,
+    rms_norm_eps=1e-5,
+    vocab_size=49280,
+    max_position_embeddings=8192,
+    rope_theta=100000.0,
+    tie_word_embeddings=False,
+)
+# The vision tower is not used by the denoise loop; a tiny one keeps construction fast.
+VISION_CONFIG = dict(hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2,
+                     image_size=32, patch_size=8)
+
+
+def build_model():
+    from transformers import SmolVLMConfig
+
+    import lerobot.policies.smolvla.smolvlm_with_expert as swe
+    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+    from lerobot.policies.smolvla.modeling_smolvla import VLAFlowMatching
+
+    vlm_config = SmolVLMConfig(text_config=dict(TEXT_CONFIG), vision_config=dict(VISION_CONFIG), scale_factor=2)
+
+    class _Tokenizer:
+        fake_image_token_id = 1
+        global_image_token_id = 2
+
+    class _Processor:
+        tokenizer = _Tokenizer()
+
+    swe.AutoConfig.from_pretrained = staticmethod(lambda *_a, **_k: vlm_config)
+    swe.AutoProcessor.from_pretrained = staticmethod(lambda *_a, **_k: _Processor())
+    cfg = SmolVLAConfig(load_vlm_weights=False, device="cpu")  # all LeRobot defaults otherwise
+    model = VLAFlowMatching(cfg).eval()
+    return model, cfg
+
+
+@torch.no_grad()
+def time_torch(model, cfg, batch, iters):
+    from transformers import DynamicCache
+
+    from lerobot.policies.common.flow_matching import euler_integrate
+
+    text = model.vlm_with_expert.config.text_config
+    cache = DynamicCache()
+    for layer in range(cfg.num_vlm_layers):
+        shape = (batch, text.num_key_value_heads, PREFIX, text.head_dim)
+        cache.update(torch.randn(shape), torch.randn(shape), layer)
+    pad = torch.ones(batch, PREFIX, dtype=torch.bool)
+    noise = torch.randn(batch, cfg.chunk_size, cfg.max_action_dim)
+
+    def run():
+        return euler_integrate(
+            lambda x, t: model.denoise_step(x_t=x, prefix_pad_masks=pad, past_key_values=cache, timestep=t),
+            noise,
+            cfg.num_steps,
+        )
+
+    run()
+    runs = []
+    for _ in range(iters):
+        t0 = time.perf_counter()
+        out = run()
+        runs.append((time.perf_counter() - t0) * 1e3)
+        assert out.shape == (batch, cfg.chunk_size, cfg.max_action_dim)
+    return statistics.median(runs), runs
+
+
+def time_kairos(batch, threads, iters, kernels):
+    cmd = ["cargo", "run", "--quiet", "--release", "-p", "kairos-engine", "--example", "expert_timing", "--",
+           "--batch", str(batch), "--threads", str(threads), "--iters", str(iters), "--kernels", kernels]
+    out = subprocess.run(cmd, cwd=REPO, check=True, capture_output=True, text=True)
+    row = json.loads(out.stdout.strip().splitlines()[-1])
+    return row["median_ms"], row["runs"], out.stderr.strip()
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--batch", default="1,4,16")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--iters", type=int, default=5)
+    ap.add_argument("--rounds", type=int, default=1)
+    ap.add_argument("--kernels", default="fast", choices=["fast", "portable", "candle"])
+    args = ap.parse_args()
+    batches = [int(b) for b in args.batch.split(",")]
+
+    torch.set_num_threads(args.threads)
+    subprocess.run(["cargo", "build", "--quiet", "--release", "-p", "kairos-engine", "--example", "expert_timing"],
+                   cwd=REPO, check=True)
+    model, cfg = build_model()
+    cpu = next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")), "?")
+    print(f"# {cpu}, {args.threads} threads, torch {torch.__version__} ({torch.get_num_threads()} threads), "
+          f"python {platform.python_version()}; prefix {PREFIX}, chunk {cfg.chunk_size}, {cfg.num_steps} steps")
+    results = {}
+    for _ in range(args.rounds):
+        for b in batches:
+            pt, pt_runs = time_torch(model, cfg, b, args.iters)
+            ka, ka_runs, desc = time_kairos(b, args.threads, args.iters, args.kernels)
+            print(f"#   B={b}: pytorch runs {[round(r) for r in pt_runs]}, kairos ({desc}) runs {[round(r) for r in ka_runs]}",
+                  flush=True)
+            best = results.get(b)
+            results[b] = (min(pt, best[0]) if best else pt, min(ka, best[1]) if best else ka)
+    print("| batch | PyTorch (LeRobot) ms | Kairos ms | Kairos / PyTorch |")
+    print("|---:|---:|---:|---:|")
+    for b in batches:
+        pt, ka = results[b]
+        print(f"| {b} | {pt:.0f} | {ka:.0f} | {ka / pt:.2f} |")
+
+
+if __name__ == "__main__":
+    main()

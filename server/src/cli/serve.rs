@@ -1,0 +1,224 @@
+//! `kairos serve`: run the server.
+//!
+//! With no arguments it listens on `127.0.0.1:4433`, keeps its state in `./kairos-data` (a
+//! self-signed certificate, its fingerprint, and a generated token for the robot `default`) and
+//! serves the engine crate's built-in model, profiled at start. `--config kairos.toml` sets the
+//! rest (see `docs/SERVER.md`). Ctrl-C shuts down gracefully: no new connections or rounds, the
+//! rounds already accepted are answered.
+
+use std::future::Future;
+use std::path::PathBuf;
+
+use anyhow::Context;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::config::{Config, DEFAULT_ROBOT};
+use crate::pool::{BuildEvent, EnginePool, build_pool};
+use crate::transport::launch::{Policies, RunningServer, ServerReport, start};
+
+/// Serve robots over QUIC.
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct ServeArgs {
+    /// Configuration file (kairos.toml); without it every setting has its default.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Listen address, overriding the file's `listen`.
+    #[arg(long)]
+    pub listen: Option<std::net::SocketAddr>,
+    /// Data directory, overriding the file's `data_dir`.
+    #[arg(long)]
+    pub data_dir: Option<PathBuf>,
+}
+
+/// The configuration the arguments describe.
+pub fn config(args: &ServeArgs) -> anyhow::Result<Config> {
+    let mut config = match &args.config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
+    if let Some(listen) = args.listen {
+        config.listen = listen;
+    }
+    if let Some(dir) = &args.data_dir {
+        config.data_dir = dir.clone();
+    }
+    Ok(config)
+}
+
+/// Runs `kairos serve` until Ctrl-C.
+pub fn run(args: ServeArgs) -> anyhow::Result<()> {
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .try_init();
+    let config = config(&args)?;
+    let pool = start_engines(&config)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the tokio runtime")?;
+    let report = runtime.block_on(serve(&config, pool, async {
+        if let Err(error) = tokio::signal::ctrl_c().await {
+            tracing::error!(%error, "cannot listen for Ctrl-C; stopping");
+        }
+    }))?;
+    println!(
+        "stopped: {} connections, {} rounds answered ({} from the reply cache), {} failed, {} tasks ended",
+        report.transport.admitted,
+        report.driver.replies,
+        report.driver.cached_replies,
+        report.driver.failed,
+        report.driver.tasks_ended
+    );
+    let latency = |name: &str, s: crate::driver::LatencySummary| {
+        println!(
+            "  {name:<34} p50 {:>7.3} ms  p99 {:>7.3} ms  max {:>7.3} ms  ({} replies)",
+            s.p50_us as f64 / 1e3,
+            s.p99_us as f64 / 1e3,
+            s.max_us as f64 / 1e3,
+            s.count
+        );
+    };
+    latency("server-added (total - inference)", report.driver.overhead);
+    latency(
+        "  of it processing (- queue, refetch)",
+        report.driver.processing,
+    );
+    Ok(())
+}
+
+/// Loads and profiles the configured engines, showing progress.
+pub fn start_engines(config: &Config) -> anyhow::Result<EnginePool> {
+    let bar = ProgressBar::new_spinner();
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} {msg}")
+            .context("progress bar template")?,
+    );
+    let pool = build_pool(&config.engines, |event| match event {
+        BuildEvent::Loading { index, model } => {
+            bar.set_message(format!("engine {index}: loading {model}"));
+        }
+        BuildEvent::Measured {
+            index,
+            batch,
+            done,
+            total,
+        } => {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+            bar.set_message(format!("engine {index}: profiling batch {batch}"));
+        }
+        BuildEvent::Ready { index, profile } => bar.suspend(|| {
+            println!(
+                "engine {index}: {} on {}, batches up to {} ({})",
+                profile.model,
+                profile.device,
+                profile.max_batch,
+                profile
+                    .points
+                    .iter()
+                    .map(|p| format!("batch {}: {:.2} ms", p.batch, p.latency_ms))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        }),
+    })
+    .context("starting the engines")?;
+    bar.finish_and_clear();
+    Ok(pool)
+}
+
+/// Serves until `shutdown` resolves, printing where to connect; then drains.
+pub async fn serve(
+    config: &Config,
+    pool: EnginePool,
+    shutdown: impl Future<Output = ()>,
+) -> anyhow::Result<ServerReport> {
+    let server = start(config, pool, Policies::default())
+        .await
+        .context("starting the server")?;
+    print_banner(config, &server);
+    shutdown.await;
+    println!("shutting down: answering the rounds already accepted...");
+    Ok(server.shutdown().await)
+}
+
+fn print_banner(config: &Config, server: &RunningServer) {
+    let data_dir = &config.data_dir;
+    println!(
+        "kairos {} serving {}",
+        env!("CARGO_PKG_VERSION"),
+        server.model.name
+    );
+    println!(
+        "  listening on   {} (QUIC, TLS 1.3, ALPN kairos/1)",
+        server.local_addr
+    );
+    println!(
+        "  certificate    {}{}",
+        server.fingerprint,
+        if server.generated_certificate {
+            " (generated now)"
+        } else {
+            ""
+        }
+    );
+    println!(
+        "  pin file       {}",
+        data_dir
+            .join(crate::transport::tls::FINGERPRINT_FILE)
+            .display()
+    );
+    match &server.tokens_file {
+        Some(path) => println!(
+            "  robot tokens   {} (robot `{DEFAULT_ROBOT}`; keep it private)",
+            path.display()
+        ),
+        None => println!(
+            "  robot tokens   {} robots from the config (token hashes)",
+            config.robots.len()
+        ),
+    }
+    println!(
+        "  connect with   kairos robot --server {} --data-dir {}",
+        server.local_addr,
+        data_dir.display()
+    );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn arguments_override_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("kairos.toml");
+        std::fs::write(&file, "listen = \"127.0.0.1:5000\"\ndata_dir = \"state\"\n").unwrap();
+        let from_file = config(&ServeArgs {
+            config: Some(file.clone()),
+            ..ServeArgs::default()
+        })
+        .unwrap();
+        assert_eq!(from_file.listen.port(), 5000);
+        assert_eq!(from_file.data_dir, dir.path().join("state"));
+        let overridden = config(&ServeArgs {
+            config: Some(file),
+            listen: Some("127.0.0.1:6000".parse().unwrap()),
+            data_dir: Some(PathBuf::from("/tmp/x")),
+        })
+        .unwrap();
+        assert_eq!(overridden.listen.port(), 6000);
+        assert_eq!(overridden.data_dir, PathBuf::from("/tmp/x"));
+        assert_eq!(config(&ServeArgs::default()).unwrap(), Config::default());
+        let missing = config(&ServeArgs {
+            config: Some(dir.path().join("nope.toml")),
+            ..ServeArgs::default()
+        })
+        .unwrap_err();
+        assert!(missing.to_string().contains("nope.toml"), "{missing}");
+    }
+}

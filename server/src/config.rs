@@ -1,0 +1,779 @@
+//! `kairos.toml`: the server's configuration file.
+//!
+//! Every field has a default, so `kairos serve` with no file works: it listens on
+//! `127.0.0.1:4433`, keeps its state in `./kairos-data`, generates a self-signed certificate and
+//! a token for a robot named `default` on first start, and serves the engine crate's built-in
+//! model. Unknown keys are errors (a typo must not silently fall back to a default); every error
+//! names the file and the offending key. Relative paths inside the file are resolved against the
+//! directory that contains it. See `docs/SERVER.md` for a full example.
+
+use std::collections::{BTreeMap, HashSet};
+use std::fs;
+use std::io::Write;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use kairos_sdk::protocol::Limits;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use crate::scheduler::registry::PolicySpec;
+use crate::scheduler::{SchedulerConfig, Tier};
+
+/// Default listen address: loopback only, so an unconfigured server is not reachable from the
+/// network.
+pub const DEFAULT_LISTEN: &str = "127.0.0.1:4433";
+
+/// Default data directory, relative to the working directory. A fixed relative path (rather than
+/// an XDG directory) keeps `kairos serve` and `kairos robot` started from the same directory in
+/// agreement without any configuration, and makes the state easy to find and delete.
+pub const DEFAULT_DATA_DIR: &str = "kairos-data";
+
+/// File in the data directory holding the plaintext tokens of locally generated robots.
+pub const TOKENS_FILE: &str = "tokens.toml";
+
+/// Name of the robot whose token is generated when no robot is configured.
+pub const DEFAULT_ROBOT: &str = "default";
+
+/// Everything that can be wrong with a configuration.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read or written.
+    #[error("{}: {source}", .path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The file is not valid TOML or has unknown/mistyped keys. The message names the key and
+    /// the line.
+    #[error("{}: {message}", .path.display())]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// What the TOML parser said (with line, column and key).
+        message: String,
+    },
+    /// A key parsed but its value is not acceptable.
+    #[error("{}: `{key}`: {reason}", .path.display())]
+    Invalid {
+        /// The file (or `<defaults>`).
+        path: PathBuf,
+        /// Dotted key, e.g. `engine[0].instances`.
+        key: String,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+/// The whole `kairos.toml`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Config {
+    /// UDP address to listen on.
+    pub listen: SocketAddr,
+    /// Where the certificate, key, fingerprint and generated tokens live.
+    pub data_dir: PathBuf,
+    /// Certificate and key files; absent = a self-signed certificate in the data dir.
+    pub tls: TlsConfig,
+    /// Robots allowed to connect, with their token hashes. Empty = one generated `default` robot.
+    #[serde(rename = "robot")]
+    pub robots: Vec<RobotConfig>,
+    /// Engine instances. Empty = one edge instance of the built-in model.
+    #[serde(rename = "engine")]
+    pub engines: Vec<EngineConfig>,
+    /// The scheduler.
+    pub scheduler: SchedulerSection,
+    /// The horizon policy used when a request names none, and as the fallback when one fails.
+    pub horizon: HorizonSection,
+    /// Size limits on every message field (the protocol's `Limits`, sent to clients).
+    #[serde(deserialize_with = "strict_limits")]
+    pub limits: Limits,
+    /// Connection limits.
+    pub connections: ConnectionsConfig,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Config {
+            listen: DEFAULT_LISTEN
+                .parse()
+                .unwrap_or_else(|_| SocketAddr::from(([127, 0, 0, 1], 4433))),
+            data_dir: PathBuf::from(DEFAULT_DATA_DIR),
+            tls: TlsConfig::default(),
+            robots: Vec::new(),
+            engines: Vec::new(),
+            scheduler: SchedulerSection::default(),
+            horizon: HorizonSection::default(),
+            limits: Limits::default(),
+            connections: ConnectionsConfig::default(),
+        }
+    }
+}
+
+/// `[tls]`: PEM (or DER, by extension `.der`) certificate chain and private key.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TlsConfig {
+    /// Certificate chain file.
+    pub cert: Option<PathBuf>,
+    /// Private key file.
+    pub key: Option<PathBuf>,
+}
+
+/// One `[[robot]]`: a name and the SHA-256 of its token (hex). The server never stores the
+/// token itself; `printf %s "$TOKEN" | sha256sum` computes the hash.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RobotConfig {
+    /// Robot name, reported back in `Welcome` and in logs.
+    pub name: String,
+    /// Lower-case hex SHA-256 of the token's UTF-8 bytes.
+    pub token_sha256: String,
+}
+
+/// One `[[engine]]`: a model served by one or more instances.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EngineConfig {
+    /// `builtin` (the engine crate's default built-in model), `builtin:<preset>`, or a path to a
+    /// checkpoint.
+    pub model: String,
+    /// Edge (co-located) or cloud.
+    pub tier: Tier,
+    /// Identical instances to run, each on its own OS thread.
+    pub instances: u32,
+    /// A JSON `EngineProfile` file; absent = measured at start.
+    pub profile: Option<PathBuf>,
+    /// Caps the batch size below the profile's saturation point.
+    pub max_batch: Option<u32>,
+    /// For a cloud engine: the round trip added to every batch, in milliseconds. The instance
+    /// runs on this machine behind an *emulated* link (`pool::EmulatedLinkEngine`), so the
+    /// edge/cloud placement can be exercised on one machine; the scheduler plans with it.
+    pub rtt_ms: f64,
+    /// Largest batch size measured when profiling at start.
+    pub profile_max_batch: u32,
+}
+
+impl Default for EngineConfig {
+    fn default() -> Self {
+        EngineConfig {
+            model: "builtin".into(),
+            tier: Tier::Edge,
+            instances: 1,
+            profile: None,
+            max_batch: None,
+            rtt_ms: 0.0,
+            profile_max_batch: 16,
+        }
+    }
+}
+
+impl EngineConfig {
+    /// The emulated network round trip of this engine.
+    pub fn rtt(&self) -> Duration {
+        Duration::from_secs_f64(self.rtt_ms.max(0.0) / 1e3)
+    }
+}
+
+/// `[scheduler]`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SchedulerSection {
+    /// Priority policy and its parameters, `name` or `name:key=value,...`
+    /// (e.g. `kairos:buckets=10,aging=4`); `fifo`, `plas`, `kairos`, or a plugin's name.
+    pub policy: PolicySpec,
+    /// An observation older than this at dispatch is re-fetched, in milliseconds.
+    pub stale_after_ms: u64,
+    /// A task with no request for this long ends as expired, in seconds.
+    pub task_idle_timeout_s: u64,
+    /// Most requests pending at once.
+    pub max_pending: usize,
+    /// Rounds of G/E history kept per task.
+    pub history_rounds: usize,
+    /// How long to wait for a re-fetched observation before using the queued one, in ms.
+    pub refetch_timeout_ms: u64,
+}
+
+impl Default for SchedulerSection {
+    fn default() -> Self {
+        let core = SchedulerConfig::default();
+        SchedulerSection {
+            policy: PolicySpec::named("kairos"),
+            stale_after_ms: u64::try_from(core.stale_after.as_millis()).unwrap_or(u64::MAX),
+            task_idle_timeout_s: core.task_idle_timeout.as_secs(),
+            max_pending: core.max_pending,
+            history_rounds: core.history_rounds,
+            refetch_timeout_ms: 50,
+        }
+    }
+}
+
+impl SchedulerSection {
+    /// The scheduler core's tunables.
+    pub fn core(&self) -> SchedulerConfig {
+        SchedulerConfig {
+            stale_after: Duration::from_millis(self.stale_after_ms),
+            task_idle_timeout: Duration::from_secs(self.task_idle_timeout_s),
+            max_pending: self.max_pending,
+            history_rounds: self.history_rounds,
+            ..SchedulerConfig::default()
+        }
+    }
+
+    /// The re-fetch deadline.
+    pub fn refetch_timeout(&self) -> Duration {
+        Duration::from_millis(self.refetch_timeout_ms)
+    }
+}
+
+/// `[horizon]`: the server's default horizon policy.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct HorizonSection {
+    /// Policy name; `threshold` is the paper's §3.1 rule.
+    pub policy: String,
+    /// Its parameters (for `threshold`: `t` and `h_min`).
+    pub params: BTreeMap<String, f64>,
+}
+
+impl Default for HorizonSection {
+    fn default() -> Self {
+        HorizonSection {
+            policy: "threshold".into(),
+            params: BTreeMap::from([("t".to_string(), 0.4), ("h_min".to_string(), 8.0)]),
+        }
+    }
+}
+
+/// `[connections]`: what one client may hold on the server.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ConnectionsConfig {
+    /// Most concurrent connections; more are closed with a reason.
+    pub max_connections: usize,
+    /// Most concurrent round streams per connection (QUIC stream credit).
+    pub max_streams_per_connection: u32,
+    /// Time a client has to send `Hello` after connecting, in ms.
+    pub hello_timeout_ms: u64,
+    /// Receive and send buffer of the server's UDP socket, bytes (the kernel caps it at
+    /// `net.core.rmem_max`/`wmem_max`). The default 4 MiB absorbs a burst of a thousand robots'
+    /// packets (e.g. everyone reconnecting at once) where the usual 208 KiB would drop them.
+    pub socket_buffer_bytes: usize,
+}
+
+impl Default for ConnectionsConfig {
+    fn default() -> Self {
+        ConnectionsConfig {
+            max_connections: 4096,
+            max_streams_per_connection: 64,
+            hello_timeout_ms: 5_000,
+            socket_buffer_bytes: 4 << 20,
+        }
+    }
+}
+
+impl ConnectionsConfig {
+    /// The `Hello` deadline.
+    pub fn hello_timeout(&self) -> Duration {
+        Duration::from_millis(self.hello_timeout_ms)
+    }
+}
+
+/// Deserialises `[limits]` into the protocol's [`Limits`] (announced to clients in `Welcome`),
+/// refusing keys it does not have: on the wire unknown keys are tolerated for forward
+/// compatibility, but in a config file they are typos.
+fn strict_limits<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Limits, D::Error> {
+    use serde::de::Error;
+    let table = toml::Table::deserialize(d)?;
+    let known = toml::Table::try_from(Limits::default()).map_err(D::Error::custom)?;
+    if let Some(key) = table.keys().find(|k| !known.contains_key(*k)) {
+        let expected: Vec<&str> = known.keys().map(String::as_str).collect();
+        return Err(D::Error::custom(format!(
+            "unknown field `{key}`, expected one of {}",
+            expected.join(", ")
+        )));
+    }
+    toml::Value::Table(table)
+        .try_into()
+        .map_err(D::Error::custom)
+}
+
+impl Config {
+    /// Reads, parses and checks a `kairos.toml`. Relative paths in it are resolved against the
+    /// file's directory.
+    pub fn load(path: &Path) -> Result<Config, ConfigError> {
+        let text = fs::read_to_string(path).map_err(|source| ConfigError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let mut config = Config::parse(&text, path)?;
+        let base = path.parent().unwrap_or(Path::new(""));
+        config.resolve_paths(base);
+        Ok(config)
+    }
+
+    /// Parses and checks TOML text; `path` is only used in error messages. Paths stay as written.
+    pub fn parse(text: &str, path: &Path) -> Result<Config, ConfigError> {
+        let config: Config = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: path.to_path_buf(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        config.check(path)?;
+        Ok(config)
+    }
+
+    fn resolve_paths(&mut self, base: &Path) {
+        let resolve = |p: &mut PathBuf| {
+            if p.is_relative() {
+                *p = base.join(&*p);
+            }
+        };
+        resolve(&mut self.data_dir);
+        if let Some(p) = self.tls.cert.as_mut() {
+            resolve(p);
+        }
+        if let Some(p) = self.tls.key.as_mut() {
+            resolve(p);
+        }
+        for engine in &mut self.engines {
+            if let Some(p) = engine.profile.as_mut() {
+                resolve(p);
+            }
+            if !engine.model.starts_with("builtin") {
+                let mut p = PathBuf::from(&engine.model);
+                resolve(&mut p);
+                engine.model = p.to_string_lossy().into_owned();
+            }
+        }
+    }
+
+    /// Checks values the types cannot express. `path` names the source in errors.
+    pub fn check(&self, path: &Path) -> Result<(), ConfigError> {
+        let invalid = |key: String, reason: String| ConfigError::Invalid {
+            path: path.to_path_buf(),
+            key,
+            reason,
+        };
+        if self.tls.cert.is_some() != self.tls.key.is_some() {
+            return Err(invalid(
+                "tls".into(),
+                "set both `cert` and `key`, or neither".into(),
+            ));
+        }
+        let mut names = HashSet::new();
+        for (i, robot) in self.robots.iter().enumerate() {
+            if robot.name.is_empty() {
+                return Err(invalid(format!("robot[{i}].name"), "is empty".into()));
+            }
+            if !names.insert(robot.name.as_str()) {
+                return Err(invalid(
+                    format!("robot[{i}].name"),
+                    format!("robot `{}` is listed twice", robot.name),
+                ));
+            }
+            if parse_token_hash(&robot.token_sha256).is_none() {
+                return Err(invalid(
+                    format!("robot[{i}].token_sha256"),
+                    "must be 64 hex digits (printf %s \"$TOKEN\" | sha256sum)".into(),
+                ));
+            }
+        }
+        for (i, engine) in self.engines.iter().enumerate() {
+            if engine.instances == 0 {
+                return Err(invalid(
+                    format!("engine[{i}].instances"),
+                    "must be at least 1".into(),
+                ));
+            }
+            if engine.max_batch == Some(0) {
+                return Err(invalid(
+                    format!("engine[{i}].max_batch"),
+                    "must be at least 1".into(),
+                ));
+            }
+            if engine.profile_max_batch == 0 {
+                return Err(invalid(
+                    format!("engine[{i}].profile_max_batch"),
+                    "must be at least 1".into(),
+                ));
+            }
+            if !(engine.rtt_ms.is_finite() && engine.rtt_ms >= 0.0) {
+                return Err(invalid(
+                    format!("engine[{i}].rtt_ms"),
+                    "must be a finite number >= 0".into(),
+                ));
+            }
+            if engine.tier == Tier::Edge && engine.rtt_ms > 0.0 {
+                return Err(invalid(
+                    format!("engine[{i}].rtt_ms"),
+                    "only a cloud engine has a link round trip (set tier = \"cloud\")".into(),
+                ));
+            }
+        }
+        if let Some((name, _)) = self.horizon.params.iter().find(|(_, v)| !v.is_finite()) {
+            return Err(invalid(
+                format!("horizon.params.{name}"),
+                "must be finite".into(),
+            ));
+        }
+        if self.scheduler.max_pending == 0 {
+            return Err(invalid(
+                "scheduler.max_pending".into(),
+                "must be at least 1".into(),
+            ));
+        }
+        if self.scheduler.history_rounds == 0 {
+            return Err(invalid(
+                "scheduler.history_rounds".into(),
+                "must be at least 1".into(),
+            ));
+        }
+        let (l, c) = (&self.limits, &self.connections);
+        for (key, value) in [
+            ("limits.max_frame", u64::from(l.max_frame)),
+            ("limits.max_samples", u64::from(l.max_samples)),
+            ("limits.max_state_len", u64::from(l.max_state_len)),
+            ("connections.max_connections", c.max_connections as u64),
+            (
+                "connections.max_streams_per_connection",
+                u64::from(c.max_streams_per_connection),
+            ),
+        ] {
+            if value == 0 {
+                return Err(invalid(key.into(), "must be at least 1".into()));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A robot the server accepts, with the token hash to compare against.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct RobotCredential {
+    /// Robot name.
+    pub name: String,
+    /// SHA-256 of its token.
+    pub token_hash: [u8; 32],
+}
+
+/// SHA-256 of a token's UTF-8 bytes.
+pub fn hash_token(token: &str) -> [u8; 32] {
+    Sha256::digest(token.as_bytes()).into()
+}
+
+/// Parses 64 hex digits (either case) into a hash.
+pub fn parse_token_hash(hex_digits: &str) -> Option<[u8; 32]> {
+    let bytes = hex::decode(hex_digits.trim()).ok()?;
+    bytes.try_into().ok()
+}
+
+/// The plaintext token file a local `kairos serve` writes for local robots
+/// (`<data-dir>/tokens.toml`, mode 0600). `kairos robot` reads it.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TokensFile {
+    /// One entry per robot.
+    #[serde(default, rename = "robot")]
+    pub robots: Vec<TokenEntry>,
+}
+
+/// One robot in [`TokensFile`].
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TokenEntry {
+    /// Robot name.
+    pub name: String,
+    /// The token, as the robot sends it in `Hello`.
+    pub token: String,
+}
+
+impl TokensFile {
+    /// Reads a tokens file.
+    pub fn read(path: &Path) -> Result<TokensFile, ConfigError> {
+        let text = fs::read_to_string(path).map_err(|source| ConfigError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        toml::from_str(&text).map_err(|e| ConfigError::Parse {
+            path: path.to_path_buf(),
+            message: e.to_string().trim_end().to_string(),
+        })
+    }
+
+    /// The token of the robot named `name`.
+    pub fn token(&self, name: &str) -> Option<&str> {
+        self.robots
+            .iter()
+            .find(|r| r.name == name)
+            .map(|r| r.token.as_str())
+    }
+}
+
+/// A fresh random token: 32 bytes from the OS-seeded CSPRNG, hex encoded, with a `kairos_`
+/// prefix so a leaked one is recognisable.
+pub fn generate_token() -> String {
+    let bytes: [u8; 32] = rand::random();
+    format!("kairos_{}", hex::encode(bytes))
+}
+
+/// The robots the server accepts: those configured, or else the generated local ones from
+/// `<data_dir>/tokens.toml`, creating that file with a `default` robot on first start.
+/// Returns the credentials and, when the tokens file is in use, its path.
+pub fn resolve_robots(
+    config: &Config,
+) -> Result<(Vec<RobotCredential>, Option<PathBuf>), ConfigError> {
+    if !config.robots.is_empty() {
+        let robots = config
+            .robots
+            .iter()
+            .filter_map(|r| {
+                parse_token_hash(&r.token_sha256).map(|token_hash| RobotCredential {
+                    name: r.name.clone(),
+                    token_hash,
+                })
+            })
+            .collect();
+        return Ok((robots, None));
+    }
+    let path = config.data_dir.join(TOKENS_FILE);
+    let file = if path.exists() {
+        TokensFile::read(&path)?
+    } else {
+        let file = TokensFile {
+            robots: vec![TokenEntry {
+                name: DEFAULT_ROBOT.into(),
+                token: generate_token(),
+            }],
+        };
+        let body = toml::to_string(&file).map_err(|e| ConfigError::Invalid {
+            path: path.clone(),
+            key: "robot".into(),
+            reason: e.to_string(),
+        })?;
+        let text = format!(
+            "# Tokens of robots generated by `kairos serve` (no [[robot]] in its config).\n\
+             # Keep this file private: whoever has a token acts as that robot.\n{body}"
+        );
+        write_private(&path, text.as_bytes())?;
+        file
+    };
+    let robots = file
+        .robots
+        .iter()
+        .map(|r| RobotCredential {
+            name: r.name.clone(),
+            token_hash: hash_token(&r.token),
+        })
+        .collect();
+    Ok((robots, Some(path)))
+}
+
+/// Creates `path` (and its parent directories) with owner-only permissions and writes `bytes`.
+/// Fails if the file exists, so a secret is never silently replaced.
+pub fn write_private(path: &Path, bytes: &[u8]) -> Result<(), ConfigError> {
+    let io = |source| ConfigError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        fs::create_dir_all(parent).map_err(io)?;
+    }
+    let mut options = fs::OpenOptions::new();
+    options.write(true).create_new(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.mode(0o600);
+    }
+    let mut file = options.open(path).map_err(io)?;
+    file.write_all(bytes).map_err(io)?;
+    file.sync_all().map_err(io)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn empty_file_is_the_default_config() {
+        let c = Config::parse("", Path::new("k.toml")).unwrap();
+        assert_eq!(c, Config::default());
+        assert_eq!(c.listen.to_string(), DEFAULT_LISTEN);
+        assert_eq!(c.horizon.policy, "threshold");
+    }
+
+    #[test]
+    fn full_example_parses() {
+        let text = r#"
+            listen = "0.0.0.0:5000"
+            data_dir = "/var/lib/kairos"
+            [tls]
+            cert = "cert.pem"
+            key = "key.pem"
+            [[robot]]
+            name = "arm-1"
+            token_sha256 = "9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08"
+            [[engine]]
+            model = "builtin:tiny"
+            instances = 2
+            [[engine]]
+            model = "ckpt/model.safetensors"
+            tier = "cloud"
+            rtt_ms = 20
+            profile = "profiles/cloud.json"
+            [scheduler]
+            policy = "kairos:buckets=10,aging=3"
+            stale_after_ms = 50
+            [horizon]
+            policy = "static"
+            params = { h = 10 }
+            [limits]
+            max_frame = 1000000
+            [connections]
+            max_connections = 10
+        "#;
+        let mut c = Config::parse(text, Path::new("/etc/kairos/kairos.toml")).unwrap();
+        c.resolve_paths(Path::new("/etc/kairos"));
+        assert_eq!(c.robots[0].name, "arm-1");
+        assert_eq!(c.engines.len(), 2);
+        assert_eq!(c.engines[1].tier, Tier::Cloud);
+        assert_eq!(c.engines[1].rtt(), Duration::from_millis(20));
+        assert_eq!(
+            c.engines[1].model, "/etc/kairos/ckpt/model.safetensors",
+            "relative checkpoint paths resolve against the config file's directory"
+        );
+        assert_eq!(c.engines[0].model, "builtin:tiny");
+        assert_eq!(
+            c.tls.cert.as_deref(),
+            Some(Path::new("/etc/kairos/cert.pem"))
+        );
+        assert_eq!(c.data_dir, PathBuf::from("/var/lib/kairos"));
+        assert_eq!(c.scheduler.core().stale_after, Duration::from_millis(50));
+        assert_eq!(c.scheduler.policy.name, "kairos");
+        assert_eq!(c.scheduler.policy.params["aging"], "3");
+        assert_eq!(c.connections.max_connections, 10);
+        assert_eq!(c.limits.max_frame, 1_000_000);
+        assert_eq!(c.limits.max_image_bytes, Limits::default().max_image_bytes);
+    }
+
+    #[test]
+    fn the_example_in_docs_server_md_parses() {
+        let doc = include_str!("../../docs/SERVER.md");
+        let start = doc
+            .find("```toml\n")
+            .expect("docs/SERVER.md has a toml example");
+        let body = &doc[start + "```toml\n".len()..];
+        let example = &body[..body.find("```").expect("the example block ends")];
+        let config = Config::parse(example, Path::new("docs/SERVER.md")).unwrap();
+        assert_eq!(config.robots.len(), 2);
+        assert_eq!(config.engines.len(), 2);
+        assert_eq!(config.engines[1].tier, Tier::Cloud);
+        assert_eq!(
+            config.limits,
+            Limits::default(),
+            "the example lists the defaults"
+        );
+        assert_eq!(config.connections, ConnectionsConfig::default());
+    }
+
+    #[test]
+    fn unknown_key_error_names_file_and_key() {
+        let err = Config::parse("[scheduler]\nstale_afterms = 5\n", Path::new("my.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.starts_with("my.toml:"), "{err}");
+        assert!(err.contains("stale_afterms"), "{err}");
+    }
+
+    #[test]
+    fn unknown_limit_is_an_error() {
+        let err = Config::parse("[limits]\nmax_fram = 5\n", Path::new("my.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("max_fram"), "{err}");
+    }
+
+    #[test]
+    fn bad_values_are_rejected_with_their_key() {
+        let cases = [
+            ("[[engine]]\ninstances = 0\n", "engine[0].instances"),
+            (
+                "[[robot]]\nname = \"a\"\ntoken_sha256 = \"abc\"\n",
+                "robot[0].token_sha256",
+            ),
+            ("[tls]\ncert = \"c.pem\"\n", "tls"),
+            ("[limits]\nmax_samples = 0\n", "limits.max_samples"),
+            ("[[engine]]\nrtt_ms = -1\n", "engine[0].rtt_ms"),
+            ("[[engine]]\nrtt_ms = 5\n", "engine[0].rtt_ms"),
+        ];
+        for (text, key) in cases {
+            let err = Config::parse(text, Path::new("k.toml")).unwrap_err();
+            match &err {
+                ConfigError::Invalid { key: k, .. } => assert_eq!(k, key, "{err}"),
+                other => panic!("expected Invalid for {key}, got {other}"),
+            }
+        }
+        let dup = "[[robot]]\nname = \"a\"\ntoken_sha256 = \"9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08\"\n\
+                   [[robot]]\nname = \"a\"\ntoken_sha256 = \"9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08\"\n";
+        assert!(Config::parse(dup, Path::new("k.toml")).is_err());
+        assert!(Config::parse("listen = \"nonsense\"\n", Path::new("k.toml")).is_err());
+    }
+
+    #[test]
+    fn token_hash_matches_sha256sum() {
+        // printf %s test | sha256sum
+        assert_eq!(
+            hex::encode(hash_token("test")),
+            "9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08"
+        );
+        assert_eq!(
+            parse_token_hash("9F86D081884C7D659A2FEAA0C55AD015A3BF4F1B2B0B822CD15D6C15B0F00A08"),
+            Some(hash_token("test"))
+        );
+    }
+
+    #[test]
+    fn default_robot_token_is_generated_once_with_private_permissions() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = Config {
+            data_dir: dir.path().join("data"),
+            ..Config::default()
+        };
+        let (robots, path) = resolve_robots(&config).unwrap();
+        let path = path.unwrap();
+        assert_eq!(robots.len(), 1);
+        assert_eq!(robots[0].name, DEFAULT_ROBOT);
+        let file = TokensFile::read(&path).unwrap();
+        let token = file.token(DEFAULT_ROBOT).unwrap();
+        assert!(token.starts_with("kairos_") && token.len() == 7 + 64);
+        assert_eq!(robots[0].token_hash, hash_token(token));
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let mode = fs::metadata(&path).unwrap().permissions().mode();
+            assert_eq!(mode & 0o777, 0o600);
+        }
+        let (again, _) = resolve_robots(&config).unwrap();
+        assert_eq!(again, robots, "a second start reuses the token");
+    }
+
+    #[test]
+    fn configured_robots_use_their_hashes_and_no_token_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = Config {
+            data_dir: dir.path().to_path_buf(),
+            robots: vec![RobotConfig {
+                name: "arm".into(),
+                token_sha256: hex::encode(hash_token("secret")),
+            }],
+            ..Config::default()
+        };
+        let (robots, path) = resolve_robots(&config).unwrap();
+        assert!(path.is_none());
+        assert_eq!(robots[0].token_hash, hash_token("secret"));
+        assert!(!dir.path().join(TOKENS_FILE).exists());
+    }
+}

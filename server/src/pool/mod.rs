@@ -1,0 +1,397 @@
+//! The engine pool: every engine instance the scheduler can place batches on.
+//!
+//! An [`EngineInstance`] runs one batch at a time and answers asynchronously; the pool never
+//! runs a forward pass on a tokio reactor thread. Two kinds plug in behind the trait:
+//! - [`LocalEngine`]: an `ActionModel` on its own OS thread, fed by a channel with oneshot replies;
+//! - [`EmulatedLinkEngine`]: any instance behind an emulated network link (a fixed round trip
+//!   added to every batch), so a cloud tier can be exercised on one machine. It is labelled as
+//!   emulated wherever it shows up; it is not a remote engine.
+//!
+//! A real remote engine (another server reached over the network) implements the same trait.
+//! The scheduler plans with [`EnginePool::specs`], built from each instance's profile, tier and
+//! round trip.
+
+mod build;
+mod link;
+mod local;
+pub mod replay;
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use futures::future::BoxFuture;
+use kairos_engine::{ActionChunk, ActionRequest, EngineError, EngineProfile, ModelSpec};
+
+pub use build::{BuildEvent, PoolConfigError, build_pool};
+pub use link::EmulatedLinkEngine;
+pub use local::LocalEngine;
+
+use crate::scheduler::{EngineId, EngineSpec, Tier};
+
+/// Why a batch produced no chunks.
+#[derive(Debug, thiserror::Error)]
+pub enum PoolError {
+    /// The model refused the batch or failed inside.
+    #[error("engine {engine}: {source}")]
+    Engine {
+        /// The instance.
+        engine: String,
+        /// The model's error.
+        source: EngineError,
+    },
+    /// The model panicked; the instance survives and takes the next batch.
+    #[error("engine {engine} panicked: {message}")]
+    Panicked {
+        /// The instance.
+        engine: String,
+        /// The panic payload, if it was a string.
+        message: String,
+    },
+    /// The model returned chunks that do not match the batch or its own spec.
+    #[error("engine {engine} returned a malformed result: {reason}")]
+    BadOutput {
+        /// The instance.
+        engine: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The instance's worker is gone (its thread exited).
+    #[error("engine {engine} is not running")]
+    Stopped {
+        /// The instance.
+        engine: String,
+    },
+}
+
+/// One engine instance: runs a batch of requests and returns one chunk per request, in order.
+pub trait EngineInstance: Send + Sync {
+    /// A name for logs and metrics, unique in the pool.
+    fn name(&self) -> &str;
+    /// What the model consumes and produces.
+    fn spec(&self) -> &ModelSpec;
+    /// Latency by batch size; `max_batch` caps the batches the scheduler forms for it.
+    fn profile(&self) -> &EngineProfile;
+    /// Edge or cloud.
+    fn tier(&self) -> Tier;
+    /// Network round trip between the server and the instance, zero when local.
+    fn rtt(&self) -> Duration;
+    /// Runs one batch. The future does no heavy work on the caller's thread.
+    fn run(
+        &self,
+        batch: Vec<ActionRequest>,
+    ) -> BoxFuture<'static, Result<Vec<ActionChunk>, PoolError>>;
+}
+
+/// All engine instances, indexed by [`EngineId`].
+#[derive(Clone)]
+pub struct EnginePool {
+    instances: Vec<Arc<dyn EngineInstance>>,
+}
+
+impl std::fmt::Debug for EnginePool {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_list()
+            .entries(self.instances.iter().map(|i| i.name()))
+            .finish()
+    }
+}
+
+/// The pool cannot be formed.
+#[derive(Debug, thiserror::Error)]
+pub enum PoolBuildError {
+    /// No instance at all.
+    #[error("the engine pool is empty")]
+    Empty,
+    /// Instances disagree on the model's shapes: a request validated for one must fit all.
+    #[error("engine {engine} serves {found:?}, but {first} serves {expected:?}")]
+    SpecMismatch {
+        /// The first instance.
+        first: String,
+        /// The disagreeing one.
+        engine: String,
+        /// The first instance's spec.
+        expected: Box<ModelSpec>,
+        /// The other's.
+        found: Box<ModelSpec>,
+    },
+}
+
+impl EnginePool {
+    /// A pool of instances that all serve the same model shapes.
+    pub fn new(instances: Vec<Arc<dyn EngineInstance>>) -> Result<EnginePool, PoolBuildError> {
+        let first = instances.first().ok_or(PoolBuildError::Empty)?;
+        if let Some(other) = instances
+            .iter()
+            .find(|i| !same_shapes(i.spec(), first.spec()))
+        {
+            return Err(PoolBuildError::SpecMismatch {
+                first: first.name().to_string(),
+                engine: other.name().to_string(),
+                expected: Box::new(first.spec().clone()),
+                found: Box::new(other.spec().clone()),
+            });
+        }
+        Ok(EnginePool { instances })
+    }
+
+    /// The model shapes every instance shares.
+    pub fn spec(&self) -> &ModelSpec {
+        // `new` refuses an empty pool.
+        self.instances[0].spec()
+    }
+
+    /// Number of instances.
+    pub fn len(&self) -> usize {
+        self.instances.len()
+    }
+
+    /// Always false: a pool has at least one instance.
+    pub fn is_empty(&self) -> bool {
+        self.instances.is_empty()
+    }
+
+    /// The instance `id`, if it exists.
+    pub fn get(&self, id: EngineId) -> Option<&Arc<dyn EngineInstance>> {
+        self.instances.get(id.0)
+    }
+
+    /// Every instance, in [`EngineId`] order.
+    pub fn iter(&self) -> impl Iterator<Item = &Arc<dyn EngineInstance>> {
+        self.instances.iter()
+    }
+
+    /// What the scheduler plans with, in [`EngineId`] order.
+    pub fn specs(&self) -> Vec<EngineSpec> {
+        self.instances
+            .iter()
+            .map(|i| EngineSpec {
+                name: i.name().to_string(),
+                tier: i.tier(),
+                profile: i.profile().clone(),
+                rtt: i.rtt(),
+            })
+            .collect()
+    }
+}
+
+/// Instances may differ in name (a checkpoint vs the same weights elsewhere) but not in shapes.
+fn same_shapes(a: &ModelSpec, b: &ModelSpec) -> bool {
+    a.chunk_len == b.chunk_len
+        && a.action_dim == b.action_dim
+        && a.state_dim == b.state_dim
+        && a.steps == b.steps
+        && a.max_images == b.max_images
+}
+
+/// Checks a model's answer against the batch it was given, so a buggy model cannot make the
+/// action manager index out of bounds.
+pub(crate) fn check_output(
+    engine: &str,
+    spec: &ModelSpec,
+    batch: &[ActionRequest],
+    chunks: &[ActionChunk],
+) -> Result<(), PoolError> {
+    let bad = |reason: String| PoolError::BadOutput {
+        engine: engine.to_string(),
+        reason,
+    };
+    if chunks.len() != batch.len() {
+        return Err(bad(format!(
+            "{} chunks for {} requests",
+            chunks.len(),
+            batch.len()
+        )));
+    }
+    for (i, (chunk, request)) in chunks.iter().zip(batch).enumerate() {
+        let per_sample = chunk.chunk_len * chunk.action_dim;
+        let consistent = chunk.samples == request.samples.max(1)
+            && chunk.chunk_len == spec.chunk_len
+            && chunk.action_dim == spec.action_dim
+            && chunk.steps == spec.steps
+            && chunk.actions.len() == chunk.samples * per_sample
+            && chunk.updates.len() == chunk.samples * chunk.steps * per_sample;
+        if !consistent {
+            return Err(bad(format!(
+                "chunk {i} is {}x{}x{}x{} with {} actions / {} updates, expected {} samples of \
+                 {}x{}x{}",
+                chunk.samples,
+                chunk.steps,
+                chunk.chunk_len,
+                chunk.action_dim,
+                chunk.actions.len(),
+                chunk.updates.len(),
+                request.samples.max(1),
+                spec.steps,
+                spec.chunk_len,
+                spec.action_dim
+            )));
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+pub(crate) mod test_model {
+    //! A small deterministic `ActionModel` for the pool's own tests: a real computation (Euler
+    //! steps of a fixed linear velocity field), so outputs can be checked exactly.
+
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    use kairos_engine::{ActionChunk, ActionModel, ActionRequest, EngineError, ModelSpec};
+
+    /// Moves every action towards the state's first element; `panic_on_state` triggers a panic.
+    pub struct LinearFlow {
+        pub spec: ModelSpec,
+        pub calls: AtomicUsize,
+        pub panic_on_state: Option<f32>,
+    }
+
+    impl LinearFlow {
+        pub fn new() -> Self {
+            LinearFlow {
+                spec: ModelSpec {
+                    name: "linear-flow".into(),
+                    chunk_len: 4,
+                    action_dim: 2,
+                    state_dim: 3,
+                    steps: 2,
+                    max_images: 1,
+                },
+                calls: AtomicUsize::new(0),
+                panic_on_state: None,
+            }
+        }
+    }
+
+    impl ActionModel for LinearFlow {
+        fn spec(&self) -> &ModelSpec {
+            &self.spec
+        }
+
+        fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
+            self.calls.fetch_add(1, Ordering::SeqCst);
+            let s = &self.spec;
+            batch
+                .iter()
+                .map(|r| {
+                    if r.state.len() != s.state_dim {
+                        return Err(EngineError::InvalidInput("state length".into()));
+                    }
+                    if Some(r.state[0]) == self.panic_on_state {
+                        panic!("model bug triggered on purpose");
+                    }
+                    let n = r.samples.max(1) * s.chunk_len * s.action_dim;
+                    let noise: Vec<f32> = (0..n).map(|i| (r.seed as f32) + i as f32).collect();
+                    let mut x = noise.clone();
+                    let mut updates = Vec::new();
+                    let mut per_step = vec![Vec::new(); s.steps];
+                    for step in per_step.iter_mut() {
+                        let dt = 1.0 / s.steps as f32;
+                        let u: Vec<f32> = x.iter().map(|v| dt * (r.state[0] - v)).collect();
+                        for (v, d) in x.iter_mut().zip(&u) {
+                            *v += d;
+                        }
+                        *step = u;
+                    }
+                    let per_sample = s.chunk_len * s.action_dim;
+                    for sample in 0..r.samples.max(1) {
+                        for step in &per_step {
+                            updates.extend_from_slice(
+                                &step[sample * per_sample..(sample + 1) * per_sample],
+                            );
+                        }
+                    }
+                    Ok(ActionChunk {
+                        samples: r.samples.max(1),
+                        steps: s.steps,
+                        chunk_len: s.chunk_len,
+                        action_dim: s.action_dim,
+                        actions: x,
+                        updates,
+                        noise,
+                    })
+                })
+                .collect()
+        }
+    }
+
+    pub fn request(first: f32, seed: u64) -> ActionRequest {
+        ActionRequest {
+            state: vec![first, 0.0, 0.0],
+            images: Vec::new(),
+            instruction: String::new(),
+            samples: 1,
+            seed,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::test_model::{LinearFlow, request};
+    use super::*;
+
+    fn flat_profile() -> EngineProfile {
+        EngineProfile {
+            model: "linear-flow".into(),
+            device: "cpu".into(),
+            points: vec![kairos_engine::ProfilePoint {
+                batch: 1,
+                latency_ms: 1.0,
+            }],
+            max_batch: 4,
+        }
+    }
+
+    #[tokio::test]
+    async fn pool_specs_follow_instances_and_reject_mismatched_shapes() {
+        let local: Arc<dyn EngineInstance> = Arc::new(LocalEngine::start(
+            "edge-0",
+            Arc::new(LinearFlow::new()),
+            flat_profile(),
+        ));
+        let cloud: Arc<dyn EngineInstance> = Arc::new(EmulatedLinkEngine::new(
+            Arc::new(LocalEngine::start(
+                "cloud-0",
+                Arc::new(LinearFlow::new()),
+                flat_profile(),
+            )),
+            Duration::from_millis(3),
+        ));
+        let pool = EnginePool::new(vec![local, cloud]).unwrap();
+        let specs = pool.specs();
+        assert_eq!(specs.len(), 2);
+        assert_eq!(specs[0].tier, Tier::Edge);
+        assert_eq!(specs[0].rtt, Duration::ZERO);
+        assert_eq!(specs[1].tier, Tier::Cloud);
+        assert_eq!(specs[1].rtt, Duration::from_millis(3));
+        assert!(specs[1].name.contains("emulated"));
+        assert_eq!(specs[0].profile.max_batch, 4);
+
+        let mut other = LinearFlow::new();
+        other.spec.chunk_len = 9;
+        let odd: Arc<dyn EngineInstance> =
+            Arc::new(LocalEngine::start("odd", Arc::new(other), flat_profile()));
+        let first = pool.get(EngineId(0)).unwrap().clone();
+        assert!(matches!(
+            EnginePool::new(vec![first, odd]),
+            Err(PoolBuildError::SpecMismatch { .. })
+        ));
+        assert!(matches!(
+            EnginePool::new(Vec::new()),
+            Err(PoolBuildError::Empty)
+        ));
+    }
+
+    #[test]
+    fn check_output_catches_wrong_counts_and_shapes() {
+        let model = LinearFlow::new();
+        let batch = vec![request(1.0, 1), request(2.0, 2)];
+        let mut chunks = kairos_engine::ActionModel::generate(&model, &batch).unwrap();
+        assert!(check_output("e", &model.spec, &batch, &chunks).is_ok());
+        chunks[1].updates.pop();
+        assert!(check_output("e", &model.spec, &batch, &chunks).is_err());
+        chunks.pop();
+        assert!(check_output("e", &model.spec, &batch, &chunks).is_err());
+    }
+}

@@ -1,0 +1,45 @@
+//! Writes a tiny flow-head checkpoint (seeded random weights) for load runs, where the model
+//! should cost as little as possible so that what is measured is the server:
+//! `cargo run -p kairos-tests --bin kairos-tiny-model -- DIR`, then `[[engine]] model = "DIR"`.
+//!
+//! Shapes: state 8, actions 16 × 7, 4 flow steps, no cameras, one transformer layer of width 32.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use kairos_engine::EngineOptions;
+use kairos_engine::flow_head::{FlowHead, FlowHeadConfig};
+
+fn main() -> anyhow::Result<()> {
+    let dir: PathBuf = std::env::args_os()
+        .nth(1)
+        .map(PathBuf::from)
+        .context("usage: kairos-tiny-model DIR")?;
+    let config = FlowHeadConfig {
+        name: "flow-head-tiny".into(),
+        state_dim: 8,
+        action_dim: 7,
+        chunk_size: 16,
+        num_steps: 4,
+        max_images: 0,
+        image_grid: 1,
+        token_dim: 16,
+        hidden: 32,
+        layers: 1,
+        heads: 2,
+        kv_heads: 1,
+        head_dim: 16,
+        ..FlowHeadConfig::default()
+    };
+    let model = FlowHead::random(
+        config,
+        kairos_engine::builtin::DEFAULT_SEED,
+        &EngineOptions::default(),
+    )
+    .context("building the tiny flow head")?;
+    model
+        .save(&dir)
+        .with_context(|| format!("writing {}", dir.display()))?;
+    println!("wrote {}", dir.display());
+    Ok(())
+}
