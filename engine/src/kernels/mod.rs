@@ -135,6 +135,38 @@ impl Pool {
     }
 }
 
+impl Pool {
+    /// Split `out` (rows of `row_len` values) into one contiguous run of rows per thread and
+    /// call `f(first_row, rows)` on each, in parallel. Small outputs stay on the calling thread.
+    pub fn for_row_chunks(
+        &self,
+        out: &mut [f32],
+        row_len: usize,
+        f: impl Fn(usize, &mut [f32]) + Sync,
+    ) {
+        let rows = out.len() / row_len.max(1);
+        // Below ~16k values a wake-up costs more than the work.
+        let parts = if rows * row_len < 16 * 1024 {
+            1
+        } else {
+            self.threads.min(rows).max(1)
+        };
+        if parts == 1 {
+            f(0, out);
+            return;
+        }
+        let base = SharedMut::new(out);
+        self.run(parts, |p| {
+            let (r0, r1) = (rows * p / parts, rows * (p + 1) / parts);
+            // SAFETY: parts cover disjoint row ranges of `out`.
+            let chunk = unsafe {
+                std::slice::from_raw_parts_mut(base.ptr().add(r0 * row_len), (r1 - r0) * row_len)
+            };
+            f(r0, chunk);
+        });
+    }
+}
+
 /// One per available core, or `KAIROS_ENGINE_THREADS` when set.
 pub fn default_threads() -> usize {
     std::env::var("KAIROS_ENGINE_THREADS")

@@ -368,7 +368,7 @@ impl CpuExpert {
         let (h, hd, n, tokens) = (d.hidden, d.head_dim, d.chunk, ws.tokens);
         let (qw, kvw, half) = (d.q_width(), d.kv_width(), d.head_dim / 2);
         let isa = pool.isa();
-        vecmath::rms_norm(isa, &ws.x, &layer.input_norm, d.rms_eps, &mut ws.h);
+        rms_norm_par(pool, &ws.x, &layer.input_norm, d.rms_eps, &mut ws.h);
         let ld = layer.qkv.n();
         gemm_par(
             pool,
@@ -471,6 +471,19 @@ impl CpuExpert {
             Init::Accumulate,
         );
     }
+}
+
+fn rms_norm_par(pool: &Pool, x: &[f32], weight: &[f32], eps: f32, out: &mut [f32]) {
+    let h = weight.len();
+    pool.for_row_chunks(out, h, |r0, rows| {
+        vecmath::rms_norm(
+            pool.isa(),
+            &x[r0 * h..r0 * h + rows.len()],
+            weight,
+            eps,
+            rows,
+        );
+    });
 }
 
 struct StepContext<'a> {
