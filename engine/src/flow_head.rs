@@ -111,10 +111,13 @@ impl FlowHeadConfig {
                 self.model_type
             )));
         }
-        if self.heads == 0 || self.kv_heads == 0 || self.heads % self.kv_heads != 0 {
+        if self.heads == 0 || self.kv_heads == 0 || !self.heads.is_multiple_of(self.kv_heads) {
             return Err(bad("heads must be a positive multiple of kv_heads"));
         }
-        if self.head_dim % 2 != 0 || self.hidden % 2 != 0 || self.layers == 0 || self.num_steps == 0
+        if !self.head_dim.is_multiple_of(2)
+            || !self.hidden.is_multiple_of(2)
+            || self.layers == 0
+            || self.num_steps == 0
         {
             return Err(bad(
                 "head_dim and hidden must be even; layers and num_steps positive",

@@ -32,10 +32,10 @@ use crate::{ActionChunk, EngineError};
 
 enum Backend {
     Fast {
-        model: cpu::CpuExpert,
+        model: Box<cpu::CpuExpert>,
         pool: crate::kernels::Pool,
     },
-    Candle(candle_backend::CandleExpert),
+    Candle(Box<candle_backend::CandleExpert>),
 }
 
 /// A loaded SmolVLA action expert.
@@ -114,12 +114,12 @@ impl SmolVlaExpert {
         let description = target.describe();
         let backend = match target {
             Target::Fast(pool) => Backend::Fast {
-                model: cpu::CpuExpert::new(weights),
+                model: Box::new(cpu::CpuExpert::new(weights)),
                 pool,
             },
-            Target::Candle(device) => {
-                Backend::Candle(candle_backend::CandleExpert::new(weights, &device)?)
-            }
+            Target::Candle(device) => Backend::Candle(Box::new(candle_backend::CandleExpert::new(
+                weights, &device,
+            )?)),
         };
         Ok(SmolVlaExpert {
             dims: weights.dims.clone(),
