@@ -60,6 +60,9 @@ pub struct Pool {
     pool: rayon::ThreadPool,
     threads: usize,
     isa: Isa,
+    /// Buffers for packed GEMM operands, one per concurrent caller: taken for a call and put
+    /// back after it, never held while waiting for workers.
+    scratch: std::sync::Mutex<Vec<AlignedBuf>>,
 }
 
 impl std::fmt::Debug for Pool {
@@ -98,12 +101,42 @@ impl Pool {
                     "cannot start {threads} engine threads: {e}"
                 ))
             })?;
-        Ok(Pool { pool, threads, isa })
+        Ok(Pool {
+            pool,
+            threads,
+            isa,
+            scratch: std::sync::Mutex::new(Vec::new()),
+        })
+    }
+
+    pub(crate) fn take_scratch(&self) -> AlignedBuf {
+        match self.scratch.lock() {
+            Ok(mut v) => v.pop().unwrap_or_default(),
+            Err(poisoned) => poisoned.into_inner().pop().unwrap_or_default(),
+        }
+    }
+
+    pub(crate) fn put_scratch(&self, buf: AlignedBuf) {
+        match self.scratch.lock() {
+            Ok(mut v) => v.push(buf),
+            Err(poisoned) => poisoned.into_inner().push(buf),
+        }
     }
 
     /// The instruction set of the kernels run on this pool.
     pub fn isa(&self) -> Isa {
         self.isa
+    }
+
+    /// How many parts to cut `units` independent pieces of work into: a few per thread, so that
+    /// a thread that gets less CPU time (a shared machine) hands its share to the others instead
+    /// of holding everyone up. Which thread runs a part never changes its result.
+    pub fn parts(&self, units: usize) -> usize {
+        if self.threads == 1 {
+            1
+        } else {
+            units.min(4 * self.threads).max(1)
+        }
     }
 
     /// Number of worker threads.

@@ -414,9 +414,9 @@ impl CpuExpert {
                 }
             }
         }
-        // Attention, one task per (row, head), split evenly over the pool.
+        // Attention, one task per (row, head), in `parts` contiguous runs (one scratch each).
         let tasks = rows * d.heads;
-        let parts = pool.threads().min(tasks).max(1);
+        let parts = pool.parts(tasks);
         let groups = d.heads / d.kv_heads;
         let scale = (hd as f64).powf(-0.5) as f32;
         let out = SharedMut::new(&mut ws.attn);
@@ -522,7 +522,7 @@ impl Workspace {
             gate_up: vec![0.0; tokens * 2 * d.intermediate],
             act: vec![0.0; tokens * d.intermediate],
             suffix_kv: (0..rows * d.kv_heads).map(|_| Default::default()).collect(),
-            scores: (0..threads.max(1))
+            scores: (0..4 * threads.max(1))
                 .map(|_| Mutex::new(Vec::new()))
                 .collect(),
         }
