@@ -20,7 +20,7 @@ pub const NR: usize = 16;
 /// Rows per micro-kernel tile.
 pub const MR: usize = 6;
 /// Depth of one cache block.
-const KC: usize = 256;
+const KC: usize = 128;
 /// Rows of `A` per cache block (a multiple of `MR`).
 const MC: usize = 120;
 
