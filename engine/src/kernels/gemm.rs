@@ -328,6 +328,11 @@ unsafe fn gemm_packed(
                     let ap = block[t * kc * MR..].as_ptr();
                     // SAFETY: the tile lies inside C (rows m0+r0.., columns c0..c0+w).
                     let cp = unsafe { c.add((m0 + r0) * ldc + c0) };
+                    // The next tile's accumulators come from C: start fetching them now.
+                    if load && t + 1 < tiles {
+                        let next_rows = MR.min(mb - r0 - MR);
+                        prefetch_rows(isa, cp.wrapping_add(MR * ldc), ldc, next_rows);
+                    }
                     // SAFETY: the packed A tile and the panel hold kc rows; C as above.
                     unsafe { tile(isa, rows, kc, ap, bp, cp, ldc, w, load) };
                 }
@@ -336,6 +341,28 @@ unsafe fn gemm_packed(
         }
         m0 += mb;
     }
+}
+
+/// Prefetch `rows` rows of a C tile (`NR` values each, possibly straddling two lines).
+#[inline(always)]
+fn prefetch_rows(isa: Isa, c: *const f32, ldc: usize, rows: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if isa == Isa::Avx2Fma {
+        for r in 0..rows {
+            let row = c.wrapping_add(r * ldc);
+            // SAFETY: prefetching never faults.
+            unsafe {
+                std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
+                    row as *const i8,
+                );
+                std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
+                    row.wrapping_add(NR - 1) as *const i8,
+                );
+            }
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (isa, c, ldc, rows);
 }
 
 /// Prefetch panel rows `from..to` (one cache line each) into L1.
