@@ -4,4 +4,5 @@ pub mod client;
 pub mod protocol;
 pub mod robot;
 pub mod tls;
+pub mod trace;
 pub mod transport;

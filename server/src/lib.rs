@@ -5,4 +5,6 @@ pub mod cli;
 pub mod horizon;
 pub mod lifecycle;
 pub mod scheduler;
+pub mod sim;
 pub mod time;
+pub mod workload;

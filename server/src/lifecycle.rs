@@ -311,6 +311,12 @@ impl TaskRecord {
         self.last_exec.map(|e| e.len())
     }
 
+    /// `E.end` of the last answered round, once the robot reported it: while the next request is
+    /// pending, when the robot runs out of actions unless that request is answered.
+    pub fn last_execution_end(&self) -> Option<Timestamp> {
+        self.last_exec.map(|e| e.end)
+    }
+
     /// Horizons of the most recent answered rounds, oldest first (at most [`RECENT_HORIZONS`]).
     pub fn recent_horizons(&self) -> &[u32] {
         &self.recent_horizons

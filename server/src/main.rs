@@ -14,6 +14,10 @@ struct Cli {
 enum Command {
     /// Print the protocol version and build information.
     Info,
+    /// Run a fleet of simulated robots against a server.
+    Robot(Box<kairos_server::cli::robot::RobotArgs>),
+    /// Evaluation tools: simulate workloads, generate traces.
+    Bench(kairos_server::cli::bench::BenchArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -28,5 +32,7 @@ fn main() -> anyhow::Result<()> {
             );
             Ok(())
         }
+        Command::Robot(args) => kairos_server::cli::robot::run(*args),
+        Command::Bench(args) => kairos_server::cli::bench::run(args),
     }
 }

@@ -1,4 +1,5 @@
 //! The `kairos` command line: one module per subcommand, each with a `clap::Args` struct and a
 //! `run` function. `main.rs` only parses and dispatches.
+pub mod bench;
 pub mod profile;
 pub mod robot;

@@ -398,6 +398,7 @@ impl Scheduler {
                 attained_service: task.attained_service(),
                 queued: task.queued_at(now),
                 last_exec: task.last_execution(),
+                exec_ends_at: task.last_execution_end(),
                 last_gen: task.last_generation(),
                 rounds_completed: task.rounds_completed(),
                 remaining: entry.remaining,

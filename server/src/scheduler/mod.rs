@@ -9,7 +9,7 @@
 //! Event API (the live driver and the simulator both use exactly this):
 //! - `Scheduler::new(config, engines, policy)`
 //! - `handle_submit(now, RoundSubmit) -> Result<RequestId, AdmitError>`
-//! - `handle_cancel(now, RequestId)`
+//! - `handle_cancel(now, RequestId) -> CancelOutcome`: removes a pending request
 //! - `poll_dispatch(now) -> Vec<Dispatch>`: one policy decision covering every idle engine
 //! - `handle_batch_started(now, BatchId)`: re-fetches done, the forward pass begins (G.start)
 //! - `handle_batch_finished(now, BatchId, &[(RequestId, RoundOutcome)])`: G.end, engine idle
@@ -43,6 +43,7 @@ mod placement;
 pub mod plas;
 pub mod policy;
 pub mod registry;
+pub mod srw;
 #[cfg(test)]
 mod tests;
 

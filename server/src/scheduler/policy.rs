@@ -45,6 +45,10 @@ pub struct PendingView {
     pub queued: Duration,
     /// |E_last|: duration of the task's most recent execution phase, if any.
     pub last_exec: Option<Duration>,
+    /// `E_last.end` as the robot reported it with this request (send time + remaining actions /
+    /// control frequency): when the robot runs out of actions unless this request is answered.
+    /// `None` before the task's first execution report (its robot has nothing to execute).
+    pub exec_ends_at: Option<Timestamp>,
     /// |G_last|: duration of the task's most recent generation phase, if any.
     pub last_gen: Option<Duration>,
     /// Rounds of this task already answered.

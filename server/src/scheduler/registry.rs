@@ -5,7 +5,7 @@
 //! in serde), [`build`] turns it into a policy, validating every parameter.
 //!
 //! Adding a native policy: write `scheduler/<name>.rs` implementing
-//! [`PriorityPolicy`](super::PriorityPolicy), declare it in `scheduler/mod.rs`, and add one
+//! [`PriorityPolicy`], declare it in `scheduler/mod.rs`, and add one
 //! [`PolicyFactory`] line to [`BUILTIN`] whose `build` reads its parameters through
 //! [`PolicySpec::take`] helpers and ends with [`PolicySpec::finish`].
 
@@ -17,6 +17,7 @@ use super::PriorityPolicy;
 use super::fifo::Fifo;
 use super::kairos::{IntraBucket, Kairos, KairosConfig};
 use super::plas::{Plas, PlasConfig};
+use super::srw::{DueOrder, Srw, SrwConfig};
 
 /// Why a policy spec was refused.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
@@ -212,6 +213,11 @@ pub const BUILTIN: &[PolicyFactory] = &[
         summary: "paper Algorithm 1: wait-ratio buckets, aging, longest execution first; buckets=10 (or inf), aging=4, intra=longest-exec|fifo",
         build: build_kairos,
     },
+    PolicyFactory {
+        name: "srw",
+        summary: "slack-aware shortest remaining work: robots already out of actions first (by remaining rounds from the hint or a learned Gittins index, aged by wait ratio), the rest by deadline; hints=1, warmup=20, slack=1, due_order=work|deadline",
+        build: build_srw,
+    },
 ];
 
 /// Builds the policy `spec` names.
@@ -297,6 +303,30 @@ fn build_kairos(mut spec: PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicyS
         buckets,
         aging,
         intra,
+    })))
+}
+
+fn build_srw(mut spec: PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
+    let d = SrwConfig::default();
+    let flag = |s: &str| match s {
+        "1" | "true" => Ok(true),
+        "0" | "false" => Ok(false),
+        _ => Err("expected 1 or 0".to_string()),
+    };
+    let hints = spec.take("hints", d.hints, flag)?;
+    let warmup = spec.take("warmup", d.warmup, |s| parse_int(s, 0, 1_000_000))?;
+    let slack = spec.take("slack", d.slack, flag)?;
+    let due_order = spec.take("due_order", d.due_order, |s| match s {
+        "work" => Ok(DueOrder::Work),
+        "deadline" => Ok(DueOrder::Deadline),
+        _ => Err("expected work or deadline".into()),
+    })?;
+    spec.finish()?;
+    Ok(Box::new(Srw::new(SrwConfig {
+        hints,
+        warmup,
+        slack,
+        due_order,
     })))
 }
 

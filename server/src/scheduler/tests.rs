@@ -763,6 +763,7 @@ fn view(request: u64, arrived_ms: u64, started_ms: u64, wait_ms: u64) -> Pending
         attained_service: Duration::ZERO,
         queued: Duration::ZERO,
         last_exec: None,
+        exec_ends_at: None,
         last_gen: None,
         rounds_completed: 1,
         remaining: None,

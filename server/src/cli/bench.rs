@@ -1,0 +1,430 @@
+//! `kairos bench`: evaluation tools. `sim` replays workloads through the real scheduler in
+//! virtual time and reproduces the paper's experiments (tables, CSV, plots); `traces` turns a
+//! workload file into a trace file.
+
+mod plot;
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use clap::{Args, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use kairos_sdk::trace::TraceSet;
+
+use crate::scheduler::PolicySpec;
+use crate::sim::experiment::{self, Experiment, Job, JobResult, Plan, Report, Variant};
+use crate::workload::generate::{self, DYNAMIC, STATIC};
+use crate::workload::{self, Workload};
+
+/// `kairos bench ...`
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    /// What to run.
+    #[command(subcommand)]
+    pub command: BenchCommand,
+}
+
+/// The bench subcommands.
+#[derive(Subcommand, Debug)]
+pub enum BenchCommand {
+    /// Simulate workloads against the real scheduler in virtual time (paper §5 experiments).
+    Sim(SimArgs),
+    /// Generate a trace file from a workload file.
+    Traces(TracesArgs),
+    /// Find the arrival rate at which a policy's average latency reaches a multiple of its
+    /// unloaded value (how the shipped workloads' peak rates were placed).
+    Calibrate(CalibrateArgs),
+}
+
+/// `kairos bench calibrate`
+#[derive(Args, Debug)]
+pub struct CalibrateArgs {
+    /// Workload files (default: every `*.toml` in `workloads/`).
+    #[arg(long = "workload", short = 'w')]
+    pub workloads: Vec<PathBuf>,
+    /// Priority policy (replays the dynamic-horizon traces).
+    #[arg(long, default_value = "kairos")]
+    pub policy: String,
+    /// Target: average latency = factor x unloaded average.
+    #[arg(long, default_value_t = 1.5)]
+    pub factor: f64,
+    /// Seed of arrivals and task picks.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Seed of the trace generator.
+    #[arg(long, default_value_t = 42)]
+    pub trace_seed: u64,
+}
+
+/// `kairos bench sim`
+#[derive(Args, Debug)]
+pub struct SimArgs {
+    /// Workload files (TOML). Default: every `*.toml` in `workloads/`.
+    #[arg(long = "workload", short = 'w')]
+    pub workloads: Vec<PathBuf>,
+    /// Replay this trace file instead of generating traces (needs exactly one --workload, which
+    /// supplies the engines, network and experiment list).
+    #[arg(long)]
+    pub traces: Option<PathBuf>,
+    /// Experiments to run, comma-separated: online, fleet, hybrid, buckets, intra.
+    #[arg(
+        long,
+        short = 'e',
+        value_delimiter = ',',
+        default_value = "online,fleet,hybrid,buckets,intra"
+    )]
+    pub experiments: Vec<String>,
+    /// Extra priority policy to compare in the online experiment, e.g. `srw:starve=0.3`
+    /// (replays the dynamic-horizon traces). Repeatable.
+    #[arg(long = "policy")]
+    pub policies: Vec<String>,
+    /// Robots send the remaining-work hint in the runs of the --policy policies.
+    #[arg(long)]
+    pub hints: bool,
+    /// Seed of arrivals and task picks.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Seed of the trace generator.
+    #[arg(long, default_value_t = 42)]
+    pub trace_seed: u64,
+    /// Multiply every run's task count (e.g. 0.25 for a quick look).
+    #[arg(long, default_value_t = 1.0)]
+    pub task_scale: f64,
+    /// Worker threads (default: available cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Output directory for summary.md, results.csv and plots.
+    #[arg(long, short = 'o', default_value = "kairos-eval")]
+    pub out: PathBuf,
+    /// Skip the plots.
+    #[arg(long)]
+    pub no_plots: bool,
+}
+
+/// `kairos bench traces`
+#[derive(Args, Debug)]
+pub struct TracesArgs {
+    /// The workload file.
+    pub workload: PathBuf,
+    /// Generator seed.
+    #[arg(long, default_value_t = 42)]
+    pub seed: u64,
+    /// Output trace file (JSON Lines).
+    #[arg(long, short = 'o')]
+    pub out: PathBuf,
+}
+
+/// Runs `kairos bench`.
+pub fn run(args: BenchArgs) -> anyhow::Result<()> {
+    match args.command {
+        BenchCommand::Sim(a) => run_sim(a),
+        BenchCommand::Traces(a) => run_traces(a),
+        BenchCommand::Calibrate(a) => run_calibrate(a),
+    }
+}
+
+fn run_calibrate(a: CalibrateArgs) -> anyhow::Result<()> {
+    if !(a.factor.is_finite() && a.factor > 1.0) {
+        bail!("--factor must be a number > 1");
+    }
+    let files = if a.workloads.is_empty() {
+        default_workloads()?
+    } else {
+        a.workloads.clone()
+    };
+    let spec: PolicySpec = a.policy.parse()?;
+    crate::scheduler::build_policy(&spec)?;
+    let variant = Variant {
+        key: spec.to_string(),
+        label: spec.to_string(),
+        policy: spec,
+        setting: DYNAMIC,
+        hints: false,
+        placement: experiment::Placement::Edge,
+    };
+    for f in &files {
+        let w = Workload::load(f)?;
+        let set = generate::generate(&w, a.trace_seed)
+            .with_context(|| format!("generating traces for `{}`", w.name))?;
+        let edge = w.edge_profile();
+        let per_s = f64::from(edge.max_batch) / edge.latency(edge.max_batch).as_secs_f64();
+        let rounds = set.variant(DYNAMIC).map(|t| t.rounds.len()).sum::<usize>() as f64
+            / set.variant(DYNAMIC).count().max(1) as f64;
+        let saturation = per_s / rounds.max(1e-9);
+        let rate = experiment::calibrate_rate(
+            &w,
+            &set,
+            &variant,
+            a.factor,
+            (saturation * 0.05, saturation * 4.0),
+            14,
+            a.seed,
+        )?;
+        println!(
+            "{:<22} {} reaches {}x its unloaded average latency at {rate:.3} tasks/s ({:.2}x the dynamic-horizon saturation estimate {saturation:.3})",
+            w.title,
+            variant.label,
+            a.factor,
+            rate / saturation
+        );
+    }
+    Ok(())
+}
+
+fn run_traces(a: TracesArgs) -> anyhow::Result<()> {
+    let w = Workload::load(&a.workload)?;
+    let set = workload::generate(&w, a.seed)
+        .with_context(|| format!("generating traces for `{}`", w.name))?;
+    let file =
+        std::fs::File::create(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    set.write(std::io::BufWriter::new(file))
+        .with_context(|| format!("writing {}", a.out.display()))?;
+    println!(
+        "wrote {} tasks ({} per setting) of `{}` to {}",
+        set.tasks.len(),
+        w.tasks.pool,
+        w.name,
+        a.out.display()
+    );
+    Ok(())
+}
+
+/// The shipped workload files, sorted.
+fn default_workloads() -> anyhow::Result<Vec<PathBuf>> {
+    let dir = Path::new("workloads");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| {
+            format!(
+                "no --workload given and cannot read {} (run from the repository root)",
+                dir.display()
+            )
+        })?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "toml"))
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        bail!("no *.toml workload files in {}", dir.display());
+    }
+    Ok(files)
+}
+
+/// One line per workload: what the traces ask of the GPU, for reading the results.
+fn describe(w: &Workload, set: &TraceSet) -> String {
+    let rounds = |setting: &str| {
+        let (n, r) = set
+            .variant(setting)
+            .fold((0usize, 0usize), |(n, r), t| (n + 1, r + t.rounds.len()));
+        r as f64 / n.max(1) as f64
+    };
+    let exec: f64 = set
+        .variant(STATIC)
+        .map(|t| t.execution_seconds())
+        .sum::<f64>()
+        / set.variant(STATIC).count().max(1) as f64;
+    let edge = w.edge_profile();
+    let per_s = f64::from(edge.max_batch) / edge.latency(edge.max_batch).as_secs_f64();
+    let (static_r, dynamic_r) = (rounds(STATIC), rounds(DYNAMIC));
+    format!(
+        "{:<22} mean task {:>5.1} s | rounds/task static {:>5.1}, dynamic {:>5.1} | edge {:.0} req/s at batch {} → saturates at {:.2} tasks/s static, {:.2} dynamic | rates {:?}",
+        w.title,
+        exec,
+        static_r,
+        dynamic_r,
+        per_s,
+        edge.max_batch,
+        per_s / static_r.max(1e-9),
+        per_s / dynamic_r.max(1e-9),
+        w.experiments.rates
+    )
+}
+
+fn run_sim(a: SimArgs) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let files = if a.workloads.is_empty() {
+        default_workloads()?
+    } else {
+        a.workloads.clone()
+    };
+    if a.traces.is_some() && files.len() != 1 {
+        bail!("--traces needs exactly one --workload (it supplies engines, network and rates)");
+    }
+    if !(a.task_scale.is_finite() && a.task_scale > 0.0) {
+        bail!("--task-scale must be a positive number");
+    }
+    let mut experiments = Vec::new();
+    for name in &a.experiments {
+        let e = Experiment::parse(name.trim()).with_context(|| {
+            format!("unknown experiment `{name}` (expected online, fleet, hybrid, buckets, intra)")
+        })?;
+        if !experiments.contains(&e) {
+            experiments.push(e);
+        }
+    }
+    let mut extra = Vec::new();
+    for p in &a.policies {
+        let spec: PolicySpec = p.parse()?;
+        crate::scheduler::build_policy(&spec)?;
+        extra.push(Variant {
+            key: format!("extra:{spec}"),
+            label: spec.to_string(),
+            policy: spec,
+            setting: DYNAMIC,
+            hints: a.hints,
+            placement: experiment::Placement::Edge,
+        });
+    }
+
+    let mut workloads = Vec::new();
+    let mut traces = Vec::new();
+    for f in &files {
+        let w = Workload::load(f)?;
+        let set = match &a.traces {
+            Some(path) => {
+                let file = std::fs::File::open(path)
+                    .with_context(|| format!("opening {}", path.display()))?;
+                TraceSet::read(std::io::BufReader::new(file))
+                    .with_context(|| format!("reading {}", path.display()))?
+            }
+            None => generate::generate(&w, a.trace_seed)
+                .with_context(|| format!("generating traces for `{}`", w.name))?,
+        };
+        println!("{}", describe(&w, &set));
+        workloads.push(w);
+        traces.push(set);
+    }
+
+    let jobs: Vec<Job> = experiment::plan(
+        &workloads,
+        &Plan {
+            experiments,
+            seed: a.seed,
+            extra,
+            task_scale: a.task_scale,
+        },
+    );
+    // A recorded trace set may hold only some settings (a robot records the one it ran); drop the
+    // runs that would replay a missing one, and say so.
+    let jobs: Vec<Job> = if a.traces.is_some() {
+        let available: Vec<String> = traces.iter().flat_map(|t| t.settings()).collect();
+        let (keep, drop): (Vec<Job>, Vec<Job>) = jobs
+            .into_iter()
+            .partition(|j| available.iter().any(|s| s == j.variant.setting));
+        if !drop.is_empty() {
+            println!(
+                "skipping {} runs whose horizon setting is not in the trace file (it has: {})",
+                drop.len(),
+                available.join(", ")
+            );
+        }
+        keep
+    } else {
+        jobs
+    };
+    if jobs.is_empty() {
+        bail!("nothing to run");
+    }
+    let threads = a
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+        .max(1);
+    let bar = ProgressBar::new(jobs.len() as u64);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:40}] {pos}/{len} runs, eta {eta} {msg}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> "),
+    );
+    let on_done = |job: &Job| {
+        bar.set_message(format!(
+            "{} {}",
+            workloads[job.workload].name,
+            job.experiment.name()
+        ));
+        bar.inc(1);
+    };
+    let sim_started = Instant::now();
+    let results = experiment::run_jobs(&jobs, &traces, threads, &on_done);
+    bar.finish_and_clear();
+    let sim_elapsed = sim_started.elapsed();
+    let mut ok: Vec<JobResult> = Vec::with_capacity(results.len());
+    for (job, r) in jobs.iter().zip(results) {
+        let r = r.with_context(|| {
+            format!(
+                "{} / {} / {} at {}",
+                workloads[job.workload].name,
+                job.experiment.name(),
+                job.variant.key,
+                job.x
+            )
+        })?;
+        ok.push(r);
+    }
+    let report = Report {
+        workloads: &workloads,
+        jobs: &jobs,
+        results: &ok,
+    };
+
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let summary = summary_markdown(&report, &a);
+    write(&a.out.join("summary.md"), &summary)?;
+    write(&a.out.join("results.csv"), &report.csv())?;
+    if !a.no_plots {
+        plot::all(&report, &a.out)?;
+    }
+    println!("{summary}");
+    println!(
+        "{} runs on {threads} thread(s): simulation {:.1} s, total {:.1} s. Outputs in {}",
+        jobs.len(),
+        sim_elapsed.as_secs_f64(),
+        started.elapsed().as_secs_f64(),
+        a.out.display()
+    );
+    Ok(())
+}
+
+fn write(path: &Path, text: &str) -> anyhow::Result<()> {
+    std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))
+}
+
+fn summary_markdown(report: &Report<'_>, a: &SimArgs) -> String {
+    let mut s = String::new();
+    let has = |e: Experiment| report.jobs.iter().any(|j| j.experiment == e);
+    s.push_str(&format!(
+        "# Simulation results\n\nGenerated by `kairos bench sim` (seed {}, trace seed {}, task scale {}; {} runs). Deterministic: the same command gives the same file.\n",
+        a.seed,
+        a.trace_seed,
+        a.task_scale,
+        report.jobs.len(),
+    ));
+    if has(Experiment::Online) {
+        s.push_str("\n## Latency reduction at the highest arrival rate vs FIFO\n\n");
+        s.push_str(&report.reduction_table("fifo"));
+        s.push_str("\n## Latency reduction at the highest arrival rate vs Autellix\n\n");
+        s.push_str(&report.reduction_table("autellix"));
+        s.push_str("\n## End-to-end latency at the highest arrival rate\n");
+        s.push_str(&report.peak_table());
+        s.push_str("\n## Online: average (P95) end-to-end latency in seconds by arrival rate\n");
+        s.push_str(&report.sweep_table(Experiment::Online, "tasks/s"));
+    }
+    if has(Experiment::Fleet) {
+        s.push_str("\n## Offline fleet: average (P95) latency in seconds by fleet size\n");
+        s.push_str(&report.sweep_table(Experiment::Fleet, "robots"));
+    }
+    if has(Experiment::Hybrid) {
+        s.push_str("\n## Hybrid edge + cloud: average (P95) latency in seconds by arrival rate\n");
+        s.push_str(&report.sweep_table(Experiment::Hybrid, "tasks/s"));
+    }
+    if has(Experiment::Buckets) {
+        s.push_str("\n## Ablation: wait-ratio bucket count at the highest rate, average (P95) s\n");
+        s.push_str(&report.sweep_table(Experiment::Buckets, "tasks/s"));
+    }
+    if has(Experiment::Intra) {
+        s.push_str("\n## Ablation: intra-bucket order at the highest rate, average (P95) s\n");
+        s.push_str(&report.sweep_table(Experiment::Intra, "tasks/s"));
+    }
+    s
+}

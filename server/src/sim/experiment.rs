@@ -1,0 +1,703 @@
+//! The paper's experiments (§5) as simulation jobs, and their tables.
+//!
+//! [`plan`] turns workloads into a list of independent [`Job`]s (online rate sweep, offline
+//! fleet sweep, hybrid edge+cloud, bucket-count and intra-bucket ablations); [`run_jobs`] runs
+//! them on a few threads (each job is a deterministic function of its configuration, so the
+//! thread count never changes a number); [`Report`] renders the paper-style tables and CSV.
+
+use std::fmt::Write as _;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Duration;
+
+use kairos_sdk::trace::TraceSet;
+
+use super::stats::{Summary, reduction, summarize};
+use super::{Load, SimConfig, SimError, SimNetwork, simulate};
+use crate::scheduler::{EngineSpec, PolicySpec, SchedulerConfig, Tier};
+use crate::workload::Workload;
+use crate::workload::generate::{DYNAMIC, STATIC};
+
+/// One experiment of §5.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Experiment {
+    /// Poisson arrivals at increasing rates, one edge GPU (Fig. "aggregate_rate", Table
+    /// "benchmarks-latency-reduction").
+    Online,
+    /// A fleet of n robots working through a fixed task list (Fig. "aggregate_scale").
+    Fleet,
+    /// Edge-only vs cloud-only vs hybrid (Fig. "aggregated_offload").
+    Hybrid,
+    /// Wait-ratio bucket count B (Fig. "microbenchmark-bin-size").
+    Buckets,
+    /// Intra-bucket order (Fig. "microbenchmark-intra-bin").
+    Intra,
+}
+
+impl Experiment {
+    /// Every experiment, in report order.
+    pub const ALL: [Experiment; 5] = [
+        Experiment::Online,
+        Experiment::Fleet,
+        Experiment::Hybrid,
+        Experiment::Buckets,
+        Experiment::Intra,
+    ];
+
+    /// Its name on the command line and in CSV.
+    pub fn name(self) -> &'static str {
+        match self {
+            Experiment::Online => "online",
+            Experiment::Fleet => "fleet",
+            Experiment::Hybrid => "hybrid",
+            Experiment::Buckets => "buckets",
+            Experiment::Intra => "intra",
+        }
+    }
+
+    /// Parses a name.
+    pub fn parse(s: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|e| e.name() == s)
+    }
+}
+
+/// Where the engines are.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Placement {
+    /// One edge GPU.
+    Edge,
+    /// One cloud GPU behind the WAN.
+    Cloud,
+    /// One of each; Algorithm 1 phase 3 decides.
+    Hybrid,
+}
+
+/// A scheduler + horizon combination being compared.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Variant {
+    /// Stable key for CSV and code (`fifo`, `kairos-static`, ...).
+    pub key: String,
+    /// Label in tables and plots.
+    pub label: String,
+    /// The priority policy.
+    pub policy: PolicySpec,
+    /// The trace setting replayed (`static` or `dynamic`).
+    pub setting: &'static str,
+    /// Whether robots send the remaining-work hint.
+    pub hints: bool,
+    /// Engines.
+    pub placement: Placement,
+}
+
+fn variant(key: &str, label: &str, policy: &str, setting: &'static str) -> Variant {
+    Variant {
+        key: key.to_string(),
+        label: label.to_string(),
+        policy: policy.parse().unwrap_or_else(|_| PolicySpec::named(policy)),
+        setting,
+        hints: false,
+        placement: Placement::Edge,
+    }
+}
+
+/// Name of the better priority policy in the registry.
+pub const BETTER: &str = "srw";
+
+/// The variants of the online experiment: the paper's three systems and two ablations, plus the
+/// better policy without and with the client's remaining-work hint.
+pub fn online_variants() -> Vec<Variant> {
+    let mut with_hint = variant("srw-hint", "SRW + hint (ours)", BETTER, DYNAMIC);
+    with_hint.hints = true;
+    vec![
+        variant("fifo", "FIFO", "fifo", STATIC),
+        variant("autellix", "Autellix", "plas", STATIC),
+        variant("kairos", "Kairos", "kairos", DYNAMIC),
+        variant("kairos-static", "Kairos w/o dyn. horizon", "kairos", STATIC),
+        variant("fifo-dynamic", "FIFO + dyn. horizon", "fifo", DYNAMIC),
+        variant(
+            "autellix-dynamic",
+            "Autellix + dyn. horizon",
+            "plas",
+            DYNAMIC,
+        ),
+        variant("srw", "SRW (ours)", BETTER, DYNAMIC),
+        with_hint,
+    ]
+}
+
+fn fleet_variants() -> Vec<Variant> {
+    online_variants()
+        .into_iter()
+        .filter(|v| ["fifo", "autellix", "kairos", "srw"].contains(&v.key.as_str()))
+        .collect()
+}
+
+fn hybrid_variants() -> Vec<Variant> {
+    [
+        ("edge", "Kairos (edge-only)", Placement::Edge),
+        ("cloud", "Kairos (cloud-only)", Placement::Cloud),
+        ("hybrid", "Kairos (hybrid)", Placement::Hybrid),
+    ]
+    .into_iter()
+    .map(|(key, label, placement)| {
+        let mut v = variant(key, label, "kairos", DYNAMIC);
+        v.placement = placement;
+        v
+    })
+    .collect()
+}
+
+/// Bucket counts of the ablation; `None` is ∞.
+pub const BUCKETS: [Option<u32>; 5] = [Some(2), Some(5), Some(10), Some(20), None];
+
+fn bucket_variants() -> Vec<Variant> {
+    BUCKETS
+        .iter()
+        .map(|b| {
+            let text = b.map_or("inf".to_string(), |b| b.to_string());
+            let label = b.map_or("B=∞".to_string(), |b| format!("B={b}"));
+            variant(
+                &format!("buckets-{text}"),
+                &label,
+                &format!("kairos:buckets={text}"),
+                DYNAMIC,
+            )
+        })
+        .collect()
+}
+
+fn intra_variants() -> Vec<Variant> {
+    vec![
+        variant("intra-fifo", "FIFO in bucket", "kairos:intra=fifo", DYNAMIC),
+        variant(
+            "intra-longest",
+            "Longest exec. first",
+            "kairos:intra=longest-exec",
+            DYNAMIC,
+        ),
+    ]
+}
+
+/// One simulation to run.
+#[derive(Clone, Debug)]
+pub struct Job {
+    /// Index of its workload.
+    pub workload: usize,
+    /// The experiment.
+    pub experiment: Experiment,
+    /// The x value: arrival rate (tasks/s) or fleet size.
+    pub x: f64,
+    /// What is compared.
+    pub variant: Variant,
+    /// The run.
+    pub config: SimConfig,
+}
+
+/// What to plan.
+#[derive(Clone, Debug)]
+pub struct Plan {
+    /// Experiments to include.
+    pub experiments: Vec<Experiment>,
+    /// Seed of every run (arrivals and task picks; the trace set has its own).
+    pub seed: u64,
+    /// Extra variants for the online experiment (e.g. a policy under test).
+    pub extra: Vec<Variant>,
+    /// Scale every run's task count by this (1 = the workload's counts).
+    pub task_scale: f64,
+}
+
+fn engine(w: &Workload, tier: Tier) -> EngineSpec {
+    match tier {
+        Tier::Edge => EngineSpec {
+            name: "edge".into(),
+            tier,
+            profile: w.edge_profile(),
+            rtt: Duration::ZERO,
+        },
+        Tier::Cloud => EngineSpec {
+            name: "cloud".into(),
+            tier,
+            profile: w.cloud_profile(),
+            rtt: w.wan_rtt(),
+        },
+    }
+}
+
+/// The simulation configuration of `variant` on workload `w` under `load`.
+pub fn config(w: &Workload, variant: &Variant, load: Load, seed: u64) -> SimConfig {
+    let engines = match variant.placement {
+        Placement::Edge => vec![engine(w, Tier::Edge)],
+        Placement::Cloud => vec![engine(w, Tier::Cloud)],
+        Placement::Hybrid => vec![engine(w, Tier::Edge), engine(w, Tier::Cloud)],
+    };
+    SimConfig {
+        engines,
+        scheduler: SchedulerConfig::default(),
+        policy: variant.policy.clone(),
+        setting: variant.setting.to_string(),
+        network: SimNetwork {
+            robot_rtt: w.robot_rtt(),
+            robot_uplink_mbps: w.network.robot_uplink_mbps,
+            wan_mbps: w.network.wan_mbps,
+        },
+        hints: variant.hints,
+        load,
+        seed,
+        record: false,
+    }
+}
+
+fn scaled(n: usize, scale: f64) -> usize {
+    ((n as f64 * scale).round() as usize).max(1)
+}
+
+/// Every job of `plan` over `workloads`, in a fixed order.
+pub fn plan(workloads: &[Workload], plan: &Plan) -> Vec<Job> {
+    let mut jobs = Vec::new();
+    for (wi, w) in workloads.iter().enumerate() {
+        let x = &w.experiments;
+        let tasks = scaled(x.tasks_per_run, plan.task_scale);
+        let peak = x.rates.last().copied().unwrap_or(1.0);
+        let mut push = |experiment, xval: f64, v: &Variant, load| {
+            jobs.push(Job {
+                workload: wi,
+                experiment,
+                x: xval,
+                variant: v.clone(),
+                config: config(w, v, load, plan.seed),
+            });
+        };
+        for &e in &plan.experiments {
+            match e {
+                Experiment::Online => {
+                    let mut variants = online_variants();
+                    variants.extend(plan.extra.iter().cloned());
+                    for &rate in &x.rates {
+                        for v in &variants {
+                            push(e, rate, v, Load::Poisson { rate, tasks });
+                        }
+                    }
+                }
+                Experiment::Fleet => {
+                    let fleet_tasks = scaled(x.fleet_tasks, plan.task_scale);
+                    for &robots in &x.fleet_sizes {
+                        for v in &fleet_variants() {
+                            push(
+                                e,
+                                robots as f64,
+                                v,
+                                Load::Fleet {
+                                    robots,
+                                    tasks: fleet_tasks,
+                                },
+                            );
+                        }
+                    }
+                }
+                Experiment::Hybrid => {
+                    for &rate in &x.hybrid_rates {
+                        for v in &hybrid_variants() {
+                            push(e, rate, v, Load::Poisson { rate, tasks });
+                        }
+                    }
+                }
+                Experiment::Buckets => {
+                    for v in &bucket_variants() {
+                        push(e, peak, v, Load::Poisson { rate: peak, tasks });
+                    }
+                }
+                Experiment::Intra => {
+                    for v in &intra_variants() {
+                        push(e, peak, v, Load::Poisson { rate: peak, tasks });
+                    }
+                }
+            }
+        }
+    }
+    jobs
+}
+
+/// The outcome of one job.
+#[derive(Clone, Debug, PartialEq)]
+pub struct JobResult {
+    /// End-to-end latency summary, seconds.
+    pub summary: Summary,
+    /// Every task's latency, seconds, in completion order.
+    pub latencies: Vec<f64>,
+    /// Requests per task, mean.
+    pub rounds_per_task: f64,
+    /// Mean batch size.
+    pub mean_batch: f64,
+    /// Share of requests re-fetched.
+    pub refetch_share: f64,
+    /// Share of requests served in the cloud.
+    pub cloud_share: f64,
+    /// Mean queueing delay per request, seconds.
+    pub mean_queue_s: f64,
+    /// Events the simulation processed.
+    pub events: u64,
+}
+
+/// Runs one job against its workload's trace set.
+pub fn run_job(job: &Job, traces: &TraceSet) -> Result<JobResult, SimError> {
+    let r = simulate(traces, &job.config)?;
+    let latencies = r.latencies();
+    let requests = r.requests.max(1) as f64;
+    Ok(JobResult {
+        summary: summarize(&latencies),
+        rounds_per_task: r.requests as f64 / r.tasks.len().max(1) as f64,
+        mean_batch: r.mean_batch(),
+        refetch_share: r.refetches as f64 / requests,
+        cloud_share: r.cloud_requests as f64 / requests,
+        mean_queue_s: r.queue_s / requests,
+        events: r.events,
+        latencies,
+    })
+}
+
+/// Runs `jobs` on `threads` threads (at least 1), calling `on_done` after each. Results come
+/// back in job order whatever the interleaving.
+pub fn run_jobs(
+    jobs: &[Job],
+    traces: &[TraceSet],
+    threads: usize,
+    on_done: &(dyn Fn(&Job) + Sync),
+) -> Vec<Result<JobResult, SimError>> {
+    let next = AtomicUsize::new(0);
+    let results: Mutex<Vec<Option<Result<JobResult, SimError>>>> =
+        Mutex::new((0..jobs.len()).map(|_| None).collect());
+    std::thread::scope(|scope| {
+        for _ in 0..threads.max(1) {
+            scope.spawn(|| {
+                loop {
+                    let i = next.fetch_add(1, Ordering::Relaxed);
+                    let Some(job) = jobs.get(i) else {
+                        break;
+                    };
+                    let result = match traces.get(job.workload) {
+                        Some(t) => run_job(job, t),
+                        None => Err(SimError::Config(format!(
+                            "no trace set for workload {}",
+                            job.workload
+                        ))),
+                    };
+                    if let Ok(mut slots) = results.lock() {
+                        slots[i] = Some(result);
+                    }
+                    on_done(job);
+                }
+            });
+        }
+    });
+    results
+        .into_inner()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+        .into_iter()
+        .map(|r| r.unwrap_or_else(|| Err(SimError::Config("job did not run".into()))))
+        .collect()
+}
+
+/// The arrival rate at which `variant`'s average end-to-end latency on `w` reaches `factor` times
+/// its unloaded value, by bisection over `[lo, hi]` tasks/s (`iterations` halvings). Used to place
+/// each shipped workload's peak rate by one rule (docs/EVALUATION.md, "Rates").
+pub fn calibrate_rate(
+    w: &Workload,
+    traces: &TraceSet,
+    variant: &Variant,
+    factor: f64,
+    (lo, hi): (f64, f64),
+    iterations: u32,
+    seed: u64,
+) -> Result<f64, SimError> {
+    let tasks = w.experiments.tasks_per_run;
+    let mean_at = |rate: f64| -> Result<f64, SimError> {
+        let r = simulate(
+            traces,
+            &config(w, variant, Load::Poisson { rate, tasks }, seed),
+        )?;
+        Ok(summarize(&r.latencies()).mean)
+    };
+    let unloaded = mean_at(lo)?;
+    let target = unloaded * factor;
+    let (mut a, mut b) = (lo, hi);
+    for _ in 0..iterations {
+        let mid = 0.5 * (a + b);
+        if mean_at(mid)? < target {
+            a = mid;
+        } else {
+            b = mid;
+        }
+    }
+    Ok(0.5 * (a + b))
+}
+
+/// The paper's published reductions at peak (Table "benchmarks-latency-reduction"), for the
+/// side-by-side: `[P25, avg, P95]` in percent, for Kairos, Kairos w/o dynamic horizon, and the
+/// baseline scheduler with the dynamic horizon ("Kairos w/o scheduler").
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PaperRow {
+    /// Workload title as in the paper.
+    pub title: &'static str,
+    /// vs FIFO.
+    pub vs_fifo: [[f64; 3]; 3],
+    /// vs Autellix.
+    pub vs_autellix: [[f64; 3]; 3],
+}
+
+/// The six rows of the paper's table that have a shipped workload.
+pub const PAPER: [PaperRow; 6] = [
+    PaperRow {
+        title: "LIBERO/SmolVLA",
+        vs_fifo: [[39.5, 31.8, 34.6], [21.1, 10.9, 9.9], [3.9, 16.8, 29.0]],
+        vs_autellix: [[41.9, 33.1, 36.1], [24.2, 12.5, 11.9], [8.0, 15.1, 25.5]],
+    },
+    PaperRow {
+        title: "LIBERO/Pi0.5",
+        vs_fifo: [[76.4, 65.6, 51.9], [57.0, 33.0, 5.7], [58.0, 54.9, 49.6]],
+        vs_autellix: [[77.4, 66.5, 52.0], [59.0, 34.6, 5.9], [55.8, 53.9, 49.8]],
+    },
+    PaperRow {
+        title: "MetaWorld/SmolVLA",
+        vs_fifo: [[86.9, 60.5, 43.0], [59.0, 34.1, 4.3], [49.9, 43.7, 39.3]],
+        vs_autellix: [[88.4, 63.6, 48.2], [63.5, 39.3, 13.2], [44.5, 41.3, 36.0]],
+    },
+    PaperRow {
+        title: "Isaac/GR00T N1.5",
+        vs_fifo: [[59.2, 41.6, 29.0], [41.7, 24.5, 7.6], [24.0, 25.4, 23.4]],
+        vs_autellix: [[61.6, 43.3, 29.2], [45.2, 26.7, 7.9], [27.5, 24.2, 22.9]],
+    },
+    PaperRow {
+        title: "Bimanual/Pi0.5",
+        vs_fifo: [[53.3, 39.9, 22.2], [47.9, 28.1, 4.1], [24.9, 24.3, 18.9]],
+        vs_autellix: [[55.9, 42.3, 24.6], [50.8, 31.0, 7.0], [23.9, 23.1, 19.8]],
+    },
+    PaperRow {
+        title: "RoboTwin/Fast-WAM",
+        vs_fifo: [[57.9, 33.0, 25.7], [29.0, 8.1, 8.0], [46.5, 32.5, 21.7]],
+        vs_autellix: [[62.4, 36.6, 25.2], [36.6, 12.9, 7.3], [44.2, 34.2, 22.5]],
+    },
+];
+
+/// Jobs with their results, ready to render.
+pub struct Report<'a> {
+    /// The workloads, indexed by `Job::workload`.
+    pub workloads: &'a [Workload],
+    /// The jobs.
+    pub jobs: &'a [Job],
+    /// Their results, same order.
+    pub results: &'a [JobResult],
+}
+
+fn pct(v: f64) -> String {
+    format!("{v:.1}%")
+}
+
+impl Report<'_> {
+    /// The result of `key` in `experiment` of workload `w` at `x`.
+    pub fn find(&self, w: usize, experiment: Experiment, x: f64, key: &str) -> Option<&JobResult> {
+        self.jobs
+            .iter()
+            .zip(self.results)
+            .find(|(j, _)| {
+                j.workload == w && j.experiment == experiment && j.x == x && j.variant.key == key
+            })
+            .map(|(_, r)| r)
+    }
+
+    /// Variants of `experiment` that ran for workload `w`, in first-seen order.
+    pub fn variants(&self, w: usize, experiment: Experiment) -> Vec<&Variant> {
+        let mut out: Vec<&Variant> = Vec::new();
+        for j in self.jobs {
+            if j.workload == w
+                && j.experiment == experiment
+                && !out.iter().any(|v| v.key == j.variant.key)
+            {
+                out.push(&j.variant);
+            }
+        }
+        out
+    }
+
+    /// The x values of `experiment` for workload `w`, increasing.
+    pub fn xs(&self, w: usize, experiment: Experiment) -> Vec<f64> {
+        let mut xs: Vec<f64> = self
+            .jobs
+            .iter()
+            .filter(|j| j.workload == w && j.experiment == experiment)
+            .map(|j| j.x)
+            .collect();
+        xs.sort_by(f64::total_cmp);
+        xs.dedup();
+        xs
+    }
+
+    fn peak(&self, w: usize) -> Option<f64> {
+        self.xs(w, Experiment::Online).last().copied()
+    }
+
+    /// The paper's Table "benchmarks-latency-reduction" from our runs, at each workload's peak
+    /// rate: P25 / avg / P95 reductions of Kairos, Kairos w/o dynamic horizon and "Kairos w/o
+    /// scheduler" (the baseline with the dynamic horizon), against `baseline` (`fifo` or
+    /// `autellix`), with the paper's numbers beside ours.
+    pub fn reduction_table(&self, baseline: &str) -> String {
+        let mut s = String::new();
+        let paper_side = |row: &PaperRow| {
+            if baseline == "fifo" {
+                row.vs_fifo
+            } else {
+                row.vs_autellix
+            }
+        };
+        let _ = writeln!(
+            s,
+            "| Workload | Kairos P25 | Avg | P95 | w/o dyn. horizon P25 | Avg | P95 | w/o scheduler P25 | Avg | P95 |"
+        );
+        let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|");
+        for (wi, w) in self.workloads.iter().enumerate() {
+            let Some(peak) = self.peak(wi) else { continue };
+            let get = |k: &str| self.find(wi, Experiment::Online, peak, k);
+            let dynamic_base = format!("{baseline}-dynamic");
+            let cells = [
+                (get(baseline), get("kairos")),
+                (get(baseline), get("kairos-static")),
+                (get(baseline), get(&dynamic_base)),
+            ];
+            let mut line = format!("| {} (ours) ", w.title);
+            for (base, ours) in cells {
+                match (base, ours) {
+                    (Some(b), Some(o)) => {
+                        for (bv, ov) in [
+                            (b.summary.p25, o.summary.p25),
+                            (b.summary.mean, o.summary.mean),
+                            (b.summary.p95, o.summary.p95),
+                        ] {
+                            let _ = write!(line, "| {} ", pct(reduction(bv, ov)));
+                        }
+                    }
+                    _ => line.push_str("| – | – | – "),
+                }
+            }
+            let _ = writeln!(s, "{line}|");
+            if let Some(row) = PAPER.iter().find(|r| r.title == w.title) {
+                let mut line = format!("| {} (paper) ", w.title);
+                for cell in paper_side(row) {
+                    for v in cell {
+                        let _ = write!(line, "| {} ", pct(v));
+                    }
+                }
+                let _ = writeln!(s, "{line}|");
+            }
+        }
+        s
+    }
+
+    /// Absolute P25 / avg / P95 latencies (seconds) of every online variant at each workload's
+    /// peak, with the reduction of the average against Kairos.
+    pub fn peak_table(&self) -> String {
+        let mut s = String::new();
+        for (wi, w) in self.workloads.iter().enumerate() {
+            let Some(peak) = self.peak(wi) else { continue };
+            let _ = writeln!(s, "\n**{}** at {peak} tasks/s\n", w.title);
+            let _ = writeln!(
+                s,
+                "| System | P25 (s) | Avg (s) | P95 (s) | Avg vs Kairos | P95 vs Kairos | rounds/task | batch | re-fetched |"
+            );
+            let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|");
+            let kairos = self.find(wi, Experiment::Online, peak, "kairos");
+            for v in self.variants(wi, Experiment::Online) {
+                let Some(r) = self.find(wi, Experiment::Online, peak, &v.key) else {
+                    continue;
+                };
+                let (vs_avg, vs_p95) = match kairos {
+                    Some(k) => (
+                        pct(reduction(k.summary.mean, r.summary.mean)),
+                        pct(reduction(k.summary.p95, r.summary.p95)),
+                    ),
+                    None => ("–".into(), "–".into()),
+                };
+                let _ = writeln!(
+                    s,
+                    "| {} | {:.2} | {:.2} | {:.2} | {} | {} | {:.1} | {:.2} | {:.0}% |",
+                    v.label,
+                    r.summary.p25,
+                    r.summary.mean,
+                    r.summary.p95,
+                    vs_avg,
+                    vs_p95,
+                    r.rounds_per_task,
+                    r.mean_batch,
+                    r.refetch_share * 100.0
+                );
+            }
+        }
+        s
+    }
+
+    /// Average latency per x for `experiment` (one row per x, one column per variant), with
+    /// Kairos's reduction against the first two variants where present.
+    pub fn sweep_table(&self, experiment: Experiment, x_name: &str) -> String {
+        let mut s = String::new();
+        for (wi, w) in self.workloads.iter().enumerate() {
+            let variants = self.variants(wi, experiment);
+            if variants.is_empty() {
+                continue;
+            }
+            let _ = writeln!(s, "\n**{}**\n", w.title);
+            let mut header = format!("| {x_name} ");
+            for v in &variants {
+                let _ = write!(header, "| {} avg (P95) ", v.label);
+            }
+            let _ = writeln!(s, "{header}|");
+            let _ = writeln!(s, "|---{}|", "|---".repeat(variants.len()));
+            for x in self.xs(wi, experiment) {
+                let mut line = format!("| {x} ");
+                for v in &variants {
+                    match self.find(wi, experiment, x, &v.key) {
+                        Some(r) => {
+                            let _ = write!(line, "| {:.2} ({:.2}) ", r.summary.mean, r.summary.p95);
+                        }
+                        None => line.push_str("| – "),
+                    }
+                }
+                let _ = writeln!(s, "{line}|");
+            }
+        }
+        s
+    }
+
+    /// Every job as one CSV row.
+    pub fn csv(&self) -> String {
+        let mut s = String::from(
+            "workload,experiment,x,variant,policy,setting,hints,tasks,p25_s,mean_s,p50_s,p95_s,p99_s,max_s,rounds_per_task,mean_batch,refetch_share,cloud_share,mean_queue_s,events\n",
+        );
+        for (j, r) in self.jobs.iter().zip(self.results) {
+            let w = &self.workloads[j.workload];
+            let m = &r.summary;
+            let _ = writeln!(
+                s,
+                "{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.2},{:.3},{:.4},{:.4},{:.4},{}",
+                w.name,
+                j.experiment.name(),
+                j.x,
+                j.variant.key,
+                j.variant.policy,
+                j.variant.setting,
+                j.variant.hints,
+                m.n,
+                m.p25,
+                m.mean,
+                m.p50,
+                m.p95,
+                m.p99,
+                m.max,
+                r.rounds_per_task,
+                r.mean_batch,
+                r.refetch_share,
+                r.cloud_share,
+                r.mean_queue_s,
+                r.events
+            );
+        }
+        s
+    }
+}

@@ -1,0 +1,377 @@
+//! Simulator tests: recordings replayed alone come back unchanged, runs are deterministic, and
+//! small scenarios give the latencies computed by hand in the comments.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use kairos_engine::{EngineProfile, ProfilePoint};
+use kairos_sdk::trace::{
+    HorizonSetting, RoundTrace, TaskTrace, TraceHeader, TraceSet, TraceSource,
+};
+
+use super::experiment::{self, Experiment, Plan};
+use super::*;
+use crate::workload::generate::{self, DYNAMIC, STATIC};
+use crate::workload::tests_support::tiny;
+
+fn ms(v: u64) -> Timestamp {
+    Timestamp::from_micros(v * 1000)
+}
+
+/// One edge engine taking `latency_ms` per batch whatever its size, batches of at most
+/// `max_batch`.
+fn flat_engine(latency_ms: f64, max_batch: u32) -> EngineSpec {
+    EngineSpec {
+        name: "edge".into(),
+        tier: Tier::Edge,
+        profile: EngineProfile {
+            model: "test".into(),
+            device: "test".into(),
+            points: vec![
+                ProfilePoint {
+                    batch: 1,
+                    latency_ms,
+                },
+                ProfilePoint {
+                    batch: 64,
+                    latency_ms,
+                },
+            ],
+            max_batch,
+        },
+        rtt: Duration::ZERO,
+    }
+}
+
+fn config(policy: &str, setting: &str, load: Load, engines: Vec<EngineSpec>) -> SimConfig {
+    SimConfig {
+        engines,
+        scheduler: SchedulerConfig::default(),
+        policy: policy.parse().unwrap(),
+        setting: setting.to_string(),
+        network: SimNetwork {
+            robot_rtt: Duration::ZERO,
+            robot_uplink_mbps: 1000.0,
+            wan_mbps: 1000.0,
+        },
+        hints: false,
+        load,
+        seed: 1,
+        record: false,
+    }
+}
+
+/// A hand-written static-horizon task at 10 Hz (100 ms per action): `rounds` as
+/// `(issued_at_action, horizon)`, zero-byte observations.
+fn task(id: u64, total: u32, rounds: &[(u32, u32)]) -> TaskTrace {
+    TaskTrace {
+        task: id,
+        label: None,
+        setting: STATIC.into(),
+        horizon: HorizonSetting {
+            policy: "static".into(),
+            params: BTreeMap::from([("h".to_string(), 1.0)]),
+        },
+        control_hz: 10.0,
+        chunk_len: 16,
+        total_actions: total,
+        rounds: rounds
+            .iter()
+            .map(|&(at, h)| RoundTrace {
+                issued_at_action: at,
+                horizon: h,
+                executed: 0,
+                gen_latency_us: 100_000,
+                round_trip_us: None,
+                obs_bytes: 0,
+                confidence: None,
+            })
+            .collect(),
+    }
+}
+
+fn set(tasks: Vec<TaskTrace>) -> TraceSet {
+    TraceSet {
+        header: TraceHeader::new(TraceSource::Generated),
+        tasks,
+    }
+}
+
+/// Latency (ms) per trace task id.
+fn latencies(r: &SimResult) -> BTreeMap<u64, u64> {
+    r.tasks
+        .iter()
+        .map(|t| (t.trace_task, (t.latency_s * 1000.0).round() as u64))
+        .collect()
+}
+
+/// Runs hand-written static-horizon `traces` on one engine of 100 ms per batch of 1 and returns
+/// the latency (ms) per task.
+fn run_on_one_engine(
+    traces: &TraceSet,
+    policy: &str,
+    hints: bool,
+    load: Load,
+) -> BTreeMap<u64, u64> {
+    let mut cfg = config(policy, STATIC, load, vec![flat_engine(100.0, 1)]);
+    cfg.hints = hints;
+    latencies(&simulate(traces, &cfg).unwrap())
+}
+
+#[test]
+fn replaying_a_recording_alone_reproduces_it_exactly() {
+    let w = tiny();
+    let traces = generate::generate(&w, 5).unwrap();
+    let cfg_for = |setting: &str, id: u64| {
+        let mut c = experiment::config(
+            &w,
+            &experiment::online_variants()[2],
+            Load::Explicit(vec![(Timestamp::ZERO, id)]),
+            1,
+        );
+        c.setting = setting.to_string();
+        c.record = true;
+        c
+    };
+    for original in &traces.tasks {
+        let r = simulate(&traces, &cfg_for(&original.setting, original.task)).unwrap();
+        assert_eq!(r.recorded.len(), 1);
+        let replayed = &r.recorded[0];
+        assert_eq!(
+            replayed.rounds, original.rounds,
+            "task {} ({}) replayed alone differs from its recording",
+            original.task, original.setting
+        );
+        assert_eq!(replayed.total_actions, original.total_actions);
+        assert_eq!(r.refetches, 0, "nothing waits in isolation");
+    }
+}
+
+#[test]
+fn same_seed_same_numbers_other_seed_other_numbers() {
+    let w = tiny();
+    let traces = generate::generate(&w, 9).unwrap();
+    let variant = &experiment::online_variants()[2];
+    let load = Load::Poisson {
+        rate: 3.0,
+        tasks: 60,
+    };
+    let a = simulate(&traces, &experiment::config(&w, variant, load.clone(), 11)).unwrap();
+    let b = simulate(&traces, &experiment::config(&w, variant, load.clone(), 11)).unwrap();
+    let c = simulate(&traces, &experiment::config(&w, variant, load, 12)).unwrap();
+    assert_eq!(a, b);
+    assert_eq!(a.tasks.len(), 60);
+    assert_ne!(a.latencies(), c.latencies());
+}
+
+#[test]
+fn thread_count_never_changes_a_number() {
+    let mut w = tiny();
+    w.experiments.tasks_per_run = 30;
+    w.experiments.fleet_tasks = 12;
+    let traces = vec![generate::generate(&w, 3).unwrap()];
+    let jobs = experiment::plan(
+        std::slice::from_ref(&w),
+        &Plan {
+            experiments: vec![Experiment::Online, Experiment::Fleet],
+            seed: 4,
+            extra: Vec::new(),
+            task_scale: 1.0,
+        },
+    );
+    let one = experiment::run_jobs(&jobs, &traces, 1, &|_| {});
+    let two = experiment::run_jobs(&jobs, &traces, 2, &|_| {});
+    let one: Vec<_> = one.into_iter().map(Result::unwrap).collect();
+    let two: Vec<_> = two.into_iter().map(Result::unwrap).collect();
+    assert_eq!(one, two);
+}
+
+#[test]
+fn one_robot_alone_executes_then_waits_for_each_round() {
+    // 4 actions per chunk, the next request when all 4 have started (inference after the last
+    // action has started),
+    // 100 ms generation, no network delay.
+    //   t=0    round 0 sent; generated 0..100
+    //   t=100  actions 0,1,2,3 start at 100, 200, 300, 400; round 1 sent at 400 (4 started)
+    //   t=500  round 1 arrives; the robot idles from 500 (no action 4 in chunk 0), so action 4
+    //          starts at once: actions 4..7 at 500, 600, 700, 800.
+    // Latency: first request (0) to the last action (800) = 800 ms.
+    let traces = set(vec![task(1, 8, &[(0, 4), (4, 4)])]);
+    let load = Load::Explicit(vec![(ms(0), 1)]);
+    assert_eq!(
+        run_on_one_engine(&traces, "fifo", false, load),
+        BTreeMap::from([(1, 800)])
+    );
+}
+
+#[test]
+fn a_request_sent_before_the_new_chunk_starts_is_accepted() {
+    // Chunks of 4 at 10 Hz, a request after every started action, 100 ms generation:
+    //   round 0 0..100; action 0 at 100; round 1 sent at once (1 started), 100..200;
+    //   at 200 action 1 starts, then round 1 arrives: its first action runs at the next tick
+    //   (300), but round 2 goes out at 200 already (2 started). Last Exec Info must then report
+    //   the chunk as starting at the send time, as the SDK does, or the scheduler refuses it.
+    //   Round 2 (observation after 2 starts) covers [2, 6); actions keep their 100 ms ticks:
+    //   the last (5) at 600 -> 600 ms.
+    let traces = set(vec![task(1, 6, &[(0, 4), (1, 4), (2, 4)])]);
+    let load = Load::Explicit(vec![(ms(0), 1)]);
+    assert_eq!(
+        run_on_one_engine(&traces, "kairos", false, load),
+        BTreeMap::from([(1, 600)])
+    );
+}
+
+#[test]
+fn two_robots_contend_for_one_engine_first_come_first_served() {
+    // Task 1 arrives at 0, task 2 at 50 ms; one engine, batches of 1, 100 ms each.
+    //   task 1: round 0 runs 0..100; actions 0..3 at 100..400; round 1 sent at 400, runs
+    //           400..500; actions 4..7 at 500..800. Latency 800 ms.
+    //   task 2: round 0 waits for the engine, runs 100..200; actions 0..3 at 200..500; round 1
+    //           sent at 500 as task 1's round 1 ends, runs 500..600; actions 4..7 at 600..900.
+    //           Latency 900 − 50 = 850 ms.
+    let traces = set(vec![
+        task(1, 8, &[(0, 4), (4, 4)]),
+        task(2, 8, &[(0, 4), (4, 4)]),
+    ]);
+    let load = Load::Explicit(vec![(ms(0), 1), (ms(50), 2)]);
+    assert_eq!(
+        run_on_one_engine(&traces, "fifo", false, load),
+        BTreeMap::from([(1, 800), (2, 850)])
+    );
+}
+
+/// Three tasks at 10 Hz, one engine, batches of 1, 100 ms per batch:
+/// - A (id 1): 6 actions in two rounds of 3, arrives at 0;
+/// - C (id 3): 3 actions in one round, arrives at 290 ms and occupies the engine 290..390;
+/// - B (id 2): 3 actions in one round, arrives at 320 ms.
+///
+/// A's round 0 runs 0..100, its actions 0..2 start at 100, 200, 300, and its round 1 goes out at
+/// 300 (3 started). At 390 two requests wait: A's round 1 (arrived 300) and B's round 0 (320).
+fn contention() -> TraceSet {
+    set(vec![
+        task(1, 6, &[(0, 3), (3, 3)]),
+        task(2, 3, &[(0, 3)]),
+        task(3, 3, &[(0, 3)]),
+    ])
+}
+
+fn contention_load() -> Load {
+    Load::Explicit(vec![(ms(0), 1), (ms(290), 3), (ms(320), 2)])
+}
+
+#[test]
+fn fifo_serves_the_earlier_request_first() {
+    // FIFO at 390 takes A's round 1 (arrived first): it runs 390..490; A idled from 400 and
+    // resumes at 490: actions 3..5 at 490, 590, 690 -> A 690 ms. B's round 0 runs 490..590:
+    // actions at 590, 690, 790 -> B 790 − 320 = 470 ms. C: actions at 390, 490, 590 -> 300 ms.
+    assert_eq!(
+        run_on_one_engine(&contention(), "fifo", false, contention_load()),
+        BTreeMap::from([(1, 690), (2, 470), (3, 300)])
+    );
+}
+
+#[test]
+fn kairos_serves_the_higher_wait_ratio_first() {
+    // Kairos at 390: B's first round has waited its whole life (wait ratio 1, top bucket); A has
+    // waited only since its robot ran out of actions: E_0 = [100, 300] (reported with round 1:
+    // started at 100, 0 actions left at 300), execution-dominated (200 ms vs G_0 = 100 ms), so
+    // W = 390 − 300 = 90 ms of a 390 ms life, ratio 0.23, bucket 2. B runs 390..490 (actions at
+    // 490, 590, 690 -> 370 ms); A runs 490..590 (actions at 590, 690, 790 -> 790 ms); C 300 ms.
+    assert_eq!(
+        run_on_one_engine(&contention(), "kairos", false, contention_load()),
+        BTreeMap::from([(1, 790), (2, 370), (3, 300)])
+    );
+}
+
+#[test]
+fn srw_serves_due_requests_by_remaining_work_aged_by_waiting() {
+    // SRW at 390: both requests are due (A's robot ran dry at 300, B has no chunk yet). With
+    // the hint both have 1 round left; B's wait ratio 1 divides its urgency by 0.01, A's 0.23 by
+    // 0.77: B first, as Kairos. Without hints (and no finished tasks to learn from) both
+    // urgencies are 0 and arrival order decides, as FIFO.
+    assert_eq!(
+        run_on_one_engine(&contention(), "srw", true, contention_load()),
+        BTreeMap::from([(1, 790), (2, 370), (3, 300)])
+    );
+    assert_eq!(
+        run_on_one_engine(&contention(), "srw", false, contention_load()),
+        BTreeMap::from([(1, 690), (2, 470), (3, 300)])
+    );
+}
+
+#[test]
+fn srw_lets_a_request_with_slack_wait_for_one_that_is_due() {
+    // One engine, batches of 1, 100 ms. Task 1: 12 actions, chunks of 10, next request after
+    // 2 started. Task 2: 3 actions, chunks of 2, next request after 1 started. Task 3: a single
+    // action, arriving at 150 ms to keep the engine busy 200..300. Tasks 1 and 2 arrive at 0.
+    //   0..100 task 1 round 0; 100..200 task 2 round 0; 200..300 task 3 round 0.
+    //   Task 1: actions from 100; round 1 sent at 200 (2 started) with 8 actions left: its
+    //           deadline (E_0.end) is 200 + 800 = 1000.
+    //   Task 2: action 0 at 200; round 1 sent at once (1 started) with 1 action left:
+    //           deadline 300; its robot idles from 400.
+    //   Task 3: action 0 at 300 -> 150 ms.
+    // At 300 both round-1 requests wait (same arrival time, task 1's submitted first).
+    // FIFO: task 1 300..400 (no effect on its robot: last action 11 at 1200 -> 1200 ms); task 2
+    //   400..500: idle from 400, action 2 at 500 -> 500 ms.
+    // SRW: task 2 is due (300 <= 300), task 1 is not (1000): task 2 300..400, its chunk arrives as
+    //   the robot runs dry: action 2 at 400 -> 400 ms; task 1 400..500 -> still 1200 ms.
+    let traces = set(vec![
+        task(1, 12, &[(0, 10), (2, 10)]),
+        task(2, 3, &[(0, 2), (1, 2)]),
+        task(3, 1, &[(0, 1)]),
+    ]);
+    let load = Load::Explicit(vec![(ms(0), 1), (ms(0), 2), (ms(150), 3)]);
+    assert_eq!(
+        run_on_one_engine(&traces, "fifo", false, load.clone()),
+        BTreeMap::from([(1, 1200), (2, 500), (3, 150)])
+    );
+    assert_eq!(
+        run_on_one_engine(&traces, "srw", false, load),
+        BTreeMap::from([(1, 1200), (2, 400), (3, 150)])
+    );
+}
+
+#[test]
+fn dynamic_horizon_halves_the_rounds_of_the_tiny_workload_under_replay() {
+    let w = tiny();
+    let traces = generate::generate(&w, 2).unwrap();
+    let load = Load::Poisson {
+        rate: 1.0,
+        tasks: 40,
+    };
+    let run = |setting: &str| {
+        let mut c = experiment::config(&w, &experiment::online_variants()[0], load.clone(), 3);
+        c.setting = setting.to_string();
+        simulate(&traces, &c).unwrap()
+    };
+    let (s, d) = (run(STATIC), run(DYNAMIC));
+    assert!(
+        (d.requests as f64) < 0.8 * s.requests as f64,
+        "dynamic {} vs static {} requests",
+        d.requests,
+        s.requests
+    );
+}
+
+#[test]
+fn bad_configurations_are_refused() {
+    let traces = set(vec![task(1, 8, &[(0, 4), (4, 4)])]);
+    let base = config(
+        "fifo",
+        STATIC,
+        Load::Explicit(vec![(ms(0), 1)]),
+        vec![flat_engine(100.0, 1)],
+    );
+    let mut c = base.clone();
+    c.setting = DYNAMIC.into();
+    assert!(matches!(simulate(&traces, &c), Err(SimError::NoTasks(_))));
+    let mut c = base.clone();
+    c.engines.clear();
+    assert!(matches!(simulate(&traces, &c), Err(SimError::Config(_))));
+    let mut c = base.clone();
+    c.policy = "nope".parse().unwrap();
+    assert!(matches!(simulate(&traces, &c), Err(SimError::Policy(_))));
+    let mut c = base;
+    c.load = Load::Explicit(vec![(ms(0), 99)]);
+    assert!(matches!(simulate(&traces, &c), Err(SimError::Config(_))));
+}
