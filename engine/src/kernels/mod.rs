@@ -14,6 +14,7 @@
 
 pub mod attention;
 pub mod gemm;
+pub mod pool;
 pub mod vecmath;
 
 pub use gemm::{Init, PackedMatrix};
@@ -57,7 +58,7 @@ impl Isa {
 /// Work is split into exactly `threads()` parts by the caller (output-column ranges of a GEMM,
 /// heads of an attention), so the partition, and with it every result, is deterministic.
 pub struct Pool {
-    pool: rayon::ThreadPool,
+    team: pool::Team,
     threads: usize,
     isa: Isa,
     /// Buffers for packed GEMM operands, one per concurrent caller: taken for a call and put
@@ -92,17 +93,11 @@ impl Pool {
         } else {
             threads
         };
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .thread_name(|i| format!("kairos-engine-{i}"))
-            .build()
-            .map_err(|e| {
-                crate::EngineError::InvalidInput(format!(
-                    "cannot start {threads} engine threads: {e}"
-                ))
-            })?;
+        let team = pool::Team::new(threads, "kairos-engine").map_err(|e| {
+            crate::EngineError::InvalidInput(format!("cannot start {threads} engine threads: {e}"))
+        })?;
         Ok(Pool {
-            pool,
+            team,
             threads,
             isa,
             scratch: std::sync::Mutex::new(Vec::new()),
@@ -144,27 +139,10 @@ impl Pool {
         self.threads
     }
 
-    /// Run `op` on one of the pool's threads, so that the [`Pool::run`] calls inside it hand
-    /// parts to the other workers without a round trip through the calling thread.
-    pub fn install<R: Send>(&self, op: impl FnOnce() -> R + Send) -> R {
-        self.pool.install(op)
-    }
-
-    /// Run `f(part)` for `part in 0..parts` (part 0 on the calling thread) and wait for all.
+    /// Run `f(part)` for `part in 0..parts` on the pool's threads and the calling thread, and
+    /// wait for all (see [`pool::Team::run`]).
     pub fn run(&self, parts: usize, f: impl Fn(usize) + Sync) {
-        if parts <= 1 || self.threads == 1 {
-            for p in 0..parts {
-                f(p);
-            }
-            return;
-        }
-        let f = &f;
-        self.pool.in_place_scope(|s| {
-            for p in 1..parts {
-                s.spawn(move |_| f(p));
-            }
-            f(0);
-        });
+        self.team.run(parts, &f);
     }
 }
 

@@ -153,9 +153,7 @@ impl SmolVlaExpert {
             flat[i * pad..i * pad + s.len()].copy_from_slice(s);
         }
         let out = match &self.backend {
-            Backend::Fast { model, pool } => {
-                pool.install(|| model.embed_state(pool, &flat, states.len()))
-            }
+            Backend::Fast { model, pool } => model.embed_state(pool, &flat, states.len()),
             Backend::Candle(model) => model.embed_state(&flat, states.len())?,
         };
         Ok(out
@@ -203,16 +201,14 @@ impl SmolVlaExpert {
         let mut velocities = vec![0.0f32; rows * d.steps * len];
         let mut updates = vec![0.0f32; rows * d.steps * len];
         match &self.backend {
-            Backend::Fast { model, pool } => pool.install(|| {
-                model.sample(
-                    pool,
-                    &prefixes,
-                    &row_prefix,
-                    &mut x,
-                    &mut velocities,
-                    &mut updates,
-                )
-            })?,
+            Backend::Fast { model, pool } => model.sample(
+                pool,
+                &prefixes,
+                &row_prefix,
+                &mut x,
+                &mut velocities,
+                &mut updates,
+            )?,
             Backend::Candle(model) => model.sample(
                 &prefixes,
                 &row_prefix,
