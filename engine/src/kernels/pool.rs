@@ -81,10 +81,8 @@ impl Shared {
             let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| unsafe {
                 (job.call)(job.data, part)
             }));
-            if let Err(payload) = result {
-                if let Ok(mut slot) = self.panic.lock() {
-                    slot.get_or_insert(payload);
-                }
+            if let (Err(payload), Ok(mut slot)) = (result, self.panic.lock()) {
+                slot.get_or_insert(payload);
             }
             if self.remaining.fetch_sub(1, Ordering::AcqRel) == 1 {
                 let _guard = self.lock();
