@@ -17,7 +17,6 @@
 
 use std::path::Path;
 
-use crate::flow_head::validate;
 use crate::image_features::pooled_features;
 use crate::kernels::gemm::gemm;
 use crate::kernels::{Init, Isa, PackedMatrix};
@@ -172,7 +171,7 @@ impl ActionModel for SmolVlaStandIn {
     }
 
     fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
-        validate(&self.spec, batch)?;
+        self.spec.validate(batch)?;
         let states: Vec<Vec<f32>> = batch.iter().map(|r| r.state.clone()).collect();
         let state_tokens = self.expert.embed_state(&states)?;
         let prefixes = batch
