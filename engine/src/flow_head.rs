@@ -29,8 +29,6 @@ use crate::{ActionChunk, ActionModel, ActionRequest, EngineError, EngineOptions,
 
 /// The `type` of a flow-head `config.json`.
 pub const FLOW_HEAD_TYPE: &str = "kairos_flow_head";
-/// Most samples one request may ask for.
-pub const MAX_SAMPLES: usize = 64;
 
 /// Flow-head configuration (`config.json`).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -111,10 +109,13 @@ impl FlowHeadConfig {
                 self.model_type
             )));
         }
-        if self.heads == 0 || self.kv_heads == 0 || self.heads % self.kv_heads != 0 {
+        if self.heads == 0 || self.kv_heads == 0 || !self.heads.is_multiple_of(self.kv_heads) {
             return Err(bad("heads must be a positive multiple of kv_heads"));
         }
-        if self.head_dim % 2 != 0 || self.hidden % 2 != 0 || self.layers == 0 || self.num_steps == 0
+        if !self.head_dim.is_multiple_of(2)
+            || !self.hidden.is_multiple_of(2)
+            || self.layers == 0
+            || self.num_steps == 0
         {
             return Err(bad(
                 "head_dim and hidden must be even; layers and num_steps positive",
@@ -329,45 +330,13 @@ impl FlowHead {
     }
 }
 
-/// Check a batch against a spec: state length, image count, sample count, finite values.
-pub(crate) fn validate(spec: &ModelSpec, batch: &[ActionRequest]) -> Result<(), EngineError> {
-    for (i, r) in batch.iter().enumerate() {
-        let fail = |m: String| Err(EngineError::InvalidInput(format!("request {i}: {m}")));
-        if r.state.len() != spec.state_dim {
-            return fail(format!(
-                "state has {} values, model `{}` needs {}",
-                r.state.len(),
-                spec.name,
-                spec.state_dim
-            ));
-        }
-        if r.state.iter().any(|v| !v.is_finite()) {
-            return fail("state contains a non-finite value".into());
-        }
-        if r.images.len() > spec.max_images {
-            return fail(format!(
-                "{} images, at most {}",
-                r.images.len(),
-                spec.max_images
-            ));
-        }
-        if r.samples == 0 || r.samples > MAX_SAMPLES {
-            return fail(format!(
-                "samples = {}, must be 1..={MAX_SAMPLES}",
-                r.samples
-            ));
-        }
-    }
-    Ok(())
-}
-
 impl ActionModel for FlowHead {
     fn spec(&self) -> &ModelSpec {
         &self.spec
     }
 
     fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
-        validate(&self.spec, batch)?;
+        self.spec.validate(batch)?;
         let states: Vec<Vec<f32>> = batch.iter().map(|r| r.state.clone()).collect();
         let state_tokens = self.expert.embed_state(&states)?;
         let prefixes = batch

@@ -25,6 +25,6 @@ pub mod weights;
 pub use builtin::{default_model, load_model, load_model_with, resolve_model};
 pub use chunk::ActionChunk;
 pub use error::EngineError;
-pub use model::{ActionModel, ActionRequest, ImageFormat, ImageInput, ModelSpec};
+pub use model::{ActionModel, ActionRequest, ImageFormat, ImageInput, MAX_SAMPLES, ModelSpec};
 pub use options::{DeviceKind, EngineOptions, Kernels};
 pub use profile::{EngineProfile, ProfilePoint};

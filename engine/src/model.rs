@@ -19,6 +19,37 @@ pub struct ModelSpec {
     pub max_images: usize,
 }
 
+/// Most samples one request may ask for.
+pub const MAX_SAMPLES: usize = 64;
+
+impl ModelSpec {
+    /// Check every request of `batch` against this spec: state length, finite state values,
+    /// image count and `1 <= samples <= MAX_SAMPLES`. Errors name the request's index.
+    pub fn validate(&self, batch: &[ActionRequest]) -> Result<(), EngineError> {
+        for (i, r) in batch.iter().enumerate() {
+            let fail = |m: String| Err(EngineError::InvalidInput(format!("request {i}: {m}")));
+            if r.state.len() != self.state_dim {
+                return fail(format!(
+                    "state has {} values, model `{}` needs {}",
+                    r.state.len(),
+                    self.name,
+                    self.state_dim
+                ));
+            }
+            if r.state.iter().any(|v| !v.is_finite()) {
+                return fail("state contains a non-finite value".into());
+            }
+            if r.images.len() > self.max_images {
+                return fail(format!("{} images, at most {}", r.images.len(), self.max_images));
+            }
+            if r.samples == 0 || r.samples > MAX_SAMPLES {
+                return fail(format!("samples = {}, must be 1..={MAX_SAMPLES}", r.samples));
+            }
+        }
+        Ok(())
+    }
+}
+
 /// Encodings the engine can decode.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ImageFormat {

@@ -1,5 +1,7 @@
 //! A broken checkpoint is a clear error that names what is wrong, never a panic.
 
+#![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
+
 use std::path::{Path, PathBuf};
 
 use kairos_engine::smolvla::SmolVlaExpert;

@@ -1,5 +1,7 @@
 //! The served models through `ActionModel`: batching, samples, seeds, updates, checkpoints.
 
+#![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
+
 use kairos_engine::flow_head::{FlowHead, FlowHeadConfig};
 use kairos_engine::smolvla::SmolVlaExpert;
 use kairos_engine::smolvla::serving::SmolVlaStandIn;

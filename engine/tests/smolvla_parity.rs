@@ -16,6 +16,8 @@
 //! no worse than 4 e_lr: a real mismatch (a wrong mask, position, scale or layer order) shows up
 //! as errors of order 1e-2..1, three orders above.
 
+#![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
+
 use std::path::PathBuf;
 
 use kairos_engine::smolvla::{ExpertInput, PrefixKv, SmolVlaExpert};

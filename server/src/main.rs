@@ -12,6 +12,13 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
+    /// Run the whole system on built-in defaults: a server with the built-in model and a fleet
+    /// of simulated robots over QUIC on loopback, once per scheduler, with a summary and a plot.
+    Demo(Box<kairos_server::cli::demo::DemoArgs>),
+    /// Serve robots over QUIC (built-in defaults, or `--config kairos.toml`).
+    Serve(Box<kairos_server::cli::serve::ServeArgs>),
+    /// Measure a model's latency against batch size and write its engine profile.
+    Profile(Box<kairos_server::cli::profile::ProfileArgs>),
     /// Print the protocol version and build information.
     Info,
     /// Run a fleet of simulated robots against a server.
@@ -32,6 +39,9 @@ fn main() -> anyhow::Result<()> {
             );
             Ok(())
         }
+        Command::Demo(args) => kairos_server::cli::demo::run(*args),
+        Command::Serve(args) => kairos_server::cli::serve::run(*args),
+        Command::Profile(args) => kairos_server::cli::profile::run(*args),
         Command::Robot(args) => kairos_server::cli::robot::run(*args),
         Command::Bench(args) => kairos_server::cli::bench::run(args),
     }

@@ -27,6 +27,16 @@ impl KvSegment<'_> {
     }
 }
 
+/// Which keys of a causal segment query `i` sees: keys `0..=(offset + i) % period`. Query rows
+/// may hold several heads' queries back to back (`period` rows each).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct QueryPositions {
+    /// Position of query row 0.
+    pub offset: usize,
+    /// Positions repeat every `period` rows.
+    pub period: usize,
+}
+
 /// `out[i] = softmax(scale * q[i] · Kᵀ) V` for the `nq` query rows of `q` (row stride
 /// `head_dim`), over the concatenation of `segments`. `out` has row stride `ldo`; `scores` is
 /// scratch space, grown as needed.
@@ -37,6 +47,7 @@ pub fn attend(
     nq: usize,
     head_dim: usize,
     segments: &[KvSegment<'_>],
+    positions: QueryPositions,
     scale: f32,
     scores: &mut Vec<f32>,
     out: &mut [f32],
@@ -62,7 +73,11 @@ pub fn attend(
         let row = &mut scores[i * total..(i + 1) * total];
         // Visible keys form a prefix of the row when only the last segment is causal, which is
         // how the expert uses it; hidden causal entries are zeroed after the softmax.
-        let visible = visible_len(segments, i, total);
+        let visible = visible_len(
+            segments,
+            (positions.offset + i) % positions.period.max(1),
+            total,
+        );
         let (seen, hidden) = row.split_at_mut(visible);
         vecmath::softmax_scaled(isa, seen, scale);
         hidden.fill(0.0);
@@ -127,17 +142,39 @@ mod tests {
             },
         ];
         let mut out = vec![0.0; nq * d];
+        let pos = QueryPositions {
+            offset: 0,
+            period: nq,
+        };
         attend(
             Isa::detect(),
             &q,
             nq,
             d,
             &segs,
+            pos,
             0.25,
             &mut Vec::new(),
             &mut out,
             d,
         );
+        // Two heads' queries back to back: each row sees what its position allows.
+        let q2: Vec<f32> = q.iter().chain(&q).copied().collect();
+        let mut out2 = vec![0.0; 2 * nq * d];
+        attend(
+            Isa::detect(),
+            &q2,
+            2 * nq,
+            d,
+            &segs,
+            pos,
+            0.25,
+            &mut Vec::new(),
+            &mut out2,
+            d,
+        );
+        assert_eq!(out2[..nq * d], out[..]);
+        assert_eq!(out2[nq * d..], out[..]);
         for i in 0..nq {
             let keys: Vec<(&[f32], &[f32])> = (0..lp)
                 .map(|j| (&kp[j * d..(j + 1) * d], &vp[j * d..(j + 1) * d]))

@@ -20,7 +20,7 @@ pub const NR: usize = 16;
 /// Rows per micro-kernel tile.
 pub const MR: usize = 6;
 /// Depth of one cache block.
-const KC: usize = 256;
+const KC: usize = 128;
 /// Rows of `A` per cache block (a multiple of `MR`).
 const MC: usize = 120;
 
@@ -138,8 +138,8 @@ pub enum Init<'a> {
     Bias(&'a [f32]),
 }
 
-/// `C[..m][..n] = init + A[..m][..k] · B` on the calling thread, with `isa`'s kernels. `A` has row stride `lda`, `C`
-/// row stride `ldc`.
+/// `C[..m][..n] = init + A[..m][..k] · B` on the calling thread, with `isa`'s kernels. `A` has
+/// row stride `lda`, `C` row stride `ldc`.
 #[allow(clippy::too_many_arguments)]
 pub fn gemm(
     isa: Isa,
@@ -152,11 +152,21 @@ pub fn gemm(
     init: Init<'_>,
 ) {
     check(a, lda, m, b, c, ldc, init);
-    // SAFETY: `check` verified every access stays inside `a` and `c`; one thread owns all of `c`.
-    unsafe { gemm_panels(isa, a, lda, m, b, 0..b.panels(), c.as_mut_ptr(), ldc, init) }
+    if m == 0 || b.n == 0 {
+        return;
+    }
+    // The borrow never spans a wait on other threads, so a worker that steals work while it
+    // waits can never find its own buffer borrowed.
+    A_PACK.with(|buf| {
+        let mut buf = buf.borrow_mut();
+        let packed = pack_a_blocks(a, lda, m, b.k, &mut buf);
+        // SAFETY: `check` verified the bounds of `c`; this thread owns all of it.
+        unsafe { gemm_packed(isa, packed, m, b, 0..b.panels(), c.as_mut_ptr(), ldc, init) }
+    });
 }
 
-/// [`gemm`] with the output columns split across the pool's threads.
+/// [`gemm`] with the output columns split into [`Pool::parts`] parts run by the pool's threads.
+/// `A` is packed once, on the calling thread, and shared by all parts.
 #[allow(clippy::too_many_arguments)]
 pub fn gemm_par(
     pool: &Pool,
@@ -169,14 +179,20 @@ pub fn gemm_par(
     init: Init<'_>,
 ) {
     check(a, lda, m, b, c, ldc, init);
+    if m == 0 || b.n == 0 {
+        return;
+    }
     let panels = b.panels();
-    let parts = pool.threads().min(panels).max(1);
+    let parts = pool.parts(panels);
+    let mut scratch = pool.take_scratch();
+    let packed = pack_a_blocks(a, lda, m, b.k, &mut scratch);
     let out = SharedMut::new(c);
     pool.run(parts, |t| {
         let range = panels * t / parts..panels * (t + 1) / parts;
         // SAFETY: `check` verified the bounds; part `t` writes only the columns of its panels.
-        unsafe { gemm_panels(pool.isa(), a, lda, m, b, range, out.ptr(), ldc, init) }
+        unsafe { gemm_packed(pool.isa(), packed, m, b, range, out.ptr(), ldc, init) }
     });
+    pool.put_scratch(scratch);
 }
 
 fn check(a: &[f32], lda: usize, m: usize, b: &PackedMatrix, c: &[f32], ldc: usize, init: Init<'_>) {
@@ -192,19 +208,59 @@ fn check(a: &[f32], lda: usize, m: usize, b: &PackedMatrix, c: &[f32], ldc: usiz
 }
 
 thread_local! {
-    /// Per-thread buffer for one packed `MC x KC` block of `A`.
-    static A_PACK: std::cell::RefCell<AlignedBuf> = std::cell::RefCell::new(AlignedBuf::zeros(MC * KC));
+    /// Per-thread buffer for packed `A` of single-threaded calls.
+    static A_PACK: std::cell::RefCell<AlignedBuf> = std::cell::RefCell::new(AlignedBuf::default());
+}
+
+/// Rows of the `MC` block starting at `m0`, rounded up to whole tiles.
+fn padded_rows(m: usize, m0: usize) -> usize {
+    MC.min(m - m0).div_ceil(MR) * MR
+}
+
+/// Where block `(m0, k0)` of packed `A` starts: blocks are stored `MC` rows at a time, each as
+/// its `KC`-deep slices one after another (see [`pack_a`] for one slice).
+fn a_block(k: usize, m: usize, m0: usize, k0: usize) -> usize {
+    m0 * k + k0 * padded_rows(m, m0)
+}
+
+/// Pack all of `A` (`m x k`, row stride `lda`) into `buf` in [`a_block`] order.
+fn pack_a_blocks<'a>(
+    a: &[f32],
+    lda: usize,
+    m: usize,
+    k: usize,
+    buf: &'a mut AlignedBuf,
+) -> &'a [f32] {
+    let len = m.div_ceil(MR) * MR * k;
+    buf.ensure(len);
+    let out = &mut buf.as_mut_slice()[..len];
+    let mut m0 = 0;
+    while m0 < m {
+        let mb = MC.min(m - m0);
+        let mut k0 = 0;
+        while k0 < k {
+            let kc = KC.min(k - k0);
+            pack_a(
+                &a[m0 * lda + k0..],
+                lda,
+                mb,
+                kc,
+                &mut out[a_block(k, m, m0, k0)..],
+            );
+            k0 += kc;
+        }
+        m0 += mb;
+    }
+    &buf.as_slice()[..len]
 }
 
 /// # Safety
-/// `a` holds `m` rows of stride `lda` with at least `b.k` values each, `c` points to `m` rows of
-/// stride `ldc` with at least `b.n` values each, and no other thread touches the columns of
-/// `panels` in those rows.
+/// `c` points to `m` rows of stride `ldc` with at least `b.n` values each, and no other thread
+/// touches the columns of `panels` in those rows; `packed` is `A` packed by [`pack_a_blocks`].
 #[allow(clippy::too_many_arguments)]
-unsafe fn gemm_panels(
+unsafe fn gemm_packed(
     isa: Isa,
-    a: &[f32],
-    lda: usize,
+    packed: &[f32],
     m: usize,
     b: &PackedMatrix,
     panels: Range<usize>,
@@ -213,63 +269,118 @@ unsafe fn gemm_panels(
     init: Init<'_>,
 ) {
     let k = b.k;
-    if m == 0 || panels.is_empty() {
+    if panels.is_empty() {
         return;
     }
-    // Initialise C: every K block then accumulates.
-    for p in panels.clone() {
-        let c0 = p * NR;
-        let w = NR.min(b.n - c0);
-        for r in 0..m {
-            // SAFETY: row r, columns c0..c0+w are inside C and owned by this call.
-            let row = unsafe { std::slice::from_raw_parts_mut(c.add(r * ldc + c0), w) };
-            match init {
-                Init::Zero => row.fill(0.0),
-                Init::Accumulate => {}
-                Init::Bias(bias) => row.copy_from_slice(&bias[c0..c0 + w]),
+    // Zero-initialised outputs start from zero accumulators; a bias is written into C first.
+    if let Init::Bias(bias) = init {
+        for p in panels.clone() {
+            let c0 = p * NR;
+            let w = NR.min(b.n - c0);
+            for r in 0..m {
+                // SAFETY: row r, columns c0..c0+w are inside C and owned by this call.
+                let row = unsafe { std::slice::from_raw_parts_mut(c.add(r * ldc + c0), w) };
+                row.copy_from_slice(&bias[c0..c0 + w]);
             }
         }
     }
     if k == 0 {
+        if let Init::Zero = init {
+            for p in panels {
+                let c0 = p * NR;
+                for r in 0..m {
+                    // SAFETY: as above.
+                    unsafe {
+                        std::slice::from_raw_parts_mut(c.add(r * ldc + c0), NR.min(b.n - c0))
+                            .fill(0.0)
+                    };
+                }
+            }
+        }
         return;
     }
-    A_PACK.with(|buf| {
-        let mut buf = buf.borrow_mut();
-        let apack = buf.as_mut_slice();
-        let mut m0 = 0;
-        while m0 < m {
-            let mb = MC.min(m - m0);
-            let mut k0 = 0;
-            while k0 < k {
-                let kc = KC.min(k - k0);
-                pack_a(&a[m0 * lda + k0..], lda, mb, kc, apack);
-                for p in panels.clone() {
-                    let c0 = p * NR;
-                    let w = NR.min(b.n - c0);
-                    let bp = b.panel_ptr(p, k0);
-                    // While the first row tile of this panel runs, pull the next panel's rows in.
-                    let next = if p + 1 < panels.end {
-                        b.panel_ptr(p + 1, k0)
-                    } else {
-                        std::ptr::null()
-                    };
-                    let mut r0 = 0;
-                    while r0 < mb {
-                        let rows = MR.min(mb - r0);
-                        let ap = apack[(r0 / MR) * kc * MR..].as_ptr();
-                        // SAFETY: the tile lies inside C (rows m0+r0.., columns c0..c0+w).
-                        let cp = unsafe { c.add((m0 + r0) * ldc + c0) };
-                        let pf = if r0 == 0 { next } else { std::ptr::null() };
-                        // SAFETY: the packed A tile and the panel hold kc rows; C as above.
-                        unsafe { tile(isa, rows, kc, ap, bp, cp, ldc, w, pf) };
-                        r0 += rows;
+    let mut m0 = 0;
+    while m0 < m {
+        let mb = MC.min(m - m0);
+        let tiles = mb.div_ceil(MR);
+        let mut k0 = 0;
+        while k0 < k {
+            let kc = KC.min(k - k0);
+            let load = k0 > 0 || !matches!(init, Init::Zero);
+            let block = &packed[a_block(k, m, m0, k0)..];
+            for p in panels.clone() {
+                let c0 = p * NR;
+                let w = NR.min(b.n - c0);
+                let bp = b.panel_ptr(p, k0);
+                let next = if p + 1 < panels.end {
+                    b.panel_ptr(p + 1, k0)
+                } else {
+                    std::ptr::null()
+                };
+                for t in 0..tiles {
+                    let r0 = t * MR;
+                    let rows = MR.min(mb - r0);
+                    // Pull the next panel into L1 a slice per tile, spread over this panel's
+                    // tiles so the misses overlap with computation instead of queueing.
+                    if !next.is_null() {
+                        prefetch_lines(isa, next, kc * t / tiles, kc * (t + 1) / tiles);
                     }
+                    let ap = block[t * kc * MR..].as_ptr();
+                    // SAFETY: the tile lies inside C (rows m0+r0.., columns c0..c0+w).
+                    let cp = unsafe { c.add((m0 + r0) * ldc + c0) };
+                    // The next tile's accumulators come from C: start fetching them now.
+                    if load && t + 1 < tiles {
+                        let next_rows = MR.min(mb - r0 - MR);
+                        prefetch_rows(isa, cp.wrapping_add(MR * ldc), ldc, next_rows);
+                    }
+                    // SAFETY: the packed A tile and the panel hold kc rows; C as above.
+                    unsafe { tile(isa, rows, kc, ap, bp, cp, ldc, w, load) };
                 }
-                k0 += kc;
             }
-            m0 += mb;
+            k0 += kc;
         }
-    });
+        m0 += mb;
+    }
+}
+
+/// Prefetch `rows` rows of a C tile (`NR` values each, possibly straddling two lines).
+#[inline(always)]
+fn prefetch_rows(isa: Isa, c: *const f32, ldc: usize, rows: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if isa == Isa::Avx2Fma {
+        for r in 0..rows {
+            let row = c.wrapping_add(r * ldc);
+            // SAFETY: prefetching never faults.
+            unsafe {
+                std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
+                    row as *const i8,
+                );
+                std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
+                    row.wrapping_add(NR - 1) as *const i8,
+                );
+            }
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (isa, c, ldc, rows);
+}
+
+/// Prefetch panel rows `from..to` (one cache line each) into L1.
+#[inline(always)]
+fn prefetch_lines(isa: Isa, panel: *const f32, from: usize, to: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if isa == Isa::Avx2Fma {
+        for line in from..to {
+            // SAFETY: prefetching never faults; the address is inside the panel.
+            unsafe {
+                std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
+                    panel.wrapping_add(line * NR) as *const i8,
+                )
+            };
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (isa, panel, from, to);
 }
 
 /// Pack `rows x kc` of `A` into row tiles of `MR`: tile `t` is `kc` groups of `MR` values (rows
@@ -293,12 +404,12 @@ fn pack_a(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
     }
 }
 
-/// One `rows x w` tile (`rows <= MR`, `w <= NR`): `C += A · B` over `kc`, `A` packed by
-/// [`pack_a`]. `prefetch`, if not null, is a panel whose `kc` rows to pull into cache.
+/// One `rows x w` tile (`rows <= MR`, `w <= NR`): `C = A · B` over `kc`, or `C += A · B` when
+/// `load`, with `A` packed by [`pack_a`].
 ///
 /// # Safety
 /// `a` has `kc * MR` values, `b` has `kc` rows of `NR` values, `c` has `rows` rows of stride
-/// `ldc` with `w` values; `prefetch` is null or points into a panel with `kc` rows.
+/// `ldc` with `w` values.
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile(
     isa: Isa,
@@ -309,19 +420,21 @@ unsafe fn tile(
     c: *mut f32,
     ldc: usize,
     w: usize,
-    prefetch: *const f32,
+    load: bool,
 ) {
     if w < NR {
         // Edge panel: run the full-width kernel on a scratch tile, copy the valid columns.
         let mut scratch = [0.0f32; MR * NR];
-        for r in 0..rows {
-            for j in 0..w {
-                // SAFETY: inside the caller's C tile.
-                scratch[r * NR + j] = unsafe { *c.add(r * ldc + j) };
+        if load {
+            for r in 0..rows {
+                for j in 0..w {
+                    // SAFETY: inside the caller's C tile.
+                    scratch[r * NR + j] = unsafe { *c.add(r * ldc + j) };
+                }
             }
         }
         // SAFETY: scratch is a full MR x NR tile.
-        unsafe { tile(isa, rows, kc, a, b, scratch.as_mut_ptr(), NR, NR, prefetch) };
+        unsafe { tile(isa, rows, kc, a, b, scratch.as_mut_ptr(), NR, NR, load) };
         for r in 0..rows {
             for j in 0..w {
                 // SAFETY: inside the caller's C tile.
@@ -331,21 +444,21 @@ unsafe fn tile(
         return;
     }
     macro_rules! dispatch {
-        ($f:ident $(, $extra:expr)?) => {
+        ($f:ident) => {
             match rows {
-                6 => $f::<6>(kc, a, b, c, ldc $(, $extra)?),
-                5 => $f::<5>(kc, a, b, c, ldc $(, $extra)?),
-                4 => $f::<4>(kc, a, b, c, ldc $(, $extra)?),
-                3 => $f::<3>(kc, a, b, c, ldc $(, $extra)?),
-                2 => $f::<2>(kc, a, b, c, ldc $(, $extra)?),
-                _ => $f::<1>(kc, a, b, c, ldc $(, $extra)?),
+                6 => $f::<6>(kc, a, b, c, ldc, load),
+                5 => $f::<5>(kc, a, b, c, ldc, load),
+                4 => $f::<4>(kc, a, b, c, ldc, load),
+                3 => $f::<3>(kc, a, b, c, ldc, load),
+                2 => $f::<2>(kc, a, b, c, ldc, load),
+                _ => $f::<1>(kc, a, b, c, ldc, load),
             }
         };
     }
     match isa {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: Isa::Avx2Fma is only reported when the CPU has AVX2 and FMA.
-        Isa::Avx2Fma => unsafe { dispatch!(kernel_avx2, prefetch) },
+        Isa::Avx2Fma => unsafe { dispatch!(kernel_avx2) },
         // SAFETY: same pointer contract.
         _ => unsafe { dispatch!(kernel_portable) },
     }
@@ -361,15 +474,17 @@ unsafe fn kernel_avx2<const R: usize>(
     b: *const f32,
     c: *mut f32,
     ldc: usize,
-    prefetch: *const f32,
+    load: bool,
 ) {
     use std::arch::x86_64::*;
     let mut acc = [[_mm256_setzero_ps(); 2]; R];
-    for (r, row) in acc.iter_mut().enumerate() {
-        // SAFETY: row r of the C tile has NR values.
-        unsafe {
-            row[0] = _mm256_loadu_ps(c.add(r * ldc));
-            row[1] = _mm256_loadu_ps(c.add(r * ldc + 8));
+    if load {
+        for (r, row) in acc.iter_mut().enumerate() {
+            // SAFETY: row r of the C tile has NR values.
+            unsafe {
+                row[0] = _mm256_loadu_ps(c.add(r * ldc));
+                row[1] = _mm256_loadu_ps(c.add(r * ldc + 8));
+            }
         }
     }
     macro_rules! step {
@@ -387,33 +502,12 @@ unsafe fn kernel_avx2<const R: usize>(
         }};
     }
     let mut kk = 0;
-    if prefetch.is_null() {
-        while kk + 4 <= kc {
-            step!(kk);
-            step!(kk + 1);
-            step!(kk + 2);
-            step!(kk + 3);
-            kk += 4;
-        }
-    } else {
-        while kk + 4 <= kc {
-            // One panel row is one cache line: fetch the next panel's rows as we go.
-            // SAFETY: prefetch never faults; the address is inside the next panel.
-            unsafe {
-                _mm_prefetch::<_MM_HINT_T0>(prefetch.add(kk * NR) as *const i8);
-                _mm_prefetch::<_MM_HINT_T0>(prefetch.add((kk + 2) * NR) as *const i8);
-            }
-            step!(kk);
-            step!(kk + 1);
-            // SAFETY: as above.
-            unsafe {
-                _mm_prefetch::<_MM_HINT_T0>(prefetch.add((kk + 1) * NR) as *const i8);
-                _mm_prefetch::<_MM_HINT_T0>(prefetch.add((kk + 3) * NR) as *const i8);
-            }
-            step!(kk + 2);
-            step!(kk + 3);
-            kk += 4;
-        }
+    while kk + 4 <= kc {
+        step!(kk);
+        step!(kk + 1);
+        step!(kk + 2);
+        step!(kk + 3);
+        kk += 4;
     }
     while kk < kc {
         step!(kk);
@@ -436,12 +530,15 @@ unsafe fn kernel_portable<const R: usize>(
     b: *const f32,
     c: *mut f32,
     ldc: usize,
+    load: bool,
 ) {
     let mut acc = [[0.0f32; NR]; R];
-    for (r, row) in acc.iter_mut().enumerate() {
-        for (j, v) in row.iter_mut().enumerate() {
-            // SAFETY: row r of the C tile has NR values.
-            *v = unsafe { *c.add(r * ldc + j) };
+    if load {
+        for (r, row) in acc.iter_mut().enumerate() {
+            for (j, v) in row.iter_mut().enumerate() {
+                // SAFETY: row r of the C tile has NR values.
+                *v = unsafe { *c.add(r * ldc + j) };
+            }
         }
     }
     for kk in 0..kc {

@@ -14,6 +14,7 @@
 
 pub mod attention;
 pub mod gemm;
+pub mod pool;
 pub mod vecmath;
 
 pub use gemm::{Init, PackedMatrix};
@@ -57,9 +58,12 @@ impl Isa {
 /// Work is split into exactly `threads()` parts by the caller (output-column ranges of a GEMM,
 /// heads of an attention), so the partition, and with it every result, is deterministic.
 pub struct Pool {
-    pool: rayon::ThreadPool,
+    team: pool::Team,
     threads: usize,
     isa: Isa,
+    /// Buffers for packed GEMM operands, one per concurrent caller: taken for a call and put
+    /// back after it, never held while waiting for workers.
+    scratch: std::sync::Mutex<Vec<AlignedBuf>>,
 }
 
 impl std::fmt::Debug for Pool {
@@ -89,16 +93,29 @@ impl Pool {
         } else {
             threads
         };
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .thread_name(|i| format!("kairos-engine-{i}"))
-            .build()
-            .map_err(|e| {
-                crate::EngineError::InvalidInput(format!(
-                    "cannot start {threads} engine threads: {e}"
-                ))
-            })?;
-        Ok(Pool { pool, threads, isa })
+        let team = pool::Team::new(threads, "kairos-engine").map_err(|e| {
+            crate::EngineError::InvalidInput(format!("cannot start {threads} engine threads: {e}"))
+        })?;
+        Ok(Pool {
+            team,
+            threads,
+            isa,
+            scratch: std::sync::Mutex::new(Vec::new()),
+        })
+    }
+
+    pub(crate) fn take_scratch(&self) -> AlignedBuf {
+        match self.scratch.lock() {
+            Ok(mut v) => v.pop().unwrap_or_default(),
+            Err(poisoned) => poisoned.into_inner().pop().unwrap_or_default(),
+        }
+    }
+
+    pub(crate) fn put_scratch(&self, buf: AlignedBuf) {
+        match self.scratch.lock() {
+            Ok(mut v) => v.push(buf),
+            Err(poisoned) => poisoned.into_inner().push(buf),
+        }
     }
 
     /// The instruction set of the kernels run on this pool.
@@ -106,31 +123,57 @@ impl Pool {
         self.isa
     }
 
+    /// How many parts to cut `units` independent pieces of work into: a few per thread, so that
+    /// a thread that gets less CPU time (a shared machine) hands its share to the others instead
+    /// of holding everyone up. Which thread runs a part never changes its result.
+    pub fn parts(&self, units: usize) -> usize {
+        if self.threads == 1 {
+            1
+        } else {
+            units.min(4 * self.threads).max(1)
+        }
+    }
+
     /// Number of worker threads.
     pub fn threads(&self) -> usize {
         self.threads
     }
 
-    /// Run `op` on one of the pool's threads, so that the [`Pool::run`] calls inside it hand
-    /// parts to the other workers without a round trip through the calling thread.
-    pub fn install<R: Send>(&self, op: impl FnOnce() -> R + Send) -> R {
-        self.pool.install(op)
-    }
-
-    /// Run `f(part)` for `part in 0..parts` (part 0 on the calling thread) and wait for all.
+    /// Run `f(part)` for `part in 0..parts` on the pool's threads and the calling thread, and
+    /// wait for all (see [`pool::Team::run`]).
     pub fn run(&self, parts: usize, f: impl Fn(usize) + Sync) {
-        if parts <= 1 || self.threads == 1 {
-            for p in 0..parts {
-                f(p);
-            }
+        self.team.run(parts, &f);
+    }
+}
+
+impl Pool {
+    /// Split `out` (rows of `row_len` values) into one contiguous run of rows per thread and
+    /// call `f(first_row, rows)` on each, in parallel. Small outputs stay on the calling thread.
+    pub fn for_row_chunks(
+        &self,
+        out: &mut [f32],
+        row_len: usize,
+        f: impl Fn(usize, &mut [f32]) + Sync,
+    ) {
+        let rows = out.len() / row_len.max(1);
+        // Below ~16k values a wake-up costs more than the work.
+        let parts = if rows * row_len < 16 * 1024 {
+            1
+        } else {
+            self.threads.min(rows).max(1)
+        };
+        if parts == 1 {
+            f(0, out);
             return;
         }
-        let f = &f;
-        self.pool.in_place_scope(|s| {
-            for p in 1..parts {
-                s.spawn(move |_| f(p));
-            }
-            f(0);
+        let base = SharedMut::new(out);
+        self.run(parts, |p| {
+            let (r0, r1) = (rows * p / parts, rows * (p + 1) / parts);
+            // SAFETY: parts cover disjoint row ranges of `out`.
+            let chunk = unsafe {
+                std::slice::from_raw_parts_mut(base.ptr().add(r0 * row_len), (r1 - r0) * row_len)
+            };
+            f(r0, chunk);
         });
     }
 }

@@ -201,9 +201,11 @@ impl ExpertDims {
             })
             .collect();
         let hidden = (text.hidden_size as f64 * cfg.expert_width_multiplier) as usize;
-        if text.num_attention_heads % text.num_key_value_heads.max(1) != 0
-            || text.head_dim % 2 != 0
-            || hidden % 2 != 0
+        if !text
+            .num_attention_heads
+            .is_multiple_of(text.num_key_value_heads.max(1))
+            || !text.head_dim.is_multiple_of(2)
+            || !hidden.is_multiple_of(2)
         {
             return Err(bad(
                 "heads must be a multiple of KV heads; head_dim and hidden even".into(),

@@ -8,7 +8,7 @@ use super::config::{ExpertDims, LayerKind};
 use super::prefix::PrefixKv;
 use super::weights::{ExpertWeights, LinearWeights, time_embedding};
 use crate::EngineError;
-use crate::kernels::attention::{KvSegment, attend};
+use crate::kernels::attention::{KvSegment, QueryPositions, attend};
 use crate::kernels::gemm::{gemm, gemm_par};
 use crate::kernels::{Init, PackedMatrix, Pool, SharedMut, vecmath};
 
@@ -368,7 +368,7 @@ impl CpuExpert {
         let (h, hd, n, tokens) = (d.hidden, d.head_dim, d.chunk, ws.tokens);
         let (qw, kvw, half) = (d.q_width(), d.kv_width(), d.head_dim / 2);
         let isa = pool.isa();
-        vecmath::rms_norm(isa, &ws.x, &layer.input_norm, d.rms_eps, &mut ws.h);
+        rms_norm_par(pool, &ws.x, &layer.input_norm, d.rms_eps, &mut ws.h);
         let ld = layer.qkv.n();
         gemm_par(
             pool,
@@ -414,36 +414,47 @@ impl CpuExpert {
                 }
             }
         }
-        // Attention, one task per (row, head), split evenly over the pool.
-        let tasks = rows * d.heads;
-        let parts = pool.threads().min(tasks).max(1);
+        // Attention: the queries of the heads that share a KV head form one block of
+        // `groups * n` rows (one GEMM against the shared keys). Each block is cut in two tasks
+        // so that batch 1 still gives the threads even work.
         let groups = d.heads / d.kv_heads;
+        let block = groups * n;
+        let splits = if block >= 4 * crate::kernels::gemm::MR {
+            2
+        } else {
+            1
+        };
+        let tasks = rows * d.kv_heads * splits;
+        let parts = pool.parts(tasks);
         let scale = (hd as f64).powf(-0.5) as f32;
         let out = SharedMut::new(&mut ws.attn);
         let (q_heads, suffix_kv, scratch) = (&ws.q_heads, &ws.suffix_kv, &ws.scores);
         pool.run(parts, |p| {
-            let mut scores = match scratch[p].lock() {
+            let mut guard = match scratch[p].lock() {
                 Ok(g) => g,
                 Err(poisoned) => poisoned.into_inner(),
             };
+            let (scores, tmp) = &mut *guard;
             for task in tasks * p / parts..tasks * (p + 1) / parts {
-                let (r, head) = (task / d.heads, task % d.heads);
-                let g = head / groups;
+                let (r, g, half) = (
+                    task / (d.kv_heads * splits),
+                    (task / splits) % d.kv_heads,
+                    task % splits,
+                );
+                let (i0, i1) = (block * half / splits, block * (half + 1) / splits);
                 let (pk, pv) = &ctx.prepared[ctx.row_prefix[r]].layers[l][g];
                 let prefix = KvSegment {
                     keys_t: pk,
                     values: pv,
                     causal: false,
                 };
-                let q = &q_heads[(r * d.heads + head) * n * hd..(r * d.heads + head + 1) * n * hd];
-                // SAFETY: task (r, head) writes rows r*n..(r+1)*n, columns head*hd..(head+1)*hd of
-                // `attn` only; tasks are disjoint.
-                let dst = unsafe {
-                    std::slice::from_raw_parts_mut(
-                        out.ptr().add(r * n * qw + head * hd),
-                        (n - 1) * qw + hd,
-                    )
+                let base = (r * d.heads + g * groups) * n * hd;
+                let q = &q_heads[base + i0 * hd..base + i1 * hd];
+                let positions = QueryPositions {
+                    offset: i0 % n,
+                    period: n,
                 };
+                tmp.resize((i1 - i0) * hd, 0.0);
                 match layer.kind {
                     LayerKind::SelfAttention => {
                         let (sk, sv) = &suffix_kv[r * d.kv_heads + g];
@@ -452,11 +463,42 @@ impl CpuExpert {
                             values: sv,
                             causal: true,
                         };
-                        attend(isa, q, n, hd, &[prefix, own], scale, &mut scores, dst, qw);
+                        attend(
+                            isa,
+                            q,
+                            i1 - i0,
+                            hd,
+                            &[prefix, own],
+                            positions,
+                            scale,
+                            scores,
+                            tmp,
+                            hd,
+                        );
                     }
-                    LayerKind::CrossAttention => {
-                        attend(isa, q, n, hd, &[prefix], scale, &mut scores, dst, qw)
-                    }
+                    LayerKind::CrossAttention => attend(
+                        isa,
+                        q,
+                        i1 - i0,
+                        hd,
+                        &[prefix],
+                        positions,
+                        scale,
+                        scores,
+                        tmp,
+                        hd,
+                    ),
+                }
+                for (i, src) in (i0..i1).zip(tmp.chunks_exact(hd)) {
+                    let (head, t) = (g * groups + i / n, i % n);
+                    // SAFETY: (row r, token t, head) is written by this task only.
+                    let dst = unsafe {
+                        std::slice::from_raw_parts_mut(
+                            out.ptr().add((r * n + t) * qw + head * hd),
+                            hd,
+                        )
+                    };
+                    dst.copy_from_slice(src);
                 }
             }
         });
@@ -471,6 +513,19 @@ impl CpuExpert {
             Init::Accumulate,
         );
     }
+}
+
+fn rms_norm_par(pool: &Pool, x: &[f32], weight: &[f32], eps: f32, out: &mut [f32]) {
+    let h = weight.len();
+    pool.for_row_chunks(out, h, |r0, rows| {
+        vecmath::rms_norm(
+            pool.isa(),
+            &x[r0 * h..r0 * h + rows.len()],
+            weight,
+            eps,
+            rows,
+        );
+    });
 }
 
 struct StepContext<'a> {
@@ -492,7 +547,8 @@ struct Workspace {
     gate_up: Vec<f32>,
     act: Vec<f32>,
     suffix_kv: Vec<(PackedMatrix, PackedMatrix)>,
-    scores: Vec<Mutex<Vec<f32>>>,
+    /// Per attention part: scores and the output block.
+    scores: Vec<Mutex<(Vec<f32>, Vec<f32>)>>,
 }
 
 impl Workspace {
@@ -509,8 +565,8 @@ impl Workspace {
             gate_up: vec![0.0; tokens * 2 * d.intermediate],
             act: vec![0.0; tokens * d.intermediate],
             suffix_kv: (0..rows * d.kv_heads).map(|_| Default::default()).collect(),
-            scores: (0..threads.max(1))
-                .map(|_| Mutex::new(Vec::new()))
+            scores: (0..4 * threads.max(1))
+                .map(|_| Mutex::new((Vec::new(), Vec::new())))
                 .collect(),
         }
     }

@@ -32,10 +32,10 @@ use crate::{ActionChunk, EngineError};
 
 enum Backend {
     Fast {
-        model: cpu::CpuExpert,
+        model: Box<cpu::CpuExpert>,
         pool: crate::kernels::Pool,
     },
-    Candle(candle_backend::CandleExpert),
+    Candle(Box<candle_backend::CandleExpert>),
 }
 
 /// A loaded SmolVLA action expert.
@@ -114,12 +114,12 @@ impl SmolVlaExpert {
         let description = target.describe();
         let backend = match target {
             Target::Fast(pool) => Backend::Fast {
-                model: cpu::CpuExpert::new(weights),
+                model: Box::new(cpu::CpuExpert::new(weights)),
                 pool,
             },
-            Target::Candle(device) => {
-                Backend::Candle(candle_backend::CandleExpert::new(weights, &device)?)
-            }
+            Target::Candle(device) => Backend::Candle(Box::new(candle_backend::CandleExpert::new(
+                weights, &device,
+            )?)),
         };
         Ok(SmolVlaExpert {
             dims: weights.dims.clone(),
@@ -153,9 +153,7 @@ impl SmolVlaExpert {
             flat[i * pad..i * pad + s.len()].copy_from_slice(s);
         }
         let out = match &self.backend {
-            Backend::Fast { model, pool } => {
-                pool.install(|| model.embed_state(pool, &flat, states.len()))
-            }
+            Backend::Fast { model, pool } => model.embed_state(pool, &flat, states.len()),
             Backend::Candle(model) => model.embed_state(&flat, states.len())?,
         };
         Ok(out
@@ -203,16 +201,14 @@ impl SmolVlaExpert {
         let mut velocities = vec![0.0f32; rows * d.steps * len];
         let mut updates = vec![0.0f32; rows * d.steps * len];
         match &self.backend {
-            Backend::Fast { model, pool } => pool.install(|| {
-                model.sample(
-                    pool,
-                    &prefixes,
-                    &row_prefix,
-                    &mut x,
-                    &mut velocities,
-                    &mut updates,
-                )
-            })?,
+            Backend::Fast { model, pool } => model.sample(
+                pool,
+                &prefixes,
+                &row_prefix,
+                &mut x,
+                &mut velocities,
+                &mut updates,
+            )?,
             Backend::Candle(model) => model.sample(
                 &prefixes,
                 &row_prefix,
