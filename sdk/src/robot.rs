@@ -311,6 +311,14 @@ impl ChunkExecutor {
         })
     }
 
+    /// Drops what is left of the current chunk (the task ended before it ran out). Returns the
+    /// chunk's round, how many of its actions executed and how many were dropped, if any were.
+    pub fn drop_rest(&mut self) -> Option<(u64, u32, u32)> {
+        let chunk = self.chunk.take().filter(|c| c.remaining() > 0)?;
+        let as_u32 = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
+        Some((chunk.round, as_u32(chunk.executed()), as_u32(chunk.remaining())))
+    }
+
     /// The current chunk's round and how many of its actions executed.
     pub fn current_chunk(&self) -> Option<(u64, u32)> {
         self.chunk.as_ref().map(|chunk| {
@@ -584,7 +592,18 @@ impl RobotRunner {
         };
         loop {
             let now = Instant::now();
-            let stop_requesting = run.replies >= run.config.rounds || run.robot.task_done();
+            let task_done = run.robot.task_done();
+            if task_done {
+                // The robot reached its goal: the rest of the chunk is not executed (executing
+                // it would lengthen the task by up to a whole horizon). A round still in flight
+                // is awaited so that it is answered exactly once, but nothing more runs.
+                run.next_tick = None;
+                run.idle_since = None;
+                if let Some((round, executed, dropped)) = run.executor.drop_rest() {
+                    run.chunk_ended(round, executed, dropped);
+                }
+            }
+            let stop_requesting = run.replies >= run.config.rounds || task_done;
             if !stop_requesting
                 && run.retry_at.is_none_or(|at| now >= at)
                 && run.executor.wants_request()

@@ -304,6 +304,57 @@ async fn synchronous_inference_idles_through_every_generation() {
     assert_eq!(robot.log().last(), Some(&(1650, 2, 3)));
 }
 
+/// A recorder whose task is finished after `goal` actions.
+struct GoalRobot {
+    inner: Recorder,
+    goal: usize,
+}
+
+impl Robot for GoalRobot {
+    async fn get_obs(&mut self, now_us: u64) -> Result<Observation, RobotError> {
+        self.inner.get_obs(now_us).await
+    }
+
+    async fn send_act(&mut self, action: &[f32]) -> Result<(), RobotError> {
+        self.inner.send_act(action).await
+    }
+
+    fn task_done(&self) -> bool {
+        self.inner.log().len() >= self.goal
+    }
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_finished_task_executes_no_action_past_its_goal() {
+    // Chunks of 10 at 10 Hz, 350 ms generation, trigger 0.5: the goal (12 actions) is reached
+    // inside round 1's chunk; its rest is dropped, not executed.
+    let transport = Scripted::new(350, 10);
+    let seen = transport.seen.clone();
+    let mut robot = GoalRobot {
+        inner: Recorder::new(transport.clock),
+        goal: 12,
+    };
+    let mut events = Vec::new();
+    let summary = runner(0.5, u64::MAX)
+        .run(&mut robot, transport, |event| events.push(event.clone()))
+        .await
+        .unwrap();
+    assert_eq!(robot.inner.log().len(), 12);
+    assert_eq!(summary.actions_executed, 12);
+    // Actions at 350, 450, ..., 1450 ms: the task ends at its 12th action.
+    assert_eq!(summary.latency_us(), 1_450_000);
+    // Round 1 (7 executable after 3 discarded) would trigger at its 4th action, the 12th of the
+    // task: the goal is reached first, so no round 2 is sent.
+    assert_eq!(seen.lock().unwrap().len(), 2);
+    assert_eq!(summary.rounds.len(), 2);
+    assert!(events.contains(&RunnerEvent::ChunkEnded {
+        task: 1,
+        round: 1,
+        executed: 4,
+        dropped: 3
+    }));
+}
+
 #[tokio::test(start_paused = true)]
 async fn a_refetched_observation_moves_the_alignment_point() {
     let mut transport = Scripted::new(420, 10);
