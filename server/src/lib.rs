@@ -3,5 +3,6 @@
 
 pub mod cli;
 pub mod horizon;
+pub mod plugin;
 pub mod scheduler;
 pub mod time;

@@ -14,6 +14,8 @@ struct Cli {
 enum Command {
     /// Print the protocol version and build information.
     Info,
+    /// Policy plugins: check a component, turn a C core module into one, show the WIT.
+    Plugin(kairos_server::cli::plugin::PluginArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -28,5 +30,6 @@ fn main() -> anyhow::Result<()> {
             );
             Ok(())
         }
+        Command::Plugin(args) => kairos_server::cli::plugin::run(args),
     }
 }

@@ -1,2 +1,3 @@
 //! The `kairos` command line: one module per subcommand, each with a `clap::Args` struct and a
 //! `run` function. `main.rs` only parses and dispatches.
+pub mod plugin;
