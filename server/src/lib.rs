@@ -3,6 +3,7 @@
 
 pub mod cli;
 pub mod horizon;
+pub mod lifecycle;
 pub mod plugin;
 pub mod scheduler;
 pub mod time;

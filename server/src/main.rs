@@ -16,6 +16,8 @@ enum Command {
     Info,
     /// Policy plugins: check a component, turn a C core module into one, show the WIT.
     Plugin(kairos_server::cli::plugin::PluginArgs),
+    /// Run a fleet of simulated robots against a server.
+    Robot(kairos_server::cli::robot::RobotArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -31,5 +33,6 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         Command::Plugin(args) => kairos_server::cli::plugin::run(args),
+        Command::Robot(args) => kairos_server::cli::robot::run(args),
     }
 }

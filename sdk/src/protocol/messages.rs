@@ -8,6 +8,8 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
+use super::limits::Limits;
+
 /// Frame kind byte of each message.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 #[repr(u8)]
@@ -30,6 +32,49 @@ pub enum MessageKind {
     TaskEnded = 0x21,
     /// S→C, the request on this stream failed.
     Error = 0x7F,
+}
+
+impl MessageKind {
+    /// Every kind, in wire-byte order.
+    pub const ALL: [MessageKind; 9] = [
+        MessageKind::Hello,
+        MessageKind::Welcome,
+        MessageKind::Submit,
+        MessageKind::FetchObservation,
+        MessageKind::FreshObservation,
+        MessageKind::Reply,
+        MessageKind::EndTask,
+        MessageKind::TaskEnded,
+        MessageKind::Error,
+    ];
+
+    /// The kind a frame's first byte names, or `None` for a byte protocol v1 does not define.
+    pub fn from_byte(byte: u8) -> Option<MessageKind> {
+        MessageKind::ALL
+            .into_iter()
+            .find(|kind| *kind as u8 == byte)
+    }
+
+    /// The message name as `docs/PROTOCOL.md` spells it.
+    pub fn name(self) -> &'static str {
+        match self {
+            MessageKind::Hello => "Hello",
+            MessageKind::Welcome => "Welcome",
+            MessageKind::Submit => "Submit",
+            MessageKind::FetchObservation => "FetchObservation",
+            MessageKind::FreshObservation => "FreshObservation",
+            MessageKind::Reply => "Reply",
+            MessageKind::EndTask => "EndTask",
+            MessageKind::TaskEnded => "TaskEnded",
+            MessageKind::Error => "Error",
+        }
+    }
+}
+
+impl std::fmt::Display for MessageKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} (0x{:02x})", self.name(), *self as u8)
+    }
 }
 
 /// Element types of a [`Tensor`].
@@ -196,21 +241,6 @@ pub struct ModelInfo {
     pub max_images: u32,
 }
 
-/// Size limits, all in bytes unless stated.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Limits {
-    /// Largest frame body.
-    pub max_frame: u32,
-    /// Largest image payload.
-    pub max_image_bytes: u32,
-    /// Largest instruction, in bytes of UTF-8.
-    pub max_instruction_bytes: u32,
-    /// Largest number of horizon-policy parameters.
-    pub max_params: u32,
-    /// Largest number of samples per round.
-    pub max_samples: u32,
-}
-
 /// C→S: a round request.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Submit {
@@ -232,6 +262,14 @@ pub struct Submit {
     /// Remaining-work hint.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub remaining: Option<RemainingHint>,
+    /// How many times this round was sent before, on this or an earlier connection (0 on the
+    /// first send). Informational: the server dedups by `round`, never by `attempt`.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub attempt: u32,
+}
+
+fn is_zero(value: &u32) -> bool {
+    *value == 0
 }
 
 /// S→C: send a fresher observation for this round before it is dispatched.
@@ -394,4 +432,56 @@ pub struct ErrorReply {
     pub message: String,
     /// Whether sending the same request again may succeed.
     pub retryable: bool,
+    /// For `overloaded`: how long the client should wait before retrying, ms.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub retry_after_ms: Option<u32>,
+}
+
+impl ErrorReply {
+    /// An error with the code's default retryability ([`ErrorCode::is_retryable`]).
+    pub fn new(code: ErrorCode, message: impl Into<String>) -> ErrorReply {
+        ErrorReply {
+            code,
+            message: message.into(),
+            retryable: code.is_retryable(),
+            retry_after_ms: None,
+        }
+    }
+}
+
+impl ErrorCode {
+    /// Whether the same request may succeed if sent again later: `overloaded`, `shutting_down`
+    /// (another server or a restarted one may answer) and `internal` (a failed generation).
+    /// Every other code describes the request itself, which will fail the same way again.
+    pub fn is_retryable(self) -> bool {
+        matches!(
+            self,
+            ErrorCode::Overloaded | ErrorCode::ShuttingDown | ErrorCode::Internal
+        )
+    }
+
+    /// The code as it appears on the wire (`snake_case`).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ErrorCode::BadFrame => "bad_frame",
+            ErrorCode::TooLarge => "too_large",
+            ErrorCode::InvalidObservation => "invalid_observation",
+            ErrorCode::InvalidRequest => "invalid_request",
+            ErrorCode::UnsupportedVersion => "unsupported_version",
+            ErrorCode::Unauthorized => "unauthorized",
+            ErrorCode::Forbidden => "forbidden",
+            ErrorCode::UnknownTask => "unknown_task",
+            ErrorCode::RoundOutOfOrder => "round_out_of_order",
+            ErrorCode::UnknownPolicy => "unknown_policy",
+            ErrorCode::Overloaded => "overloaded",
+            ErrorCode::Internal => "internal",
+            ErrorCode::ShuttingDown => "shutting_down",
+        }
+    }
+}
+
+impl std::fmt::Display for ErrorCode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
 }

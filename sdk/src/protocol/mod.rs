@@ -6,10 +6,29 @@
 //! `FetchObservation`/`FreshObservation` exchanges, then exactly one `Reply` or `Error`.
 //! Every message is one frame: `kind: u8 | length: u32 big-endian | body`, where body is a
 //! MessagePack map with string keys (see `messages`).
+//!
+//! The layers, each usable alone:
+//! - [`frame`]: bytes ↔ [`Frame`] (sans-IO, `Cursor`-based, never panics);
+//! - [`codec`]: [`Frame`] ↔ [`Message`] (MessagePack, strict envelope);
+//! - [`limits`]: [`Limits`] and [`Validate`], the size checks on every field;
+//! - [`io`]: reading and writing frames on quinn streams.
 
+pub mod codec;
+pub mod frame;
+pub mod io;
+pub mod limits;
 pub mod messages;
+mod tensor;
 
+pub use codec::{EncodeError, MAX_DEPTH, Message, WireBody, encode_body};
+pub use frame::{Frame, FrameError, HEADER_LEN};
+pub use io::{
+    ReadFrameError, WriteFrameError, read_frame, read_message, write_body, write_frame,
+    write_message,
+};
+pub use limits::{Limits, Validate, ValidationError};
 pub use messages::*;
+pub use tensor::TensorError;
 
 /// Protocol version spoken by this crate.
 pub const PROTOCOL_VERSION: u32 = 1;

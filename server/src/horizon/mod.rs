@@ -4,6 +4,20 @@
 //! "Action Manager" in §4). Policies are pure: everything they may look at is in
 //! [`HorizonInput`], so a native policy, a WASM plugin and the simulator's replay all see the
 //! same thing. The answer is validated by [`validate_horizon`] before anyone uses it.
+//!
+//! Native policies (each module documents its exact arithmetic, for plugin twins):
+//! - [`threshold`]: the paper's §3.1 confidence threshold (default);
+//! - [`fixed`]: a static horizon `h`;
+//! - [`spread`]: agreement across `S ≥ 2` samples of the chunk.
+//!
+//! [`builtin`] builds one by name with validated parameters. The parameters given there are the
+//! policy's defaults; a non-empty [`HorizonInput::params`] overrides them for that call (validated
+//! the same way), so one instance can serve requests with different parameters.
+
+pub mod fixed;
+mod params;
+pub mod spread;
+pub mod threshold;
 
 use std::collections::BTreeMap;
 
@@ -127,3 +141,40 @@ pub fn validate_horizon(horizon: usize, input: &HorizonInput<'_>) -> Result<usiz
     }
     Ok(horizon)
 }
+
+/// Names [`builtin`] accepts, with a one-line description each.
+pub const BUILTIN_POLICIES: &[(&str, &str)] = &[
+    (
+        "threshold",
+        "paper §3.1: cut at the first action whose final diffusion update exceeds (1+t)x its earlier mean; params t (0.4), h_min",
+    ),
+    ("static", "always h actions; param h (required)"),
+    (
+        "spread",
+        "cut where S>=2 samples disagree by more than threshold (RMS std over dims); params threshold (0.1), h_min",
+    ),
+];
+
+/// Builds the native policy `name` with `params` (validated: unknown names, out-of-range or
+/// non-integral values are errors).
+pub fn builtin(name: &str, params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, HorizonError> {
+    match name {
+        "threshold" => Ok(Box::new(threshold::Threshold::from_params(params)?)),
+        "static" => Ok(Box::new(fixed::StaticHorizon::from_params(params)?)),
+        "spread" => Ok(Box::new(spread::Spread::from_params(params)?)),
+        other => Err(HorizonError::InvalidParam {
+            name: "policy".into(),
+            reason: format!(
+                "unknown horizon policy `{other}` (built in: {})",
+                BUILTIN_POLICIES
+                    .iter()
+                    .map(|(n, _)| *n)
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        }),
+    }
+}
+
+#[cfg(test)]
+mod tests;

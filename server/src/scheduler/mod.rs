@@ -16,14 +16,47 @@
 //! - `handle_task_end(now, TaskId, RobotId, TaskEnd, Option<ExecReport>) -> Result<TaskSummary, AdmitError>`
 //! - `poll_timeout() -> Option<Timestamp>` / `handle_timeout(now) -> Vec<TaskId>`: idle expiry
 //! - `task(TaskId) -> Option<&TaskRecord>`: the G/E history, read-only
+//!
+//! Read-only accessors for drivers, the simulator and metrics: [`Scheduler::pending_len`],
+//! [`Scheduler::running_len`], [`Scheduler::engines`], [`Scheduler::last_decision`],
+//! [`Scheduler::counters`], [`Scheduler::take_finished`] (finished-task summaries) and
+//! [`Scheduler::take_superseded`] (pending requests a newer round replaced).
+//!
+//! # When a decision happens
+//!
+//! `poll_dispatch(now)` makes a *decision* iff at least one engine instance is idle and at least
+//! one request is pending; otherwise it returns nothing and changes nothing. A decision asks the
+//! priority policy once for an order of every pending request, places batches on all idle engine
+//! instances at once (edge first, each up to its `profile.max_batch`; cloud only when its latency
+//! plus RTT beats the request's edge queueing delay), flags stale observations for re-fetch, and,
+//! if it dispatched anything, adds one to the skip counter of every request it left pending. The
+//! driver (and the simulator) call `poll_dispatch` after every event that can make work runnable:
+//! a submit, a batch end, a cancel. Nothing in the scheduler changes with the mere passage of time
+//! except idle expiry, which `poll_timeout`/`handle_timeout` cover.
+//!
+//! See docs/SCHEDULER.md for Algorithm 1 as implemented and every interpretation made.
 
+mod core;
+pub mod fifo;
+pub mod kairos;
+mod placement;
+pub mod plas;
 pub mod policy;
+pub mod registry;
+#[cfg(test)]
+mod tests;
 
 use std::time::Duration;
 
-pub use policy::{
-    FinishedTask, PendingView, PolicyError, PriorityPolicy, RemainingWork, validate_order,
+pub use self::core::{
+    CancelOutcome, DecisionStats, EngineStatus, Scheduler, SchedulerCounters, Superseded,
 };
+pub use crate::lifecycle::{TaskRecord, TaskSummary};
+pub use policy::{
+    FinishedTask, PendingView, PolicyError, PriorityPolicy, RemainingWork, order_by_key,
+    validate_order,
+};
+pub use registry::{PolicySpec, PolicySpecError, build as build_policy};
 
 use crate::time::Timestamp;
 
@@ -213,6 +246,10 @@ pub struct SchedulerConfig {
     /// Rounds of G/E history kept per task (older rounds are folded into running sums, so the
     /// wait ratio stays exact while memory per task stays bounded).
     pub history_rounds: usize,
+    /// Ended task ids remembered (so a late round of an ended task gets `TaskEnded` instead of
+    /// silently opening a new task), and finished-task summaries kept until
+    /// [`Scheduler::take_finished`] drains them. Oldest are forgotten first.
+    pub ended_tasks_remembered: usize,
 }
 
 impl Default for SchedulerConfig {
@@ -222,6 +259,7 @@ impl Default for SchedulerConfig {
             task_idle_timeout: Duration::from_secs(60),
             max_pending: 100_000,
             history_rounds: 64,
+            ended_tasks_remembered: 65_536,
         }
     }
 }

@@ -37,8 +37,12 @@ pub struct PendingView {
     /// Σ_j W_j: the task's wait so far by the dominant-phase rule (paper Fig. "wait_time"),
     /// including the wait accrued in the round still open. See `lifecycle`.
     pub wait: Duration,
-    /// Σ_j |G_j|: generation time the task has received (Autellix's attained service).
+    /// Σ_j |G_j|: generation time the task has received (Autellix's attained service), counting
+    /// every finished generation of the task, answered or not.
     pub attained_service: Duration,
+    /// Σ time the task's requests spent queued before their forward pass started, including this
+    /// request's wait so far: the execution-unaware waiting time Autellix's anti-starvation uses.
+    pub queued: Duration,
     /// |E_last|: duration of the task's most recent execution phase, if any.
     pub last_exec: Option<Duration>,
     /// |G_last|: duration of the task's most recent generation phase, if any.
@@ -51,12 +55,11 @@ pub struct PendingView {
 
 impl PendingView {
     /// Eq. 1: `wait / (now - t_start)`, in `[0, 1]` (0 for a task that started at `now`).
+    ///
+    /// Exactly: both durations in whole microseconds, converted to `f64` and divided once, then
+    /// clamped (see [`crate::lifecycle::wait_ratio_micros`]); plugins reproduce it bit for bit.
     pub fn wait_ratio(&self, now: Timestamp) -> f64 {
-        let life = now.saturating_since(self.task_started_at).as_secs_f64();
-        if life <= 0.0 {
-            return 0.0;
-        }
-        (self.wait.as_secs_f64() / life).clamp(0.0, 1.0)
+        crate::lifecycle::wait_ratio_micros(self.wait, now.saturating_since(self.task_started_at))
     }
 }
 
@@ -102,6 +105,21 @@ pub struct FinishedTask {
     pub attained_service: Duration,
     /// Σ W_j.
     pub wait: Duration,
+}
+
+/// Fills `order` with the indices of `pending` sorted ascending by `key`, reusing `scratch`
+/// between calls. End every key with the request id: keys are then unique, the order is total,
+/// and it does not depend on the sort algorithm (what plugin twins rely on).
+pub fn order_by_key<K: Ord>(
+    pending: &[PendingView],
+    order: &mut Vec<usize>,
+    scratch: &mut Vec<(K, usize)>,
+    mut key: impl FnMut(&PendingView) -> K,
+) {
+    scratch.clear();
+    scratch.extend(pending.iter().enumerate().map(|(i, v)| (key(v), i)));
+    scratch.sort_unstable();
+    order.extend(scratch.iter().map(|&(_, i)| i));
 }
 
 /// Checks that `order` is a permutation of `0..len`: nothing omitted, nothing repeated.

@@ -1,0 +1,572 @@
+//! `kairos robot`: a fleet of simulated robots against a Kairos server.
+//!
+//! Each robot is its own QUIC connection and runs one task with the SDK's [`RobotRunner`]:
+//! actions execute at the control frequency in real time, the next request goes out at the
+//! trigger, chunks are aligned on arrival. At the end it prints task and round latency
+//! percentiles and the server's timing breakdown.
+//!
+//! Against a local `kairos serve`, no flag is needed: the pin comes from
+//! `<data-dir>/fingerprint.txt` and the token of `--robot-name` from `<data-dir>/tokens.toml`.
+//!
+//! `run` is synchronous: it builds its own multi-threaded tokio runtime.
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{Context, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+use kairos_sdk::client::{Client, ClientConfig};
+use kairos_sdk::protocol::HorizonSelection;
+use kairos_sdk::robot::{RobotRunner, RunnerConfig, RunnerEvent, SimulatedRobot, TaskSummary};
+use kairos_sdk::tls::{Fingerprint, ServerTrust};
+use serde::Deserialize;
+
+/// Certificate fingerprint a local `kairos serve` writes into its data directory.
+pub const FINGERPRINT_FILE: &str = "fingerprint.txt";
+/// Plaintext tokens a local `kairos serve` writes into its data directory.
+pub const TOKENS_FILE: &str = "tokens.toml";
+
+/// Run N simulated robots against a server and report per-task latency.
+#[derive(clap::Args, Debug, Clone)]
+pub struct RobotArgs {
+    /// Server UDP address.
+    #[arg(long, default_value = "127.0.0.1:4433")]
+    pub server: SocketAddr,
+    /// TLS server name (any name works with a pinned certificate).
+    #[arg(long, default_value = "kairos")]
+    pub server_name: String,
+    /// Data directory of a local `kairos serve`, read for `fingerprint.txt` and `tokens.toml`
+    /// when `--pin` or `--token` is not given.
+    #[arg(long, default_value = "kairos-data")]
+    pub data_dir: PathBuf,
+    /// Pinned server certificate, `sha256:<64 hex>`.
+    #[arg(long, conflicts_with = "ca_file")]
+    pub pin: Option<Fingerprint>,
+    /// Verify the server against the CA certificates in this PEM file instead of a pin.
+    #[arg(long)]
+    pub ca_file: Option<PathBuf>,
+    /// The robots' token (default: `--robot-name`'s entry in `<data-dir>/tokens.toml`).
+    #[arg(long)]
+    pub token: Option<String>,
+    /// Robot whose token is read from `tokens.toml`.
+    #[arg(long, default_value = "default")]
+    pub robot_name: String,
+    /// Number of simulated robots, each with its own connection and task.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    pub robots: u32,
+    /// Task length, in rounds.
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u64).range(1..))]
+    pub rounds: u64,
+    /// Control frequency, actions per second.
+    #[arg(long, default_value_t = 30.0, value_parser = parse_positive)]
+    pub control_hz: f32,
+    /// Executed fraction of a chunk at which the next request is sent (0 = at once, 1 = when
+    /// the chunk runs out).
+    #[arg(long, default_value_t = 0.5, value_parser = parse_fraction)]
+    pub trigger: f32,
+    /// Horizon policy, e.g. `threshold` or `static` (default: the server's).
+    #[arg(long)]
+    pub horizon: Option<String>,
+    /// Horizon policy parameter, `NAME=VALUE`; repeatable (e.g. `--param t=0.4 --param h_min=8`).
+    #[arg(long = "param", value_parser = parse_param, requires = "horizon")]
+    pub params: Vec<(String, f64)>,
+    /// Chunk samples the horizon policy gets.
+    #[arg(long, default_value_t = 1, requires = "horizon")]
+    pub samples: u32,
+    /// Cameras per robot (capped at the model's maximum).
+    #[arg(long, default_value_t = 1)]
+    pub cameras: u32,
+    /// Camera image size, `HEIGHTxWIDTH`, sent raw as RGB u8.
+    #[arg(long, default_value = "64x64", value_parser = parse_size)]
+    pub image: (u32, u32),
+    /// Answer the server's observation re-fetches with the observation already sent.
+    #[arg(long)]
+    pub no_refetch: bool,
+    /// Delay between robot starts, ms.
+    #[arg(long, default_value_t = 0)]
+    pub stagger_ms: u64,
+}
+
+fn parse_positive(text: &str) -> Result<f32, String> {
+    match text.parse::<f32>() {
+        Ok(value) if value.is_finite() && value > 0.0 => Ok(value),
+        _ => Err(format!("expected a positive number, got {text:?}")),
+    }
+}
+
+fn parse_fraction(text: &str) -> Result<f32, String> {
+    match text.parse::<f32>() {
+        Ok(value) if (0.0..=1.0).contains(&value) => Ok(value),
+        _ => Err(format!("expected a number in [0, 1], got {text:?}")),
+    }
+}
+
+fn parse_param(text: &str) -> Result<(String, f64), String> {
+    let (name, value) = text
+        .split_once('=')
+        .ok_or_else(|| format!("expected NAME=VALUE, got {text:?}"))?;
+    let value: f64 = value
+        .trim()
+        .parse()
+        .map_err(|_| format!("{name}: {value:?} is not a number"))?;
+    if name.trim().is_empty() || !value.is_finite() {
+        return Err(format!(
+            "expected NAME=VALUE with a finite value, got {text:?}"
+        ));
+    }
+    Ok((name.trim().to_owned(), value))
+}
+
+fn parse_size(text: &str) -> Result<(u32, u32), String> {
+    let parse = || {
+        let (height, width) = text.split_once(['x', 'X'])?;
+        Some((height.trim().parse().ok()?, width.trim().parse().ok()?))
+    };
+    parse().ok_or_else(|| format!("expected HEIGHTxWIDTH, e.g. 224x224, got {text:?}"))
+}
+
+/// `tokens.toml` as `kairos serve` writes it: `[[robot]]` tables with `name` and `token`.
+#[derive(Debug, Deserialize)]
+struct TokensFile {
+    #[serde(default)]
+    robot: Vec<TokenEntry>,
+}
+
+#[derive(Debug, Deserialize)]
+struct TokenEntry {
+    name: String,
+    token: String,
+}
+
+/// The trust decision: `--pin`, `--ca-file`, or the data directory's fingerprint.
+fn resolve_trust(args: &RobotArgs) -> anyhow::Result<ServerTrust> {
+    if let Some(pin) = args.pin {
+        return Ok(ServerTrust::Pinned(pin));
+    }
+    if let Some(path) = &args.ca_file {
+        return Ok(ServerTrust::ca_file(path)?);
+    }
+    let path = args.data_dir.join(FINGERPRINT_FILE);
+    let text = std::fs::read_to_string(&path).with_context(|| {
+        format!(
+            "no --pin given and cannot read {}; pass the fingerprint `kairos serve` printed",
+            path.display()
+        )
+    })?;
+    let pin = text
+        .parse::<Fingerprint>()
+        .with_context(|| format!("bad fingerprint in {}", path.display()))?;
+    Ok(ServerTrust::Pinned(pin))
+}
+
+/// The token: `--token`, or `--robot-name`'s entry in the data directory's tokens file.
+fn resolve_token(args: &RobotArgs) -> anyhow::Result<String> {
+    if let Some(token) = &args.token {
+        return Ok(token.clone());
+    }
+    read_token(&args.data_dir.join(TOKENS_FILE), &args.robot_name)
+}
+
+fn read_token(path: &Path, robot: &str) -> anyhow::Result<String> {
+    let text = std::fs::read_to_string(path).with_context(|| {
+        format!(
+            "no --token given and cannot read {}; pass the robot's token",
+            path.display()
+        )
+    })?;
+    let tokens: TokensFile =
+        toml::from_str(&text).with_context(|| format!("bad tokens file {}", path.display()))?;
+    match tokens.robot.into_iter().find(|entry| entry.name == robot) {
+        Some(entry) => Ok(entry.token),
+        None => bail!("{} has no robot named {robot:?}", path.display()),
+    }
+}
+
+/// Runs the fleet and prints the report. Builds its own tokio runtime.
+pub fn run(args: RobotArgs) -> anyhow::Result<()> {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the tokio runtime")?;
+    let outcome = runtime.block_on(run_fleet(&args))?;
+    print!("{}", report(&args, &outcome.summaries));
+    if !outcome.errors.is_empty() {
+        eprintln!("{} of {} robots failed:", outcome.errors.len(), args.robots);
+        for error in &outcome.errors {
+            eprintln!("  {error:#}");
+        }
+        if outcome.summaries.is_empty() {
+            bail!("every robot failed");
+        }
+    }
+    Ok(())
+}
+
+struct FleetOutcome {
+    summaries: Vec<TaskSummary>,
+    errors: Vec<anyhow::Error>,
+}
+
+async fn run_fleet(args: &RobotArgs) -> anyhow::Result<FleetOutcome> {
+    let trust = resolve_trust(args)?;
+    let token = resolve_token(args)?;
+    let mut config = ClientConfig::new(args.server, trust, token);
+    config.server_name = args.server_name.clone();
+    // Fail fast on a wrong address, pin or token before starting the whole fleet.
+    let probe = Client::connect(config.clone())
+        .await
+        .with_context(|| format!("cannot connect to {}", args.server))?;
+    let welcome = probe
+        .welcome()
+        .await
+        .context("connected but got no Welcome")?;
+    probe.close().await;
+    eprintln!(
+        "{} at {}: model {} (chunk {}, action dim {}, state dim {}), robot {:?}",
+        welcome.server,
+        args.server,
+        welcome.model.name,
+        welcome.model.chunk_len,
+        welcome.model.action_dim,
+        welcome.model.state_dim,
+        welcome.robot,
+    );
+
+    let progress = ProgressBar::new(u64::from(args.robots) * args.rounds);
+    progress.set_style(
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} rounds ({per_sec}) {msg}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    progress.enable_steady_tick(Duration::from_millis(200));
+    let runner = RobotRunner::new(RunnerConfig {
+        control_hz: args.control_hz,
+        trigger: args.trigger,
+        rounds: args.rounds,
+        horizon: args.horizon.as_ref().map(|policy| HorizonSelection {
+            policy: policy.clone(),
+            params: args.params.iter().cloned().collect::<BTreeMap<_, _>>(),
+            samples: args.samples,
+        }),
+        refetch: !args.no_refetch,
+        ..RunnerConfig::default()
+    });
+    let cameras = args.cameras.min(welcome.model.max_images) as usize;
+    let state_dim = welcome.model.state_dim as usize;
+    let (height, width) = args.image;
+
+    let mut robots = tokio::task::JoinSet::new();
+    for index in 0..args.robots {
+        let (config, runner, progress) = (config.clone(), runner.clone(), progress.clone());
+        let delay = Duration::from_millis(args.stagger_ms.saturating_mul(u64::from(index)));
+        robots.spawn(async move {
+            tokio::time::sleep(delay).await;
+            let client = Client::connect(config)
+                .await
+                .with_context(|| format!("robot {index}: cannot connect"))?;
+            let mut robot = SimulatedRobot::new(state_dim, cameras, height, width);
+            let task = client.task(rand::random());
+            let summary = runner
+                .run(&mut robot, task, |event| match event {
+                    RunnerEvent::ReplyReceived { .. } => progress.inc(1),
+                    RunnerEvent::RoundFailed {
+                        round,
+                        error,
+                        retrying,
+                        ..
+                    } => progress.println(format!(
+                        "robot {index}: round {round} failed ({}): {error}",
+                        if *retrying { "retrying" } else { "giving up" }
+                    )),
+                    _ => {}
+                })
+                .await
+                .with_context(|| format!("robot {index}"))?;
+            client.close().await;
+            anyhow::Ok(summary)
+        });
+    }
+    let mut outcome = FleetOutcome {
+        summaries: Vec::new(),
+        errors: Vec::new(),
+    };
+    while let Some(joined) = robots.join_next().await {
+        match joined {
+            Ok(Ok(summary)) => outcome.summaries.push(summary),
+            Ok(Err(error)) => outcome.errors.push(error),
+            Err(error) => outcome.errors.push(error.into()),
+        }
+    }
+    progress.finish_and_clear();
+    outcome
+        .summaries
+        .sort_by_key(|summary| summary.started_at_us);
+    Ok(outcome)
+}
+
+/// p50, p95, mean and max of a sample, in the sample's unit.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Percentiles {
+    p50: f64,
+    p95: f64,
+    mean: f64,
+    max: f64,
+}
+
+impl Percentiles {
+    /// Nearest-rank percentiles; `None` for an empty sample.
+    fn of(values: &[u64]) -> Option<Percentiles> {
+        if values.is_empty() {
+            return None;
+        }
+        let mut sorted = values.to_vec();
+        sorted.sort_unstable();
+        let rank = |p: f64| {
+            let index = ((p * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
+            sorted[index] as f64
+        };
+        Some(Percentiles {
+            p50: rank(0.50),
+            p95: rank(0.95),
+            mean: sorted.iter().map(|&v| v as f64).sum::<f64>() / sorted.len() as f64,
+            max: sorted[sorted.len() - 1] as f64,
+        })
+    }
+}
+
+fn ms(us: f64) -> String {
+    if us >= 10_000_000.0 {
+        format!("{:.1} s", us / 1e6)
+    } else if us >= 1_000_000.0 {
+        format!("{:.2} s", us / 1e6)
+    } else {
+        format!("{:.1} ms", us / 1e3)
+    }
+}
+
+fn mean(values: impl Iterator<Item = f64>) -> f64 {
+    let (sum, count) = values.fold((0.0, 0usize), |(sum, count), v| (sum + v, count + 1));
+    if count == 0 { 0.0 } else { sum / count as f64 }
+}
+
+/// The end-of-run report: task and round latency percentiles, the server's timing breakdown,
+/// and one line per task.
+fn report(args: &RobotArgs, summaries: &[TaskSummary]) -> String {
+    use std::fmt::Write;
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "{} robot(s), {} rounds per task, {} Hz, trigger {}",
+        args.robots, args.rounds, args.control_hz, args.trigger
+    );
+    let rounds: Vec<_> = summaries.iter().flat_map(|s| &s.rounds).collect();
+    let tasks: Vec<u64> = summaries.iter().map(TaskSummary::latency_us).collect();
+    let round_latencies: Vec<u64> = rounds.iter().map(|r| r.latency_us()).collect();
+    let line = |name: &str, stats: Option<Percentiles>| match stats {
+        Some(p) => format!(
+            "{name:<15} p50 {:>9}  p95 {:>9}  avg {:>9}  max {:>9}\n",
+            ms(p.p50),
+            ms(p.p95),
+            ms(p.mean),
+            ms(p.max)
+        ),
+        None => format!("{name:<15} no data\n"),
+    };
+    out.push_str("task latency = first request to last action; round latency = request to reply\n");
+    out.push_str(&line("task latency", Percentiles::of(&tasks)));
+    out.push_str(&line("round latency", Percentiles::of(&round_latencies)));
+    if !rounds.is_empty() {
+        let server_total = mean(rounds.iter().map(|r| r.timing.total_us as f64));
+        let _ = writeln!(
+            out,
+            "server timing per round (avg): queue {}, re-fetch {}, inference {}, server total {}, network + client {}, batch {:.2}",
+            ms(mean(rounds.iter().map(|r| r.timing.queue_us as f64))),
+            ms(mean(rounds.iter().map(|r| r.timing.refetch_us as f64))),
+            ms(mean(rounds.iter().map(|r| r.timing.inference_us as f64))),
+            ms(server_total),
+            ms((mean(round_latencies.iter().map(|&l| l as f64)) - server_total).max(0.0)),
+            mean(rounds.iter().map(|r| f64::from(r.timing.batch_size))),
+        );
+        let _ = writeln!(
+            out,
+            "chunks (avg per round): horizon H {:.1} of N {:.1}, discarded on arrival {:.1}, executed {:.1}, resent {:.2}, re-fetched {:.2}",
+            mean(rounds.iter().map(|r| f64::from(r.horizon))),
+            mean(rounds.iter().map(|r| f64::from(r.chunk_len))),
+            mean(rounds.iter().map(|r| f64::from(r.discarded))),
+            mean(rounds.iter().map(|r| f64::from(r.executed))),
+            mean(
+                rounds
+                    .iter()
+                    .map(|r| f64::from(r.attempts.saturating_sub(1)))
+            ),
+            mean(rounds.iter().map(|r| f64::from(r.refetches))),
+        );
+    }
+    let _ = writeln!(
+        out,
+        "{:<18} {:>6} {:>10} {:>10} {:>10} {:>10} {:>8} {:>6}",
+        "task", "rounds", "latency", "round p50", "round p95", "idle", "actions", "failed"
+    );
+    for summary in summaries {
+        let latencies: Vec<u64> = summary.rounds.iter().map(|r| r.latency_us()).collect();
+        let stats = Percentiles::of(&latencies);
+        let _ = writeln!(
+            out,
+            "{:<18} {:>6} {:>10} {:>10} {:>10} {:>10} {:>8} {:>6}",
+            format!("{:016x}", summary.task),
+            summary.rounds.len(),
+            ms(summary.latency_us() as f64),
+            stats.map_or("-".to_owned(), |p| ms(p.p50)),
+            stats.map_or("-".to_owned(), |p| ms(p.p95)),
+            ms(summary.idle_us as f64),
+            summary.actions_executed,
+            summary.failed_rounds,
+        );
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+    use kairos_sdk::protocol::Timing;
+    use kairos_sdk::robot::RoundRecord;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: RobotArgs,
+    }
+
+    fn parse(extra: &[&str]) -> Result<RobotArgs, clap::Error> {
+        Cli::try_parse_from(std::iter::once("robot").chain(extra.iter().copied()))
+            .map(|cli| cli.args)
+    }
+
+    #[test]
+    fn arguments_parse_and_bad_ones_are_refused() {
+        let args = parse(&[
+            "--robots",
+            "4",
+            "--horizon",
+            "threshold",
+            "--param",
+            "t=0.4",
+            "--param",
+            "h_min=8",
+            "--image",
+            "224x224",
+            "--trigger",
+            "1",
+        ])
+        .unwrap();
+        assert_eq!(args.robots, 4);
+        assert_eq!(
+            args.params,
+            [("t".to_owned(), 0.4), ("h_min".to_owned(), 8.0)]
+        );
+        assert_eq!(args.image, (224, 224));
+        assert_eq!(args.trigger, 1.0);
+        for bad in [
+            &["--trigger", "1.5"][..],
+            &["--control-hz", "0"],
+            &["--robots", "0"],
+            &["--image", "224"],
+            &["--param", "t=0.4"],
+            &["--horizon", "static", "--param", "h"],
+            &["--pin", "sha256:1234"],
+        ] {
+            assert!(parse(bad).is_err(), "{bad:?} should be refused");
+        }
+    }
+
+    #[test]
+    fn pin_and_token_come_from_the_data_dir() {
+        let dir = tempfile::tempdir().unwrap();
+        let pin = Fingerprint([7; 32]);
+        std::fs::write(dir.path().join(FINGERPRINT_FILE), format!("{pin}\n")).unwrap();
+        std::fs::write(
+            dir.path().join(TOKENS_FILE),
+            "[[robot]]\nname = \"default\"\ntoken = \"kairos_abc\"\n\n[[robot]]\nname = \"arm2\"\ntoken = \"kairos_def\"\n",
+        )
+        .unwrap();
+        let data_dir = dir.path().to_str().unwrap();
+        let args = parse(&["--data-dir", data_dir, "--robot-name", "arm2"]).unwrap();
+        assert!(matches!(resolve_trust(&args).unwrap(), ServerTrust::Pinned(p) if p == pin));
+        assert_eq!(resolve_token(&args).unwrap(), "kairos_def");
+        let flags = parse(&[
+            "--data-dir",
+            data_dir,
+            "--token",
+            "t",
+            "--pin",
+            &Fingerprint([1; 32]).to_string(),
+        ])
+        .unwrap();
+        assert_eq!(resolve_token(&flags).unwrap(), "t");
+        assert!(
+            matches!(resolve_trust(&flags).unwrap(), ServerTrust::Pinned(p) if p == Fingerprint([1; 32]))
+        );
+        let missing = parse(&["--data-dir", data_dir, "--robot-name", "nobody"]).unwrap();
+        let error = resolve_token(&missing).unwrap_err().to_string();
+        assert!(error.contains("nobody"), "{error}");
+        let empty = tempfile::tempdir().unwrap();
+        let nothing = parse(&["--data-dir", empty.path().to_str().unwrap()]).unwrap();
+        let error = format!("{:#}", resolve_trust(&nothing).unwrap_err());
+        assert!(error.contains("fingerprint.txt"), "{error}");
+    }
+
+    #[test]
+    fn percentiles_use_nearest_rank() {
+        let values: Vec<u64> = (1..=100).collect();
+        let p = Percentiles::of(&values).unwrap();
+        assert_eq!((p.p50, p.p95, p.max), (50.0, 95.0, 100.0));
+        assert_eq!(p.mean, 50.5);
+        assert_eq!(Percentiles::of(&[7]).unwrap().p95, 7.0);
+        assert!(Percentiles::of(&[]).is_none());
+    }
+
+    #[test]
+    fn report_shows_latencies_and_the_timing_breakdown() {
+        let record = |round: u64, latency_ms: u64| RoundRecord {
+            round,
+            sent_at_us: 0,
+            received_at_us: latency_ms * 1000,
+            attempts: 1,
+            refetches: 0,
+            horizon: 10,
+            chunk_len: 50,
+            discarded: 2,
+            executed: 8,
+            policy: "threshold".to_owned(),
+            timing: Timing {
+                queue_us: 30_000,
+                refetch_us: 0,
+                inference_us: 50_000,
+                total_us: 80_000,
+                batch_size: 2,
+            },
+        };
+        let summary = TaskSummary {
+            task: 0xabc,
+            rounds: vec![record(0, 100), record(1, 120)],
+            started_at_us: 0,
+            finished_at_us: 2_500_000,
+            actions_executed: 16,
+            idle_us: 100_000,
+            failed_rounds: 0,
+            server_record: None,
+        };
+        let args = parse(&[]).unwrap();
+        let text = report(&args, &[summary]);
+        assert!(text.contains("round latency   p50  100.0 ms"), "{text}");
+        assert!(text.contains("queue 30.0 ms"), "{text}");
+        assert!(text.contains("network + client 30.0 ms"), "{text}");
+        assert!(text.contains("0000000000000abc"), "{text}");
+        assert!(text.contains("2.50 s"), "{text}");
+    }
+}

@@ -1,0 +1,650 @@
+//! The scheduler state machine: pending requests, engine instances, running batches, and the
+//! task table, driven by the event API documented on the module (`scheduler`).
+
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::time::Duration;
+
+use super::placement::{self, EngineSlot};
+use super::policy::{PendingView, PriorityPolicy, RemainingWork, validate_order};
+use super::{
+    AdmitError, BatchId, Dispatch, DispatchedRequest, EngineId, EngineSpec, ExecReport, RequestId,
+    RobotId, RoundOutcome, RoundSubmit, SchedulerConfig, TaskEnd, TaskId,
+};
+use crate::lifecycle::{TaskRecord, TaskSummary, TaskTable};
+use crate::time::Timestamp;
+
+/// A request waiting for dispatch.
+#[derive(Clone, Copy, Debug)]
+struct PendingRequest {
+    task: TaskId,
+    round: u64,
+    arrived_at: Timestamp,
+    obs_captured_at: Timestamp,
+    skipped: u32,
+    remaining: Option<RemainingWork>,
+}
+
+/// A request inside a dispatched batch.
+#[derive(Clone, Copy, Debug)]
+struct BatchEntry {
+    request: RequestId,
+    task: TaskId,
+}
+
+/// A dispatched batch, until its end is reported.
+#[derive(Clone, Debug)]
+struct Batch {
+    engine: EngineId,
+    dispatched_at: Timestamp,
+    started_at: Option<Timestamp>,
+    entries: Vec<BatchEntry>,
+}
+
+#[derive(Clone, Debug)]
+struct EngineState {
+    spec: EngineSpec,
+    max_batch: usize,
+    busy: Option<BatchId>,
+    /// Estimated end of the current batch (meaningful while `busy`).
+    busy_until: Timestamp,
+}
+
+/// What `handle_cancel` did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CancelOutcome {
+    /// The request was pending and is gone; its round may be sent again.
+    Removed,
+    /// The request is already in a batch; its end will be reported through
+    /// `handle_batch_finished` as usual.
+    Running,
+    /// No such request (already answered, superseded, or never existed).
+    NotFound,
+}
+
+/// A pending request that a newer round of the same task replaced. The driver answers it with an
+/// error; the newer request inherits its skip counter.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Superseded {
+    /// The replaced request.
+    pub request: RequestId,
+    /// Its task.
+    pub task: TaskId,
+    /// The request that replaced it.
+    pub by: RequestId,
+}
+
+/// One engine instance's state, for drivers and metrics.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EngineStatus<'a> {
+    /// Its id.
+    pub id: EngineId,
+    /// Its spec, as given to `Scheduler::new`.
+    pub spec: &'a EngineSpec,
+    /// The batch it runs, if busy.
+    pub batch: Option<BatchId>,
+    /// When the scheduler expects the batch to end (profile latency plus RTT from its start).
+    pub busy_until: Option<Timestamp>,
+}
+
+/// What one scheduling decision did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct DecisionStats {
+    /// When it was made.
+    pub at: Timestamp,
+    /// Requests pending when it was made.
+    pub pending: usize,
+    /// Requests it dispatched.
+    pub dispatched: usize,
+    /// Of those, requests placed on cloud instances.
+    pub offloaded: usize,
+    /// Of those, requests flagged for observation re-fetch.
+    pub refetch: usize,
+    /// Batches it formed.
+    pub batches: usize,
+    /// The policy failed or answered an invalid order, so arrival order was used.
+    pub policy_failed: bool,
+}
+
+/// Running totals since the scheduler was created.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SchedulerCounters {
+    /// Accepted submits.
+    pub submitted: u64,
+    /// Refused submits (any `AdmitError`).
+    pub refused: u64,
+    /// Decisions made.
+    pub decisions: u64,
+    /// Requests dispatched.
+    pub dispatched: u64,
+    /// Requests placed on cloud instances.
+    pub offloaded: u64,
+    /// Pending requests replaced by a newer round.
+    pub superseded: u64,
+    /// Pending requests removed by `handle_cancel`.
+    pub cancelled: u64,
+    /// Running requests whose task moved on (newer round or task end) before they finished.
+    pub abandoned: u64,
+    /// Requests answered.
+    pub answered: u64,
+    /// Requests whose generation failed (reported or missing from a batch's outcomes).
+    pub failed: u64,
+    /// Decisions where the policy failed or gave an invalid order.
+    pub policy_errors: u64,
+    /// Events about unknown batches or requests, ignored.
+    pub ignored_events: u64,
+    /// Tasks ended (any way).
+    pub tasks_ended: u64,
+}
+
+/// The execution-aware scheduler. See the module documentation for the event API.
+pub struct Scheduler {
+    config: SchedulerConfig,
+    engines: Vec<EngineState>,
+    policy: Box<dyn PriorityPolicy>,
+    tasks: TaskTable,
+    /// Keyed by `RequestId`, so iteration (and the views a policy sees) is in arrival order.
+    pending: BTreeMap<RequestId, PendingRequest>,
+    batches: HashMap<BatchId, Batch>,
+    next_request: u64,
+    next_batch: u64,
+    finished: VecDeque<TaskSummary>,
+    superseded: Vec<Superseded>,
+    last_decision: Option<DecisionStats>,
+    counters: SchedulerCounters,
+    // Buffers reused between decisions.
+    views: Vec<PendingView>,
+    keys: Vec<RequestId>,
+    order: Vec<usize>,
+}
+
+impl Scheduler {
+    /// A scheduler over `engines` (indexed by `EngineId` in this order) ordering requests with
+    /// `policy`. A profile with `max_batch` 0 is treated as 1.
+    pub fn new(
+        config: SchedulerConfig,
+        engines: Vec<EngineSpec>,
+        policy: Box<dyn PriorityPolicy>,
+    ) -> Self {
+        let tasks = TaskTable::new(
+            config.history_rounds,
+            config.task_idle_timeout,
+            config.ended_tasks_remembered,
+        );
+        let engines = engines
+            .into_iter()
+            .map(|spec| EngineState {
+                max_batch: usize::try_from(spec.profile.max_batch.max(1)).unwrap_or(usize::MAX),
+                spec,
+                busy: None,
+                busy_until: Timestamp::ZERO,
+            })
+            .collect();
+        Scheduler {
+            config,
+            engines,
+            policy,
+            tasks,
+            pending: BTreeMap::new(),
+            batches: HashMap::new(),
+            next_request: 0,
+            next_batch: 0,
+            finished: VecDeque::new(),
+            superseded: Vec::new(),
+            last_decision: None,
+            counters: SchedulerCounters::default(),
+            views: Vec::new(),
+            keys: Vec::new(),
+            order: Vec::new(),
+        }
+    }
+
+    /// Accepts a round request, or says why not.
+    ///
+    /// Checks, in order: the task has not ended (`TaskEnded`); the exec report is consistent
+    /// (`InvalidExecInfo`); the robot owns the task (`Forbidden`); the round is not the one already
+    /// in progress (`RoundInProgress`, attach to that request instead); the round id is greater
+    /// than the last accepted one, or equal to it after that round failed or was withdrawn
+    /// (`RoundOutOfOrder`); there is room (`Overloaded`, counting a request this one supersedes as
+    /// freed). A newer round of a task whose previous round is still pending supersedes it (see
+    /// [`Scheduler::take_superseded`]); one whose previous round is already in a batch abandons
+    /// that request (its generation still counts as service; its answer is no round).
+    pub fn handle_submit(
+        &mut self,
+        now: Timestamp,
+        submit: RoundSubmit,
+    ) -> Result<RequestId, AdmitError> {
+        let plan = match self.tasks.plan_submit(&submit) {
+            Ok(plan) => plan,
+            Err(e) => {
+                self.counters.refused += 1;
+                return Err(e);
+            }
+        };
+        let freed = usize::from(plan.supersedes_pending.is_some());
+        if self.pending.len() - freed >= self.config.max_pending {
+            self.counters.refused += 1;
+            return Err(AdmitError::Overloaded {
+                pending: self.pending.len(),
+            });
+        }
+        let request = RequestId(self.next_request);
+        self.next_request += 1;
+        let mut skipped = 0;
+        if let Some(old) = plan.supersedes_pending {
+            if let Some(entry) = self.pending.remove(&old) {
+                skipped = entry.skipped;
+            }
+            self.superseded.push(Superseded {
+                request: old,
+                task: submit.task,
+                by: request,
+            });
+            self.counters.superseded += 1;
+        }
+        if plan.abandons_running.is_some() {
+            self.counters.abandoned += 1;
+        }
+        self.tasks.apply_submit(now, &submit, &plan, request);
+        self.pending.insert(
+            request,
+            PendingRequest {
+                task: submit.task,
+                round: submit.round,
+                arrived_at: now,
+                obs_captured_at: submit.obs_captured_at,
+                skipped,
+                remaining: submit.remaining,
+            },
+        );
+        self.counters.submitted += 1;
+        Ok(request)
+    }
+
+    /// Withdraws a request whose client went away. Only a pending request is removed (its round
+    /// may be sent again); one already in a batch finishes normally.
+    pub fn handle_cancel(&mut self, now: Timestamp, request: RequestId) -> CancelOutcome {
+        if let Some(entry) = self.pending.remove(&request) {
+            self.tasks.withdrawn(now, entry.task, request);
+            self.counters.cancelled += 1;
+            return CancelOutcome::Removed;
+        }
+        let running = self
+            .batches
+            .values()
+            .any(|b| b.entries.iter().any(|e| e.request == request));
+        if running {
+            CancelOutcome::Running
+        } else {
+            CancelOutcome::NotFound
+        }
+    }
+
+    /// One scheduling decision covering every idle engine instance (see the module doc for when a
+    /// decision happens). Returns the batches to run, each to be confirmed with
+    /// `handle_batch_started` once its re-fetches are done and its forward pass begins.
+    pub fn poll_dispatch(&mut self, now: Timestamp) -> Vec<Dispatch> {
+        let any_idle = self.engines.iter().any(|e| e.busy.is_none());
+        if !any_idle || self.pending.is_empty() {
+            return Vec::new();
+        }
+        self.build_views(now);
+        let policy_failed = self.order_pending(now);
+
+        let slots: Vec<EngineSlot<'_>> = self
+            .engines
+            .iter()
+            .map(|e| EngineSlot {
+                tier: e.spec.tier,
+                max_batch: e.max_batch,
+                busy_until: e.busy.map(|_| e.busy_until),
+                profile: &e.spec.profile,
+                rtt: e.spec.rtt,
+            })
+            .collect();
+        let placed = placement::place(now, &self.order, &slots);
+        let costs: Vec<Duration> = slots
+            .iter()
+            .zip(&placed.batches)
+            .map(|(slot, batch)| slot.cost(batch.len()))
+            .collect();
+        drop(slots);
+
+        let mut dispatches = Vec::new();
+        let mut dispatched = 0;
+        let mut refetch = 0;
+        for (engine_index, batch) in placed.batches.iter().enumerate() {
+            if batch.is_empty() {
+                continue;
+            }
+            let batch_id = BatchId(self.next_batch);
+            self.next_batch += 1;
+            let mut requests = Vec::with_capacity(batch.len());
+            let mut entries = Vec::with_capacity(batch.len());
+            for &index in batch {
+                let request = self.keys[index];
+                let Some(entry) = self.pending.remove(&request) else {
+                    continue;
+                };
+                let stale = now.saturating_since(entry.obs_captured_at) > self.config.stale_after;
+                refetch += usize::from(stale);
+                requests.push(DispatchedRequest {
+                    request,
+                    task: entry.task,
+                    round: entry.round,
+                    refetch: stale,
+                });
+                entries.push(BatchEntry {
+                    request,
+                    task: entry.task,
+                });
+                self.tasks.dispatched(entry.task, request);
+            }
+            dispatched += requests.len();
+            let engine = &mut self.engines[engine_index];
+            engine.busy = Some(batch_id);
+            engine.busy_until = now + costs[engine_index];
+            self.batches.insert(
+                batch_id,
+                Batch {
+                    engine: EngineId(engine_index),
+                    dispatched_at: now,
+                    started_at: None,
+                    entries,
+                },
+            );
+            dispatches.push(Dispatch {
+                batch: batch_id,
+                engine: EngineId(engine_index),
+                requests,
+            });
+        }
+        if dispatched > 0 {
+            for entry in self.pending.values_mut() {
+                entry.skipped = entry.skipped.saturating_add(1);
+            }
+        }
+        self.counters.decisions += 1;
+        self.counters.dispatched += dispatched as u64;
+        self.counters.offloaded += placed.offloaded as u64;
+        self.counters.policy_errors += u64::from(policy_failed);
+        self.last_decision = Some(DecisionStats {
+            at: now,
+            pending: self.views.len(),
+            dispatched,
+            offloaded: placed.offloaded,
+            refetch,
+            batches: dispatches.len(),
+            policy_failed,
+        });
+        dispatches
+    }
+
+    /// Fills `views`/`keys` with every pending request, in arrival (`RequestId`) order.
+    fn build_views(&mut self, now: Timestamp) {
+        self.views.clear();
+        self.keys.clear();
+        for (&request, entry) in &self.pending {
+            let Some(task) = self.tasks.get(entry.task) else {
+                continue;
+            };
+            self.views.push(PendingView {
+                request,
+                task: entry.task,
+                round_index: u64::from(task.rounds_completed()),
+                arrived_at: entry.arrived_at,
+                task_started_at: task.started_at(),
+                skipped: entry.skipped,
+                wait: task.wait_at(now),
+                attained_service: task.attained_service(),
+                queued: task.queued_at(now),
+                last_exec: task.last_execution(),
+                last_gen: task.last_generation(),
+                rounds_completed: task.rounds_completed(),
+                remaining: entry.remaining,
+            });
+            self.keys.push(request);
+        }
+    }
+
+    /// Asks the policy for an order; falls back to arrival order if it fails or answers something
+    /// that is not a permutation. Returns whether it fell back.
+    fn order_pending(&mut self, now: Timestamp) -> bool {
+        self.order.clear();
+        let ok = self
+            .policy
+            .order(now, &self.views, &mut self.order)
+            .and_then(|()| validate_order(self.views.len(), &self.order));
+        match ok {
+            Ok(()) => false,
+            Err(e) => {
+                tracing::warn!(policy = self.policy.name(), error = %e, "priority policy failed; using arrival order");
+                self.order.clear();
+                self.order.extend(0..self.views.len());
+                true
+            }
+        }
+    }
+
+    /// The batch's re-fetches are done and its forward pass begins now (`G.start` of its requests).
+    pub fn handle_batch_started(&mut self, now: Timestamp, batch: BatchId) {
+        let Some(b) = self.batches.get_mut(&batch) else {
+            self.counters.ignored_events += 1;
+            return;
+        };
+        if b.started_at.is_some() {
+            self.counters.ignored_events += 1;
+            return;
+        }
+        b.started_at = Some(now);
+        for entry in &b.entries {
+            self.tasks
+                .generation_started(now, entry.task, entry.request);
+        }
+        if let Some(engine) = self.engines.get_mut(b.engine.0) {
+            let cost = engine
+                .spec
+                .profile
+                .latency(u32::try_from(b.entries.len()).unwrap_or(u32::MAX))
+                .saturating_add(engine.spec.rtt);
+            engine.busy_until = now + cost;
+        }
+    }
+
+    /// The batch ended at `now` (`G.end`); its engine instance is idle again. A request of the
+    /// batch missing from `outcomes` counts as failed; entries for requests not in the batch are
+    /// ignored. A batch never reported started is taken to have started when it was dispatched.
+    pub fn handle_batch_finished(
+        &mut self,
+        now: Timestamp,
+        batch: BatchId,
+        outcomes: &[(RequestId, RoundOutcome)],
+    ) {
+        let Some(b) = self.batches.remove(&batch) else {
+            self.counters.ignored_events += 1;
+            return;
+        };
+        if let Some(engine) = self.engines.get_mut(b.engine.0)
+            && engine.busy == Some(batch)
+        {
+            engine.busy = None;
+        }
+        let started = b.started_at.unwrap_or(b.dispatched_at);
+        let generation = now.saturating_since(started);
+        for entry in &b.entries {
+            if b.started_at.is_none() {
+                self.tasks
+                    .generation_started(started, entry.task, entry.request);
+            }
+            let outcome = outcomes
+                .iter()
+                .find(|(r, _)| *r == entry.request)
+                .map(|(_, o)| *o)
+                .unwrap_or(RoundOutcome::Failed);
+            let current = self
+                .tasks
+                .get(entry.task)
+                .and_then(|t| t.current_request())
+                .map(|(r, _)| r)
+                == Some(entry.request);
+            if !current {
+                self.tasks.abandoned_generation(entry.task, generation);
+                continue;
+            }
+            match outcome {
+                RoundOutcome::Answered { horizon } => {
+                    self.tasks.answered(now, entry.task, entry.request, horizon);
+                    self.counters.answered += 1;
+                }
+                RoundOutcome::Failed => {
+                    self.tasks.failed(now, entry.task, entry.request);
+                    self.counters.failed += 1;
+                }
+            }
+        }
+    }
+
+    /// Ends a task: `Done`/`Failed` from its robot, with the final execution report if it sent one
+    /// (its `E.end` is measured from `now`). A request of the task still pending is removed and
+    /// named in the summary's `open_request`; one already running finishes normally but is no
+    /// longer a round. The summary is also kept for [`Scheduler::take_finished`].
+    pub fn handle_task_end(
+        &mut self,
+        now: Timestamp,
+        task: TaskId,
+        robot: RobotId,
+        end: TaskEnd,
+        exec: Option<ExecReport>,
+    ) -> Result<TaskSummary, AdmitError> {
+        let exec = self.tasks.plan_end(task, robot, exec.as_ref(), now)?;
+        let summary = self.end_task(now, task, end, exec);
+        summary.ok_or(AdmitError::UnknownTask { task })
+    }
+
+    fn end_task(
+        &mut self,
+        now: Timestamp,
+        task: TaskId,
+        end: TaskEnd,
+        exec: Option<crate::lifecycle::Interval>,
+    ) -> Option<TaskSummary> {
+        let current = self.tasks.get(task).and_then(|t| t.current_request());
+        let summary = self.tasks.end(now, task, end, exec)?;
+        if let Some((request, _)) = current
+            && self.pending.remove(&request).is_none()
+        {
+            self.counters.abandoned += 1;
+        }
+        self.policy.task_finished(&summary.finished_task());
+        if self.finished.len() >= self.config.ended_tasks_remembered.max(1) {
+            self.finished.pop_front();
+        }
+        self.finished.push_back(summary);
+        self.counters.tasks_ended += 1;
+        Some(summary)
+    }
+
+    /// The next time `handle_timeout` has something to do: the earliest idle-expiry deadline.
+    pub fn poll_timeout(&self) -> Option<Timestamp> {
+        self.tasks.next_expiry()
+    }
+
+    /// Ends every task idle (no request pending or running) for `task_idle_timeout` as `Expired`.
+    /// Returns them, earliest deadline first; their summaries go to [`Scheduler::take_finished`].
+    pub fn handle_timeout(&mut self, now: Timestamp) -> Vec<TaskId> {
+        let expired = self.tasks.expired(now);
+        for &task in &expired {
+            self.end_task(now, task, TaskEnd::Expired, None);
+        }
+        expired
+    }
+
+    /// The task's lifecycle record, while it is open.
+    pub fn task(&self, task: TaskId) -> Option<&TaskRecord> {
+        self.tasks.get(task)
+    }
+
+    /// Open tasks.
+    pub fn task_count(&self) -> usize {
+        self.tasks.len()
+    }
+
+    /// Requests waiting for dispatch.
+    pub fn pending_len(&self) -> usize {
+        self.pending.len()
+    }
+
+    /// Requests in dispatched batches that have not finished.
+    pub fn running_len(&self) -> usize {
+        self.batches.values().map(|b| b.entries.len()).sum()
+    }
+
+    /// Whether the request is waiting for dispatch.
+    pub fn is_pending(&self, request: RequestId) -> bool {
+        self.pending.contains_key(&request)
+    }
+
+    /// Skip counter of a pending request (consecutive decisions that dispatched something but
+    /// not it).
+    pub fn skipped(&self, request: RequestId) -> Option<u32> {
+        self.pending.get(&request).map(|p| p.skipped)
+    }
+
+    /// Every engine instance's state, in `EngineId` order.
+    pub fn engines(&self) -> impl ExactSizeIterator<Item = EngineStatus<'_>> {
+        self.engines.iter().enumerate().map(|(i, e)| EngineStatus {
+            id: EngineId(i),
+            spec: &e.spec,
+            batch: e.busy,
+            busy_until: e.busy.map(|_| e.busy_until),
+        })
+    }
+
+    /// The batch engine instance `engine` runs, if it is busy.
+    pub fn engine_busy(&self, engine: EngineId) -> Option<BatchId> {
+        self.engines.get(engine.0).and_then(|e| e.busy)
+    }
+
+    /// What the most recent decision did.
+    pub fn last_decision(&self) -> Option<&DecisionStats> {
+        self.last_decision.as_ref()
+    }
+
+    /// Running totals.
+    pub fn counters(&self) -> &SchedulerCounters {
+        &self.counters
+    }
+
+    /// The priority policy's name.
+    pub fn policy_name(&self) -> &str {
+        self.policy.name()
+    }
+
+    /// The configuration it runs with.
+    pub fn config(&self) -> &SchedulerConfig {
+        &self.config
+    }
+
+    /// Summaries of tasks that ended since the last call, oldest first. At most
+    /// `ended_tasks_remembered` are kept between calls (oldest dropped first).
+    pub fn take_finished(&mut self) -> Vec<TaskSummary> {
+        self.finished.drain(..).collect()
+    }
+
+    /// Pending requests replaced by a newer round of their task since the last call. The driver
+    /// answers each with an error.
+    pub fn take_superseded(&mut self) -> Vec<Superseded> {
+        std::mem::take(&mut self.superseded)
+    }
+}
+
+impl std::fmt::Debug for Scheduler {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Scheduler")
+            .field("policy", &self.policy.name())
+            .field("engines", &self.engines.len())
+            .field("pending", &self.pending.len())
+            .field("batches", &self.batches.len())
+            .field("tasks", &self.tasks.len())
+            .finish()
+    }
+}

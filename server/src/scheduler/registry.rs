@@ -1,0 +1,347 @@
+//! Priority policies by name, for the command line and config files.
+//!
+//! A policy is written `name` or `name:key=value,key=value`, e.g. `fifo`, `plas:beta=16`,
+//! `kairos:buckets=inf,intra=fifo`. [`PolicySpec`] parses and prints that form (and is a string
+//! in serde), [`build`] turns it into a policy, validating every parameter.
+//!
+//! Adding a native policy: write `scheduler/<name>.rs` implementing
+//! [`PriorityPolicy`](super::PriorityPolicy), declare it in `scheduler/mod.rs`, and add one
+//! [`PolicyFactory`] line to [`BUILTIN`] whose `build` reads its parameters through
+//! [`PolicySpec::take`] helpers and ends with [`PolicySpec::finish`].
+
+use std::collections::BTreeMap;
+use std::fmt;
+use std::str::FromStr;
+
+use super::PriorityPolicy;
+use super::fifo::Fifo;
+use super::kairos::{IntraBucket, Kairos, KairosConfig};
+use super::plas::{Plas, PlasConfig};
+
+/// Why a policy spec was refused.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum PolicySpecError {
+    /// The text is not `name` or `name:key=value,...`.
+    #[error("invalid policy spec `{spec}`: {reason}")]
+    Syntax {
+        /// The text.
+        spec: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// No policy has this name.
+    #[error("unknown priority policy `{name}` (built in: {known})")]
+    UnknownPolicy {
+        /// The name given.
+        name: String,
+        /// The names that exist.
+        known: String,
+    },
+    /// A parameter the policy does not have.
+    #[error("policy `{policy}` has no parameter `{param}`")]
+    UnknownParam {
+        /// The policy.
+        policy: String,
+        /// The parameter.
+        param: String,
+    },
+    /// A parameter value out of range or unparsable.
+    #[error("policy `{policy}`: invalid `{param}={value}`: {reason}")]
+    InvalidParam {
+        /// The policy.
+        policy: String,
+        /// The parameter.
+        param: String,
+        /// The value given.
+        value: String,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+/// A policy name with its parameters, as written on the command line.
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(try_from = "String", into = "String")]
+pub struct PolicySpec {
+    /// The policy name (`fifo`, `plas`, `kairos`, ...).
+    pub name: String,
+    /// Its parameters, sorted by key.
+    pub params: BTreeMap<String, String>,
+}
+
+impl PolicySpec {
+    /// A spec with no parameters.
+    pub fn named(name: &str) -> Self {
+        PolicySpec {
+            name: name.to_string(),
+            params: BTreeMap::new(),
+        }
+    }
+
+    /// Removes and parses parameter `key` with `parse`, or returns `default` when absent.
+    pub fn take<T>(
+        &mut self,
+        key: &str,
+        default: T,
+        parse: impl FnOnce(&str) -> Result<T, String>,
+    ) -> Result<T, PolicySpecError> {
+        match self.params.remove(key) {
+            None => Ok(default),
+            Some(value) => parse(&value).map_err(|reason| PolicySpecError::InvalidParam {
+                policy: self.name.clone(),
+                param: key.to_string(),
+                value,
+                reason,
+            }),
+        }
+    }
+
+    /// Fails if any parameter was not consumed by [`PolicySpec::take`].
+    pub fn finish(&self) -> Result<(), PolicySpecError> {
+        match self.params.keys().next() {
+            Some(param) => Err(PolicySpecError::UnknownParam {
+                policy: self.name.clone(),
+                param: param.clone(),
+            }),
+            None => Ok(()),
+        }
+    }
+}
+
+impl FromStr for PolicySpec {
+    type Err = PolicySpecError;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let syntax = |reason: &str| PolicySpecError::Syntax {
+            spec: s.to_string(),
+            reason: reason.to_string(),
+        };
+        let (name, rest) = match s.split_once(':') {
+            Some((name, rest)) => (name.trim(), Some(rest)),
+            None => (s.trim(), None),
+        };
+        if name.is_empty()
+            || !name
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+        {
+            return Err(syntax(
+                "the name must be non-empty ASCII letters, digits, '-' or '_'",
+            ));
+        }
+        let mut params = BTreeMap::new();
+        for pair in rest.into_iter().flat_map(|r| r.split(',')) {
+            let pair = pair.trim();
+            if pair.is_empty() {
+                continue;
+            }
+            let (key, value) = pair
+                .split_once('=')
+                .ok_or_else(|| syntax("parameters are key=value, separated by commas"))?;
+            let (key, value) = (key.trim(), value.trim());
+            if key.is_empty() || value.is_empty() {
+                return Err(syntax("empty parameter name or value"));
+            }
+            if params.insert(key.to_string(), value.to_string()).is_some() {
+                return Err(syntax(&format!("parameter `{key}` given twice")));
+            }
+        }
+        Ok(PolicySpec {
+            name: name.to_string(),
+            params,
+        })
+    }
+}
+
+impl fmt::Display for PolicySpec {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.name)?;
+        for (i, (k, v)) in self.params.iter().enumerate() {
+            write!(f, "{}{k}={v}", if i == 0 { ':' } else { ',' })?;
+        }
+        Ok(())
+    }
+}
+
+impl TryFrom<String> for PolicySpec {
+    type Error = PolicySpecError;
+    fn try_from(s: String) -> Result<Self, Self::Error> {
+        s.parse()
+    }
+}
+
+impl From<PolicySpec> for String {
+    fn from(spec: PolicySpec) -> String {
+        spec.to_string()
+    }
+}
+
+/// One buildable policy.
+#[derive(Clone, Copy)]
+pub struct PolicyFactory {
+    /// Its name in specs.
+    pub name: &'static str,
+    /// One line for `--help` and error messages: what it does and its parameters.
+    pub summary: &'static str,
+    /// Builds it from a spec with this name, consuming and validating the parameters.
+    pub build: fn(PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError>,
+}
+
+impl fmt::Debug for PolicyFactory {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("PolicyFactory")
+            .field("name", &self.name)
+            .finish()
+    }
+}
+
+/// The native priority policies.
+pub const BUILTIN: &[PolicyFactory] = &[
+    PolicyFactory {
+        name: "fifo",
+        summary: "first come, first served by request arrival (vLLM default); no parameters",
+        build: build_fifo,
+    },
+    PolicyFactory {
+        name: "plas",
+        summary: "Autellix PLAS: least attained generation service in exponential queues; queues=8, quantum_ms=1000, growth=2, beta=8",
+        build: build_plas,
+    },
+    PolicyFactory {
+        name: "kairos",
+        summary: "paper Algorithm 1: wait-ratio buckets, aging, longest execution first; buckets=10 (or inf), aging=4, intra=longest-exec|fifo",
+        build: build_kairos,
+    },
+];
+
+/// Builds the policy `spec` names.
+pub fn build(spec: &PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
+    let factory = BUILTIN
+        .iter()
+        .find(|f| f.name == spec.name)
+        .ok_or_else(|| PolicySpecError::UnknownPolicy {
+            name: spec.name.clone(),
+            known: BUILTIN
+                .iter()
+                .map(|f| f.name)
+                .collect::<Vec<_>>()
+                .join(", "),
+        })?;
+    (factory.build)(spec.clone())
+}
+
+/// Parses `s` as a whole number in `[min, max]`.
+pub fn parse_int<T: TryFrom<u64>>(s: &str, min: u64, max: u64) -> Result<T, String> {
+    let v: u64 = s
+        .parse()
+        .map_err(|_| format!("not a whole number between {min} and {max}"))?;
+    if v < min || v > max {
+        return Err(format!("must be between {min} and {max}"));
+    }
+    T::try_from(v).map_err(|_| "out of range".to_string())
+}
+
+/// Parses `s` as a finite real number `> min_exclusive`.
+pub fn parse_real(s: &str, min_exclusive: f64) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|_| "not a number".to_string())?;
+    if !v.is_finite() || v <= min_exclusive {
+        return Err(format!("must be a finite number > {min_exclusive}"));
+    }
+    Ok(v)
+}
+
+fn build_fifo(spec: PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
+    spec.finish()?;
+    Ok(Box::new(Fifo::default()))
+}
+
+fn build_plas(mut spec: PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
+    let d = PlasConfig::default();
+    let queues = spec.take("queues", d.queues, |s| parse_int(s, 1, 64))?;
+    let quantum_us = spec.take("quantum_ms", d.quantum_us, |s| {
+        let ms = parse_real(s, 0.0)?;
+        let us = (ms * 1e3).round();
+        if !(1.0..=1e15).contains(&us) {
+            return Err("must be between 0.001 and 10^12 ms".into());
+        }
+        Ok(us as u64)
+    })?;
+    let growth = spec.take("growth", d.growth, |s| parse_int(s, 1, 1_000))?;
+    let beta = spec.take("beta", d.beta, |s| parse_real(s, 0.0))?;
+    spec.finish()?;
+    Ok(Box::new(Plas::new(PlasConfig {
+        queues,
+        quantum_us,
+        growth,
+        beta,
+    })))
+}
+
+fn build_kairos(mut spec: PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
+    let d = KairosConfig::default();
+    let buckets = spec.take("buckets", d.buckets, |s| {
+        if s == "inf" || s == "∞" {
+            Ok(None)
+        } else {
+            parse_int(s, 1, 1_000_000).map(Some)
+        }
+    })?;
+    let aging = spec.take("aging", d.aging, |s| parse_int(s, 1, u64::from(u32::MAX)))?;
+    let intra = spec.take("intra", d.intra, |s| match s {
+        "longest-exec" => Ok(IntraBucket::LongestExecFirst),
+        "fifo" => Ok(IntraBucket::Fifo),
+        _ => Err("expected longest-exec or fifo".into()),
+    })?;
+    spec.finish()?;
+    Ok(Box::new(Kairos::new(KairosConfig {
+        buckets,
+        aging,
+        intra,
+    })))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn specs_parse_print_and_build() {
+        let spec: PolicySpec = "kairos:buckets=inf, intra=fifo".parse().unwrap();
+        assert_eq!(spec.name, "kairos");
+        assert_eq!(spec.to_string(), "kairos:buckets=inf,intra=fifo");
+        assert_eq!(build(&spec).unwrap().name(), "kairos");
+        for name in ["fifo", "plas", "kairos"] {
+            assert_eq!(build(&PolicySpec::named(name)).unwrap().name(), name);
+        }
+        assert!(
+            build(
+                &"plas:beta=16,queues=4,quantum_ms=250,growth=3"
+                    .parse()
+                    .unwrap()
+            )
+            .is_ok()
+        );
+        let json = serde_json::to_string(&spec).unwrap();
+        assert_eq!(json, "\"kairos:buckets=inf,intra=fifo\"");
+        assert_eq!(serde_json::from_str::<PolicySpec>(&json).unwrap(), spec);
+    }
+
+    #[test]
+    fn bad_specs_are_refused_with_the_reason() {
+        let err = |s: &str| match s.parse::<PolicySpec>() {
+            Ok(spec) => build(&spec).err().map(|e| e.to_string()),
+            Err(e) => Some(e.to_string()),
+        };
+        assert!(err("sjf").unwrap().contains("unknown priority policy"));
+        assert!(err("fifo:x=1").unwrap().contains("no parameter `x`"));
+        assert!(err("kairos:buckets=0").unwrap().contains("between 1"));
+        assert!(err("kairos:aging=-1").is_some());
+        assert!(err("kairos:intra=random").unwrap().contains("longest-exec"));
+        assert!(err("plas:beta=0").is_some());
+        assert!(err("plas:beta=nan").is_some());
+        assert!(err("kairos:buckets").unwrap().contains("key=value"));
+        assert!(err("kairos:aging=2,aging=3").unwrap().contains("twice"));
+        assert!(err(":x=1").is_some());
+        assert!(err("kairos:buckets=5,aging=2").is_none());
+    }
+}
