@@ -1,7 +1,4 @@
 //! The `kairos` command line: one module per subcommand, each with a `clap::Args` struct and a
 //! `run` function. `main.rs` only parses and dispatches.
-<<<<<<< HEAD
 pub mod plugin;
-=======
 pub mod robot;
->>>>>>> main
