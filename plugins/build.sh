@@ -48,7 +48,9 @@ build_py() { # name world
 build_c threshold horizon
 build_c static horizon
 build_c fifo priority
-build_py fifo priority
+build_c plas priority
+build_c kairos priority
+build_py kairos priority
 
 # Conformance gate; parameters where a policy requires them.
 check() { "$KAIROS" plugin check --cache-dir "$CACHE" --cases 100 "$@" >/dev/null || {
@@ -56,5 +58,7 @@ check() { "$KAIROS" plugin check --cache-dir "$CACHE" --cases 100 "$@" >/dev/nul
 check "$OUT/threshold.wasm"
 check "$OUT/static.wasm" --param h=8
 check "$OUT/fifo.wasm"
-check "$OUT/fifo_py.wasm" --deadline-ms 1000
+check "$OUT/plas.wasm"
+check "$OUT/kairos.wasm"
+check "$OUT/kairos_py.wasm" --deadline-ms 2000 --memory-mib 256
 echo "plugins built and checked: $(cd "$OUT" && ls ./*.wasm | grep -v core | tr '\n' ' ')"

@@ -129,6 +129,7 @@ fn pending(n: usize) -> Vec<PendingView> {
             skipped: 0,
             wait: Duration::from_micros(400),
             attained_service: Duration::from_micros(300),
+            queued: Duration::from_micros(100),
             last_exec: Some(Duration::from_millis(200)),
             last_gen: Some(Duration::from_millis(80)),
             rounds_completed: 3,
@@ -194,12 +195,19 @@ fn a_trap_discards_the_instance_and_the_next_call_gets_a_fresh_one() {
     let mut policy = horizon_plugin(horizon_component(body), horizon_options(50));
     for round in 0..10u64 {
         let expected = if round % 2 == 1 { 2 } else { 20 };
-        assert_eq!(policy.choose(&chunk.input(2, 20, round)), Ok(expected), "round {round}");
+        assert_eq!(
+            policy.choose(&chunk.input(2, 20, round)),
+            Ok(expected),
+            "round {round}"
+        );
     }
     let stats = policy.stats();
     assert_eq!(stats.failures_of(FailureKind::Trap), 5);
     assert_eq!(stats.answered, 5);
-    assert!(!stats.quarantined, "a success between failures resets the streak");
+    assert!(
+        !stats.quarantined,
+        "a success between failures resets the streak"
+    );
 }
 
 #[test]
@@ -210,7 +218,10 @@ fn invalid_horizons_are_rejected_and_fall_back() {
         assert_eq!(policy.choose(&chunk.input(6, 30, 0)), Ok(6), "{body}");
         assert_eq!(policy.stats().failures_of(FailureKind::InvalidAnswer), 1);
         let direct = policy.call_plugin(&chunk.input(6, 30, 0));
-        assert_eq!(direct.map(|_| ()).map_err(|f| f.kind), Err(FailureKind::InvalidAnswer));
+        assert_eq!(
+            direct.map(|_| ()).map_err(|f| f.kind),
+            Err(FailureKind::InvalidAnswer)
+        );
     }
 }
 
@@ -276,7 +287,11 @@ fn every_robot_request_is_answered_whatever_the_horizon_plugin_does() {
         assert_eq!(stats.fallbacks, stats.decisions, "{name}: {stats:?}");
         assert!(stats.quarantined, "{name}: {stats:?}");
         // 400 decisions; at most 3 failures before quarantine, each ≤ 5 ms + margin.
-        assert!(started.elapsed() < 3 * (Duration::from_millis(5) + MARGIN), "{name}: {:?}", started.elapsed());
+        assert!(
+            started.elapsed() < 3 * (Duration::from_millis(5) + MARGIN),
+            "{name}: {:?}",
+            started.elapsed()
+        );
     }
 }
 
@@ -310,7 +325,13 @@ fn hostile_priority_plugins_are_contained_and_every_request_is_ordered() {
             Ok(policy) => policy,
             // Loops, hogs and traps already fail the trial call: refused at load.
             Err(LoadError::Compile { message, .. }) => {
-                assert!(matches!(kind, FailureKind::Timeout | FailureKind::OverLimit | FailureKind::Trap), "{name}: {message}");
+                assert!(
+                    matches!(
+                        kind,
+                        FailureKind::Timeout | FailureKind::OverLimit | FailureKind::Trap
+                    ),
+                    "{name}: {message}"
+                );
                 assert!(message.contains(&kind.to_string()), "{name}: {message}");
                 continue;
             }
@@ -327,7 +348,10 @@ fn hostile_priority_plugins_are_contained_and_every_request_is_ordered() {
             assert!(started.elapsed() < deadline + MARGIN, "{name}");
             validate_order(pending.len(), &order).expect("complete order");
             let reverse: Vec<usize> = (0..pending.len()).rev().collect();
-            assert_eq!(order, reverse, "{name}: the fallback ordered decision {decision}");
+            assert_eq!(
+                order, reverse,
+                "{name}: the fallback ordered decision {decision}"
+            );
         }
         let stats = policy.stats();
         assert!(stats.failures_of(kind) >= 1, "{name}: {stats:?}");
@@ -367,13 +391,21 @@ fn hostile_priority_plugins_that_pass_the_load_check_are_contained_at_run_time()
             }
             validate_order(pending.len(), &order).expect("complete order");
         }
-        assert_eq!(policy.stats().failures_of(kind), 5, "{name}: {:?}", policy.stats());
+        assert_eq!(
+            policy.stats().failures_of(kind),
+            5,
+            "{name}: {:?}",
+            policy.stats()
+        );
     }
 }
 
 #[test]
 fn a_well_behaved_priority_fixture_orders_through_the_plugin() {
-    let mut policy = priority_plugin(priority_component(PRIORITY_IDENTITY), PluginOptions::priority());
+    let mut policy = priority_plugin(
+        priority_component(PRIORITY_IDENTITY),
+        PluginOptions::priority(),
+    );
     for n in [0, 1, 5, 1000] {
         let mut order = Vec::new();
         policy
@@ -425,16 +457,29 @@ fn a_plugin_for_the_wrong_world_is_refused_at_load() {
     assert!(message.contains("is a priority plugin"), "{message}");
 
     let error = load_error(horizon_component(HORIZON_H_MIN), PluginKind::Priority);
-    assert!(matches!(inspect_error(error), InspectError::WrongWorld { .. }));
+    assert!(matches!(
+        inspect_error(error),
+        InspectError::WrongWorld { .. }
+    ));
 }
 
 #[test]
 fn a_plugin_for_an_unsupported_version_is_refused_at_load() {
-    let wasm = foreign_component(&wit_with_version("0.2.0"), "horizon-policy", &horizon_wat(HORIZON_H_MIN).replace("@0.1.0", "@0.2.0"));
+    let wasm = foreign_component(
+        &wit_with_version("0.2.0"),
+        "horizon-policy",
+        &horizon_wat(HORIZON_H_MIN).replace("@0.1.0", "@0.2.0"),
+    );
     let error = load_error(wasm, PluginKind::Horizon);
     let message = error.to_string();
-    assert!(matches!(inspect_error(error), InspectError::UnsupportedVersion { .. }));
-    assert!(message.contains("kairos:policy@0.2.0") && message.contains("supported: 0.1.0"), "{message}");
+    assert!(matches!(
+        inspect_error(error),
+        InspectError::UnsupportedVersion { .. }
+    ));
+    assert!(
+        message.contains("kairos:policy@0.2.0") && message.contains("supported: 0.1.0"),
+        "{message}"
+    );
 }
 
 #[test]
@@ -443,7 +488,10 @@ fn a_component_of_another_package_is_refused_at_load() {
     let wat = r#"(module (memory (export "memory") 1) (func (export "acme:other/thing@1.0.0#go") (result i32) (i32.const 7)))"#;
     let error = load_error(foreign_component(wit, "w", wat), PluginKind::Horizon);
     let message = error.to_string();
-    assert!(matches!(inspect_error(error), InspectError::NoPolicyExport { .. }));
+    assert!(matches!(
+        inspect_error(error),
+        InspectError::NoPolicyExport { .. }
+    ));
     assert!(message.contains("acme:other/thing@1.0.0"), "{message}");
 }
 
@@ -457,9 +505,15 @@ fn a_plugin_importing_a_capability_is_refused_at_load() {
         "(module",
         r#"(module (import "kairos:policy/net@0.1.0" "connect" (func (param i32 i32) (result i32)))"#,
     );
-    let error = load_error(foreign_component(&wit, "horizon-policy", &wat), PluginKind::Horizon);
+    let error = load_error(
+        foreign_component(&wit, "horizon-policy", &wat),
+        PluginKind::Horizon,
+    );
     let message = error.to_string();
-    assert_eq!(inspect_error(error), InspectError::ForbiddenImport("kairos:policy/net@0.1.0".into()));
+    assert_eq!(
+        inspect_error(error),
+        InspectError::ForbiddenImport("kairos:policy/net@0.1.0".into())
+    );
     assert!(message.contains("does not provide"), "{message}");
 }
 
@@ -467,9 +521,15 @@ fn a_plugin_importing_a_capability_is_refused_at_load() {
 fn a_core_module_or_garbage_is_refused_at_load() {
     let core = wat::parse_str(horizon_wat(HORIZON_H_MIN)).unwrap();
     let message = load_error(core, PluginKind::Horizon).to_string();
-    assert!(message.contains("core module") && message.contains("componentize"), "{message}");
+    assert!(
+        message.contains("core module") && message.contains("componentize"),
+        "{message}"
+    );
     let error = load_error(b"not wasm at all".to_vec(), PluginKind::Horizon);
-    assert!(matches!(inspect_error(error), InspectError::NotAComponent(_)));
+    assert!(matches!(
+        inspect_error(error),
+        InspectError::NotAComponent(_)
+    ));
 }
 
 #[test]
@@ -512,7 +572,11 @@ fn the_code_cache_reuses_only_entries_the_server_wrote() {
     std::fs::write(&entry, other).unwrap();
     let mut recompiled = load(&options);
     assert_eq!(recompiled.meta().code, CodeSource::Compiled);
-    assert_eq!(recompiled.choose(&chunk.input(2, 33, 0)), Ok(33), "the tampered code never ran");
+    assert_eq!(
+        recompiled.choose(&chunk.input(2, 33, 0)),
+        Ok(33),
+        "the tampered code never ran"
+    );
 
     // A second cache (another installation) does not trust the first one's entries.
     let stranger = CodeCache::open(dir.path().join("other")).unwrap();

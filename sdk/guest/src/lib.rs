@@ -73,7 +73,8 @@ pub mod __private {
             context: wh::HorizonContext,
             params: Vec<horizon::kairos::policy::types::Param>,
         ) -> Result<u32, wh::HorizonError> {
-            let params: Vec<(String, f64)> = params.into_iter().map(|p| (p.name, p.value)).collect();
+            let params: Vec<(String, f64)> =
+                params.into_iter().map(|p| (p.name, p.value)).collect();
             let chunk = crate::Chunk {
                 samples: chunk.samples,
                 steps: chunk.steps,
@@ -108,7 +109,8 @@ pub mod __private {
             pending: Vec<wp::Pending>,
             params: Vec<priority::kairos::policy::types::Param>,
         ) -> Result<Vec<u32>, String> {
-            let params: Vec<(String, f64)> = params.into_iter().map(|p| (p.name, p.value)).collect();
+            let params: Vec<(String, f64)> =
+                params.into_iter().map(|p| (p.name, p.value)).collect();
             let pending: Vec<crate::Pending> = pending
                 .into_iter()
                 .map(|p| crate::Pending {
@@ -120,6 +122,7 @@ pub mod __private {
                     skipped: p.skipped,
                     wait_ns: p.wait_ns,
                     attained_service_ns: p.attained_service_ns,
+                    queued_ns: p.queued_ns,
                     last_exec_ns: p.last_exec_ns,
                     last_gen_ns: p.last_gen_ns,
                     rounds_completed: p.rounds_completed,
@@ -263,7 +266,9 @@ pub enum HorizonError {
 impl fmt::Display for HorizonError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            HorizonError::InvalidParam { name, reason } => write!(f, "invalid parameter `{name}`: {reason}"),
+            HorizonError::InvalidParam { name, reason } => {
+                write!(f, "invalid parameter `{name}`: {reason}")
+            }
             HorizonError::Unsupported(m) => write!(f, "unsupported: {m}"),
             HorizonError::Failed(m) => write!(f, "failed: {m}"),
         }
@@ -273,7 +278,11 @@ impl fmt::Display for HorizonError {
 /// A horizon policy: how many actions of the chunk the robot executes.
 pub trait HorizonPolicy {
     /// The horizon for this round, within `[ctx.h_min, ctx.h_max]`.
-    fn choose(chunk: &Chunk<'_>, ctx: &HorizonContext<'_>, params: &Params<'_>) -> Result<u32, HorizonError>;
+    fn choose(
+        chunk: &Chunk<'_>,
+        ctx: &HorizonContext<'_>,
+        params: &Params<'_>,
+    ) -> Result<u32, HorizonError>;
 }
 
 /// The client's remaining-work hint.
@@ -304,6 +313,8 @@ pub struct Pending {
     pub wait_ns: u64,
     /// Σ |G_j|, ns.
     pub attained_service_ns: u64,
+    /// Σ queueing time of the task's requests (this one's included), ns.
+    pub queued_ns: u64,
     /// |E_last|, ns.
     pub last_exec_ns: Option<u64>,
     /// |G_last|, ns.
@@ -352,9 +363,16 @@ mod tests {
     struct Half;
 
     impl HorizonPolicy for Half {
-        fn choose(chunk: &Chunk<'_>, ctx: &HorizonContext<'_>, params: &Params<'_>) -> Result<u32, HorizonError> {
+        fn choose(
+            chunk: &Chunk<'_>,
+            ctx: &HorizonContext<'_>,
+            params: &Params<'_>,
+        ) -> Result<u32, HorizonError> {
             if let Some(name) = params.unknown(&[]) {
-                return Err(HorizonError::InvalidParam { name: name.into(), reason: "unknown".into() });
+                return Err(HorizonError::InvalidParam {
+                    name: name.into(),
+                    reason: "unknown".into(),
+                });
             }
             Ok((chunk.chunk_len / 2).clamp(ctx.h_min, ctx.h_max))
         }
@@ -367,7 +385,9 @@ mod tests {
     impl PriorityPolicy for MostRemaining {
         fn order(_now: u64, pending: &[Pending], _: &Params<'_>) -> Result<Vec<u32>, String> {
             let mut order: Vec<u32> = (0..pending.len() as u32).collect();
-            order.sort_by_key(|&i| std::cmp::Reverse(pending[i as usize].remaining.and_then(|r| r.rounds)));
+            order.sort_by_key(|&i| {
+                std::cmp::Reverse(pending[i as usize].remaining.and_then(|r| r.rounds))
+            });
             Ok(order)
         }
     }
@@ -377,18 +397,49 @@ mod tests {
     fn policy_logic_runs_natively() {
         let updates = vec![0.0; 2 * 10 * 3];
         let actions = vec![0.0; 10 * 3];
-        let chunk = Chunk { samples: 1, steps: 2, chunk_len: 10, action_dim: 3, updates: &updates, actions: &actions };
-        let ctx = HorizonContext { h_min: 2, h_max: 4, control_hz: 30.0, round_index: 0, recent_horizons: &[] };
+        let chunk = Chunk {
+            samples: 1,
+            steps: 2,
+            chunk_len: 10,
+            action_dim: 3,
+            updates: &updates,
+            actions: &actions,
+        };
+        let ctx = HorizonContext {
+            h_min: 2,
+            h_max: 4,
+            control_hz: 30.0,
+            round_index: 0,
+            recent_horizons: &[],
+        };
         assert_eq!(Half::choose(&chunk, &ctx, &Params(&[])), Ok(4));
         let bad = [("x".to_string(), 1.0)];
-        assert!(matches!(Half::choose(&chunk, &ctx, &Params(&bad)), Err(HorizonError::InvalidParam { .. })));
+        assert!(matches!(
+            Half::choose(&chunk, &ctx, &Params(&bad)),
+            Err(HorizonError::InvalidParam { .. })
+        ));
         assert_eq!(chunk.update(0, 1, 9).len(), 3);
 
         let pending = [
-            Pending { remaining: Some(RemainingWork { rounds: Some(2), seconds: None }), ..Pending::default() },
-            Pending { remaining: Some(RemainingWork { rounds: Some(9), seconds: None }), ..Pending::default() },
+            Pending {
+                remaining: Some(RemainingWork {
+                    rounds: Some(2),
+                    seconds: None,
+                }),
+                ..Pending::default()
+            },
+            Pending {
+                remaining: Some(RemainingWork {
+                    rounds: Some(9),
+                    seconds: None,
+                }),
+                ..Pending::default()
+            },
             Pending::default(),
         ];
-        assert_eq!(MostRemaining::order(0, &pending, &Params(&[])), Ok(vec![1, 0, 2]));
+        assert_eq!(
+            MostRemaining::order(0, &pending, &Params(&[])),
+            Ok(vec![1, 0, 2])
+        );
     }
 }

@@ -268,11 +268,7 @@ fn check(args: CheckArgs) -> anyhow::Result<()> {
         print_report(&report);
     }
     if !report.passed() {
-        bail!(
-            "{} of {} cases failed",
-            report.failures.len(),
-            report.cases
-        );
+        bail!("{} of {} cases failed", report.failures.len(), report.cases);
     }
     Ok(())
 }
@@ -298,7 +294,10 @@ fn print_report(report: &CheckReport) {
         report.failures.len(),
         report.peak_memory as f64 / (1 << 20) as f64
     );
-    println!("{:<28} {:>7} {:>12} {:>12} {:>12}", "call time", "calls", "p50", "p99", "max");
+    println!(
+        "{:<28} {:>7} {:>12} {:>12} {:>12}",
+        "call time", "calls", "p50", "p99", "max"
+    );
     for t in &report.timings {
         println!(
             "{:<28} {:>7} {:>12.1?} {:>12.1?} {:>12.1?}",
@@ -342,7 +341,11 @@ fn info(file: PathBuf) -> anyhow::Result<()> {
         let supported = info.check(*kind).is_ok();
         println!(
             "exports kairos:policy/{kind}@{version}{}",
-            if supported { "" } else { " (not supported by this server)" }
+            if supported {
+                ""
+            } else {
+                " (not supported by this server)"
+            }
         );
     }
     if info.imports.is_empty() {

@@ -44,7 +44,11 @@ pub struct WitVersion {
 impl WitVersion {
     /// `major.minor.patch`.
     pub const fn new(major: u64, minor: u64, patch: u64) -> Self {
-        WitVersion { major, minor, patch }
+        WitVersion {
+            major,
+            minor,
+            patch,
+        }
     }
 }
 

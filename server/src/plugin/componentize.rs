@@ -67,9 +67,7 @@ pub fn componentize(module: &[u8], kind: PluginKind) -> Result<Vec<u8>, Componen
     }
     let mut resolve = Resolve::default();
     let encode = |e: anyhow::Error| ComponentizeError::Encode(format!("{e:#}"));
-    let package = resolve
-        .push_str("policy.wit", WIT_SOURCE)
-        .map_err(encode)?;
+    let package = resolve.push_str("policy.wit", WIT_SOURCE).map_err(encode)?;
     let world = resolve
         .select_world(&[package], Some(world_name(kind)))
         .map_err(encode)?;

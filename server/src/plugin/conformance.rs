@@ -171,7 +171,12 @@ impl PriorityPolicy for NoFallback {
     fn name(&self) -> &str {
         "none"
     }
-    fn order(&mut self, _: Timestamp, _: &[PendingView], _: &mut Vec<usize>) -> Result<(), PolicyError> {
+    fn order(
+        &mut self,
+        _: Timestamp,
+        _: &[PendingView],
+        _: &mut Vec<usize>,
+    ) -> Result<(), PolicyError> {
         Err(PolicyError::Failed("no fallback during a check".into()))
     }
 }
@@ -264,7 +269,9 @@ pub fn horizon_case(
             }
         }
     }
-    let actions = (0..s * n * d).map(|_| rng.random_range(-1.0f32..1.0)).collect();
+    let actions = (0..s * n * d)
+        .map(|_| rng.random_range(-1.0f32..1.0))
+        .collect();
     let h_min = rng.random_range(1..=n);
     let h_max = rng.random_range(h_min..=n);
     HorizonCase {
@@ -286,34 +293,116 @@ pub fn horizon_case(
 pub fn horizon_cases(seed: u64, random: usize) -> Vec<HorizonCase> {
     let mut rng = StdRng::seed_from_u64(seed);
     let mut cases = vec![
-        horizon_case(&mut rng, "SmolVLA-sized chunk (S=1 K=10 N=50 D=7)", "N=50 K=10 D=7", (1, 10, 50, 7), UpdateShape::Realistic),
-        horizon_case(&mut rng, "all actions unconverged", "edge", (1, 10, 50, 7), UpdateShape::AllUnconverged),
-        horizon_case(&mut rng, "all actions converged", "edge", (1, 10, 50, 7), UpdateShape::AllConverged),
-        horizon_case(&mut rng, "N=1", "edge", (1, 10, 1, 7), UpdateShape::Realistic),
-        horizon_case(&mut rng, "K=1 (no earlier steps)", "edge", (1, 1, 50, 7), UpdateShape::Realistic),
-        horizon_case(&mut rng, "D=1", "edge", (1, 10, 50, 1), UpdateShape::Realistic),
-        horizon_case(&mut rng, "4 samples", "edge", (4, 10, 50, 7), UpdateShape::Realistic),
-        horizon_case(&mut rng, "huge K (K=1000 N=50 D=7)", "huge K", (1, 1000, 50, 7), UpdateShape::Realistic),
-        horizon_case(&mut rng, "pi0-sized chunk (K=10 N=50 D=32)", "edge", (1, 10, 50, 32), UpdateShape::Realistic),
+        horizon_case(
+            &mut rng,
+            "SmolVLA-sized chunk (S=1 K=10 N=50 D=7)",
+            "N=50 K=10 D=7",
+            (1, 10, 50, 7),
+            UpdateShape::Realistic,
+        ),
+        horizon_case(
+            &mut rng,
+            "all actions unconverged",
+            "edge",
+            (1, 10, 50, 7),
+            UpdateShape::AllUnconverged,
+        ),
+        horizon_case(
+            &mut rng,
+            "all actions converged",
+            "edge",
+            (1, 10, 50, 7),
+            UpdateShape::AllConverged,
+        ),
+        horizon_case(
+            &mut rng,
+            "N=1",
+            "edge",
+            (1, 10, 1, 7),
+            UpdateShape::Realistic,
+        ),
+        horizon_case(
+            &mut rng,
+            "K=1 (no earlier steps)",
+            "edge",
+            (1, 1, 50, 7),
+            UpdateShape::Realistic,
+        ),
+        horizon_case(
+            &mut rng,
+            "D=1",
+            "edge",
+            (1, 10, 50, 1),
+            UpdateShape::Realistic,
+        ),
+        horizon_case(
+            &mut rng,
+            "4 samples",
+            "edge",
+            (4, 10, 50, 7),
+            UpdateShape::Realistic,
+        ),
+        horizon_case(
+            &mut rng,
+            "huge K (K=1000 N=50 D=7)",
+            "huge K",
+            (1, 1000, 50, 7),
+            UpdateShape::Realistic,
+        ),
+        horizon_case(
+            &mut rng,
+            "pi0-sized chunk (K=10 N=50 D=32)",
+            "edge",
+            (1, 10, 50, 32),
+            UpdateShape::Realistic,
+        ),
     ];
-    let mut pinned = horizon_case(&mut rng, "h_min = h_max", "edge", (1, 10, 50, 7), UpdateShape::Realistic);
+    let mut pinned = horizon_case(
+        &mut rng,
+        "h_min = h_max",
+        "edge",
+        (1, 10, 50, 7),
+        UpdateShape::Realistic,
+    );
     pinned.bounds = (7, 7);
     cases.push(pinned);
-    let mut full = horizon_case(&mut rng, "h_min = 1, h_max = N", "edge", (1, 10, 50, 7), UpdateShape::AllConverged);
+    let mut full = horizon_case(
+        &mut rng,
+        "h_min = 1, h_max = N",
+        "edge",
+        (1, 10, 50, 7),
+        UpdateShape::AllConverged,
+    );
     full.bounds = (1, 50);
     cases.push(full);
-    let mut nan = horizon_case(&mut rng, "non-finite updates", "edge", (1, 10, 50, 7), UpdateShape::Realistic);
+    let mut nan = horizon_case(
+        &mut rng,
+        "non-finite updates",
+        "edge",
+        (1, 10, 50, 7),
+        UpdateShape::Realistic,
+    );
     nan.updates[3] = f32::NAN;
     nan.updates[40] = f32::INFINITY;
     cases.push(nan);
     for i in 0..random {
         let dims = (
-            if rng.random_bool(0.1) { rng.random_range(2..=4) } else { 1 },
+            if rng.random_bool(0.1) {
+                rng.random_range(2..=4)
+            } else {
+                1
+            },
             rng.random_range(1..=16),
             rng.random_range(1..=64),
             rng.random_range(1..=14),
         );
-        cases.push(horizon_case(&mut rng, format!("random #{i}"), "random", dims, UpdateShape::Realistic));
+        cases.push(horizon_case(
+            &mut rng,
+            format!("random #{i}"),
+            "random",
+            dims,
+            UpdateShape::Realistic,
+        ));
     }
     cases
 }
@@ -372,22 +461,32 @@ pub fn random_pending(rng: &mut StdRng, i: usize, now: Timestamp) -> PendingView
     let arrived = rng.random_range(task_started..=now_us);
     let life = now_us - task_started;
     let micros = |rng: &mut StdRng, max: u64| Duration::from_micros(rng.random_range(0..=max));
-    let maybe = |rng: &mut StdRng, max: u64| rng.random_bool(0.8).then(|| Duration::from_micros(rng.random_range(0..=max)));
+    let maybe = |rng: &mut StdRng, max: u64| {
+        rng.random_bool(0.8)
+            .then(|| Duration::from_micros(rng.random_range(0..=max)))
+    };
     PendingView {
         request: RequestId(1_000_000 + i as u64),
         task: TaskId(rng.random_range(0..1_000_000)),
         round_index: rng.random_range(0..500),
         arrived_at: Timestamp::from_micros(arrived),
         task_started_at: Timestamp::from_micros(task_started),
-        skipped: if rng.random_bool(0.7) { 0 } else { rng.random_range(1..40) },
+        skipped: if rng.random_bool(0.7) {
+            0
+        } else {
+            rng.random_range(1..40)
+        },
         wait: micros(rng, life),
         attained_service: micros(rng, life),
+        queued: micros(rng, life),
         last_exec: maybe(rng, 3_000_000),
         last_gen: maybe(rng, 1_000_000),
         rounds_completed: rng.random_range(0..500),
         remaining: rng.random_bool(0.3).then(|| RemainingWork {
             rounds: rng.random_bool(0.7).then(|| rng.random_range(0..200)),
-            seconds: rng.random_bool(0.7).then(|| rng.random_range(0.0f32..600.0)),
+            seconds: rng
+                .random_bool(0.7)
+                .then(|| rng.random_range(0.0f32..600.0)),
         }),
     }
 }
@@ -404,12 +503,18 @@ fn check_priority(
     config: &CheckConfig,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<CheckReport, LoadError> {
-    let mut policy = WasmPriorityPolicy::load(source, &config.params, options, Box::new(NoFallback))?;
+    let mut policy =
+        WasmPriorityPolicy::load(source, &config.params, options, Box::new(NoFallback))?;
     let mut rng = StdRng::seed_from_u64(config.seed);
     let mut cases: Vec<(String, String, Timestamp, Vec<PendingView>)> = Vec::new();
     for len in [0usize, 1, 2, 10, 100, 1_000, 10_000] {
         let (now, pending) = pending_case(&mut rng, len);
-        cases.push((format!("{len} pending"), format!("{len} pending"), now, pending));
+        cases.push((
+            format!("{len} pending"),
+            format!("{len} pending"),
+            now,
+            pending,
+        ));
     }
     let (now, mut ties) = pending_case(&mut rng, 100);
     let first = ties[0];
@@ -419,13 +524,20 @@ fn check_priority(
             ..first
         };
     }
-    cases.push(("100 identical summaries (ties)".into(), "edge".into(), now, ties));
+    cases.push((
+        "100 identical summaries (ties)".into(),
+        "edge".into(),
+        now,
+        ties,
+    ));
     let (_, mut extreme) = pending_case(&mut rng, 50);
     let now = Timestamp::from_micros(u64::MAX / 2);
     for p in &mut extreme {
         p.task_started_at = Timestamp::ZERO;
         p.arrived_at = Timestamp::ZERO;
         p.wait = Duration::from_secs(u64::MAX / 4_000_000_000_000);
+        p.queued = p.wait;
+        p.attained_service = Duration::ZERO;
         p.skipped = u32::MAX;
         p.last_exec = None;
         p.last_gen = None;
@@ -436,14 +548,25 @@ fn check_priority(
         p.task_started_at = now;
         p.arrived_at = now;
         p.wait = Duration::ZERO;
+        p.queued = Duration::ZERO;
         p.rounds_completed = 0;
         p.round_index = 0;
     }
-    cases.push(("20 tasks that started now".into(), "edge".into(), now, fresh));
+    cases.push((
+        "20 tasks that started now".into(),
+        "edge".into(),
+        now,
+        fresh,
+    ));
     for i in 0..config.random_cases {
         let len = rng.random_range(0..200);
         let (now, pending) = pending_case(&mut rng, len);
-        cases.push((format!("random #{i}"), "random (0-200 pending)".into(), now, pending));
+        cases.push((
+            format!("random #{i}"),
+            "random (0-200 pending)".into(),
+            now,
+            pending,
+        ));
     }
     let mut failures = Vec::new();
     let mut times = Vec::new();

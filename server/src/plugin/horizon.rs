@@ -41,7 +41,9 @@ impl World for HorizonWorld {
             (0, 1) => Ok(HorizonPre::V0_1(v0_1::HorizonPolicyPre::new(
                 linker.instantiate_pre(component)?,
             )?)),
-            _ => Err(wasmtime::Error::msg(format!("no bindings for version {version}"))),
+            _ => Err(wasmtime::Error::msg(format!(
+                "no bindings for version {version}"
+            ))),
         }
     }
 
@@ -88,9 +90,12 @@ fn call_choose(
                     value: *value,
                 })
                 .collect();
-            let answer = bindings
-                .kairos_policy_horizon()
-                .call_choose(store, wit_chunk, context, &wit_params)?;
+            let answer = bindings.kairos_policy_horizon().call_choose(
+                store,
+                wit_chunk,
+                context,
+                &wit_params,
+            )?;
             Ok(answer.map_err(|e| match e {
                 wit::HorizonError::InvalidParam(p) => HorizonError::InvalidParam {
                     name: p.name,
@@ -270,8 +275,10 @@ impl WasmHorizonPolicy {
                 match answer {
                     Some(answer) => answer,
                     None => {
-                        self.exec = Exec::new(self.plugin.clone(), self.options.clone())
-                            .map_err(|e| CallFailure::new(FailureKind::Instantiate, e.to_string()))?;
+                        self.exec =
+                            Exec::new(self.plugin.clone(), self.options.clone()).map_err(|e| {
+                                CallFailure::new(FailureKind::Instantiate, e.to_string())
+                            })?;
                         return Err(CallFailure::new(
                             FailureKind::Timeout,
                             "the plugin's worker thread did not answer; replaced it",

@@ -46,7 +46,9 @@ pub enum InspectError {
         found: String,
     },
     /// It implements the other world.
-    #[error("is a {found} plugin (it exports `{PACKAGE}/{found}`), but was loaded as a {expected} plugin")]
+    #[error(
+        "is a {found} plugin (it exports `{PACKAGE}/{found}`), but was loaded as a {expected} plugin"
+    )]
     WrongWorld {
         /// What the caller asked for.
         expected: PluginKind,
@@ -54,7 +56,9 @@ pub enum InspectError {
         found: PluginKind,
     },
     /// It targets a version of the interfaces this server does not support.
-    #[error("targets {PACKAGE}@{found}, which this server does not support (supported: {supported})")]
+    #[error(
+        "targets {PACKAGE}@{found}, which this server does not support (supported: {supported})"
+    )]
     UnsupportedVersion {
         /// Its version.
         found: WitVersion,
@@ -101,8 +105,8 @@ pub fn inspect(wasm: &[u8]) -> Result<ComponentInfo, InspectError> {
     if wasmparser::Parser::is_core_wasm(wasm) {
         return Err(InspectError::NotAComponent("this is a core module".into()));
     }
-    let decoded =
-        wit_parser::decoding::decode(wasm).map_err(|e| InspectError::NotAComponent(format!("{e:#}")))?;
+    let decoded = wit_parser::decoding::decode(wasm)
+        .map_err(|e| InspectError::NotAComponent(format!("{e:#}")))?;
     let wit_parser::decoding::DecodedWasm::Component(resolve, world) = decoded else {
         return Err(InspectError::NotAComponent(
             "this is a WIT package, not a component".into(),
@@ -190,7 +194,10 @@ fn import_class(resolve: &Resolve, key: &WorldKey, item: &WorldItem) -> ImportCl
             let package = interface.package.map(|p| &resolve.packages[p].name);
             if let Some(package) = package {
                 if package.namespace == "wasi"
-                    && package.version.as_ref().is_some_and(|v| v.major == 0 && v.minor == 2)
+                    && package
+                        .version
+                        .as_ref()
+                        .is_some_and(|v| v.major == 0 && v.minor == 2)
                 {
                     return ImportClass::Wasi;
                 }

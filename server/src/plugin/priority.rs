@@ -42,7 +42,9 @@ impl World for PriorityWorld {
             (0, 1) => Ok(PriorityPre::V0_1(v0_1::PriorityPolicyPre::new(
                 linker.instantiate_pre(component)?,
             )?)),
-            _ => Err(wasmtime::Error::msg(format!("no bindings for version {version}"))),
+            _ => Err(wasmtime::Error::msg(format!(
+                "no bindings for version {version}"
+            ))),
         }
     }
 
@@ -61,9 +63,7 @@ fn nanos(d: std::time::Duration) -> u64 {
 }
 
 /// The pending list in v0.1.0's types.
-fn pending_v0_1(
-    pending: &[PendingView],
-) -> Vec<v0_1::exports::kairos::policy::priority::Pending> {
+fn pending_v0_1(pending: &[PendingView]) -> Vec<v0_1::exports::kairos::policy::priority::Pending> {
     use v0_1::exports::kairos::policy::priority as wit;
     pending
         .iter()
@@ -76,6 +76,7 @@ fn pending_v0_1(
             skipped: p.skipped,
             wait_ns: nanos(p.wait),
             attained_service_ns: nanos(p.attained_service),
+            queued_ns: nanos(p.queued),
             last_exec_ns: p.last_exec.map(nanos),
             last_gen_ns: p.last_gen.map(nanos),
             rounds_completed: p.rounds_completed,
@@ -226,7 +227,10 @@ impl WasmPriorityPolicy {
                         .map(drop)
                 })
                 .unwrap_or_else(|| {
-                    Err(CallFailure::new(FailureKind::Timeout, "worker did not answer"))
+                    Err(CallFailure::new(
+                        FailureKind::Timeout,
+                        "worker did not answer",
+                    ))
                 }),
         }
     }
@@ -255,8 +259,10 @@ impl WasmPriorityPolicy {
                 match answer {
                     Some(answer) => answer,
                     None => {
-                        self.exec = Exec::new(self.plugin.clone(), self.options.clone())
-                            .map_err(|e| CallFailure::new(FailureKind::Instantiate, e.to_string()))?;
+                        self.exec =
+                            Exec::new(self.plugin.clone(), self.options.clone()).map_err(|e| {
+                                CallFailure::new(FailureKind::Instantiate, e.to_string())
+                            })?;
                         return Err(CallFailure::new(
                             FailureKind::Timeout,
                             "the plugin's worker thread did not answer; replaced it",
@@ -361,4 +367,3 @@ impl PriorityPolicy for WasmPriorityPolicy {
         }
     }
 }
-

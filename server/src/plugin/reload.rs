@@ -43,7 +43,9 @@ impl<W: World> Reloader<W> {
         let stopped = stop.clone();
         let name = format!(
             "kairos-reload-{}",
-            path.file_stem().map(|s| s.to_string_lossy()).unwrap_or_default()
+            path.file_stem()
+                .map(|s| s.to_string_lossy())
+                .unwrap_or_default()
         );
         std::thread::Builder::new().name(name).spawn(move || {
             watch::<W>(&path, current, &options, poll, &stopped, &tx);

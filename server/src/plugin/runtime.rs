@@ -34,8 +34,10 @@ pub(crate) trait World: 'static {
     ) -> wasmtime::Result<Self::Pre>;
 
     /// Instantiates into `store`.
-    fn instantiate(pre: &Self::Pre, store: &mut Store<HostState>)
-    -> wasmtime::Result<Self::Instance>;
+    fn instantiate(
+        pre: &Self::Pre,
+        store: &mut Store<HostState>,
+    ) -> wasmtime::Result<Self::Instance>;
 }
 
 /// Why a plugin could not be loaded.
@@ -144,7 +146,8 @@ pub(crate) fn compile<W: World>(
     } else {
         sandbox::plain_linker(&engine)
     };
-    let pre = W::pre(version, &linker, &component).map_err(|e| compile_error("linking failed", e))?;
+    let pre =
+        W::pre(version, &linker, &component).map_err(|e| compile_error("linking failed", e))?;
     let meta = PluginMeta {
         name,
         path,
@@ -236,9 +239,9 @@ impl<W: World> Live<W> {
                 store.epoch_deadline_trap();
                 store.set_epoch_deadline(ticks);
                 if let Some(fuel) = self.options.fuel {
-                    store
-                        .set_fuel(fuel)
-                        .map_err(|e| CallFailure::new(FailureKind::Instantiate, format!("{e:#}")))?;
+                    store.set_fuel(fuel).map_err(|e| {
+                        CallFailure::new(FailureKind::Instantiate, format!("{e:#}"))
+                    })?;
                 }
                 match W::instantiate(&self.plugin.pre, &mut store) {
                     Ok(instance) => {
@@ -246,7 +249,8 @@ impl<W: World> Live<W> {
                         (store, &*instance)
                     }
                     Err(e) => {
-                        let failure = classify(&store, &e, FailureKind::Instantiate, self.options.deadline);
+                        let failure =
+                            classify(&store, &e, FailureKind::Instantiate, self.options.deadline);
                         self.note_peak(store.data().limiter.peak());
                         return Err(failure);
                     }
@@ -259,8 +263,8 @@ impl<W: World> Live<W> {
                 .map_err(|e| CallFailure::new(FailureKind::Trap, format!("{e:#}")))?;
         }
         let deadline = self.options.deadline;
-        let outcome = f(store, instance)
-            .map_err(|e| classify(store, &e, FailureKind::Trap, deadline));
+        let outcome =
+            f(store, instance).map_err(|e| classify(store, &e, FailureKind::Trap, deadline));
         let peak = store.data().limiter.peak();
         self.note_peak(peak);
         match outcome {

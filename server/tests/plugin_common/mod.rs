@@ -152,7 +152,9 @@ pub fn priority_component(body: &str) -> Vec<u8> {
 /// `world` the world to target, `wat` the core module.
 pub fn foreign_component(wit: &str, world: &str, wat: &str) -> Vec<u8> {
     let mut resolve = wit_parser::Resolve::default();
-    let package = resolve.push_str("foreign.wit", wit).expect("fixture WIT parses");
+    let package = resolve
+        .push_str("foreign.wit", wit)
+        .expect("fixture WIT parses");
     let world = resolve
         .select_world(&[package], Some(world))
         .expect("fixture world exists");

@@ -80,8 +80,13 @@ typedef struct exports_kairos_policy_priority_pending_t {
   // Σ W_j: the task's wait so far by the dominant-phase rule (paper Fig. "wait_time"),
   // including the wait accrued in the round still open.
   uint64_t   wait_ns;
-  // Σ |G_j|: generation time the task has received (Autellix's attained service).
+  // Σ |G_j|: generation time the task has received (Autellix's attained service),
+  // counting every finished generation of the task, answered or not.
   uint64_t   attained_service_ns;
+  // Σ time the task's requests spent queued before their forward pass started,
+  // including this request's wait so far: execution-unaware waiting time (what
+  // Autellix's anti-starvation rule uses).
+  uint64_t   queued_ns;
   // |E_last|: duration of the task's most recent execution phase, if any.
   priority_policy_option_u64_t   last_exec_ns;
   // |G_last|: duration of the task's most recent generation phase, if any.
