@@ -19,7 +19,7 @@ mkdir -p "$OUT"
 for tool in clang wasm-ld; do
     command -v "$tool" >/dev/null || { echo "plugins/build.sh: $tool not found; run scripts/install-plugin-toolchains.sh" >&2; exit 1; }
 done
-COMPONENTIZE_PY=.venv/bin/componentize-py
+COMPONENTIZE_PY=$PWD/.venv/bin/componentize-py
 [ -x "$COMPONENTIZE_PY" ] || COMPONENTIZE_PY=$(command -v componentize-py || true)
 [ -n "$COMPONENTIZE_PY" ] || { echo "plugins/build.sh: componentize-py not found; run scripts/install-plugin-toolchains.sh" >&2; exit 1; }
 
@@ -61,4 +61,9 @@ check "$OUT/fifo.wasm"
 check "$OUT/plas.wasm"
 check "$OUT/kairos.wasm"
 check "$OUT/kairos_py.wasm" --deadline-ms 2000 --memory-mib 256
+# The author templates (sdk/guest/templates), so they never rot.
+KAIROS="$PWD/$KAIROS" bash sdk/guest/templates/c/build.sh "$OUT/templates" >/dev/null
+KAIROS="$PWD/$KAIROS" COMPONENTIZE_PY="$COMPONENTIZE_PY" \
+    bash sdk/guest/templates/python/build.sh "$OUT/templates" >/dev/null
+echo "templates built and checked: $OUT/templates/bound.wasm $OUT/templates/bound_py.wasm"
 echo "plugins built and checked: $(cd "$OUT" && ls ./*.wasm | grep -v core | tr '\n' ' ')"

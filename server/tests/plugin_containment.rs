@@ -590,3 +590,58 @@ fn the_code_cache_reuses_only_entries_the_server_wrote() {
     };
     assert_eq!(load(&options).meta().code, CodeSource::Compiled);
 }
+
+#[test]
+fn start_code_that_never_returns_is_interrupted_at_the_instantiation_deadline() {
+    let chunk = Chunk::new();
+    let wat = horizon_wat(HORIZON_H_MAX).replace(
+        "(module",
+        r#"(module (func (export "_initialize") (loop $spin (br $spin)))"#,
+    );
+    let options = PluginOptions {
+        instantiate_deadline: Duration::from_millis(30),
+        ..horizon_options(5)
+    };
+    let mut policy = horizon_plugin(component(&wat, PluginKind::Horizon), options);
+    let started = Instant::now();
+    assert_eq!(policy.choose(&chunk.input(3, 30, 0)), Ok(3));
+    let took = started.elapsed();
+    assert!(
+        took >= Duration::from_millis(30) && took < Duration::from_millis(30) + MARGIN,
+        "{took:?}"
+    );
+    assert_eq!(policy.stats().failures_of(FailureKind::Instantiate), 1);
+}
+
+#[test]
+fn handles_of_one_plugin_share_health_and_warm_instances_across_threads() {
+    let plugin = kairos_server::plugin::HorizonPlugin::load(
+        &PluginSource::Bytes {
+            name: "shared".into(),
+            wasm: horizon_component(HORIZON_H_MAX),
+        },
+        horizon_options(100),
+    )
+    .unwrap();
+    std::thread::scope(|scope| {
+        for robot in 0..4u64 {
+            let mut policy = plugin.policy(Box::new(MinHorizon));
+            scope.spawn(move || {
+                let chunk = Chunk::new();
+                for round in 0..200 {
+                    assert_eq!(
+                        policy.choose(&chunk.input(1, 25, round)),
+                        Ok(25),
+                        "robot {robot}"
+                    );
+                }
+            });
+        }
+    });
+    let stats = plugin.stats();
+    assert_eq!(
+        (stats.decisions, stats.answered, stats.fallbacks),
+        (800, 800, 0),
+        "{stats:?}"
+    );
+}

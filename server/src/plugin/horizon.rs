@@ -1,7 +1,8 @@
 //! [`WasmHorizonPolicy`]: a `horizon-policy` component behind the native [`HorizonPolicy`]
 //! trait, with containment and a fallback policy.
 
-use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
 
 use wasmtime::Store;
 use wasmtime::component::{Component, Linker};
@@ -183,69 +184,178 @@ impl OwnedHorizonInput {
     }
 }
 
-/// A horizon-policy component as a [`HorizonPolicy`].
-///
-/// A valid answer of the plugin is returned as is; a plugin's own refusal
-/// (`horizon-error`) is returned as the matching [`HorizonError`], as a native policy would.
-/// A trap, a timeout, an exceeded limit or an answer outside `[h_min, h_max]` discards the
-/// instance and answers with the fallback policy (or `h_min` should the fallback fail too).
-pub struct WasmHorizonPolicy {
-    plugin: Arc<Compiled<HorizonWorld>>,
+/// What every handle of one loaded horizon plugin shares.
+struct Shared {
+    /// The running version.
+    current: Mutex<Arc<Compiled<HorizonWorld>>>,
     options: Arc<PluginOptions>,
-    exec: Exec<HorizonWorld>,
-    health: Health,
-    fallback: Box<dyn HorizonPolicy>,
-    reloader: Option<Reloader<HorizonWorld>>,
-    /// The last parameters, converted once and reused while they stay the same.
-    params: (PolicyParams, Vec<(String, f64)>),
-    peak_memory: usize,
+    health: Mutex<Health>,
+    /// Idle executors (each with its instance, kept warm), tagged with their version.
+    idle: Mutex<Vec<(Arc<Compiled<HorizonWorld>>, Exec<HorizonWorld>)>>,
+    reloader: Option<Mutex<Reloader<HorizonWorld>>>,
+    peak_memory: AtomicUsize,
 }
 
-impl WasmHorizonPolicy {
-    /// Loads the plugin in `source`, with `fallback` for decisions it fails.
-    pub fn load(
-        source: &PluginSource,
-        options: PluginOptions,
-        fallback: Box<dyn HorizonPolicy>,
-    ) -> Result<Self, LoadError> {
+/// A loaded horizon-policy component, shared by every request that uses it.
+///
+/// The server builds a horizon policy per request; [`HorizonPlugin::policy`] makes that cheap
+/// (no compilation, no instantiation): handles share one compiled plugin, one health record
+/// (so quarantine is per plugin, not per request) and a pool of warm instances, one per
+/// concurrent call.
+#[derive(Clone)]
+pub struct HorizonPlugin(Arc<Shared>);
+
+impl std::fmt::Debug for HorizonPlugin {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_tuple("HorizonPlugin")
+            .field(&self.meta().name)
+            .finish()
+    }
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    // A panic while holding one of these locks leaves consistent data (counters, a pool):
+    // keep serving rather than poisoning every later decision.
+    mutex
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+impl HorizonPlugin {
+    /// Loads (compiles, links) the plugin in `source` and starts watching its file.
+    pub fn load(source: &PluginSource, options: PluginOptions) -> Result<Self, LoadError> {
         let plugin = load::<HorizonWorld>(source, &options)?;
         let options = Arc::new(options);
         let reloader = match (source, options.reload_poll) {
-            (PluginSource::File(path), Some(poll)) => Some(
+            (PluginSource::File(path), Some(poll)) => Some(Mutex::new(
                 Reloader::spawn(path.clone(), plugin.meta.sha256, options.clone(), poll).map_err(
                     |e| LoadError::Compile {
                         name: plugin.meta.name.clone(),
                         message: format!("cannot start its reload watcher: {e}"),
                     },
                 )?,
-            ),
+            )),
             _ => None,
         };
-        Ok(WasmHorizonPolicy {
-            exec: Exec::new(plugin.clone(), options.clone())?,
-            health: Health::new(plugin.meta.name.clone(), &options),
-            plugin,
+        // One executor up front: a worker thread that cannot start fails the load, not a call.
+        let first = Exec::new(plugin.clone(), options.clone())?;
+        Ok(HorizonPlugin(Arc::new(Shared {
+            health: Mutex::new(Health::new(plugin.meta.name.clone(), &options)),
+            idle: Mutex::new(vec![(plugin.clone(), first)]),
+            current: Mutex::new(plugin),
             options,
-            fallback,
             reloader,
+            peak_memory: AtomicUsize::new(0),
+        })))
+    }
+
+    /// A policy object for one request (or one owner), answering with `fallback` when the
+    /// plugin fails.
+    pub fn policy(&self, fallback: Box<dyn HorizonPolicy>) -> WasmHorizonPolicy {
+        WasmHorizonPolicy {
+            name: self.meta().name,
+            plugin: self.clone(),
+            fallback,
             params: Default::default(),
-            peak_memory: 0,
-        })
+        }
     }
 
-    /// What was loaded.
-    pub fn meta(&self) -> &PluginMeta {
-        &self.plugin.meta
+    /// What is loaded now.
+    pub fn meta(&self) -> PluginMeta {
+        lock(&self.0.current).meta.clone()
     }
 
-    /// Counters since load.
+    /// Counters since load, over every handle.
     pub fn stats(&self) -> PluginStats {
-        self.health.stats()
+        lock(&self.0.health).stats()
     }
 
     /// Largest linear memory any instance had after a successful call, in bytes.
     pub fn peak_memory(&self) -> usize {
-        self.peak_memory
+        self.0.peak_memory.load(Ordering::Relaxed)
+    }
+
+    /// Swaps in a newly compiled version, if the watcher has one.
+    fn check_reload(&self) {
+        let Some(reloader) = &self.0.reloader else {
+            return;
+        };
+        let Some(plugin) = lock(reloader).poll() else {
+            return;
+        };
+        *lock(&self.0.current) = plugin;
+        // Old instances are dropped as they come back; idle ones right now.
+        lock(&self.0.idle).clear();
+        lock(&self.0.health).reloaded();
+    }
+
+    /// An executor of the running version: a warm idle one, or a new one.
+    fn checkout(&self) -> Result<(Arc<Compiled<HorizonWorld>>, Exec<HorizonWorld>), CallFailure> {
+        self.check_reload();
+        let current = lock(&self.0.current).clone();
+        let mut idle = lock(&self.0.idle);
+        while let Some((plugin, exec)) = idle.pop() {
+            if Arc::ptr_eq(&plugin, &current) {
+                return Ok((plugin, exec));
+            }
+        }
+        drop(idle);
+        let exec = Exec::new(current.clone(), self.0.options.clone())
+            .map_err(|e| CallFailure::new(FailureKind::Instantiate, e.to_string()))?;
+        Ok((current, exec))
+    }
+
+    /// Returns an executor to the pool, unless a newer version has been loaded meanwhile.
+    fn checkin(&self, plugin: Arc<Compiled<HorizonWorld>>, exec: Exec<HorizonWorld>) {
+        if Arc::ptr_eq(&plugin, &lock(&self.0.current)) {
+            lock(&self.0.idle).push((plugin, exec));
+        }
+    }
+}
+
+/// A horizon-policy component as a [`HorizonPolicy`]: one handle of a [`HorizonPlugin`].
+///
+/// A valid answer of the plugin is returned as is; a plugin's own refusal
+/// (`horizon-error`) is returned as the matching [`HorizonError`], as a native policy would.
+/// A trap, a timeout, an exceeded limit or an answer outside `[h_min, h_max]` discards the
+/// instance and answers with the fallback policy (or `h_min` should the fallback fail too).
+pub struct WasmHorizonPolicy {
+    name: String,
+    plugin: HorizonPlugin,
+    fallback: Box<dyn HorizonPolicy>,
+    /// The last parameters, converted once and reused while they stay the same.
+    params: (PolicyParams, Vec<(String, f64)>),
+}
+
+impl WasmHorizonPolicy {
+    /// Loads the plugin in `source` and returns one handle, with `fallback` for decisions it
+    /// fails. Use [`HorizonPlugin`] to share one plugin between many handles.
+    pub fn load(
+        source: &PluginSource,
+        options: PluginOptions,
+        fallback: Box<dyn HorizonPolicy>,
+    ) -> Result<Self, LoadError> {
+        Ok(HorizonPlugin::load(source, options)?.policy(fallback))
+    }
+
+    /// The plugin this handle calls.
+    pub fn plugin(&self) -> &HorizonPlugin {
+        &self.plugin
+    }
+
+    /// What is loaded now.
+    pub fn meta(&self) -> PluginMeta {
+        self.plugin.meta()
+    }
+
+    /// The plugin's counters since load (over every handle).
+    pub fn stats(&self) -> PluginStats {
+        self.plugin.stats()
+    }
+
+    /// Largest linear memory any instance had after a successful call, in bytes.
+    pub fn peak_memory(&self) -> usize {
+        self.plugin.peak_memory()
     }
 
     /// One call into the plugin with no fallback and no health accounting: the answer
@@ -260,7 +370,8 @@ impl WasmHorizonPolicy {
                 input.params.iter().map(|(k, v)| (k.clone(), *v)).collect(),
             );
         }
-        let result = match &mut self.exec {
+        let (plugin, mut exec) = self.plugin.checkout()?;
+        let result = match &mut exec {
             Exec::Inline(live) => {
                 let params = &self.params.1;
                 live.call(|store, instance| call_choose(store, instance, input, params))
@@ -274,11 +385,8 @@ impl WasmHorizonPolicy {
                 });
                 match answer {
                     Some(answer) => answer,
+                    // Stuck in the host: abandon this worker (not returned to the pool).
                     None => {
-                        self.exec =
-                            Exec::new(self.plugin.clone(), self.options.clone()).map_err(|e| {
-                                CallFailure::new(FailureKind::Instantiate, e.to_string())
-                            })?;
                         return Err(CallFailure::new(
                             FailureKind::Timeout,
                             "the plugin's worker thread did not answer; replaced it",
@@ -287,51 +395,25 @@ impl WasmHorizonPolicy {
                 }
             }
         };
-        let (answer, cost) = result?;
-        self.peak_memory = self.peak_memory.max(cost.peak_memory);
-        match answer {
-            Ok(h) => match validate_horizon(h as usize, input) {
+        let outcome = match result {
+            Ok((Ok(h), cost)) => match validate_horizon(h as usize, input) {
                 Ok(h) => Ok((Ok(h), cost)),
                 Err(e) => {
-                    self.discard_instance();
+                    exec.discard();
                     Err(CallFailure::new(FailureKind::InvalidAnswer, e.to_string()))
                 }
             },
-            Err(e) => Ok((Err(e), cost)),
-        }
-    }
-
-    fn discard_instance(&mut self) {
-        match &mut self.exec {
-            Exec::Inline(live) => live.discard(),
-            Exec::Worker(worker) => {
-                let _ = worker.run(|live| live.discard());
-            }
-        }
-    }
-
-    fn check_reload(&mut self) {
-        let Some(plugin) = self.reloader.as_ref().and_then(Reloader::poll) else {
-            return;
+            Ok((Err(refusal), cost)) => Ok((Err(refusal), cost)),
+            Err(failure) => Err(failure),
         };
-        let swapped = match &mut self.exec {
-            Exec::Inline(live) => {
-                live.replace(plugin.clone());
-                Ok(())
-            }
-            Exec::Worker(_) => {
-                Exec::new(plugin.clone(), self.options.clone()).map(|exec| self.exec = exec)
-            }
-        };
-        match swapped {
-            Ok(()) => {
-                self.plugin = plugin;
-                self.health.reloaded();
-            }
-            Err(error) => {
-                tracing::error!(plugin = %self.plugin.meta.name, %error, "cannot swap in the reloaded plugin; keeping the running version");
-            }
+        if let Ok((_, cost)) = &outcome {
+            self.plugin
+                .0
+                .peak_memory
+                .fetch_max(cost.peak_memory, Ordering::Relaxed);
         }
+        self.plugin.checkin(plugin, exec);
+        outcome
     }
 
     fn fall_back(&mut self, input: &HorizonInput<'_>) -> Result<usize, HorizonError> {
@@ -349,28 +431,31 @@ impl WasmHorizonPolicy {
 
 impl HorizonPolicy for WasmHorizonPolicy {
     fn name(&self) -> &str {
-        &self.plugin.meta.name
+        &self.name
     }
 
     fn choose(&mut self, input: &HorizonInput<'_>) -> Result<usize, HorizonError> {
-        self.check_reload();
         if !input.chunk.is_consistent() {
             // Not the plugin's fault, and the WIT promises consistent buffers: no call.
             return self.fall_back(input);
         }
-        if !self.health.admit() {
+        if !lock(&self.plugin.0.health).admit() {
+            self.plugin.check_reload();
             return self.fall_back(input);
         }
-        match self.call_plugin(input) {
+        let result = self.call_plugin(input);
+        let mut health = lock(&self.plugin.0.health);
+        match result {
             Ok((answer, cost)) => {
-                self.health.succeeded(cost.elapsed, cost.peak_memory);
+                health.succeeded(cost.elapsed, cost.peak_memory);
                 if let Err(refusal) = &answer {
-                    self.health.refused(&refusal.to_string());
+                    health.refused(&refusal.to_string());
                 }
                 answer
             }
             Err(failure) => {
-                self.health.failed(failure.kind, &failure.message);
+                health.failed(failure.kind, &failure.message);
+                drop(health);
                 self.fall_back(input)
             }
         }

@@ -41,7 +41,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 pub use health::{FailureKind, PluginStats};
-pub use horizon::{OwnedHorizonInput, WasmHorizonPolicy};
+pub use horizon::{HorizonPlugin, OwnedHorizonInput, WasmHorizonPolicy};
 pub use priority::WasmPriorityPolicy;
 pub use runtime::{CallCost, CallFailure, LoadError, PluginMeta};
 
@@ -79,8 +79,12 @@ pub enum InstanceMode {
 /// Limits and behaviour of one loaded plugin.
 #[derive(Clone, Debug)]
 pub struct PluginOptions {
-    /// Longest a call (instantiation included) may run before it is interrupted.
+    /// Longest a call may run before it is interrupted.
     pub deadline: Duration,
+    /// Longest making a new instance may take (the guest's start code; the Python runtime's
+    /// set-up). Separate from `deadline`, so a call after a discarded instance is not charged
+    /// for it.
+    pub instantiate_deadline: Duration,
     /// Most bytes of linear memory an instance may have.
     pub memory_limit: usize,
     /// Fuel (roughly, wasm instructions) per call; `None` disables fuel metering (epoch
@@ -132,6 +136,7 @@ impl PluginOptions {
     fn common() -> Self {
         PluginOptions {
             deadline: Duration::from_millis(5),
+            instantiate_deadline: Duration::from_secs(1),
             memory_limit: 64 << 20,
             fuel: None,
             instance_mode: InstanceMode::Reuse,

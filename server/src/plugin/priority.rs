@@ -284,17 +284,8 @@ impl WasmPriorityPolicy {
             Err(reason) => CallFailure::new(FailureKind::Refused, reason),
         };
         order.clear();
-        self.discard_instance();
+        self.exec.discard();
         Err(failure)
-    }
-
-    fn discard_instance(&mut self) {
-        match &mut self.exec {
-            Exec::Inline(live) => live.discard(),
-            Exec::Worker(worker) => {
-                let _ = worker.run(|live| live.discard());
-            }
-        }
     }
 
     fn check_reload(&mut self) {

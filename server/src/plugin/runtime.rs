@@ -194,7 +194,7 @@ pub(crate) struct Live<W: World> {
 /// What one successful call cost.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct CallCost {
-    /// Wall time of the call, instantiation included when it happened.
+    /// Wall time of the call (not counting an instantiation before it).
     pub elapsed: Duration,
     /// Largest linear memory of the instance so far.
     pub peak_memory: usize,
@@ -223,40 +223,17 @@ impl<W: World> Live<W> {
         &mut self,
         f: impl FnOnce(&mut Store<HostState>, &W::Instance) -> wasmtime::Result<R>,
     ) -> Result<(R, CallCost), CallFailure> {
+        if self.instance.is_none() {
+            self.instantiate()?;
+        }
         let started = Instant::now();
-        let ticks = engine::deadline_ticks(self.options.deadline);
-        let (store, instance) = match &mut self.instance {
-            Some((store, instance)) => {
-                store.set_epoch_deadline(ticks);
-                (store, &*instance)
-            }
-            slot @ None => {
-                let mut store = Store::new(
-                    &self.plugin.engine,
-                    HostState::new(self.options.memory_limit),
-                );
-                store.limiter(|state| &mut state.limiter);
-                store.epoch_deadline_trap();
-                store.set_epoch_deadline(ticks);
-                if let Some(fuel) = self.options.fuel {
-                    store.set_fuel(fuel).map_err(|e| {
-                        CallFailure::new(FailureKind::Instantiate, format!("{e:#}"))
-                    })?;
-                }
-                match W::instantiate(&self.plugin.pre, &mut store) {
-                    Ok(instance) => {
-                        let (store, instance) = slot.insert((store, instance));
-                        (store, &*instance)
-                    }
-                    Err(e) => {
-                        let failure =
-                            classify(&store, &e, FailureKind::Instantiate, self.options.deadline);
-                        self.note_peak(store.data().limiter.peak());
-                        return Err(failure);
-                    }
-                }
-            }
+        let Some((store, instance)) = &mut self.instance else {
+            return Err(CallFailure::new(FailureKind::Instantiate, "no instance"));
         };
+        // The call's own deadline starts now: instantiating (the guest's start code, the
+        // Python runtime's set-up) has its own budget and is not charged to the call.
+        store.set_epoch_deadline(engine::deadline_ticks(self.options.deadline));
+        let instance = &*instance;
         if let Some(fuel) = self.options.fuel {
             store
                 .set_fuel(fuel)
@@ -287,6 +264,40 @@ impl<W: World> Live<W> {
         }
     }
 
+    /// Makes a new instance under the instantiation deadline.
+    fn instantiate(&mut self) -> Result<(), CallFailure> {
+        let mut store = Store::new(
+            &self.plugin.engine,
+            HostState::new(self.options.memory_limit),
+        );
+        store.limiter(|state| &mut state.limiter);
+        store.epoch_deadline_trap();
+        store.set_epoch_deadline(engine::deadline_ticks(self.options.instantiate_deadline));
+        if let Some(fuel) = self.options.fuel {
+            store
+                .set_fuel(fuel)
+                .map_err(|e| CallFailure::new(FailureKind::Instantiate, format!("{e:#}")))?;
+        }
+        match W::instantiate(&self.plugin.pre, &mut store) {
+            Ok(instance) => {
+                self.note_peak(store.data().limiter.peak());
+                self.instance = Some((store, instance));
+                Ok(())
+            }
+            Err(e) => {
+                let mut failure = classify(
+                    &store,
+                    &e,
+                    FailureKind::Instantiate,
+                    self.options.instantiate_deadline,
+                );
+                failure.message = format!("instantiation failed: {}", failure.message);
+                self.note_peak(store.data().limiter.peak());
+                Err(failure)
+            }
+        }
+    }
+
     /// Drops the instance, e.g. after it gave an invalid answer.
     pub fn discard(&mut self) {
         self.instance = None;
@@ -305,10 +316,12 @@ fn classify(
 ) -> CallFailure {
     let kind = match error.downcast_ref::<wasmtime::Trap>() {
         Some(wasmtime::Trap::Interrupt) => {
-            return CallFailure::new(
-                FailureKind::Timeout,
-                format!("interrupted at its deadline of {deadline:?}"),
-            );
+            let kind = if otherwise == FailureKind::Instantiate {
+                FailureKind::Instantiate
+            } else {
+                FailureKind::Timeout
+            };
+            return CallFailure::new(kind, format!("interrupted at its deadline of {deadline:?}"));
         }
         Some(wasmtime::Trap::OutOfFuel) => FailureKind::OutOfFuel,
         _ if store.data().limiter.refused() => FailureKind::OverLimit,
@@ -383,7 +396,19 @@ impl<W: World> Exec<W> {
     }
 }
 
+impl<W: World> Exec<W> {
+    /// Drops the instance (the next call makes a new one).
+    pub fn discard(&mut self) {
+        match self {
+            Exec::Inline(live) => live.discard(),
+            Exec::Worker(worker) => {
+                let _ = worker.run(|live| live.discard());
+            }
+        }
+    }
+}
+
 /// A worker that has not answered well after its deadline is stuck in the host.
 fn worker_patience(options: &PluginOptions) -> Duration {
-    options.deadline * 4 + Duration::from_millis(250)
+    options.deadline * 4 + options.instantiate_deadline + Duration::from_millis(250)
 }
