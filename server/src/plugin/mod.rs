@@ -29,6 +29,7 @@ pub mod cache;
 pub mod componentize;
 pub mod conformance;
 pub mod engine;
+pub mod factory;
 pub mod health;
 mod horizon;
 pub mod inspect;
