@@ -40,10 +40,17 @@ impl ModelSpec {
                 return fail("state contains a non-finite value".into());
             }
             if r.images.len() > self.max_images {
-                return fail(format!("{} images, at most {}", r.images.len(), self.max_images));
+                return fail(format!(
+                    "{} images, at most {}",
+                    r.images.len(),
+                    self.max_images
+                ));
             }
             if r.samples == 0 || r.samples > MAX_SAMPLES {
-                return fail(format!("samples = {}, must be 1..={MAX_SAMPLES}", r.samples));
+                return fail(format!(
+                    "samples = {}, must be 1..={MAX_SAMPLES}",
+                    r.samples
+                ));
             }
         }
         Ok(())

@@ -316,7 +316,11 @@ impl ChunkExecutor {
     pub fn drop_rest(&mut self) -> Option<(u64, u32, u32)> {
         let chunk = self.chunk.take().filter(|c| c.remaining() > 0)?;
         let as_u32 = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
-        Some((chunk.round, as_u32(chunk.executed()), as_u32(chunk.remaining())))
+        Some((
+            chunk.round,
+            as_u32(chunk.executed()),
+            as_u32(chunk.remaining()),
+        ))
     }
 
     /// The current chunk's round and how many of its actions executed.

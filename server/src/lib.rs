@@ -7,6 +7,7 @@ pub mod config;
 pub mod driver;
 pub mod horizon;
 pub mod lifecycle;
+pub mod plugin;
 pub mod pool;
 pub mod registry;
 pub mod scheduler;

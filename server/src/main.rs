@@ -21,6 +21,8 @@ enum Command {
     Profile(Box<kairos_server::cli::profile::ProfileArgs>),
     /// Print the protocol version and build information.
     Info,
+    /// Policy plugins: check a component, turn a C core module into one, show the WIT.
+    Plugin(kairos_server::cli::plugin::PluginArgs),
     /// Run a fleet of simulated robots against a server.
     Robot(Box<kairos_server::cli::robot::RobotArgs>),
     /// Evaluation tools: simulate workloads, generate traces.
@@ -42,6 +44,7 @@ fn main() -> anyhow::Result<()> {
         Command::Demo(args) => kairos_server::cli::demo::run(*args),
         Command::Serve(args) => kairos_server::cli::serve::run(*args),
         Command::Profile(args) => kairos_server::cli::profile::run(*args),
+        Command::Plugin(args) => kairos_server::cli::plugin::run(args),
         Command::Robot(args) => kairos_server::cli::robot::run(*args),
         Command::Bench(args) => kairos_server::cli::bench::run(args),
     }

@@ -3,6 +3,7 @@
 pub mod bench;
 pub mod bench_live;
 pub mod demo;
+pub mod plugin;
 pub mod profile;
 pub mod robot;
 pub mod serve;

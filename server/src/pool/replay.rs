@@ -179,6 +179,7 @@ mod tests {
     fn round(confidence: Option<Vec<f32>>, horizon: u32) -> RoundTrace {
         RoundTrace {
             issued_at_action: 0,
+            aligned_at_action: None,
             horizon,
             executed: horizon,
             gen_latency_us: 0,

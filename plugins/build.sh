@@ -1,0 +1,69 @@
+#!/usr/bin/env bash
+# Builds every shipped policy plugin from source into plugins/build/ (gitignored), then runs
+# `kairos plugin check` on each (which also fills plugins/build/cache with their compiled
+# code, so the tests load them in milliseconds).
+#
+#   C plugins:      clang --target=wasm32-wasi -> core module -> `kairos plugin componentize`
+#   Python plugins: componentize-py (from .venv, see scripts/install-plugin-toolchains.sh)
+#
+# Needs: scripts/install-plugin-toolchains.sh (once). The server's own build needs none of it.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+OUT=plugins/build
+WIT=wit/since_v0.1.0
+SDK=sdk/guest/c
+CACHE="$OUT/cache"
+mkdir -p "$OUT"
+
+for tool in clang wasm-ld; do
+    command -v "$tool" >/dev/null || { echo "plugins/build.sh: $tool not found; run scripts/install-plugin-toolchains.sh" >&2; exit 1; }
+done
+COMPONENTIZE_PY=$PWD/.venv/bin/componentize-py
+[ -x "$COMPONENTIZE_PY" ] || COMPONENTIZE_PY=$(command -v componentize-py || true)
+[ -n "$COMPONENTIZE_PY" ] || { echo "plugins/build.sh: componentize-py not found; run scripts/install-plugin-toolchains.sh" >&2; exit 1; }
+
+echo "building the kairos binary (for componentize and check)"
+cargo build --quiet --locked -p kairos-server --bin kairos
+KAIROS=target/debug/kairos
+
+# -ffp-contract=off: the native twins never fuse multiply-adds, so neither may the plugins.
+CFLAGS=(--target=wasm32-wasi -O2 -ffp-contract=off -mexec-model=reactor -Wall -Wextra -Werror
+    -Wl,--strip-all -I "$SDK/since_v0.1.0" -I "$SDK")
+
+build_c() { # name world
+    local name=$1 world=$2
+    clang "${CFLAGS[@]}" -o "$OUT/$name.core.wasm" "plugins/c/$name.c" \
+        "$SDK/since_v0.1.0/${world}_policy.c" "$SDK/kairos_world_stub.c"
+    "$KAIROS" plugin componentize "$OUT/$name.core.wasm" --world "$world" -o "$OUT/$name.wasm"
+}
+
+build_py() { # name world
+    local name=$1 world=$2
+    "$COMPONENTIZE_PY" -d "$WIT" -w "$world-policy" componentize app \
+        -p "plugins/python/$name" -o "$OUT/${name}_py.wasm" >/dev/null
+    echo "$OUT/${name}_py.wasm: $(stat -c %s "$OUT/${name}_py.wasm") bytes, world $world-policy"
+}
+
+build_c threshold horizon
+build_c static horizon
+build_c fifo priority
+build_c plas priority
+build_c kairos priority
+build_py kairos priority
+
+# Conformance gate; parameters where a policy requires them.
+check() { "$KAIROS" plugin check --cache-dir "$CACHE" --cases 100 "$@" >/dev/null || {
+    "$KAIROS" plugin check --cache-dir "$CACHE" --cases 100 "$@"; exit 1; }; }
+check "$OUT/threshold.wasm"
+check "$OUT/static.wasm" --param h=8
+check "$OUT/fifo.wasm"
+check "$OUT/plas.wasm"
+check "$OUT/kairos.wasm"
+check "$OUT/kairos_py.wasm" --deadline-ms 2000 --memory-mib 256
+# The author templates (sdk/guest/templates), so they never rot.
+KAIROS="$PWD/$KAIROS" bash sdk/guest/templates/c/build.sh "$OUT/templates" >/dev/null
+KAIROS="$PWD/$KAIROS" COMPONENTIZE_PY="$COMPONENTIZE_PY" \
+    bash sdk/guest/templates/python/build.sh "$OUT/templates" >/dev/null
+echo "templates built and checked: $OUT/templates/bound.wasm $OUT/templates/bound_py.wasm"
+echo "plugins built and checked: $(cd "$OUT" && ls ./*.wasm | grep -v core | tr '\n' ' ')"

@@ -1,0 +1,80 @@
+/*
+ * Helpers for Kairos policy plugins written in C.
+ *
+ * Include the world's generated header first (`horizon_policy.h` or `priority_policy.h`, from
+ * since_v0.1.0/), then this file. Everything here is header-only and allocation-free.
+ *
+ * The helpers reproduce the server's own conventions exactly, so a C plugin can give the
+ * same answers as a native Rust policy bit for bit:
+ *   - kairos_secs(ns) is Rust's Duration::as_secs_f64 (whole seconds and the remainder are
+ *     converted separately);
+ *   - parameter rules match the server's parsing: names are compared byte for byte, a
+ *     "count" is a finite whole number in [1, 1e9], a "real" is finite and >= a minimum.
+ * Build with -ffp-contract=off: the server never fuses a multiply and an add, and neither
+ * may a twin.
+ */
+#ifndef KAIROS_POLICY_H
+#define KAIROS_POLICY_H
+
+#include <math.h>
+#include <stdbool.h>
+#include <stddef.h>
+#include <stdint.h>
+#include <string.h>
+
+#if !defined(__BINDINGS_HORIZON_POLICY_H) && !defined(__BINDINGS_PRIORITY_POLICY_H)
+#error "include horizon_policy.h or priority_policy.h before kairos_policy.h"
+#endif
+
+/* Seconds in `ns` nanoseconds, computed like Rust's Duration::as_secs_f64. */
+static inline double kairos_secs(uint64_t ns) {
+    return (double)(ns / 1000000000u) + (double)(uint32_t)(ns % 1000000000u) / 1e9;
+}
+
+/* Whether parameter `p` is named `name`. */
+static inline bool kairos_param_is(const kairos_policy_types_param_t *p, const char *name) {
+    size_t n = strlen(name);
+    return p->name.len == n && memcmp(p->name.ptr, name, n) == 0;
+}
+
+/* The parameter named `name`, or NULL. */
+static inline const kairos_policy_types_param_t *
+kairos_param_find(const kairos_policy_types_param_t *params, size_t len, const char *name) {
+    for (size_t i = 0; i < len; i++) {
+        if (kairos_param_is(&params[i], name)) return &params[i];
+    }
+    return NULL;
+}
+
+/* The first parameter whose name is not in the NULL-terminated list `known`, or NULL.
+ * Parameters arrive sorted by name, so "first" is the same one the server would name. */
+static inline const kairos_policy_types_param_t *
+kairos_param_unknown(const kairos_policy_types_param_t *params, size_t len, const char *const *known) {
+    for (size_t i = 0; i < len; i++) {
+        bool ok = false;
+        for (const char *const *k = known; *k; k++) {
+            if (kairos_param_is(&params[i], *k)) { ok = true; break; }
+        }
+        if (!ok) return &params[i];
+    }
+    return NULL;
+}
+
+/* A finite real >= min. */
+static inline bool kairos_is_real(double v, double min) {
+    return isfinite(v) && v >= min;
+}
+
+/* A whole number of actions: finite, >= 1, no fraction, <= 1e9. */
+static inline bool kairos_is_count(double v) {
+    return isfinite(v) && v >= 1.0 && v == trunc(v) && v <= 1e9;
+}
+
+/* Copies the bytes of a parameter's name into a NUL-terminated buffer (truncating). */
+static inline void kairos_param_name(const kairos_policy_types_param_t *p, char *buf, size_t cap) {
+    size_t n = p->name.len < cap - 1 ? p->name.len : cap - 1;
+    memcpy(buf, p->name.ptr, n);
+    buf[n] = '\0';
+}
+
+#endif /* KAIROS_POLICY_H */

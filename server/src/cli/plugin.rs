@@ -1,0 +1,397 @@
+//! `kairos plugin ...`: tools for policy-plugin authors and operators.
+//!
+//! - `check FILE.wasm`: load a component, verify its world and version, run the conformance
+//!   suite, report call times and peak memory; exit non-zero with reasons on any failure.
+//! - `componentize CORE.wasm --world horizon|priority -o OUT.wasm`: turn a core module
+//!   (a C plugin compiled by clang) into a component.
+//! - `info FILE.wasm`: the world, version and imports of a component.
+//! - `wit [--out DIR]`: print (or write) the `kairos:policy` WIT this server implements.
+//!
+//! [`ServePluginArgs`] are the flags `kairos serve` takes to load plugins.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{Context, bail};
+use clap::{Args, Subcommand, ValueEnum};
+
+use crate::horizon::PolicyParams;
+use crate::plugin::cache::CodeCache;
+use crate::plugin::conformance::{CheckConfig, CheckReport};
+use crate::plugin::{InstanceMode, PluginKind, PluginOptions, PluginSource};
+
+/// `kairos plugin`.
+#[derive(Args, Debug)]
+pub struct PluginArgs {
+    #[command(subcommand)]
+    command: PluginCommand,
+}
+
+#[derive(Subcommand, Debug)]
+enum PluginCommand {
+    /// Load a plugin, verify its world, run the conformance suite and report timing and memory.
+    Check(CheckArgs),
+    /// Turn a core WebAssembly module (e.g. from clang) into a policy component.
+    Componentize(ComponentizeArgs),
+    /// Show a component's world, version and imports.
+    Info {
+        /// The component.
+        file: PathBuf,
+    },
+    /// Print the `kairos:policy` WIT this server implements, or write it into a directory.
+    Wit {
+        /// Directory to write `policy.wit` into (default: print it).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+}
+
+/// The world, on the command line.
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum WorldArg {
+    /// `horizon-policy`.
+    Horizon,
+    /// `priority-policy`.
+    Priority,
+}
+
+impl From<WorldArg> for PluginKind {
+    fn from(w: WorldArg) -> Self {
+        match w {
+            WorldArg::Horizon => PluginKind::Horizon,
+            WorldArg::Priority => PluginKind::Priority,
+        }
+    }
+}
+
+#[derive(Args, Debug)]
+struct CheckArgs {
+    /// The component to check.
+    file: PathBuf,
+    /// Check it as this world (default: the world it exports).
+    #[arg(long, value_enum)]
+    world: Option<WorldArg>,
+    /// A parameter passed on every call, `name=value` (repeatable).
+    #[arg(long = "param", value_parser = parse_param)]
+    params: Vec<(String, f64)>,
+    /// Random cases on top of the edge cases.
+    #[arg(long, default_value_t = 200)]
+    cases: usize,
+    /// Seed of the random cases.
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Per-call deadline in milliseconds (default: the server's default for the world).
+    #[arg(long)]
+    deadline_ms: Option<u64>,
+    /// Memory cap in MiB.
+    #[arg(long, default_value_t = 64)]
+    memory_mib: usize,
+    /// Precompiled-code cache directory (default: the server's; `--no-cache` disables).
+    #[arg(long, conflicts_with = "no_cache")]
+    cache_dir: Option<PathBuf>,
+    /// Compile without the cache.
+    #[arg(long)]
+    no_cache: bool,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args, Debug)]
+struct ComponentizeArgs {
+    /// The core module.
+    module: PathBuf,
+    /// The world it implements.
+    #[arg(long, value_enum)]
+    world: WorldArg,
+    /// Where to write the component.
+    #[arg(short, long)]
+    out: PathBuf,
+}
+
+/// Flags `kairos serve` takes to load policy plugins.
+#[derive(Args, Debug, Clone, Default)]
+pub struct ServePluginArgs {
+    /// A horizon-policy component, `[NAME=]FILE.wasm` (repeatable); robots select it by NAME
+    /// (default: the file stem) in their horizon-policy field.
+    #[arg(long = "horizon-plugin", value_parser = parse_named_path)]
+    pub horizon_plugins: Vec<(String, PathBuf)>,
+    /// A priority-policy component that orders every scheduling decision.
+    #[arg(long = "priority-plugin")]
+    pub priority_plugin: Option<PathBuf>,
+    /// A parameter of the priority plugin, `name=value` (repeatable).
+    #[arg(long = "priority-param", value_parser = parse_param)]
+    pub priority_params: Vec<(String, f64)>,
+    /// Per-call deadline of horizon plugins, milliseconds.
+    #[arg(long, default_value_t = 5)]
+    pub horizon_plugin_deadline_ms: u64,
+    /// Per-call deadline of the priority plugin, milliseconds.
+    #[arg(long, default_value_t = 50)]
+    pub priority_plugin_deadline_ms: u64,
+    /// Memory cap per plugin instance, MiB.
+    #[arg(long, default_value_t = 64)]
+    pub plugin_memory_mib: usize,
+    /// Precompiled-code cache directory (default: `$XDG_CACHE_HOME/kairos/plugins`).
+    #[arg(long)]
+    pub plugin_cache_dir: Option<PathBuf>,
+}
+
+impl ServePluginArgs {
+    /// Options for a plugin of `kind` from these flags.
+    pub fn options(&self, kind: PluginKind) -> anyhow::Result<PluginOptions> {
+        let deadline = match kind {
+            PluginKind::Horizon => self.horizon_plugin_deadline_ms,
+            PluginKind::Priority => self.priority_plugin_deadline_ms,
+        };
+        Ok(PluginOptions {
+            deadline: Duration::from_millis(deadline),
+            memory_limit: self.plugin_memory_mib << 20,
+            cache: open_cache(self.plugin_cache_dir.clone(), false)?,
+            instance_mode: InstanceMode::Reuse,
+            ..PluginOptions::for_kind(kind)
+        })
+    }
+
+    /// The priority plugin's parameters.
+    pub fn priority_params(&self) -> PolicyParams {
+        self.priority_params.iter().cloned().collect()
+    }
+}
+
+fn parse_param(s: &str) -> Result<(String, f64), String> {
+    let (name, value) = s
+        .split_once('=')
+        .ok_or_else(|| format!("`{s}` is not name=value"))?;
+    let value: f64 = value
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{value}` is not a number"))?;
+    if name.trim().is_empty() {
+        return Err(format!("`{s}` has an empty name"));
+    }
+    Ok((name.trim().to_string(), value))
+}
+
+fn parse_named_path(s: &str) -> Result<(String, PathBuf), String> {
+    match s.split_once('=') {
+        Some((name, path)) if !name.is_empty() => Ok((name.to_string(), PathBuf::from(path))),
+        _ => {
+            let path = PathBuf::from(s);
+            let name = path
+                .file_stem()
+                .map(|n| n.to_string_lossy().into_owned())
+                .ok_or_else(|| format!("`{s}` names no file"))?;
+            Ok((name, path))
+        }
+    }
+}
+
+fn open_cache(dir: Option<PathBuf>, disabled: bool) -> anyhow::Result<Option<CodeCache>> {
+    if disabled {
+        return Ok(None);
+    }
+    let Some(dir) = dir.or_else(CodeCache::default_dir) else {
+        return Ok(None);
+    };
+    CodeCache::open(&dir)
+        .map(Some)
+        .with_context(|| format!("opening the plugin cache {}", dir.display()))
+}
+
+/// Runs `kairos plugin ...`.
+pub fn run(args: PluginArgs) -> anyhow::Result<()> {
+    match args.command {
+        PluginCommand::Check(args) => check(args),
+        PluginCommand::Componentize(args) => componentize(args),
+        PluginCommand::Info { file } => info(file),
+        PluginCommand::Wit { out } => wit(out),
+    }
+}
+
+fn check(args: CheckArgs) -> anyhow::Result<()> {
+    let kind = args.world.map(PluginKind::from);
+    let source = PluginSource::File(args.file.clone());
+    let defaults = PluginOptions::for_kind(kind.unwrap_or(PluginKind::Horizon));
+    let mut options = PluginOptions {
+        memory_limit: args.memory_mib << 20,
+        cache: open_cache(args.cache_dir.clone(), args.no_cache)?,
+        ..defaults
+    };
+    let config = CheckConfig {
+        params: args.params.iter().cloned().collect(),
+        random_cases: args.cases,
+        seed: args.seed.unwrap_or(CheckConfig::default().seed),
+    };
+    let detected = match kind {
+        Some(kind) => kind,
+        None => {
+            let wasm = std::fs::read(&args.file)
+                .with_context(|| format!("reading {}", args.file.display()))?;
+            let info = crate::plugin::inspect::inspect(&wasm)
+                .with_context(|| format!("{} is not a usable plugin", args.file.display()))?;
+            info.exports
+                .first()
+                .map(|(kind, _)| *kind)
+                .context("the component exports no policy interface")?
+        }
+    };
+    options.deadline = args
+        .deadline_ms
+        .map(Duration::from_millis)
+        .unwrap_or(PluginOptions::for_kind(detected).deadline);
+
+    let bar = indicatif::ProgressBar::new(0);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} cases")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    bar.set_message(format!("loading {}", args.file.display()));
+    let report = crate::plugin::conformance::check(
+        &source,
+        Some(detected),
+        options,
+        &config,
+        &mut |done, total| {
+            if bar.length() != Some(total as u64) {
+                bar.set_length(total as u64);
+                bar.set_message("checking");
+            }
+            bar.set_position(done as u64);
+        },
+    )
+    .with_context(|| format!("loading {}", args.file.display()))?;
+    bar.finish_and_clear();
+
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print_report(&report);
+    }
+    if !report.passed() {
+        bail!("{} of {} cases failed", report.failures.len(), report.cases);
+    }
+    Ok(())
+}
+
+fn print_report(report: &CheckReport) {
+    println!(
+        "{}: {} plugin, kairos:policy@{}, {} KiB{}, loaded in {:.1?}",
+        report.plugin,
+        report.kind,
+        report.version,
+        report.size / 1024,
+        if report.imports_wasi {
+            ", imports WASI (runs with no capabilities)"
+        } else {
+            ", no imports"
+        },
+        report.load_time
+    );
+    println!(
+        "{} cases (seed {}), {} failed, peak memory {:.1} MiB",
+        report.cases,
+        report.seed,
+        report.failures.len(),
+        report.peak_memory as f64 / (1 << 20) as f64
+    );
+    println!(
+        "{:<28} {:>7} {:>12} {:>12} {:>12}",
+        "call time", "calls", "p50", "p99", "max"
+    );
+    for t in &report.timings {
+        println!(
+            "{:<28} {:>7} {:>12.1?} {:>12.1?} {:>12.1?}",
+            t.group, t.calls, t.p50, t.p99, t.max
+        );
+    }
+    for u in &report.unsupported {
+        println!("unsupported (allowed): {}: {}", u.case, u.reason);
+    }
+    for f in &report.failures {
+        println!("FAILED {}: {}", f.case, f.reason);
+    }
+}
+
+fn componentize(args: ComponentizeArgs) -> anyhow::Result<()> {
+    let module = std::fs::read(&args.module)
+        .with_context(|| format!("reading {}", args.module.display()))?;
+    let component = crate::plugin::componentize::componentize(&module, args.world.into())
+        .with_context(|| format!("componentizing {}", args.module.display()))?;
+    // Check the result the way the server will load it.
+    let info = crate::plugin::inspect::inspect(&component)
+        .context("the new component does not inspect as a plugin")?;
+    info.check(args.world.into())
+        .context("the new component does not implement the world")?;
+    std::fs::write(&args.out, &component)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    println!(
+        "{}: {} bytes, world {}",
+        args.out.display(),
+        component.len(),
+        crate::plugin::componentize::world_name(args.world.into())
+    );
+    Ok(())
+}
+
+fn info(file: PathBuf) -> anyhow::Result<()> {
+    let wasm = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+    let info = crate::plugin::inspect::inspect(&wasm)
+        .with_context(|| format!("{} is not a usable plugin", file.display()))?;
+    for (kind, version) in &info.exports {
+        let supported = info.check(*kind).is_ok();
+        println!(
+            "exports kairos:policy/{kind}@{version}{}",
+            if supported {
+                ""
+            } else {
+                " (not supported by this server)"
+            }
+        );
+    }
+    if info.imports.is_empty() {
+        println!("imports nothing");
+    }
+    for import in &info.imports {
+        println!("imports {import}");
+    }
+    println!("{} bytes, sha256 {}", wasm.len(), {
+        use sha2::Digest;
+        hex::encode(sha2::Sha256::digest(&wasm))
+    });
+    Ok(())
+}
+
+fn wit(out: Option<PathBuf>) -> anyhow::Result<()> {
+    let source = crate::plugin::componentize::WIT_SOURCE;
+    match out {
+        None => print!("{source}"),
+        Some(dir) => {
+            std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+            let path = dir.join("policy.wit");
+            std::fs::write(&path, source).with_context(|| format!("writing {}", path.display()))?;
+            println!("wrote {}", path.display());
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn params_and_named_paths_parse() {
+        assert_eq!(parse_param("t=0.4"), Ok(("t".into(), 0.4)));
+        assert!(parse_param("t").is_err());
+        assert!(parse_param("t=x").is_err());
+        assert!(parse_param("=1").is_err());
+        assert_eq!(
+            parse_named_path("fast=/a/b.wasm"),
+            Ok(("fast".into(), PathBuf::from("/a/b.wasm")))
+        );
+        assert_eq!(
+            parse_named_path("/a/threshold.wasm"),
+            Ok(("threshold".into(), PathBuf::from("/a/threshold.wasm")))
+        );
+    }
+}

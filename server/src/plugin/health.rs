@@ -1,0 +1,277 @@
+//! Failure accounting for one plugin: counts, log-once, quarantine.
+//!
+//! Every failed call is counted by kind. The first failure of each kind is logged at `warn`
+//! with the plugin's name and the reason; later ones only at `debug`, so a plugin failing on
+//! every call cannot flood the log. After `quarantine_after` consecutive failures the plugin is
+//! quarantined: it sits out `probation` decisions (answered by the fallback), then gets one
+//! probe call; a failed probe doubles the probation (up to [`MAX_PROBATION`]), a success
+//! ends the quarantine. Loading a new version of the file ends it too.
+//!
+//! Quarantine is counted in decisions rather than seconds so that a simulation replaying a
+//! trace in virtual time behaves exactly like the live server.
+
+use std::time::Duration;
+
+use super::{MAX_PROBATION, PluginOptions};
+
+/// Why a call did not produce a usable answer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FailureKind {
+    /// Interrupted at its deadline.
+    Timeout,
+    /// Tried to grow memory (or a table) beyond its cap.
+    OverLimit,
+    /// Ran out of fuel.
+    OutOfFuel,
+    /// Trapped (unreachable, out-of-bounds access, a host call it may not make, ...).
+    Trap,
+    /// Could not be instantiated (its start code trapped, timed out or hit a limit).
+    Instantiate,
+    /// Answered something invalid (a horizon outside `[h_min, h_max]`, an order that is
+    /// not a permutation).
+    InvalidAnswer,
+    /// Returned an error (`result::err`) instead of an answer.
+    Refused,
+    /// Quarantined: not called at all.
+    Quarantined,
+}
+
+impl FailureKind {
+    const ALL: [FailureKind; 8] = [
+        FailureKind::Timeout,
+        FailureKind::OverLimit,
+        FailureKind::OutOfFuel,
+        FailureKind::Trap,
+        FailureKind::Instantiate,
+        FailureKind::InvalidAnswer,
+        FailureKind::Refused,
+        FailureKind::Quarantined,
+    ];
+
+    fn index(self) -> usize {
+        self as usize
+    }
+}
+
+impl std::fmt::Display for FailureKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            FailureKind::Timeout => "timeout",
+            FailureKind::OverLimit => "over limit",
+            FailureKind::OutOfFuel => "out of fuel",
+            FailureKind::Trap => "trap",
+            FailureKind::Instantiate => "instantiation failed",
+            FailureKind::InvalidAnswer => "invalid answer",
+            FailureKind::Refused => "refused",
+            FailureKind::Quarantined => "quarantined",
+        })
+    }
+}
+
+/// Counters of one plugin since it was loaded.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct PluginStats {
+    /// Decisions asked of the wrapper.
+    pub decisions: u64,
+    /// Decisions the plugin answered validly.
+    pub answered: u64,
+    /// Decisions answered by the fallback policy instead.
+    pub fallbacks: u64,
+    /// Failures by kind (`Quarantined` counts decisions skipped while quarantined).
+    pub failures: Vec<(FailureKind, u64)>,
+    /// Times the plugin was put in quarantine.
+    pub quarantines: u64,
+    /// Whether it is in quarantine now.
+    pub quarantined: bool,
+    /// New versions of the file swapped in.
+    pub reloads: u64,
+    /// Longest successful call.
+    pub max_call: Duration,
+    /// Largest linear memory any of its instances had, in bytes.
+    pub peak_memory: usize,
+}
+
+impl PluginStats {
+    /// Failures of `kind` so far.
+    pub fn failures_of(&self, kind: FailureKind) -> u64 {
+        self.failures
+            .iter()
+            .find(|(k, _)| *k == kind)
+            .map_or(0, |(_, n)| *n)
+    }
+}
+
+/// Health of one plugin. Owned by its wrapper; no clock, no I/O besides logging.
+#[derive(Debug)]
+pub struct Health {
+    name: String,
+    quarantine_after: u32,
+    base_probation: u32,
+    consecutive_failures: u32,
+    /// Decisions left to sit out; `Some` while quarantined.
+    sitting_out: Option<u32>,
+    probation: u32,
+    failures: [u64; FailureKind::ALL.len()],
+    logged: [bool; FailureKind::ALL.len()],
+    stats: PluginStats,
+}
+
+impl Health {
+    /// A healthy plugin called `name`.
+    pub fn new(name: impl Into<String>, options: &PluginOptions) -> Self {
+        Health {
+            name: name.into(),
+            quarantine_after: options.quarantine_after.max(1),
+            base_probation: options.probation,
+            consecutive_failures: 0,
+            sitting_out: None,
+            probation: options.probation,
+            failures: [0; FailureKind::ALL.len()],
+            logged: [false; FailureKind::ALL.len()],
+            stats: PluginStats::default(),
+        }
+    }
+
+    /// Whether to call the plugin for this decision. Counts the decision; a `false` means it
+    /// is quarantined and the caller answers with the fallback (and must not call `failed`).
+    pub fn admit(&mut self) -> bool {
+        self.stats.decisions += 1;
+        match &mut self.sitting_out {
+            Some(0) | None => true,
+            Some(left) => {
+                *left -= 1;
+                self.count(FailureKind::Quarantined);
+                self.stats.fallbacks += 1;
+                false
+            }
+        }
+    }
+
+    /// The plugin answered validly.
+    pub fn succeeded(&mut self, elapsed: Duration, peak_memory: usize) {
+        self.stats.answered += 1;
+        self.stats.max_call = self.stats.max_call.max(elapsed);
+        self.stats.peak_memory = self.stats.peak_memory.max(peak_memory);
+        self.consecutive_failures = 0;
+        if self.sitting_out.take().is_some() {
+            tracing::info!(plugin = %self.name, "plugin answered again; quarantine lifted");
+            self.probation = self.base_probation;
+        }
+    }
+
+    /// The plugin failed this decision; the caller answers with the fallback.
+    pub fn failed(&mut self, kind: FailureKind, message: &str) {
+        self.stats.fallbacks += 1;
+        self.count(kind);
+        if !std::mem::replace(&mut self.logged[kind.index()], true) {
+            tracing::warn!(plugin = %self.name, failure = %kind, %message,
+                "plugin failed; this decision used the fallback policy (further failures of this kind are counted, not logged)");
+        } else {
+            tracing::debug!(plugin = %self.name, failure = %kind, %message, "plugin failed again");
+        }
+        self.consecutive_failures = self.consecutive_failures.saturating_add(1);
+        let probe_failed = self.sitting_out == Some(0);
+        if probe_failed {
+            self.probation = self.probation.saturating_mul(2).clamp(1, MAX_PROBATION);
+        }
+        if probe_failed || self.consecutive_failures == self.quarantine_after {
+            self.sitting_out = Some(self.probation);
+            self.stats.quarantines += 1;
+            tracing::warn!(plugin = %self.name, consecutive_failures = self.consecutive_failures,
+                sit_out_decisions = self.probation, "plugin quarantined: the fallback policy answers until it is probed again or its file changes");
+        }
+    }
+
+    /// The plugin declined to decide (a `horizon-error`); its answer is passed on, like a
+    /// native policy's error, and does not count towards quarantine.
+    pub fn refused(&mut self, message: &str) {
+        self.count(FailureKind::Refused);
+        if !std::mem::replace(&mut self.logged[FailureKind::Refused.index()], true) {
+            tracing::info!(plugin = %self.name, %message, "plugin declined a decision (further refusals are counted, not logged)");
+        }
+    }
+
+    /// A new version of the plugin was loaded: forget its predecessor's failures.
+    pub fn reloaded(&mut self) {
+        self.stats.reloads += 1;
+        self.consecutive_failures = 0;
+        self.sitting_out = None;
+        self.probation = self.base_probation;
+        self.logged = [false; FailureKind::ALL.len()];
+    }
+
+    /// A snapshot of the counters.
+    pub fn stats(&self) -> PluginStats {
+        let mut stats = self.stats.clone();
+        stats.failures = FailureKind::ALL
+            .iter()
+            .zip(self.failures)
+            .filter(|(_, n)| *n > 0)
+            .map(|(k, n)| (*k, n))
+            .collect();
+        stats.quarantined = self.sitting_out.is_some();
+        stats
+    }
+
+    fn count(&mut self, kind: FailureKind) {
+        self.failures[kind.index()] += 1;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn options(after: u32, probation: u32) -> PluginOptions {
+        PluginOptions {
+            quarantine_after: after,
+            probation,
+            ..PluginOptions::horizon()
+        }
+    }
+
+    #[test]
+    fn quarantine_starts_after_consecutive_failures_and_doubles_on_failed_probes() {
+        let mut h = Health::new("p", &options(2, 3));
+        assert!(h.admit());
+        h.failed(FailureKind::Trap, "x");
+        assert!(h.admit());
+        h.succeeded(Duration::ZERO, 0);
+        // A success in between resets the streak.
+        assert!(h.admit());
+        h.failed(FailureKind::Trap, "x");
+        assert!(!h.stats().quarantined);
+        assert!(h.admit());
+        h.failed(FailureKind::Timeout, "x");
+        assert!(h.stats().quarantined);
+        assert_eq!(h.stats().quarantines, 1);
+        // Sits out 3 decisions, then is probed.
+        assert!((0..3).all(|_| !h.admit()));
+        assert!(h.admit());
+        h.failed(FailureKind::Trap, "x");
+        // The failed probe doubles the probation to 6.
+        assert!((0..6).all(|_| !h.admit()));
+        assert!(h.admit());
+        h.succeeded(Duration::ZERO, 0);
+        assert!(!h.stats().quarantined);
+        let stats = h.stats();
+        assert_eq!(stats.failures_of(FailureKind::Quarantined), 9);
+        assert_eq!(stats.failures_of(FailureKind::Trap), 3);
+        assert_eq!(stats.failures_of(FailureKind::Timeout), 1);
+        assert_eq!(stats.fallbacks, 13);
+        assert_eq!(stats.answered, 2);
+        assert_eq!(stats.decisions, 15);
+    }
+
+    #[test]
+    fn reload_lifts_quarantine() {
+        let mut h = Health::new("p", &options(1, 100));
+        assert!(h.admit());
+        h.failed(FailureKind::Trap, "x");
+        assert!(!h.admit());
+        h.reloaded();
+        assert!(h.admit());
+        assert_eq!(h.stats().reloads, 1);
+    }
+}

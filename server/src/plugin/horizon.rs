@@ -1,0 +1,463 @@
+//! [`WasmHorizonPolicy`]: a `horizon-policy` component behind the native [`HorizonPolicy`]
+//! trait, with containment and a fallback policy.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+
+use wasmtime::Store;
+use wasmtime::component::{Component, Linker};
+
+use super::bindings::{WitVersion, since_v0_1_0};
+use super::health::{FailureKind, Health, PluginStats};
+use super::reload::Reloader;
+use super::runtime::{CallCost, CallFailure, Compiled, Exec, LoadError, PluginMeta, World, load};
+use super::sandbox::HostState;
+use super::{PluginKind, PluginOptions, PluginSource};
+use crate::horizon::{HorizonError, HorizonInput, HorizonPolicy, PolicyParams, validate_horizon};
+
+use since_v0_1_0::horizon as v0_1;
+
+pub(crate) struct HorizonWorld;
+
+pub(crate) enum HorizonPre {
+    V0_1(v0_1::HorizonPolicyPre<HostState>),
+}
+
+pub(crate) enum HorizonInstance {
+    V0_1(v0_1::HorizonPolicy),
+}
+
+impl World for HorizonWorld {
+    const KIND: PluginKind = PluginKind::Horizon;
+    type Pre = HorizonPre;
+    type Instance = HorizonInstance;
+
+    fn pre(
+        version: WitVersion,
+        linker: &Linker<HostState>,
+        component: &Component,
+    ) -> wasmtime::Result<HorizonPre> {
+        // `inspect` admitted only supported versions; each maps to its bindings here.
+        match (version.major, version.minor) {
+            (0, 1) => Ok(HorizonPre::V0_1(v0_1::HorizonPolicyPre::new(
+                linker.instantiate_pre(component)?,
+            )?)),
+            _ => Err(wasmtime::Error::msg(format!(
+                "no bindings for version {version}"
+            ))),
+        }
+    }
+
+    fn instantiate(
+        pre: &HorizonPre,
+        store: &mut Store<HostState>,
+    ) -> wasmtime::Result<HorizonInstance> {
+        match pre {
+            HorizonPre::V0_1(pre) => pre.instantiate(store).map(HorizonInstance::V0_1),
+        }
+    }
+}
+
+/// Calls `choose` on `instance` with `input`, converted to the instance's WIT version.
+fn call_choose(
+    store: &mut Store<HostState>,
+    instance: &HorizonInstance,
+    input: &HorizonInput<'_>,
+    params: &[(String, f64)],
+) -> wasmtime::Result<Result<u32, HorizonError>> {
+    match instance {
+        HorizonInstance::V0_1(bindings) => {
+            use v0_1::exports::kairos::policy::horizon as wit;
+            let chunk = &input.chunk;
+            let wit_chunk = wit::Chunk {
+                samples: to_u32(chunk.samples),
+                steps: to_u32(chunk.steps),
+                chunk_len: to_u32(chunk.chunk_len),
+                action_dim: to_u32(chunk.action_dim),
+                updates: chunk.updates,
+                actions: chunk.actions,
+            };
+            let context = wit::HorizonContext {
+                h_min: to_u32(input.h_min),
+                h_max: to_u32(input.h_max),
+                control_hz: input.control_hz,
+                round_index: input.round_index,
+                recent_horizons: input.recent_horizons,
+            };
+            let wit_params: Vec<v0_1::kairos::policy::types::Param<'_>> = params
+                .iter()
+                .map(|(name, value)| v0_1::kairos::policy::types::Param {
+                    name,
+                    value: *value,
+                })
+                .collect();
+            let answer = bindings.kairos_policy_horizon().call_choose(
+                store,
+                wit_chunk,
+                context,
+                &wit_params,
+            )?;
+            Ok(answer.map_err(|e| match e {
+                wit::HorizonError::InvalidParam(p) => HorizonError::InvalidParam {
+                    name: p.name,
+                    reason: p.reason,
+                },
+                wit::HorizonError::Unsupported(m) => HorizonError::Unsupported(m),
+                wit::HorizonError::Failed(m) => HorizonError::Failed(m),
+            }))
+        }
+    }
+}
+
+/// Sizes beyond `u32` cannot occur (the protocol caps chunks far below); saturate rather
+/// than wrap so a plugin never sees a small bogus value.
+fn to_u32(n: usize) -> u32 {
+    u32::try_from(n).unwrap_or(u32::MAX)
+}
+
+/// A [`HorizonInput`] with owned buffers, to send to a worker thread.
+#[derive(Clone, Debug, PartialEq)]
+pub struct OwnedHorizonInput {
+    /// `S`.
+    pub samples: usize,
+    /// `K`.
+    pub steps: usize,
+    /// `N`.
+    pub chunk_len: usize,
+    /// `D`.
+    pub action_dim: usize,
+    /// `[S][K][N][D]`.
+    pub updates: Vec<f32>,
+    /// `[S][N][D]`.
+    pub actions: Vec<f32>,
+    /// `H_min`.
+    pub h_min: usize,
+    /// `H_max`.
+    pub h_max: usize,
+    /// Control frequency.
+    pub control_hz: f32,
+    /// Round index.
+    pub round_index: u64,
+    /// Recent horizons.
+    pub recent_horizons: Vec<u32>,
+    /// Parameters.
+    pub params: PolicyParams,
+}
+
+impl OwnedHorizonInput {
+    /// Copies `input`.
+    pub fn copy_of(input: &HorizonInput<'_>) -> Self {
+        OwnedHorizonInput {
+            samples: input.chunk.samples,
+            steps: input.chunk.steps,
+            chunk_len: input.chunk.chunk_len,
+            action_dim: input.chunk.action_dim,
+            updates: input.chunk.updates.to_vec(),
+            actions: input.chunk.actions.to_vec(),
+            h_min: input.h_min,
+            h_max: input.h_max,
+            control_hz: input.control_hz,
+            round_index: input.round_index,
+            recent_horizons: input.recent_horizons.to_vec(),
+            params: input.params.clone(),
+        }
+    }
+
+    /// Borrows it as a [`HorizonInput`].
+    pub fn view(&self) -> HorizonInput<'_> {
+        HorizonInput {
+            chunk: crate::horizon::ChunkView {
+                samples: self.samples,
+                steps: self.steps,
+                chunk_len: self.chunk_len,
+                action_dim: self.action_dim,
+                updates: &self.updates,
+                actions: &self.actions,
+            },
+            h_min: self.h_min,
+            h_max: self.h_max,
+            control_hz: self.control_hz,
+            round_index: self.round_index,
+            recent_horizons: &self.recent_horizons,
+            params: &self.params,
+        }
+    }
+}
+
+/// What every handle of one loaded horizon plugin shares.
+struct Shared {
+    /// The running version.
+    current: Mutex<Arc<Compiled<HorizonWorld>>>,
+    options: Arc<PluginOptions>,
+    health: Mutex<Health>,
+    /// Idle executors (each with its instance, kept warm), tagged with their version.
+    idle: Mutex<Vec<(Arc<Compiled<HorizonWorld>>, Exec<HorizonWorld>)>>,
+    reloader: Option<Mutex<Reloader<HorizonWorld>>>,
+    peak_memory: AtomicUsize,
+}
+
+/// A loaded horizon-policy component, shared by every request that uses it.
+///
+/// The server builds a horizon policy per request; [`HorizonPlugin::policy`] makes that cheap
+/// (no compilation, no instantiation): handles share one compiled plugin, one health record
+/// (so quarantine is per plugin, not per request) and a pool of warm instances, one per
+/// concurrent call.
+#[derive(Clone)]
+pub struct HorizonPlugin(Arc<Shared>);
+
+impl std::fmt::Debug for HorizonPlugin {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_tuple("HorizonPlugin")
+            .field(&self.meta().name)
+            .finish()
+    }
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    // A panic while holding one of these locks leaves consistent data (counters, a pool):
+    // keep serving rather than poisoning every later decision.
+    mutex
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+impl HorizonPlugin {
+    /// Loads (compiles, links) the plugin in `source` and starts watching its file.
+    pub fn load(source: &PluginSource, options: PluginOptions) -> Result<Self, LoadError> {
+        let plugin = load::<HorizonWorld>(source, &options)?;
+        let options = Arc::new(options);
+        let reloader = match (source, options.reload_poll) {
+            (PluginSource::File(path), Some(poll)) => Some(Mutex::new(
+                Reloader::spawn(path.clone(), plugin.meta.sha256, options.clone(), poll).map_err(
+                    |e| LoadError::Compile {
+                        name: plugin.meta.name.clone(),
+                        message: format!("cannot start its reload watcher: {e}"),
+                    },
+                )?,
+            )),
+            _ => None,
+        };
+        // One executor up front: a worker thread that cannot start fails the load, not a call.
+        let first = Exec::new(plugin.clone(), options.clone())?;
+        Ok(HorizonPlugin(Arc::new(Shared {
+            health: Mutex::new(Health::new(plugin.meta.name.clone(), &options)),
+            idle: Mutex::new(vec![(plugin.clone(), first)]),
+            current: Mutex::new(plugin),
+            options,
+            reloader,
+            peak_memory: AtomicUsize::new(0),
+        })))
+    }
+
+    /// A policy object for one request (or one owner), answering with `fallback` when the
+    /// plugin fails.
+    pub fn policy(&self, fallback: Box<dyn HorizonPolicy>) -> WasmHorizonPolicy {
+        WasmHorizonPolicy {
+            name: self.meta().name,
+            plugin: self.clone(),
+            fallback,
+            params: Default::default(),
+        }
+    }
+
+    /// What is loaded now.
+    pub fn meta(&self) -> PluginMeta {
+        lock(&self.0.current).meta.clone()
+    }
+
+    /// Counters since load, over every handle.
+    pub fn stats(&self) -> PluginStats {
+        lock(&self.0.health).stats()
+    }
+
+    /// Largest linear memory any instance had after a successful call, in bytes.
+    pub fn peak_memory(&self) -> usize {
+        self.0.peak_memory.load(Ordering::Relaxed)
+    }
+
+    /// Swaps in a newly compiled version, if the watcher has one.
+    fn check_reload(&self) {
+        let Some(reloader) = &self.0.reloader else {
+            return;
+        };
+        let Some(plugin) = lock(reloader).poll() else {
+            return;
+        };
+        *lock(&self.0.current) = plugin;
+        // Old instances are dropped as they come back; idle ones right now.
+        lock(&self.0.idle).clear();
+        lock(&self.0.health).reloaded();
+    }
+
+    /// An executor of the running version: a warm idle one, or a new one.
+    fn checkout(&self) -> Result<(Arc<Compiled<HorizonWorld>>, Exec<HorizonWorld>), CallFailure> {
+        self.check_reload();
+        let current = lock(&self.0.current).clone();
+        let mut idle = lock(&self.0.idle);
+        while let Some((plugin, exec)) = idle.pop() {
+            if Arc::ptr_eq(&plugin, &current) {
+                return Ok((plugin, exec));
+            }
+        }
+        drop(idle);
+        let exec = Exec::new(current.clone(), self.0.options.clone())
+            .map_err(|e| CallFailure::new(FailureKind::Instantiate, e.to_string()))?;
+        Ok((current, exec))
+    }
+
+    /// Returns an executor to the pool, unless a newer version has been loaded meanwhile.
+    fn checkin(&self, plugin: Arc<Compiled<HorizonWorld>>, exec: Exec<HorizonWorld>) {
+        if Arc::ptr_eq(&plugin, &lock(&self.0.current)) {
+            lock(&self.0.idle).push((plugin, exec));
+        }
+    }
+}
+
+/// A horizon-policy component as a [`HorizonPolicy`]: one handle of a [`HorizonPlugin`].
+///
+/// A valid answer of the plugin is returned as is; a plugin's own refusal
+/// (`horizon-error`) is returned as the matching [`HorizonError`], as a native policy would.
+/// A trap, a timeout, an exceeded limit or an answer outside `[h_min, h_max]` discards the
+/// instance and answers with the fallback policy (or `h_min` should the fallback fail too).
+pub struct WasmHorizonPolicy {
+    name: String,
+    plugin: HorizonPlugin,
+    fallback: Box<dyn HorizonPolicy>,
+    /// The last parameters, converted once and reused while they stay the same.
+    params: (PolicyParams, Vec<(String, f64)>),
+}
+
+impl WasmHorizonPolicy {
+    /// Loads the plugin in `source` and returns one handle, with `fallback` for decisions it
+    /// fails. Use [`HorizonPlugin`] to share one plugin between many handles.
+    pub fn load(
+        source: &PluginSource,
+        options: PluginOptions,
+        fallback: Box<dyn HorizonPolicy>,
+    ) -> Result<Self, LoadError> {
+        Ok(HorizonPlugin::load(source, options)?.policy(fallback))
+    }
+
+    /// The plugin this handle calls.
+    pub fn plugin(&self) -> &HorizonPlugin {
+        &self.plugin
+    }
+
+    /// What is loaded now.
+    pub fn meta(&self) -> PluginMeta {
+        self.plugin.meta()
+    }
+
+    /// The plugin's counters since load (over every handle).
+    pub fn stats(&self) -> PluginStats {
+        self.plugin.stats()
+    }
+
+    /// Largest linear memory any instance had after a successful call, in bytes.
+    pub fn peak_memory(&self) -> usize {
+        self.plugin.peak_memory()
+    }
+
+    /// One call into the plugin with no fallback and no health accounting: the answer
+    /// (validated) and what the call cost. For `kairos plugin check`, benches and tests.
+    pub fn call_plugin(
+        &mut self,
+        input: &HorizonInput<'_>,
+    ) -> Result<(Result<usize, HorizonError>, CallCost), CallFailure> {
+        if self.params.0 != *input.params {
+            self.params = (
+                input.params.clone(),
+                input.params.iter().map(|(k, v)| (k.clone(), *v)).collect(),
+            );
+        }
+        let (plugin, mut exec) = self.plugin.checkout()?;
+        let result = match &mut exec {
+            Exec::Inline(live) => {
+                let params = &self.params.1;
+                live.call(|store, instance| call_choose(store, instance, input, params))
+            }
+            Exec::Worker(worker) => {
+                let owned = OwnedHorizonInput::copy_of(input);
+                let params = self.params.1.clone();
+                let answer = worker.run(move |live| {
+                    let input = owned.view();
+                    live.call(|store, instance| call_choose(store, instance, &input, &params))
+                });
+                match answer {
+                    Some(answer) => answer,
+                    // Stuck in the host: abandon this worker (not returned to the pool).
+                    None => {
+                        return Err(CallFailure::new(
+                            FailureKind::Timeout,
+                            "the plugin's worker thread did not answer; replaced it",
+                        ));
+                    }
+                }
+            }
+        };
+        let outcome = match result {
+            Ok((Ok(h), cost)) => match validate_horizon(h as usize, input) {
+                Ok(h) => Ok((Ok(h), cost)),
+                Err(e) => {
+                    exec.discard();
+                    Err(CallFailure::new(FailureKind::InvalidAnswer, e.to_string()))
+                }
+            },
+            Ok((Err(refusal), cost)) => Ok((Err(refusal), cost)),
+            Err(failure) => Err(failure),
+        };
+        if let Ok((_, cost)) = &outcome {
+            self.plugin
+                .0
+                .peak_memory
+                .fetch_max(cost.peak_memory, Ordering::Relaxed);
+        }
+        self.plugin.checkin(plugin, exec);
+        outcome
+    }
+
+    fn fall_back(&mut self, input: &HorizonInput<'_>) -> Result<usize, HorizonError> {
+        match self
+            .fallback
+            .choose(input)
+            .and_then(|h| validate_horizon(h, input))
+        {
+            Ok(h) => Ok(h),
+            // The fallback could not decide either: the most conservative executable answer.
+            Err(_) => validate_horizon(input.h_min, input),
+        }
+    }
+}
+
+impl HorizonPolicy for WasmHorizonPolicy {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn choose(&mut self, input: &HorizonInput<'_>) -> Result<usize, HorizonError> {
+        if !input.chunk.is_consistent() {
+            // Not the plugin's fault, and the WIT promises consistent buffers: no call.
+            return self.fall_back(input);
+        }
+        if !lock(&self.plugin.0.health).admit() {
+            self.plugin.check_reload();
+            return self.fall_back(input);
+        }
+        let result = self.call_plugin(input);
+        let mut health = lock(&self.plugin.0.health);
+        match result {
+            Ok((answer, cost)) => {
+                health.succeeded(cost.elapsed, cost.peak_memory);
+                if let Err(refusal) = &answer {
+                    health.refused(&refusal.to_string());
+                }
+                answer
+            }
+            Err(failure) => {
+                health.failed(failure.kind, &failure.message);
+                drop(health);
+                self.fall_back(input)
+            }
+        }
+    }
+}

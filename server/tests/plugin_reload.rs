@@ -1,0 +1,165 @@
+//! Hot reload: a changed plugin file is compiled in the background and swapped in between two
+//! decisions; no decision in flight is dropped or answered by the fallback, a broken new
+//! version is ignored, and a reload lifts a quarantine.
+
+mod plugin_common;
+
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use kairos_server::horizon::{ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
+use kairos_server::plugin::{PluginOptions, PluginSource, WasmHorizonPolicy};
+use plugin_common::*;
+
+/// Answers 1, so a fallback answer is visible (the fixtures answer h_min = 2 or h_max = 40).
+struct One;
+
+impl HorizonPolicy for One {
+    fn name(&self) -> &str {
+        "one"
+    }
+    fn choose(&mut self, _: &HorizonInput<'_>) -> Result<usize, HorizonError> {
+        Ok(1)
+    }
+}
+
+/// Replaces `path` atomically, the way a deployment should (write aside, rename).
+fn install(path: &Path, wasm: &[u8]) {
+    let tmp = path.with_extension("new");
+    std::fs::write(&tmp, wasm).unwrap();
+    std::fs::rename(&tmp, path).unwrap();
+}
+
+struct Robot {
+    updates: Vec<f32>,
+    actions: Vec<f32>,
+    params: PolicyParams,
+}
+
+impl Robot {
+    fn new() -> Self {
+        Robot {
+            updates: vec![0.1; 10 * 50 * 7],
+            actions: vec![0.0; 50 * 7],
+            params: PolicyParams::new(),
+        }
+    }
+
+    fn decide(&self, policy: &mut WasmHorizonPolicy) -> usize {
+        let input = HorizonInput {
+            chunk: ChunkView {
+                samples: 1,
+                steps: 10,
+                chunk_len: 50,
+                action_dim: 7,
+                updates: &self.updates,
+                actions: &self.actions,
+            },
+            h_min: 1,
+            h_max: 40,
+            control_hz: 30.0,
+            round_index: 0,
+            recent_horizons: &[],
+            params: &self.params,
+        };
+        policy.choose(&input).expect("always answered")
+    }
+}
+
+/// Decides until the answer becomes `want` (or `limit` passes); every answer on the way must
+/// be `before` or `want`: never the fallback's.
+fn decide_until(
+    policy: &mut WasmHorizonPolicy,
+    robot: &Robot,
+    before: usize,
+    want: usize,
+    limit: Duration,
+) -> usize {
+    let started = Instant::now();
+    let mut decisions = 0;
+    loop {
+        let h = robot.decide(policy);
+        decisions += 1;
+        assert!(
+            h == before || h == want,
+            "decision {decisions} answered {h}"
+        );
+        if h == want {
+            return decisions;
+        }
+        assert!(
+            started.elapsed() < limit,
+            "no reload after {decisions} decisions"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
+fn options() -> PluginOptions {
+    PluginOptions {
+        reload_poll: Some(Duration::from_millis(10)),
+        deadline: Duration::from_millis(100),
+        ..PluginOptions::horizon()
+    }
+}
+
+#[test]
+fn a_new_version_is_swapped_in_between_decisions_and_broken_ones_are_ignored() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("policy.wasm");
+    install(&path, &horizon_component("(i32.const 2)"));
+    let mut policy =
+        WasmHorizonPolicy::load(&PluginSource::File(path.clone()), options(), Box::new(One))
+            .unwrap();
+    let robot = Robot::new();
+    assert_eq!(robot.decide(&mut policy), 2);
+
+    install(&path, &horizon_component(HORIZON_H_MAX));
+    decide_until(&mut policy, &robot, 2, 40, Duration::from_secs(10));
+    let stats = policy.stats();
+    assert_eq!(stats.reloads, 1);
+    assert_eq!(
+        stats.fallbacks, 0,
+        "no decision fell back during the swap: {stats:?}"
+    );
+
+    // Garbage, then a plugin for the other world: both refused, the running version stays.
+    install(&path, b"\0asm garbage");
+    std::thread::sleep(Duration::from_millis(100));
+    install(&path, &priority_component(PRIORITY_IDENTITY));
+    let until = Instant::now() + Duration::from_millis(300);
+    while Instant::now() < until {
+        assert_eq!(robot.decide(&mut policy), 40);
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let stats = policy.stats();
+    assert_eq!((stats.reloads, stats.fallbacks), (1, 0), "{stats:?}");
+}
+
+#[test]
+fn reloading_a_fixed_version_lifts_the_quarantine() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("policy.wasm");
+    install(&path, &horizon_component(HORIZON_TRAP));
+    let mut policy = WasmHorizonPolicy::load(
+        &PluginSource::File(path.clone()),
+        PluginOptions {
+            quarantine_after: 2,
+            probation: 1_000_000,
+            ..options()
+        },
+        Box::new(One),
+    )
+    .unwrap();
+    let robot = Robot::new();
+    for _ in 0..5 {
+        assert_eq!(robot.decide(&mut policy), 1, "the fallback answers");
+    }
+    assert!(policy.stats().quarantined);
+
+    install(&path, &horizon_component(HORIZON_H_MAX));
+    decide_until(&mut policy, &robot, 1, 40, Duration::from_secs(10));
+    let stats = policy.stats();
+    assert!(!stats.quarantined, "{stats:?}");
+    assert_eq!(stats.reloads, 1);
+}

@@ -1,0 +1,547 @@
+//! Every shipped plugin gives exactly the answer of its native twin, on the same randomized
+//! inputs: `threshold` and `static` (C), `fifo`, `plas` and `kairos` (C), and `kairos` again
+//! in Python. Run `plugins/build.sh` first (CI does); a missing plugin fails the test.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use kairos_server::horizon::fixed::StaticHorizon;
+use kairos_server::horizon::threshold::Threshold;
+use kairos_server::horizon::{HorizonError, HorizonPolicy, PolicyParams};
+use kairos_server::plugin::cache::CodeCache;
+use kairos_server::plugin::conformance::{HorizonCase, UpdateShape, horizon_case, horizon_cases};
+use kairos_server::plugin::{
+    FailureKind, PluginOptions, PluginSource, WasmHorizonPolicy, WasmPriorityPolicy,
+};
+use kairos_server::scheduler::{
+    PendingView, PolicyError, PolicySpec, PriorityPolicy, RemainingWork, RequestId, TaskId,
+    build_policy,
+};
+use kairos_server::time::Timestamp;
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+fn plugin_path(name: &str) -> PathBuf {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../plugins/build")
+        .join(format!("{name}.wasm"));
+    assert!(
+        path.exists(),
+        "{} is missing: build the shipped plugins first with \
+         `bash scripts/install-plugin-toolchains.sh && bash plugins/build.sh` (CI's .ci/run does)",
+        path.display()
+    );
+    path
+}
+
+fn options(base: PluginOptions) -> PluginOptions {
+    let cache = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../plugins/build/cache");
+    PluginOptions {
+        // Equality, not speed, is under test: generous limits so a loaded machine cannot
+        // turn a slow call into a fallback answer.
+        deadline: Duration::from_secs(5),
+        memory_limit: 256 << 20,
+        reload_poll: None,
+        cache: Some(CodeCache::open(cache).expect("plugin cache")),
+        ..base
+    }
+}
+
+/// A horizon policy that must never be asked: equality tests compare the plugin itself.
+struct Unreachable;
+
+impl HorizonPolicy for Unreachable {
+    fn name(&self) -> &str {
+        "unreachable"
+    }
+    fn choose(
+        &mut self,
+        _: &kairos_server::horizon::HorizonInput<'_>,
+    ) -> Result<usize, HorizonError> {
+        panic!("the fallback answered: the plugin failed")
+    }
+}
+
+impl PriorityPolicy for Unreachable {
+    fn name(&self) -> &str {
+        "unreachable"
+    }
+    fn order(
+        &mut self,
+        _: Timestamp,
+        _: &[PendingView],
+        _: &mut Vec<usize>,
+    ) -> Result<(), PolicyError> {
+        panic!("the fallback answered: the plugin failed")
+    }
+}
+
+fn horizon_plugin(name: &str) -> WasmHorizonPolicy {
+    WasmHorizonPolicy::load(
+        &PluginSource::File(plugin_path(name)),
+        options(PluginOptions::horizon()),
+        Box::new(Unreachable),
+    )
+    .unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+/// Errors agree when they are the same kind about the same parameter; messages are prose.
+fn same_answer(native: &Result<usize, HorizonError>, plugin: &Result<usize, HorizonError>) -> bool {
+    match (native, plugin) {
+        (Ok(a), Ok(b)) => a == b,
+        (
+            Err(HorizonError::InvalidParam { name: a, .. }),
+            Err(HorizonError::InvalidParam { name: b, .. }),
+        ) => a == b,
+        (Err(HorizonError::Unsupported(_)), Err(HorizonError::Unsupported(_))) => true,
+        _ => false,
+    }
+}
+
+/// Random chunks whose convergence varies along the chunk, so `H_thresh` lands anywhere.
+fn threshold_inputs(seed: u64, count: usize) -> Vec<HorizonCase> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut cases = horizon_cases(seed, count);
+    for i in 0..count {
+        let dims = (
+            1,
+            rng.random_range(1..=12),
+            rng.random_range(1..=60),
+            rng.random_range(1..=10),
+        );
+        let shape = [
+            UpdateShape::Realistic,
+            UpdateShape::AllConverged,
+            UpdateShape::AllUnconverged,
+        ][i % 3];
+        let mut case = horizon_case(&mut rng, format!("shaped #{i}"), "shaped", dims, shape);
+        // Final-step ratios around 1+t from a random action on, so the cut lands inside.
+        let (_, k, n, d) = case.dims;
+        if k >= 2 {
+            let norm = |v: &[f32]| v.iter().map(|x| f64::from(*x).powi(2)).sum::<f64>().sqrt();
+            let cut = rng.random_range(0..n);
+            for action in cut..n {
+                let at = |step: usize| (step * n + action) * d;
+                let mean = (0..k - 1)
+                    .map(|s| norm(&case.updates[at(s)..at(s) + d]))
+                    .sum::<f64>()
+                    / (k - 1) as f64;
+                let last = norm(&case.updates[at(k - 1)..at(k - 1) + d]);
+                if last > 0.0 {
+                    let scale = (rng.random_range(0.6..2.0) * mean / last) as f32;
+                    case.updates[at(k - 1)..at(k - 1) + d]
+                        .iter_mut()
+                        .for_each(|x| *x *= scale);
+                }
+            }
+            case.bounds = (1, n);
+        }
+        cases.push(case);
+    }
+    cases
+}
+
+fn random_threshold_params(rng: &mut StdRng, n: usize) -> PolicyParams {
+    let mut params = PolicyParams::new();
+    match rng.random_range(0..10) {
+        0 => {}
+        1 => {
+            params.insert("t".into(), -0.5);
+        }
+        2 => {
+            params.insert("h_min".into(), 2.5);
+        }
+        3 => {
+            params.insert("tau".into(), 0.4);
+        }
+        4 => {
+            params.insert("t".into(), f64::NAN);
+        }
+        _ => {
+            params.insert(
+                "t".into(),
+                [0.0, 0.1, 0.4, 1.0, rng.random_range(0.0..2.0)][rng.random_range(0..5)],
+            );
+            if rng.random_bool(0.5) {
+                params.insert("h_min".into(), rng.random_range(1..=n + 3) as f64);
+            }
+        }
+    }
+    params
+}
+
+/// Chunks whose final-step norms sit within a few ulps of `(1 + t) ×` their earlier mean: the
+/// answer then depends on every rounding step, which is what "bit for bit" has to survive.
+fn knife_edge_inputs(seed: u64, count: usize, t: f64) -> Vec<HorizonCase> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    (0..count)
+        .map(|i| {
+            let dims = (
+                1,
+                rng.random_range(2..=12),
+                rng.random_range(2..=50),
+                rng.random_range(1..=8),
+            );
+            let mut case = horizon_case(
+                &mut rng,
+                format!("knife edge #{i}"),
+                "edge",
+                dims,
+                UpdateShape::Realistic,
+            );
+            let (_, k, n, d) = case.dims;
+            let norm = |v: &[f32]| v.iter().map(|x| f64::from(*x).powi(2)).sum::<f64>().sqrt();
+            for action in 0..n {
+                let at = |step: usize| (step * n + action) * d;
+                let mean = (0..k - 1)
+                    .map(|s| norm(&case.updates[at(s)..at(s) + d]))
+                    .sum::<f64>()
+                    / (k - 1) as f64;
+                let last = norm(&case.updates[at(k - 1)..at(k - 1) + d]);
+                if last > 0.0 {
+                    let nudge =
+                        1.0 + f64::from(rng.random_range(-7i32..=1)) * f64::from(f32::EPSILON);
+                    let scale = ((1.0 + t) * mean / last * nudge) as f32;
+                    case.updates[at(k - 1)..at(k - 1) + d]
+                        .iter_mut()
+                        .for_each(|x| *x *= scale);
+                }
+            }
+            case.bounds = (1, n);
+            case
+        })
+        .collect()
+}
+
+#[test]
+fn threshold_plugin_matches_its_native_twin_on_knife_edges() {
+    let mut plugin = horizon_plugin("threshold");
+    let mut native = Threshold::default();
+    let mut answers = std::collections::BTreeSet::new();
+    for (t, params) in [
+        (0.4, PolicyParams::new()),
+        (0.1, [("t".to_string(), 0.1)].into()),
+    ] {
+        for case in knife_edge_inputs(17, 400, t) {
+            let input = case.input(&params);
+            let want = native.choose(&input);
+            let (got, _) = plugin
+                .call_plugin(&input)
+                .unwrap_or_else(|f| panic!("{}: {f}", case.name));
+            assert_eq!(want, got, "{}: t = {t}", case.name);
+            answers.insert(want.unwrap());
+        }
+    }
+    assert!(
+        answers.len() > 10,
+        "the cuts should land all over the chunk: {answers:?}"
+    );
+}
+
+#[test]
+fn threshold_plugin_matches_its_native_twin() {
+    let mut plugin = horizon_plugin("threshold");
+    let mut native = Threshold::default();
+    let mut rng = StdRng::seed_from_u64(11);
+    let mut decided = 0;
+    let mut cut_inside = 0;
+    for case in threshold_inputs(7, 400) {
+        let params = random_threshold_params(&mut rng, case.dims.2);
+        let input = case.input(&params);
+        let want = native.choose(&input);
+        let (got, _) = plugin
+            .call_plugin(&input)
+            .unwrap_or_else(|f| panic!("{}: {f}", case.name));
+        assert!(
+            same_answer(&want, &got),
+            "{}: native {want:?}, plugin {got:?}, params {params:?}",
+            case.name
+        );
+        decided += usize::from(want.is_ok());
+        // Answers strictly inside the bounds come from the threshold itself, not a clamp.
+        if let Ok(h) = want {
+            cut_inside += usize::from(h > input.h_min.max(1) && h < input.h_max);
+        }
+    }
+    assert!(
+        decided > 400,
+        "too few valid decisions to compare: {decided}"
+    );
+    assert!(
+        cut_inside > 50,
+        "too few threshold cuts inside the bounds: {cut_inside}"
+    );
+}
+
+#[test]
+fn static_plugin_matches_its_native_twin() {
+    let mut plugin = horizon_plugin("static");
+    let mut rng = StdRng::seed_from_u64(12);
+    for case in horizon_cases(8, 300) {
+        let n = case.dims.2;
+        let mut params = PolicyParams::new();
+        match rng.random_range(0..8) {
+            0 => {}
+            1 => {
+                params.insert("h".into(), 0.0);
+            }
+            2 => {
+                params.insert("x".into(), 3.0);
+                params.insert("h".into(), 3.0);
+            }
+            _ => {
+                params.insert("h".into(), rng.random_range(1..=n + 5) as f64);
+            }
+        }
+        let input = case.input(&params);
+        // The native policy reads `h` from the call's parameters, like the plugin.
+        let want = match StaticHorizon::from_params(&params) {
+            Ok(mut native) => native.choose(&input),
+            Err(e) => Err(e),
+        };
+        let (got, _) = plugin
+            .call_plugin(&input)
+            .unwrap_or_else(|f| panic!("{}: {f}", case.name));
+        assert!(
+            same_answer(&want, &got),
+            "{}: native {want:?}, plugin {got:?}, params {params:?}",
+            case.name
+        );
+    }
+}
+
+/// Pending lists with many ties: arrival times, waits and executions drawn from small sets, so
+/// every tie-break rule of every policy is exercised.
+fn pending_list(rng: &mut StdRng, len: usize) -> (Timestamp, Vec<PendingView>) {
+    let now_us: u64 = rng.random_range(2_000_000..600_000_000);
+    let coarse = rng.random_bool(0.5);
+    let pick = |rng: &mut StdRng, max: u64| -> u64 {
+        if coarse {
+            [0, max / 4, max / 2, max][rng.random_range(0..4)]
+        } else {
+            rng.random_range(0..=max)
+        }
+    };
+    let mut ids: Vec<u64> = (0..len as u64)
+        .map(|i| i * 3 + rng.random_range(0..3))
+        .collect();
+    ids.reverse();
+    let pending = (0..len)
+        .map(|i| {
+            let start = pick(rng, now_us);
+            let life = now_us - start;
+            let arrived = start + pick(rng, life);
+            let ns = |rng: &mut StdRng, max_us: u64| {
+                Duration::from_nanos(pick(rng, max_us) * 1000 + rng.random_range(0..1000))
+            };
+            PendingView {
+                request: RequestId(ids[i]),
+                task: TaskId(rng.random_range(0..50)),
+                round_index: rng.random_range(0..100),
+                arrived_at: Timestamp::from_micros(arrived),
+                task_started_at: Timestamp::from_micros(start),
+                skipped: [0, 0, 1, 3, 4, 9, 40][rng.random_range(0..7)],
+                wait: ns(rng, life),
+                attained_service: ns(rng, 30_000_000),
+                queued: ns(rng, life),
+                last_exec: rng.random_bool(0.8).then(|| ns(rng, 3_000_000)),
+                exec_ends_at: rng.random_bool(0.8).then(|| {
+                    Timestamp::from_micros(arrived + pick(rng, now_us + 3_000_000 - arrived))
+                }),
+                last_gen: rng.random_bool(0.8).then(|| ns(rng, 1_000_000)),
+                rounds_completed: rng.random_range(0..100),
+                remaining: rng.random_bool(0.2).then(|| RemainingWork {
+                    rounds: Some(rng.random_range(0..50)),
+                    seconds: None,
+                }),
+            }
+        })
+        .collect();
+    (Timestamp::from_micros(now_us), pending)
+}
+
+/// Compares a priority plugin with the native policy `spec` on `decisions` random lists.
+fn compare_priority(
+    plugin_name: &str,
+    spec: &str,
+    params: &[(&str, f64)],
+    decisions: usize,
+    max_len: usize,
+    seed: u64,
+) {
+    let params: PolicyParams = params.iter().map(|(k, v)| (k.to_string(), *v)).collect();
+    let mut plugin = WasmPriorityPolicy::load(
+        &PluginSource::File(plugin_path(plugin_name)),
+        &params,
+        options(PluginOptions::priority()),
+        Box::new(Unreachable),
+    )
+    .unwrap_or_else(|e| panic!("{plugin_name}: {e}"));
+    let mut native = build_policy(&spec.parse::<PolicySpec>().unwrap()).unwrap();
+    let mut rng = StdRng::seed_from_u64(seed);
+    let (mut want, mut got) = (Vec::new(), Vec::new());
+    for decision in 0..decisions {
+        let len = if decision < 3 {
+            decision
+        } else {
+            rng.random_range(0..=max_len)
+        };
+        let (now, pending) = pending_list(&mut rng, len);
+        want.clear();
+        native.order(now, &pending, &mut want).unwrap();
+        plugin
+            .call_plugin(now, &pending, &mut got)
+            .unwrap_or_else(|f| panic!("{plugin_name} ({spec}) decision {decision}: {f}"));
+        assert_eq!(
+            got, want,
+            "{plugin_name} vs native {spec}, decision {decision} ({len} pending)"
+        );
+    }
+}
+
+#[test]
+fn fifo_plugin_matches_its_native_twin() {
+    compare_priority("fifo", "fifo", &[], 300, 300, 21);
+}
+
+#[test]
+fn plas_plugin_matches_its_native_twin() {
+    compare_priority("plas", "plas", &[], 200, 300, 22);
+    compare_priority(
+        "plas",
+        "plas:queues=4,quantum_ms=0.25,growth=3,beta=2",
+        &[
+            ("queues", 4.0),
+            ("quantum_ms", 0.25),
+            ("growth", 3.0),
+            ("beta", 2.0),
+        ],
+        200,
+        300,
+        23,
+    );
+    compare_priority("plas", "plas:queues=1", &[("queues", 1.0)], 50, 100, 24);
+}
+
+#[test]
+fn kairos_plugin_matches_its_native_twin() {
+    compare_priority("kairos", "kairos", &[], 200, 300, 31);
+    compare_priority(
+        "kairos",
+        "kairos:buckets=inf",
+        &[("buckets", f64::INFINITY)],
+        200,
+        300,
+        32,
+    );
+    compare_priority(
+        "kairos",
+        "kairos:buckets=3,aging=2,intra=fifo",
+        &[("buckets", 3.0), ("aging", 2.0), ("intra_fifo", 1.0)],
+        200,
+        300,
+        33,
+    );
+}
+
+#[test]
+fn python_kairos_plugin_matches_its_native_twin() {
+    compare_priority("kairos_py", "kairos", &[], 60, 200, 41);
+    compare_priority(
+        "kairos_py",
+        "kairos:buckets=inf",
+        &[("buckets", f64::INFINITY)],
+        30,
+        200,
+        42,
+    );
+    compare_priority(
+        "kairos_py",
+        "kairos:buckets=3,aging=2,intra=fifo",
+        &[("buckets", 3.0), ("aging", 2.0), ("intra_fifo", 1.0)],
+        30,
+        200,
+        43,
+    );
+}
+
+#[test]
+fn plugins_refuse_parameters_their_twins_refuse() {
+    let load = |name: &str, params: &[(&str, f64)]| {
+        let params: PolicyParams = params.iter().map(|(k, v)| (k.to_string(), *v)).collect();
+        WasmPriorityPolicy::load(
+            &PluginSource::File(plugin_path(name)),
+            &params,
+            options(PluginOptions::priority()),
+            Box::new(Unreachable),
+        )
+        .err()
+        .map(|e| e.to_string())
+    };
+    for (name, params, spec) in [
+        ("fifo", &[("x", 1.0)][..], "fifo:x=1"),
+        ("plas", &[("queues", 0.0)][..], "plas:queues=0"),
+        ("plas", &[("beta", -1.0)][..], "plas:beta=-1"),
+        ("kairos", &[("buckets", 0.0)][..], "kairos:buckets=0"),
+        ("kairos", &[("aging", 1.5)][..], "kairos:aging=1.5"),
+        ("kairos_py", &[("bucket", 3.0)][..], "kairos:bucket=3"),
+    ] {
+        assert!(
+            build_policy(&spec.parse::<PolicySpec>().unwrap()).is_err(),
+            "native accepts {spec}"
+        );
+        let refused = load(name, params).unwrap_or_else(|| panic!("{name} accepted {params:?}"));
+        assert!(refused.contains("parameters"), "{refused}");
+    }
+}
+
+/// The Python plugin runs inside deny-all WASI on its own worker thread; a deadline shorter
+/// than its call interrupts the Python interpreter mid-sort, and the next call works again.
+#[test]
+fn a_python_plugin_is_interrupted_at_its_deadline_and_recovers() {
+    let mut plugin = WasmPriorityPolicy::load(
+        &PluginSource::File(plugin_path("kairos_py")),
+        &PolicyParams::new(),
+        PluginOptions {
+            deadline: Duration::from_millis(10),
+            quarantine_after: 100,
+            ..options(PluginOptions::priority())
+        },
+        build_policy(&"fifo".parse::<PolicySpec>().unwrap()).unwrap(),
+    )
+    .unwrap();
+    assert!(plugin.meta().info.imports_wasi);
+    let mut rng = StdRng::seed_from_u64(5);
+    let (now, big) = pending_list(&mut rng, 20_000);
+    let started = std::time::Instant::now();
+    let mut order = Vec::new();
+    plugin.order(now, &big, &mut order).unwrap();
+    assert!(
+        started.elapsed() < Duration::from_millis(10) + Duration::from_millis(400),
+        "{:?}",
+        started.elapsed()
+    );
+    assert_eq!(
+        plugin.stats().failures_of(FailureKind::Timeout),
+        1,
+        "{:?}",
+        plugin.stats()
+    );
+    let mut fifo = Vec::new();
+    build_policy(&"fifo".parse::<PolicySpec>().unwrap())
+        .unwrap()
+        .order(now, &big, &mut fifo)
+        .unwrap();
+    assert_eq!(
+        order, fifo,
+        "the fallback (fifo) ordered the interrupted decision"
+    );
+
+    let (now, small) = pending_list(&mut rng, 5);
+    let mut native = build_policy(&"kairos".parse::<PolicySpec>().unwrap()).unwrap();
+    let mut want = Vec::new();
+    native.order(now, &small, &mut want).unwrap();
+    plugin.order(now, &small, &mut order).unwrap();
+    assert_eq!(order, want, "a fresh instance answers the next decision");
+    assert_eq!(plugin.stats().answered, 1);
+}
