@@ -63,9 +63,17 @@ impl<W: World> Reloader<W> {
     }
 }
 
-fn stat(path: &std::path::Path) -> Option<(u64, SystemTime)> {
+/// What identifies a version of the file without reading it: size, modification time and, on
+/// Unix, the inode. The inode matters: file times are coarse (a few ms on Linux), so a new
+/// version of the same size renamed into place right after the old one can carry the same
+/// mtime, but never the same inode.
+fn stat(path: &std::path::Path) -> Option<(u64, SystemTime, u64)> {
     let meta = std::fs::metadata(path).ok()?;
-    Some((meta.len(), meta.modified().ok()?))
+    #[cfg(unix)]
+    let inode = std::os::unix::fs::MetadataExt::ino(&meta);
+    #[cfg(not(unix))]
+    let inode = 0;
+    Some((meta.len(), meta.modified().ok()?, inode))
 }
 
 fn watch<W: World>(
