@@ -89,7 +89,9 @@ fn watch<W: World>(
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_default();
     let mut seen = stat(path);
-    let mut settled = true;
+    // Not settled: the file is hashed once at the first poll, because it may already have
+    // changed between the load that produced `current` and this thread's first `stat`.
+    let mut settled = false;
     let mut rejected: Option<[u8; 32]> = None;
     while !stop.load(Ordering::Relaxed) {
         std::thread::sleep(poll);
