@@ -87,6 +87,7 @@ void exports_kairos_policy_priority_option_remaining_work_free(exports_kairos_po
 
 void exports_kairos_policy_priority_pending_free(exports_kairos_policy_priority_pending_t *ptr) {
   priority_policy_option_u64_free(&ptr->last_exec_ns);
+  priority_policy_option_u64_free(&ptr->exec_ends_at_us);
   priority_policy_option_u64_free(&ptr->last_gen_ns);
   exports_kairos_policy_priority_option_remaining_work_free(&ptr->remaining);
 }
@@ -160,12 +161,12 @@ void priority_policy_string_free(priority_policy_string_t *ret) {
 
 __attribute__((__export_name__("kairos:policy/priority@0.1.0#order")))
 uint8_t * __wasm_export_exports_kairos_policy_priority_order(int64_t arg, uint8_t * arg0, size_t arg1, uint8_t * arg2, size_t arg3) {
-  exports_kairos_policy_priority_list_pending_t arg8 = (exports_kairos_policy_priority_list_pending_t) { (exports_kairos_policy_priority_pending_t*)(arg0), (arg1) };
-  exports_kairos_policy_priority_list_param_t arg9 = (exports_kairos_policy_priority_list_param_t) { (exports_kairos_policy_priority_param_t*)(arg2), (arg3) };
+  exports_kairos_policy_priority_list_pending_t arg9 = (exports_kairos_policy_priority_list_pending_t) { (exports_kairos_policy_priority_pending_t*)(arg0), (arg1) };
+  exports_kairos_policy_priority_list_param_t arg10 = (exports_kairos_policy_priority_list_param_t) { (exports_kairos_policy_priority_param_t*)(arg2), (arg3) };
   exports_kairos_policy_priority_result_list_u32_string_t ret;
   priority_policy_list_u32_t ok;
   priority_policy_string_t err;
-  ret.is_err = !exports_kairos_policy_priority_order((uint64_t) (arg), &arg8, &arg9, &ok, &err);
+  ret.is_err = !exports_kairos_policy_priority_order((uint64_t) (arg), &arg9, &arg10, &ok, &err);
   if (ret.is_err) {
     ret.val.err = err;
   }
@@ -174,9 +175,9 @@ uint8_t * __wasm_export_exports_kairos_policy_priority_order(int64_t arg, uint8_
   }
   uint8_t *ptr = (uint8_t *) &RET_AREA;
   if ((ret).is_err) {
-    const priority_policy_string_t *payload10 = &(ret).val.err;*((int8_t*)(ptr + 0)) = 1;
-    *((size_t*)(ptr + (2*sizeof(void*)))) = (*payload10).len;
-    *((uint8_t **)(ptr + sizeof(void*))) = (uint8_t *) (*payload10).ptr;
+    const priority_policy_string_t *payload11 = &(ret).val.err;*((int8_t*)(ptr + 0)) = 1;
+    *((size_t*)(ptr + (2*sizeof(void*)))) = (*payload11).len;
+    *((uint8_t **)(ptr + sizeof(void*))) = (uint8_t *) (*payload11).ptr;
   } else {
     const priority_policy_list_u32_t *payload = &(ret).val.ok;*((int8_t*)(ptr + 0)) = 0;
     *((size_t*)(ptr + (2*sizeof(void*)))) = (*payload).len;

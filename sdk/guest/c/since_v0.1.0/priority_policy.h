@@ -89,6 +89,10 @@ typedef struct exports_kairos_policy_priority_pending_t {
   uint64_t   queued_ns;
   // |E_last|: duration of the task's most recent execution phase, if any.
   priority_policy_option_u64_t   last_exec_ns;
+  // `E_last.end` as the robot reported it with this request (send time + actions
+  // remaining / control frequency): when the robot runs out of actions unless this
+  // request is answered. None before the task's first execution report.
+  priority_policy_option_u64_t   exec_ends_at_us;
   // |G_last|: duration of the task's most recent generation phase, if any.
   priority_policy_option_u64_t   last_gen_ns;
   // Rounds of this task already answered.
