@@ -1,6 +1,24 @@
 #!/usr/bin/env bash
-# Runs every test of the project. This is the README's test command and what CI runs.
+# Runs every test of the project. This is the README's test command and what CI (.ci/run) runs.
+#
+# It first installs what the tests need and cannot find in Cargo (idempotent, skipped when
+# present): the plugin toolchains (Debian clang/lld/wasi-libc, componentize-py in .venv), the
+# Python packages of the cross-language client test (into the same .venv), and then builds the
+# shipped WASM plugins from source (plugins/build.sh), which the plugin tests load.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+bash scripts/install-plugin-toolchains.sh
+# The Python example client's packages (sdk/examples/python), for the cross-language test below.
+PY_TEST_DEPS=(aioquic==1.7.2 msgpack==1.2.4 numpy==2.4.6)
+if ! .venv/bin/python -c "import aioquic, msgpack, numpy" 2>/dev/null; then
+    echo "installing ${PY_TEST_DEPS[*]} into .venv (pip)"
+    .venv/bin/pip install --quiet --disable-pip-version-check "${PY_TEST_DEPS[@]}"
+fi
+bash plugins/build.sh
+
 cargo test --workspace --locked
+# Ignored in a plain `cargo test` because it needs the Python packages above; here they exist,
+# so it runs, and fails rather than skips.
+KAIROS_PYTHON="$PWD/.venv/bin/python" \
+    cargo test --locked -p kairos-sdk --test python_client -- --ignored

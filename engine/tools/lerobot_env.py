@@ -1,6 +1,6 @@
 """Shared bootstrap for the engine's LeRobot tools: a pinned venv at the repository root.
 
-`ensure_venv()` re-executes the calling script inside `<repo>/.venv` (Python 3.12, which
+`ensure_venv()` re-executes the calling script inside `<repo>/.venv-lerobot` (Python 3.12, which
 LeRobot 0.6.1 requires), creating the venv and installing the pinned requirements first when
 they are missing. The venv is gitignored; CI never runs these tools.
 """
@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
-VENV = REPO / ".venv"
+VENV = REPO / ".venv-lerobot"
 # `lerobot[smolvla]` pulls torch from PyPI, whose Linux wheel links the CUDA runtime (about 4 GB
 # of nvidia-* wheels); it still runs on CPU, which is all these tools use.
 REQUIREMENTS = ["lerobot[smolvla]==0.6.1", "safetensors>=0.4.3"]

@@ -18,7 +18,7 @@ of three observations with fixed noise, and saves:
   the final chunk), plus the same outputs recomputed in float64 (`*_f64`) so the test can tell
   LeRobot's own float32 rounding from a real mismatch.
 
-The script creates `<repo>/.venv` with the pinned LeRobot itself (see `lerobot_env.py`).
+The script creates `<repo>/.venv-lerobot` with the pinned LeRobot itself (see `lerobot_env.py`).
 """
 
 import argparse

@@ -93,6 +93,10 @@ pub struct Config {
     pub limits: Limits,
     /// Connection limits.
     pub connections: ConnectionsConfig,
+    /// Policy plugins (WebAssembly components) to load, each under a name that robots
+    /// (horizon) or `[scheduler] policy` (priority) select it by.
+    #[serde(rename = "plugin")]
+    pub plugins: Vec<PluginConfig>,
 }
 
 impl Default for Config {
@@ -109,6 +113,7 @@ impl Default for Config {
             horizon: HorizonSection::default(),
             limits: Limits::default(),
             connections: ConnectionsConfig::default(),
+            plugins: Vec::new(),
         }
     }
 }
@@ -132,6 +137,60 @@ pub struct RobotConfig {
     pub name: String,
     /// Lower-case hex SHA-256 of the token's UTF-8 bytes.
     pub token_sha256: String,
+}
+
+/// One `[[plugin]]`: a policy plugin (see docs/PLUGINS.md). Its world (horizon or priority) is
+/// read from the component itself.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PluginConfig {
+    /// The `.wasm` component; watched for hot reload.
+    pub file: PathBuf,
+    /// The policy name it is registered under; default: the file stem. A plugin may shadow a
+    /// native policy of the same name.
+    #[serde(default)]
+    pub name: Option<String>,
+    /// The native policy that answers a decision the plugin fails; default `threshold`
+    /// (horizon) or `kairos` (priority).
+    #[serde(default)]
+    pub fallback: Option<String>,
+    /// Longest a call may run, in ms; default 5 (horizon) or 50 (priority).
+    #[serde(default)]
+    pub deadline_ms: Option<u64>,
+    /// Most linear memory an instance may have, in MiB; default 64.
+    #[serde(default)]
+    pub memory_mib: Option<u64>,
+    /// Reload the plugin when its file changes (default true).
+    #[serde(default = "default_true")]
+    pub hot_reload: bool,
+}
+
+fn default_true() -> bool {
+    true
+}
+
+impl PluginConfig {
+    /// The plugin at `file`, with every other setting at its default.
+    pub fn file(file: impl Into<PathBuf>) -> Self {
+        PluginConfig {
+            file: file.into(),
+            name: None,
+            fallback: None,
+            deadline_ms: None,
+            memory_mib: None,
+            hot_reload: true,
+        }
+    }
+
+    /// The name the plugin is registered under.
+    pub fn name(&self) -> String {
+        self.name.clone().unwrap_or_else(|| {
+            self.file
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_else(|| self.file.display().to_string())
+        })
+    }
 }
 
 /// One `[[engine]]`: a model served by one or more instances.
@@ -338,6 +397,9 @@ impl Config {
         if let Some(p) = self.tls.key.as_mut() {
             resolve(p);
         }
+        for plugin in &mut self.plugins {
+            resolve(&mut plugin.file);
+        }
         for engine in &mut self.engines {
             if let Some(p) = engine.profile.as_mut() {
                 resolve(p);
@@ -418,6 +480,28 @@ impl Config {
                 format!("horizon.params.{name}"),
                 "must be finite".into(),
             ));
+        }
+        let mut plugin_names = HashSet::new();
+        for (i, plugin) in self.plugins.iter().enumerate() {
+            let name = plugin.name();
+            if name.is_empty() || name.contains([':', ',', '=']) {
+                return Err(invalid(
+                    format!("plugin[{i}].name"),
+                    format!("`{name}` must be non-empty and free of `:`, `,` and `=`"),
+                ));
+            }
+            if !plugin_names.insert(name.clone()) {
+                return Err(invalid(
+                    format!("plugin[{i}].name"),
+                    format!("plugin `{name}` is listed twice"),
+                ));
+            }
+            if plugin.deadline_ms == Some(0) || plugin.memory_mib == Some(0) {
+                return Err(invalid(
+                    format!("plugin[{i}]"),
+                    "deadline_ms and memory_mib must be at least 1".into(),
+                ));
+            }
         }
         if self.scheduler.max_pending == 0 {
             return Err(invalid(

@@ -105,6 +105,7 @@ async fn serve_with_defaults_answers_a_robot_that_reads_the_data_dir() {
         config: None,
         listen: Some("127.0.0.1:0".parse().unwrap()),
         data_dir: Some(dir.path().join("kairos-data")),
+        ..ServeArgs::default()
     };
     let config = config(&args).unwrap();
     let pool = tokio::task::spawn_blocking({

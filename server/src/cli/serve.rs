@@ -6,13 +6,14 @@
 //! rest (see `docs/SERVER.md`). Ctrl-C shuts down gracefully: no new connections or rounds, the
 //! rounds already accepted are answered.
 
+use std::collections::BTreeMap;
 use std::future::Future;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::config::{Config, DEFAULT_ROBOT};
+use crate::config::{Config, DEFAULT_ROBOT, PluginConfig};
 use crate::pool::{BuildEvent, EnginePool, build_pool};
 use crate::transport::launch::{Policies, RunningServer, ServerReport, start};
 
@@ -28,6 +29,40 @@ pub struct ServeArgs {
     /// Data directory, overriding the file's `data_dir`.
     #[arg(long)]
     pub data_dir: Option<PathBuf>,
+    /// A horizon-policy plugin (`.wasm` component), registered under its file stem and made
+    /// the default horizon policy; robots may still select another by name.
+    #[arg(long, value_name = "FILE.wasm")]
+    pub horizon_plugin: Option<PathBuf>,
+    /// Parameters of the default horizon policy, `key=value,...` (e.g. `t=0.4,h_min=8`).
+    #[arg(long, value_name = "K=V,...", value_parser = parse_params)]
+    pub horizon_params: Option<BTreeMap<String, f64>>,
+    /// A priority-policy plugin (`.wasm` component), registered under its file stem and made
+    /// the scheduler's policy.
+    #[arg(long, value_name = "FILE.wasm")]
+    pub priority_plugin: Option<PathBuf>,
+    /// Parameters of the priority plugin, `key=value,...`.
+    #[arg(long, value_name = "K=V,...", requires = "priority_plugin")]
+    pub priority_params: Option<String>,
+}
+
+/// `key=value,...` with numeric values.
+fn parse_params(s: &str) -> Result<BTreeMap<String, f64>, String> {
+    s.split(',')
+        .filter(|kv| !kv.trim().is_empty())
+        .map(|kv| {
+            let (k, v) = kv
+                .split_once('=')
+                .ok_or_else(|| format!("`{kv}` is not key=value"))?;
+            let v: f64 = v
+                .trim()
+                .parse()
+                .map_err(|_| format!("`{v}` (parameter `{k}`) is not a number"))?;
+            if !v.is_finite() {
+                return Err(format!("parameter `{k}` must be finite"));
+            }
+            Ok((k.trim().to_string(), v))
+        })
+        .collect()
 }
 
 /// The configuration the arguments describe.
@@ -42,6 +77,33 @@ pub fn config(args: &ServeArgs) -> anyhow::Result<Config> {
     if let Some(dir) = &args.data_dir {
         config.data_dir = dir.clone();
     }
+    if let Some(file) = &args.horizon_plugin {
+        let plugin = PluginConfig::file(file);
+        config.horizon.policy = plugin.name();
+        config.horizon.params = BTreeMap::new();
+        config.plugins.push(plugin);
+    }
+    if let Some(params) = &args.horizon_params {
+        config.horizon.params = params.clone();
+    }
+    if let Some(file) = &args.priority_plugin {
+        let plugin = PluginConfig::file(file);
+        let spec = match &args.priority_params {
+            Some(params) if !params.trim().is_empty() => format!("{}:{params}", plugin.name()),
+            _ => plugin.name(),
+        };
+        config.scheduler.policy = spec
+            .parse()
+            .with_context(|| format!("--priority-params `{spec}`"))?;
+        config.plugins.push(plugin);
+    }
+    config
+        .check(
+            args.config
+                .as_deref()
+                .unwrap_or(Path::new("(command line)")),
+        )
+        .context("invalid settings")?;
     Ok(config)
 }
 
@@ -209,6 +271,7 @@ mod tests {
             config: Some(file),
             listen: Some("127.0.0.1:6000".parse().unwrap()),
             data_dir: Some(PathBuf::from("/tmp/x")),
+            ..ServeArgs::default()
         })
         .unwrap();
         assert_eq!(overridden.listen.port(), 6000);
@@ -220,5 +283,32 @@ mod tests {
         })
         .unwrap_err();
         assert!(missing.to_string().contains("nope.toml"), "{missing}");
+    }
+
+    #[test]
+    fn plugin_flags_register_the_plugin_and_select_it() {
+        let args = ServeArgs {
+            horizon_plugin: Some(PathBuf::from("plugins/build/threshold.wasm")),
+            horizon_params: Some(parse_params("t=0.3, h_min=6").unwrap()),
+            priority_plugin: Some(PathBuf::from("plugins/build/plas.wasm")),
+            priority_params: Some("levels=4".into()),
+            ..ServeArgs::default()
+        };
+        let resolved = config(&args).unwrap();
+        let names: Vec<String> = resolved.plugins.iter().map(PluginConfig::name).collect();
+        assert_eq!(names, ["threshold", "plas"]);
+        assert_eq!(resolved.horizon.policy, "threshold");
+        assert_eq!(resolved.horizon.params.get("h_min"), Some(&6.0));
+        assert_eq!(resolved.scheduler.policy.to_string(), "plas:levels=4");
+        assert!(parse_params("t").unwrap_err().contains("key=value"));
+        assert!(parse_params("t=x").unwrap_err().contains("not a number"));
+        // The same file twice is one name twice: refused with the key.
+        let twice = config(&ServeArgs {
+            horizon_plugin: Some(PathBuf::from("a/p.wasm")),
+            priority_plugin: Some(PathBuf::from("b/p.wasm")),
+            ..ServeArgs::default()
+        })
+        .unwrap_err();
+        assert!(format!("{twice:#}").contains("listed twice"), "{twice:#}");
     }
 }

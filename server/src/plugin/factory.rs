@@ -2,8 +2,17 @@
 //! policy is built per request from the request's parameters, the priority policy once from a
 //! spec such as `myplugin:buckets=10`.
 
-use super::{HorizonPlugin, LoadError, PluginOptions, PluginSource, WasmPriorityPolicy};
+use std::path::Path;
+use std::time::Duration;
+
+use super::cache::CodeCache;
+use super::inspect::inspect;
+use super::{
+    HorizonPlugin, LoadError, PluginKind, PluginOptions, PluginSource, WasmPriorityPolicy,
+};
+use crate::config::PluginConfig;
 use crate::horizon::{self, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
+use crate::registry::{HorizonRegistry, PriorityRegistry};
 use crate::scheduler::{PolicySpec, PolicySpecError, PriorityPolicy, build_policy};
 
 /// Calls a native policy with its own default parameters, whatever the request carried (those
@@ -24,11 +33,48 @@ impl HorizonPolicy for WithDefaults {
     }
 }
 
-/// A horizon-policy factory for `plugin`: each call returns a cheap handle (shared compiled
-/// code, shared health, pooled instances) that answers with the native policy `fallback`
-/// (e.g. `threshold`, with its default parameters) whenever the plugin fails. The request's
-/// parameters are checked by the plugin itself on every call.
+/// A policy that answers under the name it was registered by (what robots selected and what
+/// their replies report), whatever the component's file is called.
+struct Registered<P: ?Sized> {
+    name: String,
+    inner: Box<P>,
+}
+
+impl HorizonPolicy for Registered<dyn HorizonPolicy> {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn choose(&mut self, input: &HorizonInput<'_>) -> Result<usize, HorizonError> {
+        self.inner.choose(input)
+    }
+}
+
+impl PriorityPolicy for Registered<dyn PriorityPolicy> {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn order(
+        &mut self,
+        now: crate::time::Timestamp,
+        pending: &[crate::scheduler::PendingView],
+        order: &mut Vec<usize>,
+    ) -> Result<(), crate::scheduler::PolicyError> {
+        self.inner.order(now, pending, order)
+    }
+
+    fn task_finished(&mut self, summary: &crate::scheduler::FinishedTask) {
+        self.inner.task_finished(summary);
+    }
+}
+
+/// A horizon-policy factory for `plugin`, registered as `name`: each call returns a cheap
+/// handle (shared compiled code, shared health, pooled instances) that answers with the native
+/// policy `fallback` (e.g. `threshold`, with its default parameters) whenever the plugin fails.
+/// The request's parameters are checked by the plugin itself on every call.
 pub fn horizon_factory(
+    name: &str,
     plugin: HorizonPlugin,
     fallback: &str,
 ) -> Result<
@@ -37,10 +83,14 @@ pub fn horizon_factory(
 > {
     // Fail now, at start-up, if the fallback does not exist.
     horizon::builtin(fallback, &PolicyParams::new())?;
-    let fallback = fallback.to_string();
+    let (name, fallback) = (name.to_string(), fallback.to_string());
     Ok(move |_params: &PolicyParams| {
         let native = horizon::builtin(&fallback, &PolicyParams::new())?;
-        Ok(Box::new(plugin.policy(Box::new(WithDefaults(native)))) as Box<dyn HorizonPolicy>)
+        let inner: Box<dyn HorizonPolicy> = Box::new(plugin.policy(Box::new(WithDefaults(native))));
+        Ok(Box::new(Registered {
+            name: name.clone(),
+            inner,
+        }) as Box<dyn HorizonPolicy>)
     })
 }
 
@@ -61,10 +111,12 @@ pub fn spec_params(spec: &PolicySpec) -> Result<PolicyParams, PolicySpecError> {
         .collect()
 }
 
-/// A priority-policy factory for the plugin in `source`: building it loads the plugin (the
-/// code cache makes that cheap after the first time), checks the spec's parameters with a
-/// trial call, and uses the native policy `fallback` for decisions the plugin fails.
+/// A priority-policy factory for the plugin in `source`, registered as `name`: building it loads
+/// the plugin (the code cache makes that cheap after the first time), checks the spec's
+/// parameters with a trial call, and uses the native policy `fallback` for decisions the plugin
+/// fails.
 pub fn priority_factory(
+    name: &str,
     source: PluginSource,
     options: PluginOptions,
     fallback: PolicySpec,
@@ -73,11 +125,17 @@ pub fn priority_factory(
     PolicySpecError,
 > {
     build_policy(&fallback)?;
+    let name = name.to_string();
     Ok(move |spec: &PolicySpec| {
         let params = spec_params(spec)?;
         let native = build_policy(&fallback)?;
         WasmPriorityPolicy::load(&source, &params, options.clone(), native)
-            .map(|policy| Box::new(policy) as Box<dyn PriorityPolicy>)
+            .map(|policy| {
+                Box::new(Registered {
+                    name: name.clone(),
+                    inner: Box::new(policy) as Box<dyn PriorityPolicy>,
+                }) as Box<dyn PriorityPolicy>
+            })
             .map_err(|e: LoadError| PolicySpecError::InvalidParam {
                 policy: spec.name.clone(),
                 param: "(plugin)".into(),
@@ -85,4 +143,139 @@ pub fn priority_factory(
                 reason: e.to_string(),
             })
     })
+}
+
+/// Why a configured plugin could not be set up.
+#[derive(Debug, thiserror::Error)]
+pub enum PluginSetupError {
+    /// Loading, inspecting or compiling the component failed.
+    #[error(transparent)]
+    Load(#[from] LoadError),
+    /// The component exports no policy world, or both.
+    #[error("plugin `{name}` ({path}): {reason}")]
+    World {
+        /// The plugin.
+        name: String,
+        /// Its file.
+        path: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The fallback horizon policy does not exist.
+    #[error("plugin `{name}`: fallback {source}")]
+    HorizonFallback {
+        /// The plugin.
+        name: String,
+        /// Why.
+        source: HorizonError,
+    },
+    /// The fallback priority policy does not exist or its spec is invalid.
+    #[error("plugin `{name}`: fallback {source}")]
+    PriorityFallback {
+        /// The plugin.
+        name: String,
+        /// Why.
+        source: PolicySpecError,
+    },
+    /// The code cache directory cannot be used.
+    #[error("plugin code cache: {0}")]
+    Cache(#[from] super::cache::CacheError),
+}
+
+/// The configured plugins as policy registries: each horizon plugin is compiled once (its
+/// instances are pooled and shared by every request that selects it); each priority plugin is
+/// loaded when the scheduler builds its policy. Compiled code is cached under `cache_dir`.
+pub fn load_configured(
+    plugins: &[PluginConfig],
+    cache_dir: &Path,
+) -> Result<(HorizonRegistry, PriorityRegistry), PluginSetupError> {
+    let mut horizons = HorizonRegistry::new();
+    let mut priorities = PriorityRegistry::new();
+    if plugins.is_empty() {
+        return Ok((horizons, priorities));
+    }
+    let cache = CodeCache::open(cache_dir)?;
+    for plugin in plugins {
+        let name = plugin.name();
+        let kind = world_of(plugin, &name)?;
+        let defaults = PluginOptions::for_kind(kind);
+        let options = PluginOptions {
+            deadline: plugin
+                .deadline_ms
+                .map_or(defaults.deadline, Duration::from_millis),
+            memory_limit: plugin.memory_mib.map_or(defaults.memory_limit, |mib| {
+                usize::try_from(mib.saturating_mul(1 << 20)).unwrap_or(usize::MAX)
+            }),
+            cache: Some(cache.clone()),
+            reload_poll: if plugin.hot_reload {
+                defaults.reload_poll
+            } else {
+                None
+            },
+            ..defaults
+        };
+        let source = PluginSource::File(plugin.file.clone());
+        match kind {
+            PluginKind::Horizon => {
+                let fallback = plugin.fallback.as_deref().unwrap_or("threshold");
+                let loaded = HorizonPlugin::load(&source, options)?;
+                let factory = horizon_factory(&name, loaded, fallback).map_err(|source| {
+                    PluginSetupError::HorizonFallback {
+                        name: name.clone(),
+                        source,
+                    }
+                })?;
+                tracing::info!(plugin = %name, file = %plugin.file.display(), fallback, "horizon plugin loaded");
+                horizons.register(name, factory);
+            }
+            PluginKind::Priority => {
+                let fallback: PolicySpec =
+                    plugin
+                        .fallback
+                        .as_deref()
+                        .unwrap_or("kairos")
+                        .parse()
+                        .map_err(|source| PluginSetupError::PriorityFallback {
+                            name: name.clone(),
+                            source,
+                        })?;
+                let factory =
+                    priority_factory(&name, source, options, fallback).map_err(|source| {
+                        PluginSetupError::PriorityFallback {
+                            name: name.clone(),
+                            source,
+                        }
+                    })?;
+                tracing::info!(plugin = %name, file = %plugin.file.display(), "priority plugin loaded");
+                priorities.register(name, factory);
+            }
+        }
+    }
+    Ok((horizons, priorities))
+}
+
+/// The world `plugin` implements, read from the component (which must export exactly one, in a
+/// version this host supports).
+fn world_of(plugin: &PluginConfig, name: &str) -> Result<PluginKind, PluginSetupError> {
+    let wasm = std::fs::read(&plugin.file).map_err(|source| LoadError::Read {
+        path: plugin.file.clone(),
+        source,
+    })?;
+    let world_error = |reason: String| PluginSetupError::World {
+        name: name.to_string(),
+        path: plugin.file.display().to_string(),
+        reason,
+    };
+    let info = inspect(&wasm).map_err(|e| world_error(e.to_string()))?;
+    let kind = match info.exports.as_slice() {
+        [(kind, _)] => *kind,
+        [] => return Err(world_error("exports no policy interface".into())),
+        _ => {
+            return Err(world_error(
+                "exports both policy interfaces; a plugin implements one world".into(),
+            ));
+        }
+    };
+    info.check(kind).map_err(|e| world_error(e.to_string()))?;
+    Ok(kind)
 }

@@ -40,6 +40,9 @@ pub enum LaunchError {
     /// The priority policy.
     #[error(transparent)]
     Priority(#[from] PolicySpecError),
+    /// A configured `[[plugin]]`.
+    #[error(transparent)]
+    Plugin(#[from] crate::plugin::factory::PluginSetupError),
     /// The model does not fit the configured limits.
     #[error("model `{model}` needs {what}, but [limits] allows {limit}")]
     ModelOverLimits {
@@ -138,16 +141,23 @@ pub async fn start(
     let (robots, tokens_file) = resolve_robots(config)?;
     let identity = super::tls::load_or_generate(config)?;
 
+    // Configured plugins first, so that policies passed in by the caller shadow them.
+    let (mut horizons, mut priorities) = crate::plugin::factory::load_configured(
+        &config.plugins,
+        &config.data_dir.join("plugin-cache"),
+    )?;
+    horizons.extend(policies.horizon);
+    priorities.extend(policies.priority);
     let natives = native_horizon_policies();
     let actions = Arc::new(ActionManager::new(
-        policies.horizon,
+        horizons,
         &natives,
         &config.horizon.policy,
         config.horizon.params.clone(),
     )?);
-    let mut priorities = native_priority_policies();
-    priorities.extend(policies.priority);
-    let priority = build_priority(&priorities, &config.scheduler.policy)?;
+    let mut all_priorities = native_priority_policies();
+    all_priorities.extend(priorities);
+    let priority = build_priority(&all_priorities, &config.scheduler.policy)?;
     let scheduler = Scheduler::new(config.scheduler.core(), pool.specs(), priority);
 
     let server_config = quinn_server_config(&identity, config)?;
