@@ -81,7 +81,10 @@ fn watch<W: World>(
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_default();
     let mut seen = stat(path);
-    let mut settled = true;
+    // Not settled: the file is hashed once on the first quiet poll, because it may have been
+    // replaced between the load and this thread's first `stat` (then `seen` already describes
+    // the new version and no later change would ever be noticed).
+    let mut settled = false;
     let mut rejected: Option<[u8; 32]> = None;
     while !stop.load(Ordering::Relaxed) {
         std::thread::sleep(poll);
