@@ -50,6 +50,7 @@ build_c static horizon
 build_c fifo priority
 build_c plas priority
 build_c kairos priority
+build_c srw priority
 build_py kairos priority
 
 # Conformance gate; parameters where a policy requires them.
@@ -60,6 +61,7 @@ check "$OUT/static.wasm" --param h=8
 check "$OUT/fifo.wasm"
 check "$OUT/plas.wasm"
 check "$OUT/kairos.wasm"
+check "$OUT/srw.wasm"
 check "$OUT/kairos_py.wasm" --deadline-ms 2000 --memory-mib 256
 # The author templates (sdk/guest/templates), so they never rot.
 KAIROS="$PWD/$KAIROS" bash sdk/guest/templates/c/build.sh "$OUT/templates" >/dev/null

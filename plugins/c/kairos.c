@@ -39,13 +39,6 @@ static int by_key(const void *a, const void *b) {
     return 0;
 }
 
-static double wait_ratio(uint64_t now_us, const pending_t *v) {
-    uint64_t life_us = now_us > v->task_started_at_us ? now_us - v->task_started_at_us : 0;
-    if (life_us == 0) return 0.0;
-    double w = (double)(v->wait_ns / 1000) / (double)life_us;
-    return w < 0.0 ? 0.0 : w > 1.0 ? 1.0 : w;
-}
-
 bool exports_kairos_policy_priority_order(uint64_t now_us,
                                           exports_kairos_policy_priority_list_pending_t *pending,
                                           exports_kairos_policy_priority_list_param_t *params,
@@ -95,7 +88,7 @@ bool exports_kairos_policy_priority_order(uint64_t now_us,
         uint32_t a = aging > 1 ? aging : 1;
         for (size_t i = 0; i < n; i++) {
             const pending_t *v = &pending->ptr[i];
-            double w = wait_ratio(now_us, v);
+            double w = kairos_wait_ratio(now_us, v->task_started_at_us, v->wait_ns);
             uint64_t priority;
             if (infinite) {
                 memcpy(&priority, &w, sizeof priority);

@@ -6,10 +6,13 @@
 //! - Horizon (50×10×7 input, S=1): `threshold` on a realistic chunk and on a fully converged one
 //!   (the scan covers all 50 actions: the worst case), `static`; plus `threshold` with a fresh
 //!   instance per call (`InstanceMode::Fresh`) to show why instances are reused.
-//! - Priority, 10 / 100 / 1,000 pending: `fifo`, `plas`, `kairos` (C), and `kairos` in Python.
+//! - Priority, 10 / 100 / 1,000 pending: `fifo`, `plas`, `kairos`, `srw` (C; trained on the same
+//!   200 finished tasks as its twin), and `kairos` in Python.
 //!
 //! Target (issue #4): the C plugins at most 3× their native twin.
 //! Run `bash plugins/build.sh` first, then `cargo bench -p kairos-server --bench plugins`.
+
+#![allow(clippy::unwrap_used)] // benches may unwrap, like tests (RULES.md)
 
 use std::hint::black_box;
 use std::path::PathBuf;
@@ -25,7 +28,7 @@ use kairos_server::plugin::{
     InstanceMode, PluginOptions, PluginSource, WasmHorizonPolicy, WasmPriorityPolicy,
 };
 use kairos_server::scheduler::{
-    PendingView, PolicyError, PolicySpec, PriorityPolicy, build_policy,
+    FinishedTask, PendingView, PolicyError, PolicySpec, PriorityPolicy, TaskId, build_policy,
 };
 use kairos_server::time::Timestamp;
 use rand::SeedableRng;
@@ -168,6 +171,7 @@ fn priority(c: &mut Criterion) {
         ("fifo", "fifo"),
         ("plas", "plas"),
         ("kairos", "kairos"),
+        ("srw", "srw"),
         ("kairos", "kairos_py"),
     ] {
         let mut native = build_policy(&name.parse::<PolicySpec>().unwrap()).unwrap();
@@ -178,6 +182,20 @@ fn priority(c: &mut Criterion) {
             Box::new(Never),
         )
         .unwrap();
+        if name == "srw" {
+            // A trained SRW, as in service: hint-less due requests read the learned index.
+            for i in 0..200u32 {
+                let summary = FinishedTask {
+                    task: TaskId(u64::from(i)),
+                    rounds: 5 + i % 60,
+                    latency: Duration::from_secs(30),
+                    attained_service: Duration::from_secs(2),
+                    wait: Duration::from_secs(4),
+                };
+                native.task_finished(&summary);
+                wasm.call_task_finished(&summary).unwrap();
+            }
+        }
         let language = if file.ends_with("_py") { "Python" } else { "C" };
         for (n, now, pending) in &lists {
             let mut order = Vec::with_capacity(*n);

@@ -26,8 +26,8 @@ impl HorizonPolicy for One {
 /// Replaces `path` atomically, the way a deployment should (write aside, rename).
 fn install(path: &Path, wasm: &[u8]) {
     let tmp = path.with_extension("new");
-    std::fs::write(&tmp, wasm).unwrap();
-    std::fs::rename(&tmp, path).unwrap();
+    std::fs::write(&tmp, wasm).expect("write the new version aside");
+    std::fs::rename(&tmp, path).expect("rename it over the plugin");
 }
 
 struct Robot {

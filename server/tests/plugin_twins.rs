@@ -1,6 +1,10 @@
 //! Every shipped plugin gives exactly the answer of its native twin, on the same randomized
-//! inputs: `threshold` and `static` (C), `fifo`, `plas` and `kairos` (C), and `kairos` again
-//! in Python. Run `plugins/build.sh` first (CI does); a missing plugin fails the test.
+//! inputs: `threshold` and `static` (C), `fifo`, `plas`, `kairos` and `srw` (C), and `kairos`
+//! again in Python. `srw` learns from finished tasks, so both twins are told the same ones
+//! between decisions and must keep agreeing as their Gittins indexes evolve. Run
+//! `plugins/build.sh` first (CI does); a missing plugin fails the test.
+
+#![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -14,8 +18,8 @@ use kairos_server::plugin::{
     FailureKind, PluginOptions, PluginSource, WasmHorizonPolicy, WasmPriorityPolicy,
 };
 use kairos_server::scheduler::{
-    PendingView, PolicyError, PolicySpec, PriorityPolicy, RemainingWork, RequestId, TaskId,
-    build_policy,
+    FinishedTask, PendingView, PolicyError, PolicySpec, PriorityPolicy, RemainingWork, RequestId,
+    TaskId, build_policy,
 };
 use kairos_server::time::Timestamp;
 use rand::rngs::StdRng;
@@ -360,6 +364,20 @@ fn pending_list(rng: &mut StdRng, len: usize) -> (Timestamp, Vec<PendingView>) {
     (Timestamp::from_micros(now_us), pending)
 }
 
+/// Loads the priority plugin `name` with `params`, with a fallback that must never answer.
+fn priority_plugin(
+    name: &str,
+    params: &[(&str, f64)],
+) -> Result<WasmPriorityPolicy, kairos_server::plugin::LoadError> {
+    let params: PolicyParams = params.iter().map(|(k, v)| (k.to_string(), *v)).collect();
+    WasmPriorityPolicy::load(
+        &PluginSource::File(plugin_path(name)),
+        &params,
+        options(PluginOptions::priority()),
+        Box::new(Unreachable),
+    )
+}
+
 /// Compares a priority plugin with the native policy `spec` on `decisions` random lists.
 fn compare_priority(
     plugin_name: &str,
@@ -369,14 +387,8 @@ fn compare_priority(
     max_len: usize,
     seed: u64,
 ) {
-    let params: PolicyParams = params.iter().map(|(k, v)| (k.to_string(), *v)).collect();
-    let mut plugin = WasmPriorityPolicy::load(
-        &PluginSource::File(plugin_path(plugin_name)),
-        &params,
-        options(PluginOptions::priority()),
-        Box::new(Unreachable),
-    )
-    .unwrap_or_else(|e| panic!("{plugin_name}: {e}"));
+    let mut plugin =
+        priority_plugin(plugin_name, params).unwrap_or_else(|e| panic!("{plugin_name}: {e}"));
     let mut native = build_policy(&spec.parse::<PolicySpec>().unwrap()).unwrap();
     let mut rng = StdRng::seed_from_u64(seed);
     let (mut want, mut got) = (Vec::new(), Vec::new());
@@ -465,18 +477,236 @@ fn python_kairos_plugin_matches_its_native_twin() {
     );
 }
 
+/// [`pending_list`] reshaped for SRW: deadlines before, at and after `now` (so both due and
+/// not-due requests), and remaining-work hints of every shape, including the ones SRW must
+/// ignore (seconds without a last execution, a zero execution, negative or non-finite seconds).
+fn srw_pending_list(rng: &mut StdRng, len: usize) -> (Timestamp, Vec<PendingView>) {
+    let (now, mut pending) = pending_list(rng, len);
+    for view in &mut pending {
+        match rng.random_range(0..10) {
+            0 => view.exec_ends_at = Some(now),
+            1 => view.exec_ends_at = None,
+            2 => view.last_exec = Some(Duration::ZERO),
+            _ => {}
+        }
+        view.remaining = match rng.random_range(0..10) {
+            0..4 => None,
+            4 => Some(RemainingWork {
+                rounds: None,
+                seconds: None,
+            }),
+            5 | 6 => Some(RemainingWork {
+                rounds: Some([0, 1, 2, 5, rng.random_range(0..80)][rng.random_range(0..5)]),
+                seconds: rng.random_bool(0.5).then(|| rng.random_range(0.0..30.0)),
+            }),
+            _ => Some(RemainingWork {
+                rounds: None,
+                seconds: Some(
+                    [
+                        rng.random_range(0.0..30.0),
+                        0.25,
+                        0.0,
+                        -1.0,
+                        f32::NAN,
+                        f32::INFINITY,
+                        1e-30,
+                    ][rng.random_range(0..7)],
+                ),
+            }),
+        };
+    }
+    (now, pending)
+}
+
+/// What a run of [`compare_srw`] exercised, for the caller's assertions.
+struct SrwCoverage {
+    /// Pending requests that were due / not due at their decision.
+    due: usize,
+    not_due: usize,
+    /// Tasks reported finished to both twins (round count 0 included).
+    finished: usize,
+    /// Decisions whose order differed from that of an SRW that never learned anything: the
+    /// learned Gittins index decided them.
+    learned_decisions: usize,
+}
+
+/// Compares the SRW plugin with the native policy `spec` decision after decision, telling both
+/// the same finished tasks in between so the plugin's Gittins index must track the native one.
+fn compare_srw(
+    spec: &str,
+    params: &[(&str, f64)],
+    decisions: usize,
+    max_len: usize,
+    seed: u64,
+) -> SrwCoverage {
+    let mut plugin = priority_plugin("srw", params).unwrap_or_else(|e| panic!("srw: {e}"));
+    let spec: PolicySpec = spec.parse().unwrap();
+    let mut native = build_policy(&spec).unwrap();
+    let mut untrained = build_policy(&spec).unwrap();
+    let slack = spec.params.get("slack").is_none_or(|s| s != "0");
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut coverage = SrwCoverage {
+        due: 0,
+        not_due: 0,
+        finished: 0,
+        learned_decisions: 0,
+    };
+    let (mut want, mut got, mut baseline) = (Vec::new(), Vec::new(), Vec::new());
+    for decision in 0..decisions {
+        for _ in 0..rng.random_range(0..=3) {
+            let summary = FinishedTask {
+                task: TaskId(rng.random()),
+                rounds: [0, 1, 2, rng.random_range(1..=30), rng.random_range(1..=120)]
+                    [rng.random_range(0..5)],
+                latency: Duration::from_millis(rng.random_range(0..100_000)),
+                attained_service: Duration::from_millis(rng.random_range(0..10_000)),
+                wait: Duration::from_millis(rng.random_range(0..10_000)),
+            };
+            native.task_finished(&summary);
+            plugin
+                .call_task_finished(&summary)
+                .unwrap_or_else(|f| panic!("srw ({spec}) task-finished: {f}"));
+            coverage.finished += 1;
+        }
+        let len = if decision < 3 {
+            decision
+        } else {
+            rng.random_range(0..=max_len)
+        };
+        let (now, pending) = srw_pending_list(&mut rng, len);
+        want.clear();
+        native.order(now, &pending, &mut want).unwrap();
+        plugin
+            .call_plugin(now, &pending, &mut got)
+            .unwrap_or_else(|f| panic!("srw ({spec}) decision {decision}: {f}"));
+        assert_eq!(
+            got, want,
+            "srw vs native {spec}, decision {decision} ({len} pending, {} tasks finished)",
+            coverage.finished
+        );
+        baseline.clear();
+        untrained.order(now, &pending, &mut baseline).unwrap();
+        coverage.learned_decisions += usize::from(baseline != want);
+        let due = pending
+            .iter()
+            .filter(|v| !slack || v.exec_ends_at.unwrap_or(v.arrived_at) <= now)
+            .count();
+        coverage.due += due;
+        coverage.not_due += len - due;
+    }
+    coverage
+}
+
+#[test]
+fn srw_plugin_matches_its_native_twin_while_both_learn() {
+    // Default parameters: hints used, the learned index from the 21st finished task on.
+    let c = compare_srw("srw", &[], 300, 200, 51);
+    assert!(
+        c.due > 1_000 && c.not_due > 1_000,
+        "{} / {}",
+        c.due,
+        c.not_due
+    );
+    assert!(c.finished > 300, "{}", c.finished);
+    assert!(
+        c.learned_decisions > 100,
+        "the learned index decided only {} of 300 decisions",
+        c.learned_decisions
+    );
+    // Hints ignored: every due request is ordered by the learned index once warmed up.
+    let c = compare_srw(
+        "srw:hints=0,warmup=5",
+        &[("hints", 0.0), ("warmup", 5.0)],
+        200,
+        200,
+        52,
+    );
+    assert!(c.learned_decisions > 100, "{}", c.learned_decisions);
+    // No warm-up: the index is read (empty, then tiny) from the first decision.
+    let c = compare_srw(
+        "srw:warmup=0,hints=0",
+        &[("warmup", 0.0), ("hints", 0.0)],
+        100,
+        100,
+        53,
+    );
+    assert!(c.learned_decisions > 50, "{}", c.learned_decisions);
+    // Ablations: no slack (everything due, by work), deadline order among due requests.
+    let c = compare_srw("srw:slack=0", &[("slack", 0.0)], 150, 200, 54);
+    assert_eq!(c.not_due, 0);
+    assert!(c.learned_decisions > 50, "{}", c.learned_decisions);
+    compare_srw(
+        "srw:due_order=deadline",
+        &[("due_order", 1.0)],
+        150,
+        200,
+        55,
+    );
+    compare_srw(
+        "srw:slack=0,due_order=deadline,hints=0",
+        &[("slack", 0.0), ("due_order", 1.0), ("hints", 0.0)],
+        100,
+        200,
+        56,
+    );
+}
+
+/// Seconds hints are converted with `Duration::as_secs_f64` (whole seconds and nanoseconds
+/// converted separately), which for some executions of 1–2 s differs by an ulp from
+/// `ns / 1e9`. Each decision pits such an execution against one half as long with half the
+/// seconds: under `ns / 1e9` both requests would score the same and tie on arrival, but the
+/// native scores differ, and the later arrival is placed first.
+#[test]
+fn srw_plugin_converts_seconds_hints_like_duration_as_secs_f64() {
+    let mut plugin = priority_plugin("srw", &[]).unwrap();
+    let mut native = build_policy(&PolicySpec::named("srw")).unwrap();
+    let urgency = |exec_s: f64| 1.0 / (10.0 / exec_s).max(1.0);
+    let now = Timestamp::from_micros(10_000_000);
+    let view = |request: u64, arrived_us: u64, exec_ns: u64, seconds: f32| PendingView {
+        request: RequestId(request),
+        task: TaskId(request),
+        round_index: 1,
+        arrived_at: Timestamp::from_micros(arrived_us),
+        task_started_at: Timestamp::from_micros(1_000),
+        skipped: 0,
+        wait: Duration::ZERO,
+        attained_service: Duration::ZERO,
+        queued: Duration::ZERO,
+        last_exec: Some(Duration::from_nanos(exec_ns)),
+        exec_ends_at: None,
+        last_gen: None,
+        rounds_completed: 1,
+        remaining: Some(RemainingWork {
+            rounds: None,
+            seconds: Some(seconds),
+        }),
+    };
+    let mut rng = StdRng::seed_from_u64(57);
+    let (mut want, mut got, mut edges) = (Vec::new(), Vec::new(), 0);
+    while edges < 100 {
+        let ns = rng.random_range(500_000_000u64..1_000_000_000) * 2;
+        let exact = Duration::from_nanos(ns).as_secs_f64();
+        if urgency(exact) == urgency(ns as f64 / 1e9) {
+            continue;
+        }
+        edges += 1;
+        // Request 1 runs `ns`, request 2 half of it with half the work: the same rounds up to
+        // the conversion. The one the native policy scores lower arrives first.
+        let long_first = urgency(exact) < urgency(ns as f64 / 1e9);
+        let (long_at, short_at) = if long_first { (1, 2) } else { (2, 1) };
+        let pending = [view(1, long_at, ns, 10.0), view(2, short_at, ns / 2, 5.0)];
+        want.clear();
+        native.order(now, &pending, &mut want).unwrap();
+        assert_eq!(want, [1, 0].map(|i| if long_first { i } else { 1 - i }));
+        plugin.call_plugin(now, &pending, &mut got).unwrap();
+        assert_eq!(got, want, "|E_last| = {ns} ns");
+    }
+}
+
 #[test]
 fn plugins_refuse_parameters_their_twins_refuse() {
     let load = |name: &str, params: &[(&str, f64)]| {
-        let params: PolicyParams = params.iter().map(|(k, v)| (k.to_string(), *v)).collect();
-        WasmPriorityPolicy::load(
-            &PluginSource::File(plugin_path(name)),
-            &params,
-            options(PluginOptions::priority()),
-            Box::new(Unreachable),
-        )
-        .err()
-        .map(|e| e.to_string())
+        priority_plugin(name, params).err().map(|e| e.to_string())
     };
     for (name, params, spec) in [
         ("fifo", &[("x", 1.0)][..], "fifo:x=1"),
@@ -485,6 +715,10 @@ fn plugins_refuse_parameters_their_twins_refuse() {
         ("kairos", &[("buckets", 0.0)][..], "kairos:buckets=0"),
         ("kairos", &[("aging", 1.5)][..], "kairos:aging=1.5"),
         ("kairos_py", &[("bucket", 3.0)][..], "kairos:bucket=3"),
+        ("srw", &[("hint", 1.0)][..], "srw:hint=1"),
+        ("srw", &[("hints", 2.0)][..], "srw:hints=2"),
+        ("srw", &[("warmup", 2.5)][..], "srw:warmup=2.5"),
+        ("srw", &[("due_order", 2.0)][..], "srw:due_order=2"),
     ] {
         assert!(
             build_policy(&spec.parse::<PolicySpec>().unwrap()).is_err(),

@@ -8,6 +8,7 @@
  * same answers as a native Rust policy bit for bit:
  *   - kairos_secs(ns) is Rust's Duration::as_secs_f64 (whole seconds and the remainder are
  *     converted separately);
+ *   - kairos_wait_ratio(...) is PendingView::wait_ratio (paper Eq. 1);
  *   - parameter rules match the server's parsing: names are compared byte for byte, a
  *     "count" is a finite whole number in [1, 1e9], a "real" is finite and >= a minimum.
  * Build with -ffp-contract=off: the server never fuses a multiply and an add, and neither
@@ -29,6 +30,16 @@
 /* Seconds in `ns` nanoseconds, computed like Rust's Duration::as_secs_f64. */
 static inline double kairos_secs(uint64_t ns) {
     return (double)(ns / 1000000000u) + (double)(uint32_t)(ns % 1000000000u) / 1e9;
+}
+
+/* The wait ratio of paper Eq. 1, like the server's PendingView::wait_ratio: wait and life
+ * (now - task start, 0 if negative) in whole microseconds (ns / 1000 truncating), converted
+ * to double and divided once, clamped to [0, 1]; 0 for a task that starts at `now`. */
+static inline double kairos_wait_ratio(uint64_t now_us, uint64_t task_started_at_us, uint64_t wait_ns) {
+    uint64_t life_us = now_us > task_started_at_us ? now_us - task_started_at_us : 0;
+    if (life_us == 0) return 0.0;
+    double w = (double)(wait_ns / 1000) / (double)life_us;
+    return w < 0.0 ? 0.0 : w > 1.0 ? 1.0 : w;
 }
 
 /* Whether parameter `p` is named `name`. */

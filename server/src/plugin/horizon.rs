@@ -184,6 +184,9 @@ impl OwnedHorizonInput {
     }
 }
 
+/// An executor with the plugin version its instance runs.
+type VersionedExec = (Arc<Compiled<HorizonWorld>>, Exec<HorizonWorld>);
+
 /// What every handle of one loaded horizon plugin shares.
 struct Shared {
     /// The running version.
@@ -191,7 +194,7 @@ struct Shared {
     options: Arc<PluginOptions>,
     health: Mutex<Health>,
     /// Idle executors (each with its instance, kept warm), tagged with their version.
-    idle: Mutex<Vec<(Arc<Compiled<HorizonWorld>>, Exec<HorizonWorld>)>>,
+    idle: Mutex<Vec<VersionedExec>>,
     reloader: Option<Mutex<Reloader<HorizonWorld>>>,
     peak_memory: AtomicUsize,
 }
@@ -290,7 +293,7 @@ impl HorizonPlugin {
     }
 
     /// An executor of the running version: a warm idle one, or a new one.
-    fn checkout(&self) -> Result<(Arc<Compiled<HorizonWorld>>, Exec<HorizonWorld>), CallFailure> {
+    fn checkout(&self) -> Result<VersionedExec, CallFailure> {
         self.check_reload();
         let current = lock(&self.0.current).clone();
         let mut idle = lock(&self.0.idle);

@@ -89,8 +89,9 @@ fn watch<W: World>(
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_default();
     let mut seen = stat(path);
-    // Not settled: the file is hashed once at the first poll, because it may already have
-    // changed between the load that produced `current` and this thread's first `stat`.
+    // Not settled: the file is hashed once on the first quiet poll, because it may have been
+    // replaced between the load and this thread's first `stat` (then `seen` already describes
+    // the new version and no later change would ever be noticed).
     let mut settled = false;
     let mut rejected: Option<[u8; 32]> = None;
     while !stop.load(Ordering::Relaxed) {
