@@ -46,7 +46,8 @@ impl HorizonPolicy for Bound {
                     .map(|&x| f64::from(x) * f64::from(x))
                     .sum::<f64>()
                     .sqrt();
-                !(norm <= bound)
+                // A NaN norm counts as not converged.
+                norm.is_nan() || norm > bound
             })
             .unwrap_or(chunk.chunk_len);
         Ok(h.clamp(ctx.h_min, ctx.h_max))
