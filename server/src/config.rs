@@ -755,6 +755,8 @@ mod tests {
         assert_eq!(config.robots.len(), 2);
         assert_eq!(config.engines.len(), 2);
         assert_eq!(config.engines[1].tier, Tier::Cloud);
+        assert_eq!(config.plugins.len(), 1);
+        assert_eq!(config.plugins[0].name(), "wasm-threshold");
         assert_eq!(
             config.limits,
             Limits::default(),

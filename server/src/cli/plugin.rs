@@ -7,7 +7,8 @@
 //! - `info FILE.wasm`: the world, version and imports of a component.
 //! - `wit [--out DIR]`: print (or write) the `kairos:policy` WIT this server implements.
 //!
-//! [`ServePluginArgs`] are the flags `kairos serve` takes to load plugins.
+//! `kairos serve` loads plugins from `[[plugin]]` or `--horizon-plugin` / `--priority-plugin`
+//! (`cli::serve`, `plugin::factory`).
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -15,10 +16,9 @@ use std::time::Duration;
 use anyhow::{Context, bail};
 use clap::{Args, Subcommand, ValueEnum};
 
-use crate::horizon::PolicyParams;
 use crate::plugin::cache::CodeCache;
 use crate::plugin::conformance::{CheckConfig, CheckReport};
-use crate::plugin::{InstanceMode, PluginKind, PluginOptions, PluginSource};
+use crate::plugin::{PluginKind, PluginOptions, PluginSource};
 
 /// `kairos plugin`.
 #[derive(Args, Debug)]
@@ -109,55 +109,6 @@ struct ComponentizeArgs {
     out: PathBuf,
 }
 
-/// Flags `kairos serve` takes to load policy plugins.
-#[derive(Args, Debug, Clone, Default)]
-pub struct ServePluginArgs {
-    /// A horizon-policy component, `[NAME=]FILE.wasm` (repeatable); robots select it by NAME
-    /// (default: the file stem) in their horizon-policy field.
-    #[arg(long = "horizon-plugin", value_parser = parse_named_path)]
-    pub horizon_plugins: Vec<(String, PathBuf)>,
-    /// A priority-policy component that orders every scheduling decision.
-    #[arg(long = "priority-plugin")]
-    pub priority_plugin: Option<PathBuf>,
-    /// A parameter of the priority plugin, `name=value` (repeatable).
-    #[arg(long = "priority-param", value_parser = parse_param)]
-    pub priority_params: Vec<(String, f64)>,
-    /// Per-call deadline of horizon plugins, milliseconds.
-    #[arg(long, default_value_t = 5)]
-    pub horizon_plugin_deadline_ms: u64,
-    /// Per-call deadline of the priority plugin, milliseconds.
-    #[arg(long, default_value_t = 50)]
-    pub priority_plugin_deadline_ms: u64,
-    /// Memory cap per plugin instance, MiB.
-    #[arg(long, default_value_t = 64)]
-    pub plugin_memory_mib: usize,
-    /// Precompiled-code cache directory (default: `$XDG_CACHE_HOME/kairos/plugins`).
-    #[arg(long)]
-    pub plugin_cache_dir: Option<PathBuf>,
-}
-
-impl ServePluginArgs {
-    /// Options for a plugin of `kind` from these flags.
-    pub fn options(&self, kind: PluginKind) -> anyhow::Result<PluginOptions> {
-        let deadline = match kind {
-            PluginKind::Horizon => self.horizon_plugin_deadline_ms,
-            PluginKind::Priority => self.priority_plugin_deadline_ms,
-        };
-        Ok(PluginOptions {
-            deadline: Duration::from_millis(deadline),
-            memory_limit: self.plugin_memory_mib << 20,
-            cache: open_cache(self.plugin_cache_dir.clone(), false)?,
-            instance_mode: InstanceMode::Reuse,
-            ..PluginOptions::for_kind(kind)
-        })
-    }
-
-    /// The priority plugin's parameters.
-    pub fn priority_params(&self) -> PolicyParams {
-        self.priority_params.iter().cloned().collect()
-    }
-}
-
 fn parse_param(s: &str) -> Result<(String, f64), String> {
     let (name, value) = s
         .split_once('=')
@@ -170,20 +121,6 @@ fn parse_param(s: &str) -> Result<(String, f64), String> {
         return Err(format!("`{s}` has an empty name"));
     }
     Ok((name.trim().to_string(), value))
-}
-
-fn parse_named_path(s: &str) -> Result<(String, PathBuf), String> {
-    match s.split_once('=') {
-        Some((name, path)) if !name.is_empty() => Ok((name.to_string(), PathBuf::from(path))),
-        _ => {
-            let path = PathBuf::from(s);
-            let name = path
-                .file_stem()
-                .map(|n| n.to_string_lossy().into_owned())
-                .ok_or_else(|| format!("`{s}` names no file"))?;
-            Ok((name, path))
-        }
-    }
 }
 
 fn open_cache(dir: Option<PathBuf>, disabled: bool) -> anyhow::Result<Option<CodeCache>> {
@@ -380,18 +317,10 @@ mod tests {
     use super::*;
 
     #[test]
-    fn params_and_named_paths_parse() {
+    fn params_parse() {
         assert_eq!(parse_param("t=0.4"), Ok(("t".into(), 0.4)));
         assert!(parse_param("t").is_err());
         assert!(parse_param("t=x").is_err());
         assert!(parse_param("=1").is_err());
-        assert_eq!(
-            parse_named_path("fast=/a/b.wasm"),
-            Ok(("fast".into(), PathBuf::from("/a/b.wasm")))
-        );
-        assert_eq!(
-            parse_named_path("/a/threshold.wasm"),
-            Ok(("threshold".into(), PathBuf::from("/a/threshold.wasm")))
-        );
     }
 }
