@@ -784,7 +784,7 @@ mod tests {
         let args = DemoArgs::default();
         let a = fleet(&args);
         assert_eq!(a, fleet(&args));
-        assert_eq!(a.len(), 16);
+        assert_eq!(a.len(), args.robots as usize);
         assert_eq!(a[0].start, Duration::ZERO);
         assert!(a.windows(2).all(|w| w[0].start <= w[1].start));
         let median = args.task_s * args.control_hz;
