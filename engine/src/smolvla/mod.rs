@@ -236,6 +236,29 @@ impl SmolVlaExpert {
             .collect())
     }
 
+    /// Serve a validated batch of requests: embed every state, build each request's prefix with
+    /// `prefix(request, state_token)`, and generate with each request's samples and seed. The
+    /// serving models differ only in how they build the prefix.
+    pub fn generate_requests(
+        &self,
+        batch: &[crate::ActionRequest],
+        prefix: impl Fn(&crate::ActionRequest, &[f32]) -> Result<PrefixKv, EngineError>,
+    ) -> Result<Vec<ActionChunk>, EngineError> {
+        let states: Vec<Vec<f32>> = batch.iter().map(|r| r.state.clone()).collect();
+        let state_tokens = self.embed_state(&states)?;
+        let prefixes = batch
+            .iter()
+            .zip(&state_tokens)
+            .map(|(r, s)| prefix(r, s))
+            .collect::<Result<Vec<_>, _>>()?;
+        let requests: Vec<(&PrefixKv, usize, u64)> = prefixes
+            .iter()
+            .zip(batch)
+            .map(|(p, r)| (p, r.samples, r.seed))
+            .collect();
+        self.generate(&requests)
+    }
+
     /// Generate one [`ActionChunk`] per `(prefix, samples, seed)`, cut to the robot's action dim,
     /// with noise from [`gaussian_noise`].
     pub fn generate(

@@ -172,18 +172,7 @@ impl ActionModel for SmolVlaStandIn {
 
     fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
         self.spec.validate(batch)?;
-        let states: Vec<Vec<f32>> = batch.iter().map(|r| r.state.clone()).collect();
-        let state_tokens = self.expert.embed_state(&states)?;
-        let prefixes = batch
-            .iter()
-            .zip(&state_tokens)
-            .map(|(r, s)| self.stand_in_prefix(r, s))
-            .collect::<Result<Vec<_>, _>>()?;
-        let requests: Vec<(&PrefixKv, usize, u64)> = prefixes
-            .iter()
-            .zip(batch)
-            .map(|(p, r)| (p, r.samples, r.seed))
-            .collect();
-        self.expert.generate(&requests)
+        self.expert
+            .generate_requests(batch, |request, state| self.stand_in_prefix(request, state))
     }
 }
