@@ -15,10 +15,13 @@ if ! .venv/bin/python -c "import aioquic, msgpack, numpy" 2>/dev/null; then
     echo "installing ${PY_TEST_DEPS[*]} into .venv (pip)"
     .venv/bin/pip install --quiet --disable-pip-version-check "${PY_TEST_DEPS[@]}"
 fi
-bash plugins/build.sh
 
-cargo test --workspace --locked
-# Ignored in a plain `cargo test` because it needs the Python packages above; here they exist,
-# so it runs, and fails rather than skips.
-KAIROS_PYTHON="$PWD/.venv/bin/python" \
-    cargo test --locked -p kairos-sdk --test python_client -- --ignored
+# One build of the whole workspace with the test feature set; the plugins are built with the
+# kairos binary it produced (the integration tests need it), so nothing compiles twice.
+cargo test --workspace --locked --no-run
+KAIROS_BIN=target/debug/kairos bash plugins/build.sh
+
+# --include-ignored: the one ignored test (the Python client against the Rust responder) is
+# ignored in a plain `cargo test` because it needs the Python packages installed above; here
+# they exist, so it runs, and fails rather than skips.
+KAIROS_PYTHON="$PWD/.venv/bin/python" cargo test --workspace --locked -- --include-ignored

@@ -495,21 +495,25 @@ impl Driver {
         let mut shutdown = std::pin::pin!(shutdown);
         loop {
             let deadline = self.scheduler.poll_timeout().map(|t| self.clock.instant(t));
+            // Biased: a shutdown signalled before a command was sent is seen first, so that
+            // command is refused rather than accepted (with random order it could be either);
+            // and due timeouts are not starved by a steady stream of commands.
             tokio::select! {
-                command = commands.recv() => match command {
-                    Some(command) => self.handle(command),
-                    None => self.draining = true,
-                },
+                biased;
+                () = &mut shutdown, if !self.draining => {
+                    tracing::info!(pending = self.requests.len(), "driver draining");
+                    self.draining = true;
+                }
                 () = sleep_until(deadline), if deadline.is_some() => {
                     let now = self.clock.now();
                     for task in self.scheduler.handle_timeout(now) {
                         self.forget_task(task);
                     }
                 }
-                () = &mut shutdown, if !self.draining => {
-                    tracing::info!(pending = self.requests.len(), "driver draining");
-                    self.draining = true;
-                }
+                command = commands.recv() => match command {
+                    Some(command) => self.handle(command),
+                    None => self.draining = true,
+                },
             }
             self.account_finished();
             self.dispatch();
