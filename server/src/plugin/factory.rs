@@ -33,48 +33,11 @@ impl HorizonPolicy for WithDefaults {
     }
 }
 
-/// A policy that answers under the name it was registered by (what robots selected and what
-/// their replies report), whatever the component's file is called.
-struct Registered<P: ?Sized> {
-    name: String,
-    inner: Box<P>,
-}
-
-impl HorizonPolicy for Registered<dyn HorizonPolicy> {
-    fn name(&self) -> &str {
-        &self.name
-    }
-
-    fn choose(&mut self, input: &HorizonInput<'_>) -> Result<usize, HorizonError> {
-        self.inner.choose(input)
-    }
-}
-
-impl PriorityPolicy for Registered<dyn PriorityPolicy> {
-    fn name(&self) -> &str {
-        &self.name
-    }
-
-    fn order(
-        &mut self,
-        now: crate::time::Timestamp,
-        pending: &[crate::scheduler::PendingView],
-        order: &mut Vec<usize>,
-    ) -> Result<(), crate::scheduler::PolicyError> {
-        self.inner.order(now, pending, order)
-    }
-
-    fn task_finished(&mut self, summary: &crate::scheduler::FinishedTask) {
-        self.inner.task_finished(summary);
-    }
-}
-
-/// A horizon-policy factory for `plugin`, registered as `name`: each call returns a cheap
-/// handle (shared compiled code, shared health, pooled instances) that answers with the native
-/// policy `fallback` (e.g. `threshold`, with its default parameters) whenever the plugin fails.
-/// The request's parameters are checked by the plugin itself on every call.
+/// A horizon-policy factory for `plugin`: each call returns a cheap handle (shared compiled
+/// code, shared health, pooled instances) that answers with the native policy `fallback`
+/// (e.g. `threshold`, with its default parameters) whenever the plugin fails. The request's
+/// parameters are checked by the plugin itself on every call.
 pub fn horizon_factory(
-    name: &str,
     plugin: HorizonPlugin,
     fallback: &str,
 ) -> Result<
@@ -83,14 +46,10 @@ pub fn horizon_factory(
 > {
     // Fail now, at start-up, if the fallback does not exist.
     horizon::builtin(fallback, &PolicyParams::new())?;
-    let (name, fallback) = (name.to_string(), fallback.to_string());
+    let fallback = fallback.to_string();
     Ok(move |_params: &PolicyParams| {
         let native = horizon::builtin(&fallback, &PolicyParams::new())?;
-        let inner: Box<dyn HorizonPolicy> = Box::new(plugin.policy(Box::new(WithDefaults(native))));
-        Ok(Box::new(Registered {
-            name: name.clone(),
-            inner,
-        }) as Box<dyn HorizonPolicy>)
+        Ok(Box::new(plugin.policy(Box::new(WithDefaults(native)))) as Box<dyn HorizonPolicy>)
     })
 }
 
@@ -111,12 +70,10 @@ pub fn spec_params(spec: &PolicySpec) -> Result<PolicyParams, PolicySpecError> {
         .collect()
 }
 
-/// A priority-policy factory for the plugin in `source`, registered as `name`: building it loads
-/// the plugin (the code cache makes that cheap after the first time), checks the spec's
-/// parameters with a trial call, and uses the native policy `fallback` for decisions the plugin
-/// fails.
+/// A priority-policy factory for the plugin in `source`: building it loads the plugin (the
+/// code cache makes that cheap after the first time), checks the spec's parameters with a
+/// trial call, and uses the native policy `fallback` for decisions the plugin fails.
 pub fn priority_factory(
-    name: &str,
     source: PluginSource,
     options: PluginOptions,
     fallback: PolicySpec,
@@ -125,17 +82,11 @@ pub fn priority_factory(
     PolicySpecError,
 > {
     build_policy(&fallback)?;
-    let name = name.to_string();
     Ok(move |spec: &PolicySpec| {
         let params = spec_params(spec)?;
         let native = build_policy(&fallback)?;
         WasmPriorityPolicy::load(&source, &params, options.clone(), native)
-            .map(|policy| {
-                Box::new(Registered {
-                    name: name.clone(),
-                    inner: Box::new(policy) as Box<dyn PriorityPolicy>,
-                }) as Box<dyn PriorityPolicy>
-            })
+            .map(|policy| Box::new(policy) as Box<dyn PriorityPolicy>)
             .map_err(|e: LoadError| PolicySpecError::InvalidParam {
                 policy: spec.name.clone(),
                 param: "(plugin)".into(),
@@ -199,7 +150,10 @@ pub fn load_configured(
         let name = plugin.name();
         let kind = world_of(plugin, &name)?;
         let defaults = PluginOptions::for_kind(kind);
+        // Registered under `name`, the plugin also answers to it: replies and logs say what the
+        // configuration and the robots call it, not the file stem.
         let options = PluginOptions {
+            name: Some(name.clone()),
             deadline: plugin
                 .deadline_ms
                 .map_or(defaults.deadline, Duration::from_millis),
@@ -219,7 +173,7 @@ pub fn load_configured(
             PluginKind::Horizon => {
                 let fallback = plugin.fallback.as_deref().unwrap_or("threshold");
                 let loaded = HorizonPlugin::load(&source, options)?;
-                let factory = horizon_factory(&name, loaded, fallback).map_err(|source| {
+                let factory = horizon_factory(loaded, fallback).map_err(|source| {
                     PluginSetupError::HorizonFallback {
                         name: name.clone(),
                         source,
@@ -239,13 +193,12 @@ pub fn load_configured(
                             name: name.clone(),
                             source,
                         })?;
-                let factory =
-                    priority_factory(&name, source, options, fallback).map_err(|source| {
-                        PluginSetupError::PriorityFallback {
-                            name: name.clone(),
-                            source,
-                        }
-                    })?;
+                let factory = priority_factory(source, options, fallback).map_err(|source| {
+                    PluginSetupError::PriorityFallback {
+                        name: name.clone(),
+                        source,
+                    }
+                })?;
                 tracing::info!(plugin = %name, file = %plugin.file.display(), "priority plugin loaded");
                 priorities.register(name, factory);
             }

@@ -80,6 +80,9 @@ pub enum InstanceMode {
 /// Limits and behaviour of one loaded plugin.
 #[derive(Clone, Debug)]
 pub struct PluginOptions {
+    /// The name the plugin answers to (its policy `name()`, which replies report, and its log
+    /// lines); `None`: its source's ([`PluginSource::name`], the file stem).
+    pub name: Option<String>,
     /// Longest a call may run before it is interrupted.
     pub deadline: Duration,
     /// Longest making a new instance may take (the guest's start code; the Python runtime's
@@ -136,6 +139,7 @@ impl PluginOptions {
 
     fn common() -> Self {
         PluginOptions {
+            name: None,
             deadline: Duration::from_millis(5),
             instantiate_deadline: Duration::from_secs(1),
             memory_limit: 64 << 20,

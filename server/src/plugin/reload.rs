@@ -84,10 +84,11 @@ fn watch<W: World>(
     stop: &AtomicBool,
     tx: &mpsc::Sender<Arc<Compiled<W>>>,
 ) {
-    let name = path
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_default();
+    let name = options.name.clone().unwrap_or_else(|| {
+        path.file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    });
     let mut seen = stat(path);
     // Not settled: the file is hashed once on the first quiet poll, because it may have been
     // replaced between the load and this thread's first `stat` (then `seen` already describes

@@ -104,7 +104,7 @@ pub(crate) fn load<W: World>(
     source: &PluginSource,
     options: &PluginOptions,
 ) -> Result<Arc<Compiled<W>>, LoadError> {
-    let name = source.name();
+    let name = options.name.clone().unwrap_or_else(|| source.name());
     let (wasm, path) = match source {
         PluginSource::File(path) => (
             std::fs::read(path).map_err(|source| LoadError::Read {
