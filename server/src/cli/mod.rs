@@ -7,3 +7,28 @@ pub mod plugin;
 pub mod profile;
 pub mod robot;
 pub mod serve;
+
+/// A policy parameter on the command line, `name=value` with a numeric value (`inf` is one).
+pub(crate) fn parse_param(text: &str) -> Result<(String, f64), String> {
+    let (name, value) = text
+        .split_once('=')
+        .ok_or_else(|| format!("`{text}` is not key=value"))?;
+    let name = name.trim();
+    if name.is_empty() {
+        return Err(format!("`{text}` has an empty name"));
+    }
+    let value: f64 = value
+        .trim()
+        .parse()
+        .map_err(|_| format!("{name}: `{value}` is not a number"))?;
+    Ok((name.to_owned(), value))
+}
+
+/// [`parse_param`], with a finite value.
+pub(crate) fn parse_finite_param(text: &str) -> Result<(String, f64), String> {
+    let (name, value) = parse_param(text)?;
+    if !value.is_finite() {
+        return Err(format!("{name}: `{text}` must have a finite value"));
+    }
+    Ok((name, value))
+}

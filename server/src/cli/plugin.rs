@@ -16,6 +16,7 @@ use std::time::Duration;
 use anyhow::{Context, bail};
 use clap::{Args, Subcommand, ValueEnum};
 
+use super::parse_param;
 use crate::plugin::cache::CodeCache;
 use crate::plugin::conformance::{CheckConfig, CheckReport};
 use crate::plugin::{PluginKind, PluginOptions, PluginSource};
@@ -107,20 +108,6 @@ struct ComponentizeArgs {
     /// Where to write the component.
     #[arg(short, long)]
     out: PathBuf,
-}
-
-fn parse_param(s: &str) -> Result<(String, f64), String> {
-    let (name, value) = s
-        .split_once('=')
-        .ok_or_else(|| format!("`{s}` is not name=value"))?;
-    let value: f64 = value
-        .trim()
-        .parse()
-        .map_err(|_| format!("`{value}` is not a number"))?;
-    if name.trim().is_empty() {
-        return Err(format!("`{s}` has an empty name"));
-    }
-    Ok((name.trim().to_string(), value))
 }
 
 fn open_cache(dir: Option<PathBuf>, disabled: bool) -> anyhow::Result<Option<CodeCache>> {

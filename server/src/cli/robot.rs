@@ -75,7 +75,7 @@ pub struct RobotArgs {
     #[arg(long)]
     pub horizon: Option<String>,
     /// Horizon policy parameter, `NAME=VALUE`; repeatable (e.g. `--param t=0.4 --param h_min=8`).
-    #[arg(long = "param", value_parser = parse_param, requires = "horizon")]
+    #[arg(long = "param", value_parser = super::parse_finite_param, requires = "horizon")]
     pub params: Vec<(String, f64)>,
     /// Chunk samples the horizon policy gets.
     #[arg(long, default_value_t = 1, requires = "horizon")]
@@ -113,22 +113,6 @@ fn parse_fraction(text: &str) -> Result<f32, String> {
         Ok(value) if (0.0..=1.0).contains(&value) => Ok(value),
         _ => Err(format!("expected a number in [0, 1], got {text:?}")),
     }
-}
-
-fn parse_param(text: &str) -> Result<(String, f64), String> {
-    let (name, value) = text
-        .split_once('=')
-        .ok_or_else(|| format!("expected NAME=VALUE, got {text:?}"))?;
-    let value: f64 = value
-        .trim()
-        .parse()
-        .map_err(|_| format!("{name}: {value:?} is not a number"))?;
-    if name.trim().is_empty() || !value.is_finite() {
-        return Err(format!(
-            "expected NAME=VALUE with a finite value, got {text:?}"
-        ));
-    }
-    Ok((name.trim().to_owned(), value))
 }
 
 fn parse_size(text: &str) -> Result<(u32, u32), String> {

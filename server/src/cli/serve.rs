@@ -45,23 +45,11 @@ pub struct ServeArgs {
     pub priority_params: Option<String>,
 }
 
-/// `key=value,...` with numeric values.
+/// `key=value,...` with finite numeric values.
 fn parse_params(s: &str) -> Result<BTreeMap<String, f64>, String> {
     s.split(',')
         .filter(|kv| !kv.trim().is_empty())
-        .map(|kv| {
-            let (k, v) = kv
-                .split_once('=')
-                .ok_or_else(|| format!("`{kv}` is not key=value"))?;
-            let v: f64 = v
-                .trim()
-                .parse()
-                .map_err(|_| format!("`{v}` (parameter `{k}`) is not a number"))?;
-            if !v.is_finite() {
-                return Err(format!("parameter `{k}` must be finite"));
-            }
-            Ok((k.trim().to_string(), v))
-        })
+        .map(super::parse_finite_param)
         .collect()
 }
 
