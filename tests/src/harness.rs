@@ -276,6 +276,25 @@ pub fn observation(client: &Client, state1: f32) -> Observation {
     }
 }
 
+/// Runs every plan as its own robot (one QUIC connection each, the server's token),
+/// concurrently, and returns their logs in plan order.
+pub async fn run_fleet(server: &TestServer, plans: Vec<RobotPlan>) -> anyhow::Result<Vec<TaskLog>> {
+    let mut robots = Vec::new();
+    for plan in plans {
+        let client = server.connect(&server.token).await?;
+        robots.push(tokio::spawn(async move {
+            let log = run_task(&client, &plan, None).await;
+            client.close().await;
+            log
+        }));
+    }
+    let mut logs = Vec::new();
+    for robot in robots {
+        logs.push(robot.await??);
+    }
+    Ok(logs)
+}
+
 /// Something to do between rounds (e.g. rebind the client's socket), given the round just done.
 pub type Hook = Arc<dyn Fn(&Client, u64) + Send + Sync>;
 

@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 
 use kairos_sdk::protocol::HorizonSelection;
 use kairos_tests::harness::{
-    RecordError, RobotPlan, ServerOptions, TestServer, compare_records, run_task,
+    RecordError, RobotPlan, ServerOptions, TestServer, compare_records, run_fleet,
 };
 
 const ROBOTS: u64 = 20;
@@ -33,10 +33,8 @@ async fn twenty_robots_complete_multi_round_tasks_and_records_match() {
     .await
     .unwrap();
 
-    let mut robots = Vec::new();
-    for i in 0..ROBOTS {
-        let client = server.connect(&server.token).await.unwrap();
-        let plan = RobotPlan {
+    let plans = (0..ROBOTS)
+        .map(|i| RobotPlan {
             task: 1_000 + i,
             rounds: ROUNDS,
             control_hz: 200.0,
@@ -49,17 +47,9 @@ async fn twenty_robots_complete_multi_round_tasks_and_records_match() {
                 samples: 1,
             }),
             state1: 0.05 * (i % 5) as f32,
-        };
-        robots.push(tokio::spawn(async move {
-            let log = run_task(&client, &plan, None).await;
-            client.close().await;
-            log
-        }));
-    }
-    let mut logs = Vec::new();
-    for robot in robots {
-        logs.push(robot.await.unwrap().unwrap());
-    }
+        })
+        .collect();
+    let logs = run_fleet(&server, plans).await.unwrap();
 
     let mut worst = RecordError::default();
     for log in &logs {

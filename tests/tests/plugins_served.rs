@@ -11,7 +11,7 @@ use std::path::PathBuf;
 
 use kairos_sdk::protocol::HorizonSelection;
 use kairos_server::config::{Config, PluginConfig};
-use kairos_tests::harness::{RobotPlan, ServerOptions, TaskLog, TestServer, run_task};
+use kairos_tests::harness::{RobotPlan, ServerOptions, TaskLog, TestServer, run_fleet};
 
 const ROBOTS: u64 = 8;
 const ROUNDS: u64 = 5;
@@ -65,10 +65,8 @@ async fn fleet(tweak: fn(&mut Config), static_name: &str) -> Vec<TaskLog> {
     })
     .await
     .unwrap();
-    let mut robots = Vec::new();
-    for i in 0..ROBOTS {
-        let client = server.connect(&server.token).await.unwrap();
-        let plan = RobotPlan {
+    let plans = (0..ROBOTS)
+        .map(|i| RobotPlan {
             task: 100 + i,
             rounds: ROUNDS,
             control_hz: 200.0,
@@ -79,17 +77,9 @@ async fn fleet(tweak: fn(&mut Config), static_name: &str) -> Vec<TaskLog> {
                 samples: 1,
             }),
             state1: 0.1 * (i % 4) as f32,
-        };
-        robots.push(tokio::spawn(async move {
-            let log = run_task(&client, &plan, None).await;
-            client.close().await;
-            log
-        }));
-    }
-    let mut logs = Vec::new();
-    for robot in robots {
-        logs.push(robot.await.unwrap().unwrap());
-    }
+        })
+        .collect();
+    let logs = run_fleet(&server, plans).await.unwrap();
     let report = server.shutdown().await;
     assert_eq!(
         report.driver.replies,
