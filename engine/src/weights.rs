@@ -8,7 +8,7 @@
 use std::path::Path;
 
 use safetensors::SafeTensors;
-use safetensors::tensor::{Dtype, Metadata};
+use safetensors::tensor::{Dtype, Metadata, TensorInfo};
 
 use crate::EngineError;
 
@@ -76,10 +76,8 @@ impl Checkpoint {
         keys
     }
 
-    /// Tensor `key` as row-major `f32`, checked against `shape`.
-    ///
-    /// Accepts F32, F64, BF16 and F16 (converted exactly or by rounding to nearest).
-    pub fn tensor(&self, key: &str, shape: &[usize]) -> Result<Vec<f32>, EngineError> {
+    /// The header entry of tensor `key`, which must exist with exactly `shape`.
+    fn info(&self, key: &str, shape: &[usize]) -> Result<&TensorInfo, EngineError> {
         let info = self
             .metadata
             .info(key)
@@ -93,6 +91,14 @@ impl Checkpoint {
                 found: info.shape.clone(),
             });
         }
+        Ok(info)
+    }
+
+    /// Tensor `key` as row-major `f32`, checked against `shape`.
+    ///
+    /// Accepts F32, F64, BF16 and F16 (converted exactly or by rounding to nearest).
+    pub fn tensor(&self, key: &str, shape: &[usize]) -> Result<Vec<f32>, EngineError> {
+        let info = self.info(key, shape)?;
         let (start, end) = info.data_offsets;
         let data = &self.bytes[self.data_start + start..self.data_start + end];
         let values = match info.dtype {
@@ -127,19 +133,7 @@ impl Checkpoint {
 
     /// Tensor `key` as raw `u8` values (masks), checked against `shape`.
     pub fn tensor_u8(&self, key: &str, shape: &[usize]) -> Result<Vec<u8>, EngineError> {
-        let info = self
-            .metadata
-            .info(key)
-            .ok_or_else(|| EngineError::MissingTensor {
-                key: key.to_string(),
-            })?;
-        if info.shape != shape {
-            return Err(EngineError::ShapeMismatch {
-                key: key.to_string(),
-                expected: shape.to_vec(),
-                found: info.shape.clone(),
-            });
-        }
+        let info = self.info(key, shape)?;
         if !matches!(info.dtype, Dtype::U8 | Dtype::BOOL) {
             return Err(EngineError::DtypeMismatch {
                 key: key.to_string(),
