@@ -6,8 +6,10 @@
 //! - Horizon (50×10×7 input, S=1): `threshold` on a realistic chunk and on a fully converged one
 //!   (the scan covers all 50 actions: the worst case), `static`; plus `threshold` with a fresh
 //!   instance per call (`InstanceMode::Fresh`) to show why instances are reused.
-//! - Priority, 10 / 100 / 1,000 pending: `fifo`, `plas`, `kairos`, `srw` (C; trained on the same
-//!   200 finished tasks as its twin), and `kairos` in Python.
+//! - Priority, 10 / 100 / 1,000 pending: `fifo`, `plas`, `kairos`, `srw` (C, WIT 0.2.0: columns
+//!   in, sort keys out; `srw` trained on the same 200 finished tasks as its twin), `kairos` in
+//!   Python, and `fifo` built against WIT 0.1.0 (a record per request in, an order out) as the
+//!   baseline the 0.2.0 layout is measured against.
 //!
 //! Target (issue #4): the C plugins at most 3× their native twin.
 //! Run `bash plugins/build.sh` first, then `cargo bench -p kairos-server --bench plugins`.
@@ -173,6 +175,7 @@ fn priority(c: &mut Criterion) {
         ("kairos", "kairos"),
         ("srw", "srw"),
         ("kairos", "kairos_py"),
+        ("fifo", "fifo_v0_1"),
     ] {
         let mut native = build_policy(&name.parse::<PolicySpec>().unwrap()).unwrap();
         let mut wasm = WasmPriorityPolicy::load(
@@ -196,7 +199,11 @@ fn priority(c: &mut Criterion) {
                 wasm.call_task_finished(&summary).unwrap();
             }
         }
-        let language = if file.ends_with("_py") { "Python" } else { "C" };
+        let language = match file {
+            f if f.ends_with("_py") => "Python",
+            f if f.ends_with("_v0_1") => "C, WIT 0.1.0",
+            _ => "C",
+        };
         for (n, now, pending) in &lists {
             let mut order = Vec::with_capacity(*n);
             let mut want = Vec::new();

@@ -467,9 +467,9 @@ fn a_plugin_for_the_wrong_world_is_refused_at_load() {
 #[test]
 fn a_plugin_for_an_unsupported_version_is_refused_at_load() {
     let wasm = foreign_component(
-        &wit_with_version("0.2.0"),
+        &wit_with_version("0.9.0"),
         "horizon-policy",
-        &horizon_wat(HORIZON_H_MIN).replace("@0.1.0", "@0.2.0"),
+        &horizon_wat(HORIZON_H_MIN).replace("@0.1.0", "@0.9.0"),
     );
     let error = load_error(wasm, PluginKind::Horizon);
     let message = error.to_string();
@@ -478,7 +478,7 @@ fn a_plugin_for_an_unsupported_version_is_refused_at_load() {
         InspectError::UnsupportedVersion { .. }
     ));
     assert!(
-        message.contains("kairos:policy@0.2.0") && message.contains("supported: 0.1.0"),
+        message.contains("kairos:policy@0.9.0") && message.contains("supported: 0.1.0, 0.2.0"),
         "{message}"
     );
 }

@@ -416,6 +416,43 @@ fn fifo_plugin_matches_its_native_twin() {
     compare_priority("fifo", "fifo", &[], 300, 300, 21);
 }
 
+/// The server still loads plugins built against `kairos:policy@0.1.0` (record-per-request
+/// pending list, an explicit order) next to 0.2.0 ones (columns, sort keys).
+#[test]
+fn a_0_1_0_priority_plugin_still_loads_and_matches_its_native_twin() {
+    let old = priority_plugin("fifo_v0_1", &[]).unwrap();
+    assert_eq!(old.meta().version.to_string(), "0.1.0");
+    let new = priority_plugin("fifo", &[]).unwrap();
+    assert_eq!(new.meta().version.to_string(), "0.2.0");
+    compare_priority("fifo_v0_1", "fifo", &[], 200, 300, 22);
+}
+
+/// `ê = |E_last| · (1 + skipped)` saturates at 2^64 − 1 µs in every twin, so absurd execution
+/// times tie (and fall through to arrival order) identically.
+#[test]
+fn kairos_plugins_agree_when_the_execution_key_saturates() {
+    let mut rng = StdRng::seed_from_u64(35);
+    let (now, mut pending) = pending_list(&mut rng, 64);
+    for (i, p) in pending.iter_mut().enumerate() {
+        p.wait = Duration::ZERO;
+        // Nanoseconds near u64::MAX (what the WIT carries exactly); with these skip counts
+        // (all in the top bucket by aging but the first) most products saturate.
+        p.skipped = [0, 999, 5_000, u32::MAX][i % 4];
+        p.last_exec = Some(Duration::from_nanos(u64::MAX - i as u64));
+    }
+    let mut native = build_policy(&"kairos".parse::<PolicySpec>().unwrap()).unwrap();
+    let mut want = Vec::new();
+    native.order(now, &pending, &mut want).unwrap();
+    for name in ["kairos", "kairos_py"] {
+        let mut got = Vec::new();
+        priority_plugin(name, &[])
+            .unwrap()
+            .call_plugin(now, &pending, &mut got)
+            .unwrap();
+        assert_eq!(got, want, "{name}");
+    }
+}
+
 #[test]
 fn plas_plugin_matches_its_native_twin() {
     compare_priority("plas", "plas", &[], 200, 300, 22);

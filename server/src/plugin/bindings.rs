@@ -30,6 +30,33 @@ pub mod since_v0_1_0 {
     }
 }
 
+/// Bindings for `kairos:policy@0.2.0` (`wit/since_v0.2.0/`).
+pub mod since_v0_2_0 {
+    /// The WIT package version these bindings were generated from.
+    pub const VERSION: super::WitVersion = super::WitVersion::new(0, 2, 0);
+
+    /// The `horizon-policy` world (unchanged since 0.1.0 but for the package version).
+    #[allow(missing_docs)]
+    pub mod horizon {
+        wasmtime::component::bindgen!({
+            path: "../wit/since_v0.2.0",
+            world: "horizon-policy",
+            ownership: Borrowing { duplicate_if_necessary: false },
+        });
+    }
+
+    /// The `priority-policy` world. Owning bindings (borrowing ones do not compile for this
+    /// world in wasmtime 48); arguments are still lowered by reference, so the host keeps one
+    /// `PendingColumns` and refills its vectors: each column is one block copy per call.
+    #[allow(missing_docs)]
+    pub mod priority {
+        wasmtime::component::bindgen!({
+            path: "../wit/since_v0.2.0",
+            world: "priority-policy",
+        });
+    }
+}
+
 /// A WIT package version, `major.minor.patch`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub struct WitVersion {

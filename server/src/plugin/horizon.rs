@@ -7,7 +7,7 @@ use std::sync::{Arc, Mutex};
 use wasmtime::Store;
 use wasmtime::component::{Component, Linker};
 
-use super::bindings::{WitVersion, since_v0_1_0};
+use super::bindings::{WitVersion, since_v0_1_0, since_v0_2_0};
 use super::health::{FailureKind, Health, PluginStats};
 use super::reload::Reloader;
 use super::runtime::{CallCost, CallFailure, Compiled, Exec, LoadError, PluginMeta, World, load};
@@ -16,15 +16,18 @@ use super::{PluginKind, PluginOptions, PluginSource};
 use crate::horizon::{HorizonError, HorizonInput, HorizonPolicy, PolicyParams, validate_horizon};
 
 use since_v0_1_0::horizon as v0_1;
+use since_v0_2_0::horizon as v0_2;
 
 pub(crate) struct HorizonWorld;
 
 pub(crate) enum HorizonPre {
     V0_1(v0_1::HorizonPolicyPre<HostState>),
+    V0_2(v0_2::HorizonPolicyPre<HostState>),
 }
 
 pub(crate) enum HorizonInstance {
     V0_1(v0_1::HorizonPolicy),
+    V0_2(v0_2::HorizonPolicy),
 }
 
 impl World for HorizonWorld {
@@ -42,6 +45,9 @@ impl World for HorizonWorld {
             (0, 1) => Ok(HorizonPre::V0_1(v0_1::HorizonPolicyPre::new(
                 linker.instantiate_pre(component)?,
             )?)),
+            (0, 2) => Ok(HorizonPre::V0_2(v0_2::HorizonPolicyPre::new(
+                linker.instantiate_pre(component)?,
+            )?)),
             _ => Err(wasmtime::Error::msg(format!(
                 "no bindings for version {version}"
             ))),
@@ -54,8 +60,54 @@ impl World for HorizonWorld {
     ) -> wasmtime::Result<HorizonInstance> {
         match pre {
             HorizonPre::V0_1(pre) => pre.instantiate(store).map(HorizonInstance::V0_1),
+            HorizonPre::V0_2(pre) => pre.instantiate(store).map(HorizonInstance::V0_2),
         }
     }
+}
+
+/// Calls `choose` through one version's bindings. The `horizon` interface is the same in
+/// every version so far; only the generated types' paths differ, hence a macro.
+macro_rules! call_choose_in {
+    ($version:ident, $bindings:expr, $store:expr, $input:expr, $params:expr) => {{
+        use $version::exports::kairos::policy::horizon as wit;
+        let chunk = &$input.chunk;
+        let wit_chunk = wit::Chunk {
+            samples: to_u32(chunk.samples),
+            steps: to_u32(chunk.steps),
+            chunk_len: to_u32(chunk.chunk_len),
+            action_dim: to_u32(chunk.action_dim),
+            updates: chunk.updates,
+            actions: chunk.actions,
+        };
+        let context = wit::HorizonContext {
+            h_min: to_u32($input.h_min),
+            h_max: to_u32($input.h_max),
+            control_hz: $input.control_hz,
+            round_index: $input.round_index,
+            recent_horizons: $input.recent_horizons,
+        };
+        let wit_params: Vec<$version::kairos::policy::types::Param<'_>> = $params
+            .iter()
+            .map(|(name, value)| $version::kairos::policy::types::Param {
+                name,
+                value: *value,
+            })
+            .collect();
+        let answer = $bindings.kairos_policy_horizon().call_choose(
+            $store,
+            wit_chunk,
+            context,
+            &wit_params,
+        )?;
+        Ok(answer.map_err(|e| match e {
+            wit::HorizonError::InvalidParam(p) => HorizonError::InvalidParam {
+                name: p.name,
+                reason: p.reason,
+            },
+            wit::HorizonError::Unsupported(m) => HorizonError::Unsupported(m),
+            wit::HorizonError::Failed(m) => HorizonError::Failed(m),
+        }))
+    }};
 }
 
 /// Calls `choose` on `instance` with `input`, converted to the instance's WIT version.
@@ -66,46 +118,8 @@ fn call_choose(
     params: &[(String, f64)],
 ) -> wasmtime::Result<Result<u32, HorizonError>> {
     match instance {
-        HorizonInstance::V0_1(bindings) => {
-            use v0_1::exports::kairos::policy::horizon as wit;
-            let chunk = &input.chunk;
-            let wit_chunk = wit::Chunk {
-                samples: to_u32(chunk.samples),
-                steps: to_u32(chunk.steps),
-                chunk_len: to_u32(chunk.chunk_len),
-                action_dim: to_u32(chunk.action_dim),
-                updates: chunk.updates,
-                actions: chunk.actions,
-            };
-            let context = wit::HorizonContext {
-                h_min: to_u32(input.h_min),
-                h_max: to_u32(input.h_max),
-                control_hz: input.control_hz,
-                round_index: input.round_index,
-                recent_horizons: input.recent_horizons,
-            };
-            let wit_params: Vec<v0_1::kairos::policy::types::Param<'_>> = params
-                .iter()
-                .map(|(name, value)| v0_1::kairos::policy::types::Param {
-                    name,
-                    value: *value,
-                })
-                .collect();
-            let answer = bindings.kairos_policy_horizon().call_choose(
-                store,
-                wit_chunk,
-                context,
-                &wit_params,
-            )?;
-            Ok(answer.map_err(|e| match e {
-                wit::HorizonError::InvalidParam(p) => HorizonError::InvalidParam {
-                    name: p.name,
-                    reason: p.reason,
-                },
-                wit::HorizonError::Unsupported(m) => HorizonError::Unsupported(m),
-                wit::HorizonError::Failed(m) => HorizonError::Failed(m),
-            }))
-        }
+        HorizonInstance::V0_1(bindings) => call_choose_in!(v0_1, bindings, store, input, params),
+        HorizonInstance::V0_2(bindings) => call_choose_in!(v0_2, bindings, store, input, params),
     }
 }
 

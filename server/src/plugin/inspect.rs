@@ -16,7 +16,10 @@ pub const PACKAGE: &str = "kairos:policy";
 
 /// WIT package versions this server can load, oldest first. A component built against any of
 /// them is called through the bindings of that version (see `bindings`).
-pub const SUPPORTED: &[WitVersion] = &[super::bindings::since_v0_1_0::VERSION];
+pub const SUPPORTED: &[WitVersion] = &[
+    super::bindings::since_v0_1_0::VERSION,
+    super::bindings::since_v0_2_0::VERSION,
+];
 
 /// What a component says about itself.
 #[derive(Clone, Debug, PartialEq, Eq)]

@@ -6,7 +6,7 @@ use std::sync::Arc;
 use wasmtime::Store;
 use wasmtime::component::{Component, Linker};
 
-use super::bindings::{WitVersion, since_v0_1_0};
+use super::bindings::{WitVersion, since_v0_1_0, since_v0_2_0};
 use super::health::{FailureKind, Health, PluginStats};
 use super::reload::Reloader;
 use super::runtime::{CallCost, CallFailure, Compiled, Exec, LoadError, PluginMeta, World, load};
@@ -17,15 +17,18 @@ use crate::scheduler::{FinishedTask, PendingView, PolicyError, PriorityPolicy, v
 use crate::time::Timestamp;
 
 use since_v0_1_0::priority as v0_1;
+use since_v0_2_0::priority as v0_2;
 
 pub(crate) struct PriorityWorld;
 
 pub(crate) enum PriorityPre {
     V0_1(v0_1::PriorityPolicyPre<HostState>),
+    V0_2(v0_2::PriorityPolicyPre<HostState>),
 }
 
 pub(crate) enum PriorityInstance {
     V0_1(v0_1::PriorityPolicy),
+    V0_2(v0_2::PriorityPolicy),
 }
 
 impl World for PriorityWorld {
@@ -42,6 +45,9 @@ impl World for PriorityWorld {
             (0, 1) => Ok(PriorityPre::V0_1(v0_1::PriorityPolicyPre::new(
                 linker.instantiate_pre(component)?,
             )?)),
+            (0, 2) => Ok(PriorityPre::V0_2(v0_2::PriorityPolicyPre::new(
+                linker.instantiate_pre(component)?,
+            )?)),
             _ => Err(wasmtime::Error::msg(format!(
                 "no bindings for version {version}"
             ))),
@@ -54,12 +60,18 @@ impl World for PriorityWorld {
     ) -> wasmtime::Result<PriorityInstance> {
         match pre {
             PriorityPre::V0_1(pre) => pre.instantiate(store).map(PriorityInstance::V0_1),
+            PriorityPre::V0_2(pre) => pre.instantiate(store).map(PriorityInstance::V0_2),
         }
     }
 }
 
+/// Whole nanoseconds, saturating: `u64::try_from(d.as_nanos())` without the 128-bit
+/// arithmetic, which showed in profiles of the per-row column fill.
 fn nanos(d: std::time::Duration) -> u64 {
-    u64::try_from(d.as_nanos()).unwrap_or(u64::MAX)
+    d.as_secs()
+        .checked_mul(1_000_000_000)
+        .and_then(|ns| ns.checked_add(u64::from(d.subsec_nanos())))
+        .unwrap_or(u64::MAX)
 }
 
 /// The pending list in v0.1.0's types.
@@ -89,14 +101,132 @@ fn pending_v0_1(pending: &[PendingView]) -> Vec<v0_1::exports::kairos::policy::p
         .collect()
 }
 
-/// Calls `order` on `instance`. `Ok(Err(_))` is the plugin's own refusal.
-fn call_order(
+/// The pending list as `kairos:policy@0.2.0` columns: one vector per field, reused between
+/// calls, each lowered into the sandbox as one block copy.
+#[derive(Clone, Debug)]
+pub(crate) struct PendingColumns(v0_2::exports::kairos::policy::priority::PendingColumns);
+
+impl Default for PendingColumns {
+    fn default() -> Self {
+        PendingColumns(v0_2::exports::kairos::policy::priority::PendingColumns {
+            request: Vec::new(),
+            task: Vec::new(),
+            round_index: Vec::new(),
+            arrived_at_us: Vec::new(),
+            task_started_at_us: Vec::new(),
+            skipped: Vec::new(),
+            wait_ns: Vec::new(),
+            attained_service_ns: Vec::new(),
+            queued_ns: Vec::new(),
+            last_exec_ns: Vec::new(),
+            exec_ends_at_us: Vec::new(),
+            last_gen_ns: Vec::new(),
+            rounds_completed: Vec::new(),
+            remaining_rounds: Vec::new(),
+            remaining_seconds: Vec::new(),
+            present: Vec::new(),
+        })
+    }
+}
+
+/// Bits of `pending-columns.present` (WIT 0.2.0 `present-bits`).
+mod present {
+    /// `last-exec-ns` is known.
+    pub(super) const LAST_EXEC: u8 = 1;
+    /// `exec-ends-at-us` is known.
+    pub(super) const EXEC_ENDS_AT: u8 = 2;
+    /// `last-gen-ns` is known.
+    pub(super) const LAST_GEN: u8 = 4;
+    /// The client sent `remaining-rounds`.
+    pub(super) const REMAINING_ROUNDS: u8 = 8;
+    /// The client sent `remaining-seconds`.
+    pub(super) const REMAINING_SECONDS: u8 = 16;
+}
+
+impl PendingColumns {
+    /// Refills every column from `pending`: one pass over the rows, each read once, writing
+    /// into columns pre-sized to `n` (so the loop has no capacity checks).
+    pub(crate) fn fill(&mut self, pending: &[PendingView]) {
+        fn sized<T: Copy + Default>(column: &mut Vec<T>, n: usize) -> &mut [T] {
+            column.clear();
+            column.resize(n, T::default());
+            column
+        }
+        let n = pending.len();
+        let c = &mut self.0;
+        let request = sized(&mut c.request, n);
+        let task = sized(&mut c.task, n);
+        let round_index = sized(&mut c.round_index, n);
+        let arrived_at_us = sized(&mut c.arrived_at_us, n);
+        let task_started_at_us = sized(&mut c.task_started_at_us, n);
+        let skipped = sized(&mut c.skipped, n);
+        let wait_ns = sized(&mut c.wait_ns, n);
+        let attained_service_ns = sized(&mut c.attained_service_ns, n);
+        let queued_ns = sized(&mut c.queued_ns, n);
+        let last_exec_ns = sized(&mut c.last_exec_ns, n);
+        let exec_ends_at_us = sized(&mut c.exec_ends_at_us, n);
+        let last_gen_ns = sized(&mut c.last_gen_ns, n);
+        let rounds_completed = sized(&mut c.rounds_completed, n);
+        let remaining_rounds = sized(&mut c.remaining_rounds, n);
+        let remaining_seconds = sized(&mut c.remaining_seconds, n);
+        let present_bits = sized(&mut c.present, n);
+        for (i, p) in pending.iter().enumerate() {
+            request[i] = p.request.0;
+            task[i] = p.task.0;
+            round_index[i] = p.round_index;
+            arrived_at_us[i] = p.arrived_at.as_micros();
+            task_started_at_us[i] = p.task_started_at.as_micros();
+            skipped[i] = p.skipped;
+            wait_ns[i] = nanos(p.wait);
+            attained_service_ns[i] = nanos(p.attained_service);
+            queued_ns[i] = nanos(p.queued);
+            let mut bits = 0;
+            if let Some(d) = p.last_exec {
+                last_exec_ns[i] = nanos(d);
+                bits |= present::LAST_EXEC;
+            }
+            if let Some(t) = p.exec_ends_at {
+                exec_ends_at_us[i] = t.as_micros();
+                bits |= present::EXEC_ENDS_AT;
+            }
+            if let Some(d) = p.last_gen {
+                last_gen_ns[i] = nanos(d);
+                bits |= present::LAST_GEN;
+            }
+            rounds_completed[i] = p.rounds_completed;
+            if let Some(remaining) = p.remaining {
+                if let Some(rounds) = remaining.rounds {
+                    remaining_rounds[i] = rounds;
+                    bits |= present::REMAINING_ROUNDS;
+                }
+                if let Some(seconds) = remaining.seconds {
+                    remaining_seconds[i] = seconds;
+                    bits |= present::REMAINING_SECONDS;
+                }
+            }
+            present_bits[i] = bits;
+        }
+    }
+}
+
+/// A plugin's answer, whatever its version.
+enum Ranking {
+    /// Indices, most urgent first (0.1.0's only answer; 0.2.0 `order`).
+    Order(Vec<u32>),
+    /// 0.2.0 `keys`: the host sorts by `(major, minor, arrived, request)`.
+    Keys { major: Vec<u64>, minor: Vec<u64> },
+}
+
+/// Calls the policy on `instance`. `Ok(Err(_))` is the plugin's own refusal. `columns` is
+/// scratch for 0.2.0 instances.
+fn call_rank(
     store: &mut Store<HostState>,
     instance: &PriorityInstance,
     now: Timestamp,
     pending: &[PendingView],
     params: &[(String, f64)],
-) -> wasmtime::Result<Result<Vec<u32>, String>> {
+    columns: &mut PendingColumns,
+) -> wasmtime::Result<Result<Ranking, String>> {
     match instance {
         PriorityInstance::V0_1(bindings) => {
             let wit_pending = pending_v0_1(pending);
@@ -107,25 +237,92 @@ fn call_order(
                     value: *value,
                 })
                 .collect();
-            bindings.kairos_policy_priority().call_order(
+            let answer = bindings.kairos_policy_priority().call_order(
                 store,
                 now.as_micros(),
                 &wit_pending,
                 &wit_params,
-            )
+            )?;
+            Ok(answer.map(Ranking::Order))
+        }
+        PriorityInstance::V0_2(bindings) => {
+            use v0_2::exports::kairos::policy::priority as wit;
+            columns.fill(pending);
+            let wit_params: Vec<v0_2::kairos::policy::types::Param> = params
+                .iter()
+                .map(|(name, value)| v0_2::kairos::policy::types::Param {
+                    name: name.clone(),
+                    value: *value,
+                })
+                .collect();
+            let answer = bindings.kairos_policy_priority().call_rank(
+                store,
+                now.as_micros(),
+                &columns.0,
+                &wit_params,
+            )?;
+            Ok(answer.map(|ranking| match ranking {
+                wit::Ranking::Order(order) => Ranking::Order(order),
+                wit::Ranking::Keys(keys) => Ranking::Keys {
+                    major: keys.major,
+                    minor: keys.minor,
+                },
+            }))
         }
     }
 }
+
+/// Sorts `pending` by the plugin's keys: `(major, minor, arrived, request)` ascending, an
+/// empty key list standing for all zeros. `request` is unique, so the order is total and
+/// independent of the sort algorithm. Errors name a key list of the wrong length.
+pub(crate) fn order_by_sort_keys(
+    pending: &[PendingView],
+    major: &[u64],
+    minor: &[u64],
+    scratch: &mut Vec<SortRow>,
+    order: &mut Vec<usize>,
+) -> Result<(), String> {
+    let n = pending.len();
+    for (name, keys) in [("major", major), ("minor", minor)] {
+        if !keys.is_empty() && keys.len() != n {
+            return Err(format!(
+                "{} {name} keys for {n} pending requests",
+                keys.len()
+            ));
+        }
+    }
+    let key = |keys: &[u64], i: usize| keys.get(i).copied().unwrap_or(0);
+    scratch.clear();
+    scratch.extend(pending.iter().enumerate().map(|(i, p)| {
+        (
+            key(major, i),
+            key(minor, i),
+            p.arrived_at.as_micros(),
+            p.request.0,
+            i as u32,
+        )
+    }));
+    scratch.sort_unstable();
+    order.clear();
+    order.extend(scratch.iter().map(|row| row.4 as usize));
+    Ok(())
+}
+
+/// One row of [`order_by_sort_keys`]'s scratch: the full key, then the pending index. A tuple
+/// rather than `([u64; 4], usize)`: tuple comparison is unrolled, and the `u32` index keeps the
+/// row at 40 bytes (a pending list is far below 2^32).
+pub(crate) type SortRow = (u64, u64, u64, u64, u32);
 
 fn call_task_finished(
     store: &mut Store<HostState>,
     instance: &PriorityInstance,
     summary: &FinishedTask,
 ) -> wasmtime::Result<()> {
-    match instance {
-        PriorityInstance::V0_1(bindings) => {
-            use v0_1::exports::kairos::policy::priority as wit;
-            bindings.kairos_policy_priority().call_task_finished(
+    // `finished-task` is the same record in every version so far.
+    macro_rules! finished {
+        ($version:ident, $bindings:expr) => {{
+            use $version::exports::kairos::policy::priority as wit;
+            $bindings.kairos_policy_priority().call_task_finished(
                 store,
                 wit::FinishedTask {
                     task: summary.task.0,
@@ -135,7 +332,11 @@ fn call_task_finished(
                     wait_ns: nanos(summary.wait),
                 },
             )
-        }
+        }};
+    }
+    match instance {
+        PriorityInstance::V0_1(bindings) => finished!(v0_1, bindings),
+        PriorityInstance::V0_2(bindings) => finished!(v0_2, bindings),
     }
 }
 
@@ -154,6 +355,9 @@ pub struct WasmPriorityPolicy {
     reloader: Option<Reloader<PriorityWorld>>,
     params: Vec<(String, f64)>,
     peak_memory: usize,
+    /// Scratch reused between calls: the 0.2.0 columns and the key sort.
+    columns: PendingColumns,
+    sort_rows: Vec<SortRow>,
 }
 
 impl WasmPriorityPolicy {
@@ -189,6 +393,8 @@ impl WasmPriorityPolicy {
             reloader,
             params: params.iter().map(|(k, v)| (k.clone(), *v)).collect(),
             peak_memory: 0,
+            columns: PendingColumns::default(),
+            sort_rows: Vec::new(),
         };
         let mut order = Vec::new();
         match policy.call_plugin(Timestamp::ZERO, &[], &mut order) {
@@ -248,14 +454,19 @@ impl WasmPriorityPolicy {
         order.clear();
         let result = match &mut self.exec {
             Exec::Inline(live) => {
-                let params = &self.params;
-                live.call(|store, instance| call_order(store, instance, now, pending, params))
+                let (params, columns) = (&self.params, &mut self.columns);
+                live.call(|store, instance| {
+                    call_rank(store, instance, now, pending, params, columns)
+                })
             }
             Exec::Worker(worker) => {
                 let owned = pending.to_vec();
                 let params = self.params.clone();
                 let answer = worker.run(move |live| {
-                    live.call(|store, instance| call_order(store, instance, now, &owned, &params))
+                    let mut columns = PendingColumns::default();
+                    live.call(|store, instance| {
+                        call_rank(store, instance, now, &owned, &params, &mut columns)
+                    })
                 });
                 match answer {
                     Some(answer) => answer,
@@ -275,11 +486,17 @@ impl WasmPriorityPolicy {
         let (answer, cost) = result?;
         self.peak_memory = self.peak_memory.max(cost.peak_memory);
         let failure = match answer {
-            Ok(indices) => {
+            Ok(Ranking::Order(indices)) => {
                 order.extend(indices.iter().map(|&i| i as usize));
                 match validate_order(pending.len(), order) {
                     Ok(()) => return Ok(cost),
                     Err(e) => CallFailure::new(FailureKind::InvalidAnswer, e.to_string()),
+                }
+            }
+            Ok(Ranking::Keys { major, minor }) => {
+                match order_by_sort_keys(pending, &major, &minor, &mut self.sort_rows, order) {
+                    Ok(()) => return Ok(cost),
+                    Err(e) => CallFailure::new(FailureKind::InvalidAnswer, e),
                 }
             }
             Err(reason) => CallFailure::new(FailureKind::Refused, reason),
@@ -357,5 +574,95 @@ impl PriorityPolicy for WasmPriorityPolicy {
         if let Err(failure) = self.call_task_finished(summary) {
             tracing::debug!(plugin = %self.plugin.meta.name, %failure, "task-finished failed");
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::Duration;
+
+    use super::*;
+    use crate::scheduler::{RemainingWork, RequestId, TaskId};
+
+    fn view(request: u64, arrived_us: u64) -> PendingView {
+        PendingView {
+            request: RequestId(request),
+            task: TaskId(request),
+            round_index: 0,
+            arrived_at: Timestamp::from_micros(arrived_us),
+            task_started_at: Timestamp::ZERO,
+            skipped: 0,
+            wait: Duration::ZERO,
+            attained_service: Duration::ZERO,
+            queued: Duration::ZERO,
+            last_exec: None,
+            exec_ends_at: None,
+            last_gen: None,
+            rounds_completed: 0,
+            remaining: None,
+        }
+    }
+
+    #[test]
+    fn sort_keys_order_by_major_minor_then_arrival_then_request() {
+        let pending = [view(7, 30), view(3, 10), view(5, 10), view(1, 20)];
+        let (mut rows, mut order) = (Vec::new(), Vec::new());
+        // Empty keys: arrival, then request.
+        order_by_sort_keys(&pending, &[], &[], &mut rows, &mut order).unwrap();
+        assert_eq!(order, [1, 2, 3, 0]);
+        // Major first; minor breaks its ties; empty minor is all zeros.
+        order_by_sort_keys(&pending, &[1, 0, 1, 0], &[], &mut rows, &mut order).unwrap();
+        assert_eq!(order, [1, 3, 2, 0]);
+        order_by_sort_keys(
+            &pending,
+            &[1, 0, 1, 0],
+            &[0, 9, 5, 2],
+            &mut rows,
+            &mut order,
+        )
+        .unwrap();
+        assert_eq!(order, [3, 1, 0, 2]);
+    }
+
+    #[test]
+    fn key_lists_of_the_wrong_length_are_refused_by_name() {
+        let pending = [view(1, 1), view(2, 2)];
+        let (mut rows, mut order) = (Vec::new(), Vec::new());
+        let err = order_by_sort_keys(&pending, &[1], &[], &mut rows, &mut order).unwrap_err();
+        assert!(err.contains("1 major keys for 2"), "{err}");
+        let err = order_by_sort_keys(&pending, &[], &[1, 2, 3], &mut rows, &mut order).unwrap_err();
+        assert!(err.contains("3 minor keys for 2"), "{err}");
+    }
+
+    #[test]
+    fn columns_carry_every_field_and_mark_what_is_known() {
+        let mut full = view(4, 40);
+        full.last_exec = Some(Duration::from_nanos(1_500));
+        full.exec_ends_at = Some(Timestamp::from_micros(99));
+        full.last_gen = Some(Duration::from_nanos(2_500));
+        full.remaining = Some(RemainingWork {
+            rounds: Some(3),
+            seconds: Some(0.5),
+        });
+        let mut hint_rounds_only = view(6, 60);
+        hint_rounds_only.remaining = Some(RemainingWork {
+            rounds: Some(0),
+            seconds: None,
+        });
+        let mut columns = PendingColumns::default();
+        columns.fill(&[view(2, 20), full, hint_rounds_only]);
+        let c = &columns.0;
+        assert_eq!(c.request, [2, 4, 6]);
+        assert_eq!(c.arrived_at_us, [20, 40, 60]);
+        assert_eq!(c.last_exec_ns, [0, 1_500, 0]);
+        assert_eq!(c.exec_ends_at_us, [0, 99, 0]);
+        assert_eq!(c.last_gen_ns, [0, 2_500, 0]);
+        assert_eq!(c.remaining_rounds, [0, 3, 0]);
+        assert_eq!(c.remaining_seconds, [0.0, 0.5, 0.0]);
+        assert_eq!(c.present, [0, 31, present::REMAINING_ROUNDS]);
+        // Refilling reuses the vectors and drops the old rows.
+        columns.fill(&[view(9, 1)]);
+        assert_eq!(columns.0.request, [9]);
+        assert_eq!(columns.0.present, [0]);
     }
 }

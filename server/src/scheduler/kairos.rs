@@ -6,8 +6,10 @@
 //! 2. With `B` buckets: `b = min(B−1, floor(w·B))` (`f64` product, then floor). If
 //!    `skipped ≥ A`: `b = min(B−1, b + floor(skipped / A))` (integer division).
 //! 3. Buckets are served from `B−1` down to 0. Within a bucket, with `intra = longest-exec`
-//!    (default), by `ê = |E_last| · (1 + skipped)` descending, computed exactly as a 128-bit integer
-//!    of microseconds (`|E_last| = 0` when the task has no reported execution yet); with
+//!    (default), by `ê = |E_last| · (1 + skipped)` descending, a product of whole microseconds
+//!    saturating at `2^64 − 1` (584,000 years: only absurd inputs saturate, and they then tie;
+//!    a `u64` is what a WIT 0.2.0 sort key holds) (`|E_last| = 0` when the task has no reported
+//!    execution yet); with
 //!    `intra = fifo` this key is skipped (the paper's intra-bucket ablation).
 //! 4. Remaining ties: `arrived_at` ascending, then `RequestId` ascending.
 //! 5. `B = ∞` (`buckets=inf`): the paper's "prioritise by absolute wait ratio" ablation. The
@@ -69,7 +71,7 @@ impl Default for KairosConfig {
 }
 
 /// Sort key: priority (bucket or ratio bits) and `ê`, both descending, then arrival and id.
-type Key = (Reverse<u64>, Reverse<u128>, Timestamp, RequestId);
+type Key = (Reverse<u64>, Reverse<u64>, Timestamp, RequestId);
 
 /// Algorithm 1, phases 1–2.
 #[derive(Clone, Debug)]
@@ -109,10 +111,10 @@ impl Kairos {
         }
     }
 
-    /// Phase 2's key `ê = |E_last| · (1 + skipped)` in microseconds.
-    pub fn estimated_exec(view: &PendingView) -> u128 {
+    /// Phase 2's key `ê = |E_last| · (1 + skipped)` in microseconds, saturating.
+    pub fn estimated_exec(view: &PendingView) -> u64 {
         let exec = view.last_exec.map(duration_micros).unwrap_or(0);
-        u128::from(exec) * (1 + u128::from(view.skipped))
+        exec.saturating_mul(1 + u64::from(view.skipped))
     }
 }
 

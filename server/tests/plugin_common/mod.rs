@@ -176,6 +176,8 @@ pub fn foreign_component(wit: &str, world: &str, wat: &str) -> Vec<u8> {
 
 /// The released WIT with its version replaced, for "built against a newer server" fixtures.
 pub fn wit_with_version(version: &str) -> String {
-    kairos_server::plugin::componentize::WIT_SOURCE
+    // The fixtures' WAT exports 0.1.0's functions, so the base is 0.1.0's WIT.
+    kairos_server::plugin::componentize::WIT_SOURCES[0]
+        .1
         .replace("kairos:policy@0.1.0", &format!("kairos:policy@{version}"))
 }
