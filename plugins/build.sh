@@ -11,7 +11,9 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 OUT=plugins/build
-WIT=wit/since_v0.1.0
+# The WIT version the shipped plugins target; plugins/c/compat/ keeps older ones built.
+VERSION=since_v0.2.0
+WIT=wit/$VERSION
 SDK=sdk/guest/c
 CACHE="$OUT/cache"
 mkdir -p "$OUT"
@@ -36,12 +38,14 @@ fi
 
 # -ffp-contract=off: the native twins never fuse multiply-adds, so neither may the plugins.
 CFLAGS=(--target=wasm32-wasi -O2 -ffp-contract=off -mexec-model=reactor -Wall -Wextra -Werror
-    -Wl,--strip-all -I "$SDK/since_v0.1.0" -I "$SDK")
+    -Wl,--strip-all)
 
-build_c() { # name world
-    local name=$1 world=$2
-    clang "${CFLAGS[@]}" -o "$OUT/$name.core.wasm" "plugins/c/$name.c" \
-        "$SDK/since_v0.1.0/${world}_policy.c" "$SDK/kairos_world_stub.c"
+build_c() { # source world [version]: plugins/c/<source>.c -> $OUT/<basename of source>.wasm
+    local src=$1 world=$2 version=${3:-$VERSION}
+    local name
+    name=$(basename "$src")
+    clang "${CFLAGS[@]}" -I "$SDK/$version" -I "$SDK" -o "$OUT/$name.core.wasm" "plugins/c/$src.c" \
+        "$SDK/$version/${world}_policy.c" "$SDK/kairos_world_stub.c"
     "$KAIROS" plugin componentize "$OUT/$name.core.wasm" --world "$world" -o "$OUT/$name.wasm"
 }
 
@@ -58,6 +62,8 @@ build_c fifo priority
 build_c plas priority
 build_c kairos priority
 build_c srw priority
+# A 0.1.0 plugin, kept to prove the server still loads plugins built for the older version.
+build_c compat/fifo_v0_1 priority since_v0.1.0
 build_py kairos priority
 
 # Conformance gate; parameters where a policy requires them.
@@ -69,6 +75,7 @@ check "$OUT/fifo.wasm"
 check "$OUT/plas.wasm"
 check "$OUT/kairos.wasm"
 check "$OUT/srw.wasm"
+check "$OUT/fifo_v0_1.wasm"
 check "$OUT/kairos_py.wasm" --deadline-ms 2000 --memory-mib 256
 # The author templates (sdk/guest/templates), so they never rot.
 KAIROS="$PWD/$KAIROS" bash sdk/guest/templates/c/build.sh "$OUT/templates" >/dev/null

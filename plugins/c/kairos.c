@@ -7,43 +7,30 @@
  *   1. w = wait_us / (now_us - task_started_us) in double, clamped to [0, 1]; 0 when the task
  *      started at `now`.
  *   2. With B buckets: b = min(B-1, floor(w*B)); if skipped >= A: b = min(B-1, b + skipped/A).
- *      With B = inf: the priority is the bit pattern of w itself (same order as w for w >= 0).
- *   3. Within a priority, e = |E_last|_us * (1 + skipped) descending, an exact 128-bit product
- *      (|E_last| = 0 when unknown); skipped entirely with intra_fifo = 1.
- *   4. Then arrived-at-us ascending, then request ascending.
+ *      Buckets are served from B-1 down: major = (B-1) - b. With B = inf: the priority is the
+ *      bit pattern of w itself (same order as w for w >= 0), descending: major = UINT64_MAX - bits.
+ *   3. Within a priority, e = |E_last|_us * (1 + skipped) descending, a saturating u64 product
+ *      (|E_last| = 0 when unknown, i.e. present bit 0 clear): minor = UINT64_MAX - e. With
+ *      intra_fifo = 1 this key is skipped: minor is empty (all 0).
+ *   4. Then arrived-at-us ascending, then request ascending: the server's own tie-break.
  * Parameters (defaults): buckets B (10; whole 1..1e6, or +inf), aging A (4; whole 1..2^32-1),
  * intra_fifo (0; 1 orders each bucket by arrival: the paper's intra-bucket ablation).
  */
-#include <stdlib.h>
-
 #include "priority_policy.h"
 #include "kairos_policy.h"
 
-typedef exports_kairos_policy_priority_pending_t pending_t;
-typedef unsigned __int128 u128;
-
-typedef struct {
-    uint64_t priority; /* descending */
-    u128 exec;         /* descending */
-    uint64_t arrived;  /* ascending */
-    uint64_t request;  /* ascending */
-    uint32_t index;
-} sort_key_t;
-
-static int by_key(const void *a, const void *b) {
-    const sort_key_t *x = a, *y = b;
-    if (x->priority != y->priority) return x->priority > y->priority ? -1 : 1;
-    if (x->exec != y->exec) return x->exec > y->exec ? -1 : 1;
-    if (x->arrived != y->arrived) return x->arrived < y->arrived ? -1 : 1;
-    if (x->request != y->request) return x->request < y->request ? -1 : 1;
-    return 0;
+/* e = |E_last|_us * (1 + skipped), saturating like the native twin: 1 + skipped reaches 2^32,
+ * so the product of a huge |E_last| may not fit in 64 bits. */
+static uint64_t estimated_exec(uint64_t exec_us, uint32_t skipped) {
+    uint64_t factor = (uint64_t)skipped + 1;
+    return exec_us > UINT64_MAX / factor ? UINT64_MAX : exec_us * factor;
 }
 
-bool exports_kairos_policy_priority_order(uint64_t now_us,
-                                          exports_kairos_policy_priority_list_pending_t *pending,
-                                          exports_kairos_policy_priority_list_param_t *params,
-                                          priority_policy_list_u32_t *ret,
-                                          priority_policy_string_t *err) {
+bool exports_kairos_policy_priority_rank(uint64_t now_us,
+                                         exports_kairos_policy_priority_pending_columns_t *pending,
+                                         exports_kairos_policy_priority_list_param_t *params,
+                                         exports_kairos_policy_priority_ranking_t *ret,
+                                         priority_policy_string_t *err) {
     static const char *const known[] = {"aging", "buckets", "intra_fifo", NULL};
     bool ok = true, infinite = false, intra_fifo = false;
     uint32_t buckets = 10, aging = 4;
@@ -79,40 +66,46 @@ bool exports_kairos_policy_priority_order(uint64_t now_us,
         }
     }
     if (ok) {
-        size_t n = pending->len;
-        sort_key_t *keys = n ? malloc(n * sizeof(sort_key_t)) : NULL;
-        ret->len = n;
-        ret->ptr = n ? malloc(n * sizeof(uint32_t)) : NULL;
-        if (n && (!keys || !ret->ptr)) abort();
-        uint64_t top = (uint64_t)(buckets > 1 ? buckets : 1) - 1;
-        uint32_t a = aging > 1 ? aging : 1;
-        for (size_t i = 0; i < n; i++) {
-            const pending_t *v = &pending->ptr[i];
-            double w = kairos_wait_ratio(now_us, v->task_started_at_us, v->wait_ns);
-            uint64_t priority;
-            if (infinite) {
-                memcpy(&priority, &w, sizeof priority);
-            } else {
+        size_t n = pending->request.len;
+        const uint64_t *started_us = pending->task_started_at_us.ptr;
+        const uint64_t *wait_ns = pending->wait_ns.ptr;
+        const uint32_t *skipped = pending->skipped.ptr;
+        uint64_t *major = kairos_u64s(n);
+        /* One loop per case rather than a test per row: the rows are the hot path. */
+        if (infinite) {
+            for (size_t i = 0; i < n; i++) {
+                major[i] = kairos_desc(kairos_f64_bits(kairos_wait_ratio(now_us, started_us[i], wait_ns[i])));
+            }
+        } else {
+            uint64_t top = (uint64_t)(buckets > 1 ? buckets : 1) - 1;
+            uint32_t a = aging > 1 ? aging : 1;
+            for (size_t i = 0; i < n; i++) {
+                double w = kairos_wait_ratio(now_us, started_us[i], wait_ns[i]);
                 uint64_t b = (uint64_t)floor(w * (double)buckets);
                 if (b > top) b = top;
-                if (v->skipped >= a) {
-                    b += v->skipped / a;
+                if (skipped[i] >= a) {
+                    b += skipped[i] / a;
                     if (b > top) b = top;
                 }
-                priority = b;
+                major[i] = top - b;
             }
-            u128 exec = 0;
-            if (!intra_fifo) {
-                uint64_t exec_us = v->last_exec_ns.is_some ? v->last_exec_ns.val / 1000 : 0;
-                exec = (u128)exec_us * ((u128)1 + v->skipped);
-            }
-            keys[i] = (sort_key_t){priority, exec, v->arrived_at_us, v->request, (uint32_t)i};
         }
-        qsort(keys, n, sizeof(sort_key_t), by_key);
-        for (size_t i = 0; i < n; i++) ret->ptr[i] = keys[i].index;
-        free(keys);
+        uint64_t *minor = NULL;
+        if (!intra_fifo) {
+            const uint64_t *exec_ns = pending->last_exec_ns.ptr;
+            const uint8_t *present = pending->present.ptr;
+            minor = kairos_u64s(n);
+            for (size_t i = 0; i < n; i++) {
+                uint64_t exec_us = present[i] & KAIROS_PRESENT_LAST_EXEC ? exec_ns[i] / 1000 : 0;
+                minor[i] = kairos_desc(estimated_exec(exec_us, skipped[i]));
+            }
+        }
+        *ret = (exports_kairos_policy_priority_ranking_t){
+            .tag = EXPORTS_KAIROS_POLICY_PRIORITY_RANKING_KEYS,
+            .val.keys = {{major, n}, {minor, intra_fifo ? 0 : n}},
+        };
     }
-    exports_kairos_policy_priority_list_pending_free(pending);
+    exports_kairos_policy_priority_pending_columns_free(pending);
     exports_kairos_policy_priority_list_param_free(params);
     return ok;
 }

@@ -8,37 +8,19 @@
  *      a service s is the number of thresholds <= s.
  *   2. Starving iff (double)queued >= beta * (double)max(q, s); a starving request goes to
  *      queue 0.
- *   3. Order by (queue, arrived-at-us, request) ascending.
+ *   3. Order by (queue, arrived-at-us, request) ascending: the answer is major = queue and an
+ *      empty minor (all 0); the server breaks ties by (arrived-at-us, request) itself.
  * Parameters (defaults): queues K (8, whole 1..64), quantum_ms q (1000, > 0, rounded to whole
  * microseconds in [1, 1e15]), growth g (2, whole 1..1000), beta (8, finite > 0).
  */
-#include <stdlib.h>
-
 #include "priority_policy.h"
 #include "kairos_policy.h"
-
-typedef exports_kairos_policy_priority_pending_t pending_t;
 
 #define MAX_QUEUES 64
 
 static uint64_t sat_add(uint64_t a, uint64_t b) { return a + b < a ? UINT64_MAX : a + b; }
 static uint64_t sat_mul(uint64_t a, uint64_t b) {
     return (b != 0 && a > UINT64_MAX / b) ? UINT64_MAX : a * b;
-}
-
-typedef struct {
-    uint32_t queue;
-    uint64_t arrived;
-    uint64_t request;
-    uint32_t index;
-} sort_key_t;
-
-static int by_key(const void *a, const void *b) {
-    const sort_key_t *x = a, *y = b;
-    if (x->queue != y->queue) return x->queue < y->queue ? -1 : 1;
-    if (x->arrived != y->arrived) return x->arrived < y->arrived ? -1 : 1;
-    if (x->request != y->request) return x->request < y->request ? -1 : 1;
-    return 0;
 }
 
 /* Reads the parameters; on error writes the reason into `err` and returns false. */
@@ -82,11 +64,11 @@ static bool read_params(const exports_kairos_policy_priority_list_param_t *param
     return true;
 }
 
-bool exports_kairos_policy_priority_order(uint64_t now_us,
-                                          exports_kairos_policy_priority_list_pending_t *pending,
-                                          exports_kairos_policy_priority_list_param_t *params,
-                                          priority_policy_list_u32_t *ret,
-                                          priority_policy_string_t *err) {
+bool exports_kairos_policy_priority_rank(uint64_t now_us,
+                                         exports_kairos_policy_priority_pending_columns_t *pending,
+                                         exports_kairos_policy_priority_list_param_t *params,
+                                         exports_kairos_policy_priority_ranking_t *ret,
+                                         priority_policy_string_t *err) {
     (void)now_us;
     uint32_t queues = 8, growth = 2;
     uint64_t quantum_us = 1000000;
@@ -102,27 +84,26 @@ bool exports_kairos_policy_priority_order(uint64_t now_us,
             width = sat_mul(width, growth > 1 ? growth : 1);
         }
         uint64_t floor_q = quantum_us > 1 ? quantum_us : 1;
-        size_t n = pending->len;
-        sort_key_t *keys = n ? malloc(n * sizeof(sort_key_t)) : NULL;
-        ret->len = n;
-        ret->ptr = n ? malloc(n * sizeof(uint32_t)) : NULL;
-        if (n && (!keys || !ret->ptr)) abort();
+        size_t n = pending->request.len;
+        const uint64_t *service_ns = pending->attained_service_ns.ptr;
+        const uint64_t *queued_ns = pending->queued_ns.ptr;
+        uint64_t *major = kairos_u64s(n);
         for (size_t i = 0; i < n; i++) {
-            const pending_t *v = &pending->ptr[i];
-            uint64_t service = v->attained_service_ns / 1000;
-            double queued = (double)(v->queued_ns / 1000);
+            uint64_t service = service_ns[i] / 1000;
+            double queued = (double)(queued_ns[i] / 1000);
             double floor_s = (double)(service > floor_q ? service : floor_q);
-            uint32_t queue = 0;
+            uint64_t queue = 0;
             if (!(queued >= beta * floor_s)) {
                 while (queue < n_thresholds && thresholds[queue] <= service) queue++;
             }
-            keys[i] = (sort_key_t){queue, v->arrived_at_us, v->request, (uint32_t)i};
+            major[i] = queue;
         }
-        qsort(keys, n, sizeof(sort_key_t), by_key);
-        for (size_t i = 0; i < n; i++) ret->ptr[i] = keys[i].index;
-        free(keys);
+        *ret = (exports_kairos_policy_priority_ranking_t){
+            .tag = EXPORTS_KAIROS_POLICY_PRIORITY_RANKING_KEYS,
+            .val.keys.major = {major, n},
+        };
     }
-    exports_kairos_policy_priority_list_pending_free(pending);
+    exports_kairos_policy_priority_pending_columns_free(pending);
     exports_kairos_policy_priority_list_param_free(params);
     return ok;
 }

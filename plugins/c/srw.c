@@ -5,17 +5,19 @@
  *
  * Twin of the server's native `srw` policy (server/src/scheduler/srw.rs, "Exact semantics");
  * the same order bit for bit, checked by server/tests/plugin_twins.rs. With `now` in µs:
- *   1. Deadline d = exec_ends_at_us, or arrived_at_us when absent. Due iff slack = 0 or d <= now.
- *   2. Work urgency u: with hints = 1 and a hint, 1 / max(1, rounds), or with only seconds and
- *      a known |E_last|, 1 / max(1, seconds / |E_last|) (seconds: the f32 widened; |E_last|:
- *      kairos_secs(ns), i.e. Duration::as_secs_f64; usable only when seconds is finite and
- *      >= 0 and |E_last| > 0); otherwise, once `warmup` tasks have finished, the Gittins index
- *      G(rounds_completed); otherwise 0.
+ *   1. Deadline d = exec_ends_at_us, or arrived_at_us when absent (present bit 1 clear). Due
+ *      iff slack = 0 or d <= now.
+ *   2. Work urgency u: with hints = 1 and a hint, 1 / max(1, rounds) (present bit 3), or with
+ *      only seconds (bit 4) and a known |E_last| (bit 0), 1 / max(1, seconds / |E_last|)
+ *      (seconds: the f32 widened; |E_last|: kairos_secs(ns), i.e. Duration::as_secs_f64;
+ *      usable only when seconds is finite and >= 0 and |E_last| > 0); otherwise, once `warmup`
+ *      tasks have finished, the Gittins index G(rounds_completed); otherwise 0.
  *   3. Due requests with due_order = 0 (work): score = u / max(1 - w, 0.01), w the wait ratio
  *      (kairos_wait_ratio: Eq. 1 in whole µs), clamped to 0 unless finite and > 0; ordered by
- *      the score's bit pattern descending (the native key is u64::MAX - bits). With
- *      due_order = 1 (deadline), and for requests not due: d ascending.
- *   4. Due requests first; ties by arrived_at_us, then request, ascending.
+ *      the score's bit pattern descending: minor = UINT64_MAX - bits. With due_order = 1
+ *      (deadline), and for requests not due: d ascending, minor = d.
+ *   4. Due requests first (major = 0 if due, else 1); ties by arrived_at_us, then request,
+ *      ascending: the server's own tie-break.
  * The Gittins index is rebuilt lazily, only when it is read and only when the number of
  * observed tasks exceeds built_at + built_at / 16: the same moments as the native policy, so
  * the same counts go into the same index. The state lives in this instance; it is lost (as
@@ -27,8 +29,6 @@
 
 #include "priority_policy.h"
 #include "kairos_policy.h"
-
-typedef exports_kairos_policy_priority_pending_t pending_t;
 
 #define MIN_UNWAITED 0.01
 
@@ -106,46 +106,31 @@ typedef struct {
     bool by_deadline;
 } config_t;
 
-typedef struct {
-    uint8_t not_due;  /* ascending: due first */
-    uint64_t primary; /* ascending */
-    uint64_t arrived; /* ascending */
-    uint64_t request; /* ascending */
-    uint32_t index;
-} sort_key_t;
-
-static int by_key(const void *a, const void *b) {
-    const sort_key_t *x = a, *y = b;
-    if (x->not_due != y->not_due) return x->not_due < y->not_due ? -1 : 1;
-    if (x->primary != y->primary) return x->primary < y->primary ? -1 : 1;
-    if (x->arrived != y->arrived) return x->arrived < y->arrived ? -1 : 1;
-    if (x->request != y->request) return x->request < y->request ? -1 : 1;
-    if (x->index != y->index) return x->index < y->index ? -1 : 1;
-    return 0;
-}
-
-/* The client's hint as a round count (>= 1), or 0 when unusable. */
-static double hinted_rounds(const pending_t *v) {
-    if (!v->remaining.is_some) return 0.0;
-    const exports_kairos_policy_priority_remaining_work_t *hint = &v->remaining.val;
-    if (hint->rounds.is_some) {
-        double r = (double)hint->rounds.val;
+/* The client's hint as a round count (>= 1), or 0 when unusable. `present` says which of the
+ * other arguments are known. */
+static double hinted_rounds(uint8_t present, uint32_t rounds, float seconds, uint64_t last_exec_ns) {
+    if (present & KAIROS_PRESENT_REMAINING_ROUNDS) {
+        double r = (double)rounds;
         return r > 1.0 ? r : 1.0;
     }
-    if (!hint->seconds.is_some || !v->last_exec_ns.is_some) return 0.0;
-    double secs = (double)hint->seconds.val;
-    double exec = kairos_secs(v->last_exec_ns.val);
+    const uint8_t needed = KAIROS_PRESENT_REMAINING_SECONDS | KAIROS_PRESENT_LAST_EXEC;
+    if ((present & needed) != needed) return 0.0;
+    double secs = (double)seconds;
+    double exec = kairos_secs(last_exec_ns);
     if (!(isfinite(secs) && secs >= 0.0 && exec > 0.0)) return 0.0;
     double r = secs / exec;
     return r > 1.0 ? r : 1.0;
 }
 
-static double urgency(const config_t *c, const pending_t *v) {
+/* The work urgency of row `i`. */
+static double urgency(const config_t *c, const exports_kairos_policy_priority_pending_columns_t *v,
+                      size_t i) {
     if (c->hints) {
-        double rounds = hinted_rounds(v);
+        double rounds = hinted_rounds(v->present.ptr[i], v->remaining_rounds.ptr[i],
+                                      v->remaining_seconds.ptr[i], v->last_exec_ns.ptr[i]);
         if (rounds > 0.0) return 1.0 / rounds;
     }
-    if (observed >= c->warmup) return gittins_get(v->rounds_completed);
+    if (observed >= c->warmup) return gittins_get(v->rounds_completed.ptr[i]);
     return 0.0;
 }
 
@@ -182,46 +167,45 @@ static const char *parse_params(const exports_kairos_policy_priority_list_param_
     return NULL;
 }
 
-bool exports_kairos_policy_priority_order(uint64_t now_us,
-                                          exports_kairos_policy_priority_list_pending_t *pending,
-                                          exports_kairos_policy_priority_list_param_t *params,
-                                          priority_policy_list_u32_t *ret,
-                                          priority_policy_string_t *err) {
+bool exports_kairos_policy_priority_rank(uint64_t now_us,
+                                         exports_kairos_policy_priority_pending_columns_t *pending,
+                                         exports_kairos_policy_priority_list_param_t *params,
+                                         exports_kairos_policy_priority_ranking_t *ret,
+                                         priority_policy_string_t *err) {
     config_t c;
     const char *problem = parse_params(params, &c);
     if (problem) {
         priority_policy_string_dup(err, problem);
     } else {
-        size_t n = pending->len;
-        sort_key_t *keys = n ? malloc(n * sizeof(sort_key_t)) : NULL;
-        ret->len = n;
-        ret->ptr = n ? malloc(n * sizeof(uint32_t)) : NULL;
-        if (n && (!keys || !ret->ptr)) abort();
-        /* In list order, like the native key function: the Gittins index is rebuilt on the
+        size_t n = pending->request.len;
+        const uint64_t *arrived_us = pending->arrived_at_us.ptr;
+        const uint64_t *ends_us = pending->exec_ends_at_us.ptr;
+        const uint64_t *started_us = pending->task_started_at_us.ptr;
+        const uint64_t *wait_ns = pending->wait_ns.ptr;
+        const uint8_t *present = pending->present.ptr;
+        uint64_t *major = kairos_u64s(n), *minor = kairos_u64s(n);
+        /* In row order, like the native key function: the Gittins index is rebuilt on the
          * first read that needs it, which must be the same read in both twins. */
         for (size_t i = 0; i < n; i++) {
-            const pending_t *v = &pending->ptr[i];
-            uint64_t deadline = v->exec_ends_at_us.is_some ? v->exec_ends_at_us.val : v->arrived_at_us;
+            uint64_t deadline = present[i] & KAIROS_PRESENT_EXEC_ENDS ? ends_us[i] : arrived_us[i];
             bool due = !c.slack || deadline <= now_us;
-            uint64_t primary;
+            major[i] = !due;
             if (due && !c.by_deadline) {
-                double unwaited = 1.0 - kairos_wait_ratio(now_us, v->task_started_at_us, v->wait_ns);
+                double unwaited = 1.0 - kairos_wait_ratio(now_us, started_us[i], wait_ns[i]);
                 if (!(unwaited > MIN_UNWAITED)) unwaited = MIN_UNWAITED;
-                double score = urgency(&c, v) / unwaited;
+                double score = urgency(&c, pending, i) / unwaited;
                 if (!(isfinite(score) && score > 0.0)) score = 0.0;
-                uint64_t bits;
-                memcpy(&bits, &score, sizeof bits);
-                primary = UINT64_MAX - bits;
+                minor[i] = kairos_desc(kairos_f64_bits(score));
             } else {
-                primary = deadline;
+                minor[i] = deadline;
             }
-            keys[i] = (sort_key_t){(uint8_t)!due, primary, v->arrived_at_us, v->request, (uint32_t)i};
         }
-        qsort(keys, n, sizeof(sort_key_t), by_key);
-        for (size_t i = 0; i < n; i++) ret->ptr[i] = keys[i].index;
-        free(keys);
+        *ret = (exports_kairos_policy_priority_ranking_t){
+            .tag = EXPORTS_KAIROS_POLICY_PRIORITY_RANKING_KEYS,
+            .val.keys = {{major, n}, {minor, n}},
+        };
     }
-    exports_kairos_policy_priority_list_pending_free(pending);
+    exports_kairos_policy_priority_pending_columns_free(pending);
     exports_kairos_policy_priority_list_param_free(params);
     return problem == NULL;
 }

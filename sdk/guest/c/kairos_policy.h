@@ -2,7 +2,8 @@
  * Helpers for Kairos policy plugins written in C.
  *
  * Include the world's generated header first (`horizon_policy.h` or `priority_policy.h`, from
- * since_v0.1.0/), then this file. Everything here is header-only and allocation-free.
+ * since_vX.Y.Z/ for the WIT version the plugin targets), then this file. Everything here is
+ * header-only and works with the bindings of every version; only kairos_u64s allocates.
  *
  * The helpers reproduce the server's own conventions exactly, so a C plugin can give the
  * same answers as a native Rust policy bit for bit:
@@ -21,11 +22,45 @@
 #include <stdbool.h>
 #include <stddef.h>
 #include <stdint.h>
+#include <stdlib.h>
 #include <string.h>
 
 #if !defined(__BINDINGS_HORIZON_POLICY_H) && !defined(__BINDINGS_PRIORITY_POLICY_H)
 #error "include horizon_policy.h or priority_policy.h before kairos_policy.h"
 #endif
+
+/* Bits of `pending-columns.present` (priority@0.2.0): which optional fields a row has. A field
+ * whose bit is clear holds 0 in its column, which must not be read as a real 0 (a task with no
+ * reported execution is not one whose execution took 0 ns). */
+#define KAIROS_PRESENT_LAST_EXEC 1u          /* last-exec-ns */
+#define KAIROS_PRESENT_EXEC_ENDS 2u          /* exec-ends-at-us */
+#define KAIROS_PRESENT_LAST_GEN 4u           /* last-gen-ns */
+#define KAIROS_PRESENT_REMAINING_ROUNDS 8u   /* remaining-rounds */
+#define KAIROS_PRESENT_REMAINING_SECONDS 16u /* remaining-seconds */
+
+/* The bit pattern of `v`, like Rust's f64::to_bits. For v >= 0 (and not NaN) the patterns
+ * order like the numbers, so a non-negative score can be used as an integer sort key. */
+static inline uint64_t kairos_f64_bits(double v) {
+    uint64_t bits;
+    memcpy(&bits, &v, sizeof bits);
+    return bits;
+}
+
+/* The ascending key that orders like `k` descending (Rust's Reverse(k) for a u64): the server
+ * sorts keys ascending only, so a policy that wants "larger first" answers UINT64_MAX - k. */
+static inline uint64_t kairos_desc(uint64_t k) {
+    return UINT64_MAX - k;
+}
+
+/* A key column of `n` rows: malloc'd, because the bindings' post-return hands every returned
+ * list to free(); NULL for n = 0 (an empty list). Aborts when out of memory: a trap makes the
+ * server fall back to its built-in policy, where a short list would be a wrong answer. */
+static inline uint64_t *kairos_u64s(size_t n) {
+    if (n == 0) return NULL;
+    uint64_t *p = n <= SIZE_MAX / sizeof(uint64_t) ? malloc(n * sizeof(uint64_t)) : NULL;
+    if (!p) abort();
+    return p;
+}
 
 /* Seconds in `ns` nanoseconds, computed like Rust's Duration::as_secs_f64. */
 static inline double kairos_secs(uint64_t ns) {

@@ -8,8 +8,8 @@
  *
  * Build (templates/c/build.sh does exactly this):
  *   clang --target=wasm32-wasi -O2 -ffp-contract=off -mexec-model=reactor -Wl,--strip-all \
- *     -I SDK/since_v0.1.0 -I SDK -o bound.core.wasm bound.c \
- *     SDK/since_v0.1.0/horizon_policy.c SDK/kairos_world_stub.c
+ *     -I SDK/since_v0.2.0 -I SDK -o bound.core.wasm bound.c \
+ *     SDK/since_v0.2.0/horizon_policy.c SDK/kairos_world_stub.c
  *   kairos plugin componentize bound.core.wasm --world horizon -o bound.wasm
  *   kairos plugin check bound.wasm --param bound=0.05
  * where SDK is sdk/guest/c. Debian/Ubuntu: apt-get install clang lld wasi-libc

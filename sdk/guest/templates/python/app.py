@@ -12,7 +12,13 @@ For editor completion: `componentize-py -d wit -w horizon-policy bindings .` wri
 `wit_world` package imported below.
 
 A priority policy is the same with `-w priority-policy` and a class `Priority` with
-`order(self, now_us, pending, params) -> List[int]` and `task_finished(self, summary)`.
+`rank(self, now_us, pending, params)` and `task_finished(self, summary)`. Since
+kairos:policy@0.2.0, `pending` is a `priority.PendingColumns` (one list per field, plus a
+`present` bitmask for the optional ones) and `rank` returns
+`priority.Ranking_Keys(priority.SortKeys(major, minor))` (the server sorts by (major, minor,
+arrived-at-us, request) ascending; an empty list means all zeros) or `priority.Ranking_Order`
+(a full order). Keys are much faster: no per-row sort in the interpreter. See
+plugins/python/kairos/app.py for a complete one.
 
 Raise componentize_py_types.Err(...) to decline (here with a horizon-error value); any other
 exception traps the instance and the server answers that decision with its fallback policy.
