@@ -13,7 +13,9 @@ use super::runtime::{CallCost, CallFailure, Compiled, Exec, LoadError, PluginMet
 use super::sandbox::HostState;
 use super::{PluginKind, PluginOptions, PluginSource};
 use crate::horizon::PolicyParams;
-use crate::scheduler::{FinishedTask, PendingView, PolicyError, PriorityPolicy, validate_order};
+use crate::scheduler::{
+    FinishedTask, PendingView, PolicyError, PriorityPolicy, order_by_indexed_key, validate_order,
+};
 use crate::time::Timestamp;
 
 use since_v0_1_0::priority as v0_1;
@@ -274,7 +276,8 @@ fn call_rank(
 
 /// Sorts `pending` by the plugin's keys: `(major, minor, arrived, request)` ascending, an
 /// empty key list standing for all zeros. `request` is unique, so the order is total and
-/// independent of the sort algorithm. Errors name a key list of the wrong length.
+/// independent of the sort algorithm. Replaces what `order` held. Errors name a key list of
+/// the wrong length.
 pub(crate) fn order_by_sort_keys(
     pending: &[PendingView],
     major: &[u64],
@@ -292,26 +295,20 @@ pub(crate) fn order_by_sort_keys(
         }
     }
     let key = |keys: &[u64], i: usize| keys.get(i).copied().unwrap_or(0);
-    scratch.clear();
-    scratch.extend(pending.iter().enumerate().map(|(i, p)| {
+    order.clear();
+    order_by_indexed_key(pending, order, scratch, |i, p| {
         (
             key(major, i),
             key(minor, i),
             p.arrived_at.as_micros(),
             p.request.0,
-            i as u32,
         )
-    }));
-    scratch.sort_unstable();
-    order.clear();
-    order.extend(scratch.iter().map(|row| row.4 as usize));
+    });
     Ok(())
 }
 
-/// One row of [`order_by_sort_keys`]'s scratch: the full key, then the pending index. A tuple
-/// rather than `([u64; 4], usize)`: tuple comparison is unrolled, and the `u32` index keeps the
-/// row at 40 bytes (a pending list is far below 2^32).
-pub(crate) type SortRow = (u64, u64, u64, u64, u32);
+/// One row of [`order_by_sort_keys`]'s scratch: the full key, then the pending index.
+pub(crate) type SortRow = ((u64, u64, u64, u64), usize);
 
 fn call_task_finished(
     store: &mut Store<HostState>,

@@ -54,8 +54,8 @@ pub use self::core::{
 };
 pub use crate::lifecycle::{TaskRecord, TaskSummary};
 pub use policy::{
-    FinishedTask, PendingView, PolicyError, PriorityPolicy, RemainingWork, order_by_key,
-    validate_order,
+    FinishedTask, PendingView, PolicyError, PriorityPolicy, RemainingWork, order_by_indexed_key,
+    order_by_key, validate_order,
 };
 pub use registry::{PolicySpec, PolicySpecError, build as build_policy};
 

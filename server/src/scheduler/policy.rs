@@ -120,8 +120,19 @@ pub fn order_by_key<K: Ord>(
     scratch: &mut Vec<(K, usize)>,
     mut key: impl FnMut(&PendingView) -> K,
 ) {
+    order_by_indexed_key(pending, order, scratch, |_, v| key(v));
+}
+
+/// [`order_by_key`] for keys that also read per-index data kept beside `pending` (a plugin's
+/// sort-key lists): `key` gets each request's index in `pending` with its view.
+pub fn order_by_indexed_key<K: Ord>(
+    pending: &[PendingView],
+    order: &mut Vec<usize>,
+    scratch: &mut Vec<(K, usize)>,
+    mut key: impl FnMut(usize, &PendingView) -> K,
+) {
     scratch.clear();
-    scratch.extend(pending.iter().enumerate().map(|(i, v)| (key(v), i)));
+    scratch.extend(pending.iter().enumerate().map(|(i, v)| (key(i, v), i)));
     scratch.sort_unstable();
     order.extend(scratch.iter().map(|&(_, i)| i));
 }
