@@ -132,6 +132,7 @@ fn cuda_device(ordinal: usize) -> Result<candle_core::Device, EngineError> {
 #[cfg(not(feature = "cuda"))]
 fn cuda_device(ordinal: usize) -> Result<candle_core::Device, EngineError> {
     Err(EngineError::InvalidInput(format!(
-        "cuda:{ordinal} requested but kairos-engine was built without the `cuda` feature"
+        "cuda:{ordinal} requested, but this build has no CUDA support: rebuild with \
+         `--features cuda` (needs the CUDA toolkit's nvcc; see docs/ENGINE.md)"
     )))
 }

@@ -14,6 +14,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use kairos_engine::{DeviceKind, EngineError, EngineOptions, Kernels};
 use kairos_sdk::protocol::Limits;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -214,6 +215,14 @@ pub struct EngineConfig {
     pub rtt_ms: f64,
     /// Largest batch size measured when profiling at start.
     pub profile_max_batch: u32,
+    /// `cpu` (default), `cuda` or `cuda:N`. CUDA needs a server built with `--features cuda`.
+    pub device: String,
+    /// `auto` (default: the fast kernels on the CPU, Candle on CUDA), `fast`, `portable` or
+    /// `candle` (see docs/ENGINE.md).
+    pub kernels: String,
+    /// CPU threads of each instance's kernels; 0 (default) = `KAIROS_ENGINE_THREADS`, else one
+    /// per core.
+    pub threads: usize,
 }
 
 impl Default for EngineConfig {
@@ -226,6 +235,9 @@ impl Default for EngineConfig {
             max_batch: None,
             rtt_ms: 0.0,
             profile_max_batch: 16,
+            device: "cpu".into(),
+            kernels: "auto".into(),
+            threads: 0,
         }
     }
 }
@@ -234,6 +246,16 @@ impl EngineConfig {
     /// The emulated network round trip of this engine.
     pub fn rtt(&self) -> Duration {
         Duration::from_secs_f64(self.rtt_ms.max(0.0) / 1e3)
+    }
+
+    /// How this engine's model runs: `device`, `kernels` and `threads` parsed. Whether the
+    /// device exists (or this build supports CUDA) is only known when the model is loaded.
+    pub fn options(&self) -> Result<EngineOptions, EngineError> {
+        Ok(EngineOptions {
+            device: self.device.parse()?,
+            kernels: self.kernels.parse()?,
+            threads: self.threads,
+        })
     }
 }
 
@@ -461,6 +483,12 @@ impl Config {
                     format!("engine[{i}].profile_max_batch"),
                     "must be at least 1".into(),
                 ));
+            }
+            if let Err(e) = engine.device.parse::<DeviceKind>() {
+                return Err(invalid(format!("engine[{i}].device"), e.to_string()));
+            }
+            if let Err(e) = engine.kernels.parse::<Kernels>() {
+                return Err(invalid(format!("engine[{i}].kernels"), e.to_string()));
             }
             if !(engine.rtt_ms.is_finite() && engine.rtt_ms >= 0.0) {
                 return Err(invalid(
@@ -703,6 +731,9 @@ mod tests {
             [[engine]]
             model = "builtin:tiny"
             instances = 2
+            device = "cpu"
+            kernels = "portable"
+            threads = 1
             [[engine]]
             model = "ckpt/model.safetensors"
             tier = "cloud"
@@ -730,6 +761,19 @@ mod tests {
             "relative checkpoint paths resolve against the config file's directory"
         );
         assert_eq!(c.engines[0].model, "builtin:tiny");
+        assert_eq!(
+            c.engines[0].options().unwrap(),
+            EngineOptions {
+                device: DeviceKind::Cpu,
+                kernels: Kernels::Portable,
+                threads: 1
+            }
+        );
+        assert_eq!(
+            c.engines[1].options().unwrap(),
+            EngineOptions::default(),
+            "device, kernels and threads default to the engine crate's defaults"
+        );
         assert_eq!(
             c.tls.cert.as_deref(),
             Some(Path::new("/etc/kairos/cert.pem"))
@@ -794,6 +838,9 @@ mod tests {
             ("[limits]\nmax_samples = 0\n", "limits.max_samples"),
             ("[[engine]]\nrtt_ms = -1\n", "engine[0].rtt_ms"),
             ("[[engine]]\nrtt_ms = 5\n", "engine[0].rtt_ms"),
+            ("[[engine]]\ndevice = \"gpu\"\n", "engine[0].device"),
+            ("[[engine]]\ndevice = \"cuda:x\"\n", "engine[0].device"),
+            ("[[engine]]\nkernels = \"mkl\"\n", "engine[0].kernels"),
         ];
         for (text, key) in cases {
             let err = Config::parse(text, Path::new("k.toml")).unwrap_err();

@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::config::{Config, DEFAULT_ROBOT, PluginConfig};
+use crate::config::{Config, DEFAULT_ROBOT, EngineConfig, PluginConfig};
 use crate::pool::{BuildEvent, EnginePool, build_pool};
 use crate::transport::launch::{Policies, RunningServer, ServerReport, start};
 
@@ -29,6 +29,15 @@ pub struct ServeArgs {
     /// Data directory, overriding the file's `data_dir`.
     #[arg(long)]
     pub data_dir: Option<PathBuf>,
+    /// The engine's model (`builtin`, `builtin:smolvla-random`, or a checkpoint directory),
+    /// overriding the file's. Its profile is then measured at start. With several `[[engine]]`
+    /// tables in the file, set it there instead.
+    #[arg(long)]
+    pub model: Option<String>,
+    /// The engine's device (`cpu`, `cuda`, `cuda:N`), overriding the file's; same rules as
+    /// `--model`. CUDA needs a `kairos` built with `--features cuda`.
+    #[arg(long)]
+    pub device: Option<String>,
     /// A horizon-policy plugin (`.wasm` component), registered under its file stem and made
     /// the default horizon policy; robots may still select another by name.
     #[arg(long, value_name = "FILE.wasm")]
@@ -64,6 +73,27 @@ pub fn config(args: &ServeArgs) -> anyhow::Result<Config> {
     }
     if let Some(dir) = &args.data_dir {
         config.data_dir = dir.clone();
+    }
+    if args.model.is_some() || args.device.is_some() {
+        if config.engines.len() > 1 {
+            anyhow::bail!(
+                "--model and --device configure the one engine, but the file lists {} \
+                 [[engine]] tables: set `model` and `device` in each of them instead",
+                config.engines.len()
+            );
+        }
+        if config.engines.is_empty() {
+            config.engines.push(EngineConfig::default());
+        }
+        let engine = &mut config.engines[0];
+        if let Some(model) = &args.model {
+            engine.model = model.clone();
+        }
+        if let Some(device) = &args.device {
+            engine.device = device.clone();
+        }
+        // A profile file describes one model on one device.
+        engine.profile = None;
     }
     if let Some(file) = &args.horizon_plugin {
         let plugin = PluginConfig::file(file);
@@ -298,5 +328,57 @@ mod tests {
         })
         .unwrap_err();
         assert!(format!("{twice:#}").contains("listed twice"), "{twice:#}");
+    }
+
+    #[test]
+    fn model_and_device_flags_configure_the_one_engine() {
+        let dir = tempfile::tempdir().unwrap();
+        let one = dir.path().join("one.toml");
+        std::fs::write(
+            &one,
+            "[[engine]]\nmodel = \"builtin\"\nprofile = \"p.json\"\nthreads = 1\n",
+        )
+        .unwrap();
+        let resolved = config(&ServeArgs {
+            config: Some(one),
+            model: Some("builtin:smolvla-random".into()),
+            device: Some("cuda:1".into()),
+            ..ServeArgs::default()
+        })
+        .unwrap();
+        let engine = &resolved.engines[0];
+        assert_eq!(engine.model, "builtin:smolvla-random");
+        assert_eq!(engine.device, "cuda:1");
+        assert_eq!(engine.threads, 1, "the file's other settings stay");
+        assert_eq!(engine.profile, None, "a profile is per model and device");
+
+        // No [[engine]] in the file: the flags configure the default engine.
+        let resolved = config(&ServeArgs {
+            device: Some("cpu".into()),
+            ..ServeArgs::default()
+        })
+        .unwrap();
+        assert_eq!(resolved.engines.len(), 1);
+        assert_eq!(resolved.engines[0].model, "builtin");
+
+        let bad = config(&ServeArgs {
+            device: Some("tpu".into()),
+            ..ServeArgs::default()
+        })
+        .unwrap_err();
+        assert!(format!("{bad:#}").contains("engine[0].device"), "{bad:#}");
+
+        let two = dir.path().join("two.toml");
+        std::fs::write(&two, "[[engine]]\n[[engine]]\ntier = \"cloud\"\n").unwrap();
+        let ambiguous = config(&ServeArgs {
+            config: Some(two),
+            model: Some("builtin".into()),
+            ..ServeArgs::default()
+        })
+        .unwrap_err();
+        assert!(
+            ambiguous.to_string().contains("2 [[engine]] tables"),
+            "{ambiguous}"
+        );
     }
 }

@@ -96,19 +96,20 @@ pub fn build_pool(
     } else {
         engines
     };
-    let options = EngineOptions::default();
     let mut instances: Vec<Arc<dyn EngineInstance>> = Vec::new();
     for (index, config) in engines.iter().enumerate() {
         progress(BuildEvent::Loading {
             index,
             model: config.model.clone(),
         });
+        let failed = |source| PoolConfigError::Model {
+            index,
+            model: config.model.clone(),
+            source,
+        };
+        let options = config.options().map_err(failed)?;
         let model: Arc<dyn ActionModel> = kairos_engine::resolve_model(&config.model, &options)
-            .map_err(|source| PoolConfigError::Model {
-                index,
-                model: config.model.clone(),
-                source,
-            })?
+            .map_err(failed)?
             .into();
         let mut profile = match &config.profile {
             Some(path) => read_profile(index, path)?,
@@ -287,5 +288,35 @@ mod tests {
         }];
         let err = build_pool(&bad, |_| {}).unwrap_err();
         assert!(err.to_string().contains("builtin:nope"), "{err}");
+    }
+
+    #[test]
+    fn device_kernels_and_threads_reach_the_engine() {
+        let engines = [EngineConfig {
+            kernels: "portable".into(),
+            threads: 1,
+            profile_max_batch: 1,
+            ..EngineConfig::default()
+        }];
+        let pool = build_pool(&engines, |_| {}).unwrap();
+        let device = &pool.specs()[0].profile.device;
+        assert!(
+            device.contains("Portable") && device.contains("1 threads"),
+            "the profile measured at start names the kernels it ran: {device}"
+        );
+    }
+
+    #[cfg(not(feature = "cuda"))]
+    #[test]
+    fn cuda_without_the_feature_is_a_clear_error() {
+        let engines = [EngineConfig {
+            device: "cuda:0".into(),
+            ..EngineConfig::default()
+        }];
+        let err = build_pool(&engines, |_| {}).unwrap_err().to_string();
+        assert!(
+            err.contains("engine[0]") && err.contains("--features cuda"),
+            "{err}"
+        );
     }
 }
