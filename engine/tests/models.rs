@@ -12,6 +12,15 @@ use kairos_engine::{
 
 /// A narrower flow head than the default (test time), same chunk, steps and I/O shapes.
 fn small_head(kernels: Kernels) -> FlowHead {
+    small_head_with(&EngineOptions {
+        kernels,
+        threads: 2,
+        ..Default::default()
+    })
+}
+
+/// [`small_head`] with any options (same seed, so the same weights).
+fn small_head_with(options: &EngineOptions) -> FlowHead {
     let config = FlowHeadConfig {
         hidden: 128,
         layers: 2,
@@ -20,16 +29,7 @@ fn small_head(kernels: Kernels) -> FlowHead {
         token_dim: 64,
         ..Default::default()
     };
-    FlowHead::random(
-        config,
-        7,
-        &EngineOptions {
-            kernels,
-            threads: 2,
-            ..Default::default()
-        },
-    )
-    .unwrap()
+    FlowHead::random(config, 7, options).unwrap()
 }
 
 fn image(seed: u8, side: usize) -> ImageInput {
@@ -164,6 +164,34 @@ fn flow_head_fast_and_candle_agree() {
             .fold(0.0, f32::max);
         assert!(diff < 1e-4, "fast vs candle differ by {diff}");
     }
+}
+
+/// The flow head on the first GPU (Candle's CUDA kernels) against the fast CPU kernels, and its
+/// batches against single requests. Compiled by `scripts/check-cuda-build.sh`; runs with
+/// `cargo test -p kairos-engine --features cuda` on a machine with a GPU.
+#[cfg(feature = "cuda")]
+#[test]
+fn flow_head_on_cuda_matches_the_cpu() {
+    let cuda = small_head_with(&EngineOptions {
+        device: kairos_engine::DeviceKind::Cuda(0),
+        kernels: Kernels::Auto,
+        threads: 0,
+    });
+    let reqs = requests(8);
+    let on_gpu = cuda.generate(&reqs).unwrap();
+    let on_cpu = small_head(Kernels::Fast).generate(&reqs).unwrap();
+    for (g, c) in on_gpu.iter().zip(&on_cpu) {
+        assert_eq!(g.noise, c.noise, "the noise is drawn on the host");
+        assert_updates_sum_to_chunk(g);
+        let diff = g
+            .actions
+            .iter()
+            .zip(&c.actions)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max);
+        assert!(diff < 1e-4, "cuda vs cpu differ by {diff}");
+    }
+    batch_matches_singles(&cuda, false);
 }
 
 #[test]

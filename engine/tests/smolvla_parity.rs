@@ -22,7 +22,7 @@ use std::path::PathBuf;
 
 use kairos_engine::smolvla::{ExpertInput, PrefixKv, SmolVlaExpert};
 use kairos_engine::weights::Checkpoint;
-use kairos_engine::{EngineOptions, Kernels};
+use kairos_engine::{DeviceKind, EngineOptions, Kernels};
 
 fn golden_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/golden/smolvla_small")
@@ -118,12 +118,22 @@ fn floor_of(values: &[f32]) -> f32 {
     64.0 * f32::EPSILON * values.iter().fold(0.0f32, |m, v| m.max(v.abs()))
 }
 
-fn check(kernels: Kernels) {
-    let options = EngineOptions {
+/// The options of a CPU test: `kernels` on two threads.
+fn cpu(kernels: Kernels) -> EngineOptions {
+    EngineOptions {
+        device: DeviceKind::Cpu,
         kernels,
         threads: 2,
-        ..Default::default()
-    };
+    }
+}
+
+/// What the tests name a run by, e.g. `Cpu/Fast`.
+fn label(options: &EngineOptions) -> String {
+    format!("{:?}/{:?}", options.device, options.kernels)
+}
+
+fn check(options: EngineOptions) {
+    let kernels = label(&options);
     let expert = SmolVlaExpert::load(&golden_dir(), &options).unwrap();
     let g = load_golden(&expert);
     let d = expert.dims().clone();
@@ -132,7 +142,7 @@ fn check(kernels: Kernels) {
     let emb = expert.embed_state(&g.state).unwrap().concat();
     assert!(
         max_abs_diff(&emb, &g.state_emb) <= 1e-5,
-        "{kernels:?}: state_proj differs"
+        "{kernels}: state_proj differs"
     );
 
     let inputs: Vec<ExpertInput<'_>> = g
@@ -162,52 +172,59 @@ fn check(kernels: Kernels) {
     let dv64 = max_abs_diff(&velocities, &g.velocities_f64);
     let da64 = max_abs_diff(&actions, &g.actions_f64);
     println!(
-        "{kernels:?}: |v - lerobot| {dv:.2e} (tol {tol_v:.2e}), |x - lerobot| {da:.2e} (tol {tol_a:.2e}); \
+        "{kernels}: |v - lerobot| {dv:.2e} (tol {tol_v:.2e}), |x - lerobot| {da:.2e} (tol {tol_a:.2e}); \
          vs f64: {dv64:.2e} / {da64:.2e} (lerobot's own: {:.2e} / {:.2e})",
         g.err_velocity, g.err_actions
     );
     assert!(
         dv <= tol_v,
-        "{kernels:?}: velocities differ from LeRobot by {dv}"
+        "{kernels}: velocities differ from LeRobot by {dv}"
     );
-    assert!(
-        da <= tol_a,
-        "{kernels:?}: chunk differs from LeRobot by {da}"
-    );
+    assert!(da <= tol_a, "{kernels}: chunk differs from LeRobot by {da}");
     assert!(
         dv64 <= (4.0 * g.err_velocity).max(tol_v),
-        "{kernels:?}: velocity error vs f64 {dv64}"
+        "{kernels}: velocity error vs f64 {dv64}"
     );
     assert!(
         da64 <= (4.0 * g.err_actions).max(tol_a),
-        "{kernels:?}: chunk error vs f64 {da64}"
+        "{kernels}: chunk error vs f64 {da64}"
     );
 }
 
 #[test]
 fn fast_kernels_match_lerobot() {
-    check(Kernels::Fast);
+    check(cpu(Kernels::Fast));
 }
 
 #[test]
 fn portable_kernels_match_lerobot() {
-    check(Kernels::Portable);
+    check(cpu(Kernels::Portable));
 }
 
 #[test]
 fn candle_matches_lerobot() {
-    check(Kernels::Candle);
+    check(cpu(Kernels::Candle));
+}
+
+/// Candle on the first GPU. The same f32 tolerance holds: Candle keeps cuBLAS's f32 GEMMs at full
+/// precision unless told otherwise (no TF32), so only the summation order differs. Compiled by
+/// `scripts/check-cuda-build.sh`; runs with `cargo test -p kairos-engine --features cuda` on a
+/// machine with a GPU.
+#[cfg(feature = "cuda")]
+#[test]
+fn cuda_matches_lerobot() {
+    check(EngineOptions {
+        device: DeviceKind::Cuda(0),
+        kernels: Kernels::Candle,
+        threads: 0,
+    });
 }
 
 /// LeRobot's batch has prefixes of 21, 16 and 12 valid tokens (padded to 21): each row must get
 /// what it gets alone. The fast kernels drop padding and compute every row in a fixed order, so
 /// they agree bit for bit; Candle pads and masks like LeRobot, so it agrees to rounding.
-fn batch_equals_singles(kernels: Kernels, exact: bool) {
-    let options = EngineOptions {
-        kernels,
-        threads: 2,
-        ..Default::default()
-    };
+fn batch_equals_singles(options: EngineOptions, exact: bool) {
+    let kernels = label(&options);
     let expert = SmolVlaExpert::load(&golden_dir(), &options).unwrap();
     let g = load_golden(&expert);
     let inputs: Vec<ExpertInput<'_>> = g
@@ -226,11 +243,11 @@ fn batch_equals_singles(kernels: Kernels, exact: bool) {
             .unwrap()
             .remove(0);
         if exact {
-            assert_eq!(b, &single, "{kernels:?}");
+            assert_eq!(b, &single, "{kernels}");
         } else {
             assert!(
                 max_abs_diff(&b.velocities, &single.velocities) < 1e-5,
-                "{kernels:?}"
+                "{kernels}"
             );
         }
     }
@@ -238,10 +255,23 @@ fn batch_equals_singles(kernels: Kernels, exact: bool) {
 
 #[test]
 fn fast_batch_equals_singles() {
-    batch_equals_singles(Kernels::Fast, true);
+    batch_equals_singles(cpu(Kernels::Fast), true);
 }
 
 #[test]
 fn candle_batch_equals_singles() {
-    batch_equals_singles(Kernels::Candle, false);
+    batch_equals_singles(cpu(Kernels::Candle), false);
+}
+
+#[cfg(feature = "cuda")]
+#[test]
+fn cuda_batch_equals_singles() {
+    batch_equals_singles(
+        EngineOptions {
+            device: DeviceKind::Cuda(0),
+            kernels: Kernels::Candle,
+            threads: 0,
+        },
+        false,
+    );
 }
