@@ -2,8 +2,9 @@
 # Compiles the `cuda` feature on a machine without a GPU or a system CUDA toolkit.
 #
 # NVIDIA publishes the CUDA compiler on PyPI; this script installs a pinned set of those wheels
-# into .venv-cuda/ (nvcc, cicc/NVVM, the runtime and CCCL headers) and runs `cargo check` of the
-# `kairos` server with `--features cuda`. That builds Candle's CUDA kernels with nvcc (PTX for
+# into .venv-cuda/ (nvcc, cicc/NVVM, the runtime and CCCL headers) and runs `cargo clippy` (a
+# `cargo check` plus the lints CI applies) of the engine and the `kairos` server with
+# `--features cuda`. That builds Candle's CUDA kernels with nvcc (PTX for
 # every op, and the statically compiled MoE/GGUF kernels for one architecture) and type-checks
 # Candle's CUDA backend and ours against them. It proves the feature compiles; it runs nothing on
 # a GPU, and a machine with a GPU should still run the tests with the feature.
@@ -40,6 +41,6 @@ export PATH="$CUDA_HOME/bin:$PATH" CUDA_PATH="$CUDA_HOME" CUDA_ROOT="$CUDA_HOME"
 export CUDA_COMPUTE_CAP="${CUDA_COMPUTE_CAP:-90}" CUDARC_CUDA_VERSION=13040
 nvcc --version | tail -2
 
-cargo check --locked -p kairos-engine -p kairos-server --features cuda --all-targets \
-    --target-dir "${CUDA_CHECK_TARGET_DIR:-target/cuda-check}" "$@"
+cargo clippy --locked -p kairos-engine -p kairos-server --features cuda --all-targets \
+    --target-dir "${CUDA_CHECK_TARGET_DIR:-target/cuda-check}" "$@" -- -D warnings
 echo "the cuda feature compiles (nvcc $(nvcc --version | grep -o 'release [0-9.]*'), sm_$CUDA_COMPUTE_CAP)"
