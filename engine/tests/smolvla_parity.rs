@@ -127,6 +127,16 @@ fn cpu(kernels: Kernels) -> EngineOptions {
     }
 }
 
+/// The options of a GPU test: Candle on the first CUDA device.
+#[cfg(feature = "cuda")]
+fn cuda() -> EngineOptions {
+    EngineOptions {
+        device: DeviceKind::Cuda(0),
+        kernels: Kernels::Candle,
+        threads: 0,
+    }
+}
+
 /// What the tests name a run by, e.g. `Cpu/Fast`.
 fn label(options: &EngineOptions) -> String {
     format!("{:?}/{:?}", options.device, options.kernels)
@@ -213,11 +223,7 @@ fn candle_matches_lerobot() {
 #[cfg(feature = "cuda")]
 #[test]
 fn cuda_matches_lerobot() {
-    check(EngineOptions {
-        device: DeviceKind::Cuda(0),
-        kernels: Kernels::Candle,
-        threads: 0,
-    });
+    check(cuda());
 }
 
 /// LeRobot's batch has prefixes of 21, 16 and 12 valid tokens (padded to 21): each row must get
@@ -266,12 +272,5 @@ fn candle_batch_equals_singles() {
 #[cfg(feature = "cuda")]
 #[test]
 fn cuda_batch_equals_singles() {
-    batch_equals_singles(
-        EngineOptions {
-            device: DeviceKind::Cuda(0),
-            kernels: Kernels::Candle,
-            threads: 0,
-        },
-        false,
-    );
+    batch_equals_singles(cuda(), false);
 }
