@@ -6,16 +6,21 @@
 //! reply's `policy` field), trims the chunk to `H` actions of sample 0, and builds the `Reply`.
 //! The policy object comes from the [`HorizonRegistry`], so native policies and WASM plugins are
 //! called the same way.
+//!
+//! Every call here may block (a plugin waits for its sandbox up to its deadline), so the driver
+//! calls [`ActionManager::answer_batch`] on tokio's blocking pool, never on a runtime worker.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use kairos_engine::ActionChunk;
-use kairos_sdk::protocol::{Reply, Tensor, Timing};
+use kairos_sdk::protocol::{ErrorReply, Reply, Tensor, Timing};
 
 use crate::horizon::{
     ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams, validate_horizon,
 };
 use crate::registry::{Factory, HorizonRegistry};
+use crate::scheduler::RequestId;
+use crate::validation::RequestError;
 
 /// The horizon policy a round asked for, already built (its parameters validated).
 pub struct RoundPolicy {
@@ -247,6 +252,56 @@ impl ActionManager {
                 fallback,
             }),
         }
+    }
+}
+
+/// One round of a batch whose chunk is being generated: what choosing its horizon needs.
+#[derive(Debug)]
+pub struct HorizonJob {
+    /// The request.
+    pub request: RequestId,
+    /// The client's task id.
+    pub task: u64,
+    /// The client's round id.
+    pub round: u64,
+    /// The round's horizon policy.
+    pub policy: RoundPolicy,
+    /// Actions per second the robot executes at.
+    pub control_hz: f32,
+    /// Answered rounds of the task before this one.
+    pub round_index: u64,
+    /// Horizons of the task's most recent rounds, oldest first.
+    pub recent_horizons: Vec<u32>,
+}
+
+impl ActionManager {
+    /// The answer to each round of a generated batch: its horizon policy (or the fallback) on its
+    /// chunk, then the trimmed reply. `jobs` and `chunks` pair up in order; a round without a
+    /// chunk fails. Blocking: runs every round's policy in turn on the calling thread.
+    pub fn answer_batch(
+        &self,
+        jobs: Vec<HorizonJob>,
+        chunks: Vec<ActionChunk>,
+    ) -> Vec<(RequestId, Result<Reply, ErrorReply>)> {
+        let mut chunks = chunks.into_iter();
+        jobs.into_iter()
+            .map(|mut job| {
+                let Some(chunk) = chunks.next() else {
+                    let error = RequestError::Internal("the engine returned no chunk".into());
+                    return (job.request, Err(ErrorReply::from(&error)));
+                };
+                let context = RoundContext {
+                    control_hz: job.control_hz,
+                    round_index: job.round_index,
+                    recent_horizons: &job.recent_horizons,
+                };
+                let answer = self
+                    .choose(&mut job.policy, &chunk, context)
+                    .map(|choice| build_reply(job.task, job.round, &chunk, &choice))
+                    .map_err(|e| ErrorReply::from(&RequestError::Internal(e.to_string())));
+                (job.request, answer)
+            })
+            .collect()
     }
 }
 

@@ -1,8 +1,10 @@
 //! Time as the pure logic sees it.
 //!
-//! The scheduler, the task lifecycle and the simulator never read a clock. The live driver
-//! converts `std::time::Instant` into [`Timestamp`] against a per-process epoch; the simulator
-//! advances a virtual `Timestamp` from event to event. Both then call the same code.
+//! The scheduler, the task lifecycle and the simulator never read a clock. The live server reads
+//! tokio's clock through a [`Clock`] and converts it into [`Timestamp`]s against a per-run epoch;
+//! the simulator advances a virtual `Timestamp` from event to event. Both then call the same code.
+//! Because [`Clock`] reads `tokio::time::Instant`, a test runtime started paused
+//! (`#[tokio::test(start_paused = true)]`) runs the live server's logic in virtual time too.
 
 use std::fmt;
 use std::ops::{Add, AddAssign, Sub};
@@ -16,6 +18,10 @@ pub struct Timestamp(u64);
 impl Timestamp {
     /// The epoch itself.
     pub const ZERO: Timestamp = Timestamp(0);
+
+    /// The end of time, where saturating arithmetic stops: a deadline here never comes (for
+    /// example an idle timeout of `Duration::MAX`).
+    pub const MAX: Timestamp = Timestamp(u64::MAX);
 
     /// A timestamp `micros` microseconds after the epoch.
     pub const fn from_micros(micros: u64) -> Self {
@@ -50,6 +56,45 @@ impl Timestamp {
     /// `self - d`, clamped at the epoch.
     pub fn saturating_sub(self, d: Duration) -> Timestamp {
         Timestamp(self.0.saturating_sub(duration_micros(d)))
+    }
+}
+
+/// The server clock: [`Timestamp`]s are microseconds since the clock's epoch, read from tokio's
+/// clock. Read it on a runtime thread, or on a thread that entered the runtime
+/// (`Handle::enter`): elsewhere tokio falls back to the system's monotonic clock, which a paused
+/// test runtime does not control.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Clock {
+    epoch: tokio::time::Instant,
+}
+
+impl Clock {
+    /// A clock whose epoch is now.
+    pub fn start() -> Clock {
+        Clock {
+            epoch: tokio::time::Instant::now(),
+        }
+    }
+
+    /// Now on the server clock.
+    pub fn now(&self) -> Timestamp {
+        self.at(tokio::time::Instant::now())
+    }
+
+    /// `instant` on the server clock (the epoch for instants before it).
+    pub fn at(&self, instant: tokio::time::Instant) -> Timestamp {
+        Timestamp::from_micros(duration_micros(
+            instant.saturating_duration_since(self.epoch),
+        ))
+    }
+
+    /// The instant of a server timestamp, or `None` for [`Timestamp::MAX`] and anything else
+    /// beyond what the platform's instants can represent (a deadline that never comes).
+    pub fn instant(&self, t: Timestamp) -> Option<tokio::time::Instant> {
+        if t == Timestamp::MAX {
+            return None;
+        }
+        self.epoch.checked_add(Duration::from_micros(t.as_micros()))
     }
 }
 
@@ -103,5 +148,16 @@ mod tests {
         );
         assert_eq!(Timestamp::from_secs_f64(-1.0), Timestamp::ZERO);
         assert_eq!(Timestamp::from_secs_f64(1.5).as_micros(), 1_500_000);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn the_clock_follows_tokio_time() {
+        let clock = Clock::start();
+        assert_eq!(clock.now(), Timestamp::ZERO);
+        tokio::time::advance(Duration::from_millis(1500)).await;
+        assert_eq!(clock.now().as_micros(), 1_500_000);
+        let later = Timestamp::from_micros(2_000_000);
+        assert_eq!(clock.at(clock.instant(later).unwrap()), later);
+        assert_eq!(clock.instant(Timestamp::ZERO + Duration::MAX), None);
     }
 }

@@ -37,6 +37,8 @@ struct Batch {
     engine: EngineId,
     dispatched_at: Timestamp,
     started_at: Option<Timestamp>,
+    /// `G.end`, when reported by `handle_generation_ended` before the outcomes.
+    generated_at: Option<Timestamp>,
     entries: Vec<BatchEntry>,
 }
 
@@ -349,6 +351,7 @@ impl Scheduler {
                     engine: EngineId(engine_index),
                     dispatched_at: now,
                     started_at: None,
+                    generated_at: None,
                     entries,
                 },
             );
@@ -451,9 +454,32 @@ impl Scheduler {
         }
     }
 
-    /// The batch ended at `now` (`G.end`); its engine instance is idle again. A request of the
-    /// batch missing from `outcomes` counts as failed; entries for requests not in the batch are
-    /// ignored. A batch never reported started is taken to have started when it was dispatched.
+    /// The batch's forward pass ended at `now` (`G.end`) and its engine instance is idle again,
+    /// while the horizons of its rounds are still being chosen. Optional: a driver that reports
+    /// it lets the engine take the next batch during the horizon policies; the batch's outcomes
+    /// still follow through `handle_batch_finished`, which then takes `G.end` from here.
+    pub fn handle_generation_ended(&mut self, now: Timestamp, batch: BatchId) {
+        let Some(b) = self.batches.get_mut(&batch) else {
+            self.counters.ignored_events += 1;
+            return;
+        };
+        if b.generated_at.is_some() {
+            self.counters.ignored_events += 1;
+            return;
+        }
+        b.generated_at = Some(now);
+        if let Some(engine) = self.engines.get_mut(b.engine.0)
+            && engine.busy == Some(batch)
+        {
+            engine.busy = None;
+        }
+    }
+
+    /// The batch's outcomes are known at `now`. `G.end` is the time given to
+    /// `handle_generation_ended` if it was reported, else `now`; the engine instance is idle from
+    /// then. A request of the batch missing from `outcomes` counts as failed; entries for
+    /// requests not in the batch are ignored. A batch never reported started is taken to have
+    /// started when it was dispatched.
     pub fn handle_batch_finished(
         &mut self,
         now: Timestamp,
@@ -469,6 +495,7 @@ impl Scheduler {
         {
             engine.busy = None;
         }
+        let now = b.generated_at.unwrap_or(now);
         let started = b.started_at.unwrap_or(b.dispatched_at);
         let generation = now.saturating_since(started);
         for entry in &b.entries {
@@ -547,6 +574,12 @@ impl Scheduler {
     /// The next time `handle_timeout` has something to do: the earliest idle-expiry deadline.
     pub fn poll_timeout(&self) -> Option<Timestamp> {
         self.tasks.next_expiry()
+    }
+
+    /// The tasks `handle_timeout(now)` would end, earliest deadline first; so a driver can read
+    /// their records before they go.
+    pub fn expiring(&self, now: Timestamp) -> Vec<TaskId> {
+        self.tasks.expired(now)
     }
 
     /// Ends every task idle (no request pending or running) for `task_idle_timeout` as `Expired`.

@@ -470,6 +470,9 @@ impl<'a> Sim<'a> {
         let Some(flight) = self.batches.remove(&batch) else {
             return Ok(());
         };
+        // Generation ends now; the horizon policies take no virtual time, so the outcomes follow
+        // at the same instant (the live driver reports both, with the policies in between).
+        self.sched.handle_generation_ended(now, BatchId(batch));
         let one_way = self.one_way();
         let mut outcomes = Vec::with_capacity(flight.requests.len());
         for &(request, inst) in &flight.requests {

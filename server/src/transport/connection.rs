@@ -15,6 +15,7 @@ use tokio::task::JoinSet;
 use super::ServerContext;
 use crate::driver::RefetchAsk;
 use crate::scheduler::RobotId;
+use crate::time::Timestamp;
 use crate::validation::{ClockEstimator, ClockMap, RequestError};
 
 /// How long the server waits, after a stream's final frame, for the client to acknowledge it or
@@ -198,7 +199,7 @@ async fn stream(
     mut recv: RecvStream,
 ) {
     let message = read_message(&mut recv, context.limits()).await;
-    let received = std::time::Instant::now();
+    let received = context.driver.clock().now();
     let outcome = match message {
         Ok(Some(Message::Submit(submit))) => {
             round(&peer, &context, submit, received, &mut send, &mut recv).await
@@ -246,7 +247,7 @@ async fn round(
     peer: &Peer,
     context: &ServerContext,
     submit: kairos_sdk::protocol::Submit,
-    received: std::time::Instant,
+    received: Timestamp,
     send: &mut SendStream,
     recv: &mut RecvStream,
 ) -> Result<(), RequestError> {

@@ -193,7 +193,7 @@ pub async fn start(
             refetch_timeout: config.scheduler.refetch_timeout(),
             ..DriverConfig::default()
         },
-        stopped(stop_rx.clone()),
+        stop_rx.clone(),
     );
     let model = ModelInfo {
         name: spec.name.clone(),

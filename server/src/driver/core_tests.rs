@@ -1,0 +1,305 @@
+//! The driver core alone: events in, effects out, time as an argument. No runtime, no threads.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use kairos_engine::ActionModel;
+use kairos_sdk::protocol::{ErrorCode, Limits, Observation, Submit, Tensor};
+
+use super::core::{BatchJob, DriverCore, Effect};
+use super::*;
+use crate::action::ActionManager;
+use crate::pool::test_model::LinearFlow;
+use crate::registry::native_horizon_policies;
+use crate::scheduler::fifo::Fifo;
+use crate::scheduler::{EngineId, EngineSpec, RequestId, Scheduler, SchedulerConfig, Tier};
+use crate::validation::{ValidSubmit, Validator};
+
+struct Bench {
+    core: DriverCore,
+    model: LinearFlow,
+    validator: Validator,
+    actions: Arc<ActionManager>,
+    /// The robot's clock equals the server's.
+    clock: ClockMap,
+}
+
+fn ms(ms: u64) -> Timestamp {
+    Timestamp::from_micros(ms * 1_000)
+}
+
+/// A core over one engine instance taking batches of one.
+fn bench(stale_after: Duration, task_idle_timeout: Duration) -> Bench {
+    let model = LinearFlow::new();
+    let engine = EngineSpec {
+        name: "e0".into(),
+        tier: Tier::Edge,
+        profile: kairos_engine::EngineProfile {
+            model: model.spec.name.clone(),
+            device: "cpu".into(),
+            points: vec![kairos_engine::ProfilePoint {
+                batch: 1,
+                latency_ms: 1.0,
+            }],
+            max_batch: 1,
+        },
+        rtt: Duration::ZERO,
+    };
+    let config = SchedulerConfig {
+        stale_after,
+        task_idle_timeout,
+        ..SchedulerConfig::default()
+    };
+    let scheduler = Scheduler::new(config, vec![engine], Box::new(Fifo::default()));
+    let natives = native_horizon_policies();
+    let actions = Arc::new(
+        ActionManager::new(
+            natives.clone(),
+            &natives,
+            "static",
+            [("h".to_string(), 2.0)].into(),
+        )
+        .unwrap(),
+    );
+    Bench {
+        core: DriverCore::new(scheduler, 16),
+        validator: Validator {
+            spec: model.spec.clone(),
+            limits: Limits::default(),
+        },
+        model,
+        actions,
+        clock: ClockMap::new(Timestamp::ZERO, 0, Duration::ZERO),
+    }
+}
+
+impl Bench {
+    fn valid(&self, robot: u32, task: u64, round: u64, at: Timestamp, state0: f32) -> ValidSubmit {
+        let at = at.as_micros();
+        let submit = Submit {
+            task,
+            round,
+            sent_at_us: at,
+            observation: Observation {
+                captured_at_us: at,
+                state: Tensor::from_f32(vec![3], &[state0, 0.0, 0.0]).unwrap(),
+                images: Vec::new(),
+                instruction: String::new(),
+            },
+            last_exec: None,
+            horizon: None,
+            remaining: None,
+            attempt: 0,
+        };
+        self.validator
+            .submit(submit, RobotId(robot), &self.actions, self.clock)
+            .unwrap()
+    }
+
+    fn effects(&mut self) -> Vec<Effect> {
+        std::iter::from_fn(|| self.core.poll_effect()).collect()
+    }
+
+    /// What the shell does with a batch, synchronously: the model, then the horizon policies.
+    fn answers(&self, job: BatchJob) -> Vec<(RequestId, RoundAnswer)> {
+        let chunks = self.model.generate(&job.inputs).unwrap();
+        self.actions.answer_batch(job.rounds, chunks)
+    }
+}
+
+fn only_batch(effects: Vec<Effect>) -> BatchJob {
+    let mut jobs: Vec<BatchJob> = effects
+        .into_iter()
+        .filter_map(|e| match e {
+            Effect::RunBatch(job) => Some(job),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(jobs.len(), 1, "one batch");
+    jobs.remove(0)
+}
+
+fn answers_of(effects: &[Effect]) -> Vec<(Vec<WaiterId>, &RoundAnswer)> {
+    effects
+        .iter()
+        .filter_map(|e| match e {
+            Effect::Answer { waiters, answer } => Some((waiters.clone(), answer)),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn the_engine_takes_the_next_batch_while_horizon_policies_run() {
+    let mut b = bench(Duration::from_secs(10), Duration::MAX);
+    let first = b.valid(0, 1, 0, ms(0), 1.0);
+    b.core.submit(ms(0), first, ms(0), WaiterId(1));
+    let job1 = only_batch(b.effects());
+    assert_eq!((job1.engine, job1.rounds.len()), (EngineId(0), 1));
+    let second = b.valid(1, 2, 0, ms(1), 2.0);
+    b.core.submit(ms(1), second, ms(1), WaiterId(2));
+    assert!(b.effects().is_empty(), "the only engine is busy");
+
+    // G.end of batch 1: the engine is idle, so task 2's round starts before batch 1's horizons
+    // are known.
+    b.core
+        .generation_ended(ms(10), job1.batch, Duration::from_millis(9));
+    let job2 = only_batch(b.effects());
+    assert_eq!(job2.rounds[0].task, 2);
+
+    let batch1 = job1.batch;
+    let answers1 = b.answers(job1);
+    b.core.batch_done(ms(15), batch1, answers1);
+    let effects = b.effects();
+    let answers = answers_of(&effects);
+    assert_eq!(answers.len(), 1);
+    assert_eq!(answers[0].0, vec![WaiterId(1)]);
+    let reply = answers[0].1.as_ref().unwrap();
+    assert_eq!((reply.task, reply.horizon), (1, 2));
+    assert_eq!(reply.timing.inference_us, 9_000);
+    assert_eq!(
+        reply.timing.total_us, 15_000,
+        "from the frame read to the reply"
+    );
+    assert_eq!(reply.timing.queue_us, 0);
+    // The lifecycle records G.end at the end of generation, not when the horizon was chosen.
+    let record = b.core.scheduler().task(TaskId(1)).unwrap();
+    let g = record.history().last().unwrap().generation;
+    assert_eq!((g.start, g.end), (ms(0), ms(10)));
+    assert_eq!(b.core.stats().replies, 1);
+}
+
+#[test]
+fn a_stale_round_is_refetched_through_its_newest_stream() {
+    let mut b = bench(Duration::ZERO, Duration::MAX);
+    // Task 1 holds the engine so task 2's round is queued when its stream reconnects.
+    let busy = b.valid(0, 1, 0, ms(0), 1.0);
+    b.core.submit(ms(0), busy, ms(0), WaiterId(1));
+    let busy_job = only_batch(b.effects());
+    let first = b.valid(0, 2, 0, ms(1), 2.0);
+    b.core.submit(ms(1), first, ms(1), WaiterId(2));
+    let resent = b.valid(0, 2, 0, ms(2), 2.0);
+    b.core.submit(ms(2), resent, ms(2), WaiterId(3));
+    assert_eq!(b.core.stats().attached, 1);
+    b.effects();
+
+    let busy_batch = busy_job.batch;
+    let busy_answers = b.answers(busy_job);
+    b.core
+        .generation_ended(ms(5), busy_batch, Duration::from_millis(5));
+    let effects = b.effects();
+    let ask = effects.iter().find_map(|e| match e {
+        Effect::Refetch {
+            batch,
+            request,
+            waiter,
+            age,
+        } => Some((*batch, *request, *waiter, *age)),
+        _ => None,
+    });
+    let (batch, request, waiter, age) = ask.expect("a re-fetch ask");
+    assert_eq!(waiter, WaiterId(3), "the newest stream is asked");
+    assert_eq!(
+        age,
+        Duration::from_millis(3),
+        "the re-sent observation is the queued one"
+    );
+    assert!(
+        !effects.iter().any(|e| matches!(e, Effect::RunBatch(_))),
+        "the batch waits for its re-fetch"
+    );
+    b.core.batch_done(ms(6), busy_batch, busy_answers);
+    b.effects();
+
+    b.core.refetched(ms(9), batch, request, None);
+    let job = only_batch(b.effects());
+    let answers = b.answers(job);
+    b.core.batch_done(ms(20), batch, answers);
+    let effects = b.effects();
+    let answers = answers_of(&effects);
+    assert_eq!(answers[0].0, vec![WaiterId(2), WaiterId(3)]);
+    let reply = answers[0].1.as_ref().unwrap();
+    assert_eq!(reply.timing.refetch_us, 4_000);
+    let stats = b.core.stats();
+    assert_eq!((stats.refetch_asked, stats.refetch_used), (1, 0));
+}
+
+#[test]
+fn the_timer_follows_the_idle_deadline_and_expiry_keeps_a_snapshot() {
+    let mut b = bench(Duration::from_secs(10), Duration::from_secs(60));
+    let submit = b.valid(0, 5, 0, ms(0), 1.0);
+    b.core.submit(ms(0), submit, ms(0), WaiterId(1));
+    let job = only_batch(b.effects());
+    let batch = job.batch;
+    let answers = b.answers(job);
+    b.core
+        .generation_ended(ms(4), batch, Duration::from_millis(4));
+    b.core.batch_done(ms(4), batch, answers);
+    let effects = b.effects();
+    let timers: Vec<_> = effects
+        .iter()
+        .filter_map(|e| match e {
+            Effect::SetTimer(t) => Some(*t),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(timers, vec![Some(ms(60_004))], "idle from the answer on");
+
+    // A timer that fires early expires nothing and is asked for again.
+    b.core.timeout(ms(30_000));
+    let effects = b.effects();
+    assert!(matches!(effects[..], [Effect::SetTimer(Some(t))] if t == ms(60_004)));
+    assert!(!b.core.snapshot(TaskId(5)).unwrap().ended);
+
+    b.core.timeout(ms(60_004));
+    assert!(
+        b.effects().is_empty(),
+        "no deadline left: no timer asked for"
+    );
+    let snapshot = b.core.snapshot(TaskId(5)).unwrap();
+    assert!(snapshot.ended);
+    assert_eq!(snapshot.rounds_completed, 1);
+    assert_eq!(snapshot.generated.get(&0), Some(&1));
+    assert_eq!(b.core.stats().tasks_ended, 1);
+}
+
+#[test]
+fn the_owner_comes_from_the_scheduler_and_a_draining_core_refuses_rounds() {
+    let mut b = bench(Duration::from_secs(10), Duration::MAX);
+    let submit = b.valid(0, 1, 0, ms(0), 1.0);
+    b.core.submit(ms(0), submit, ms(0), WaiterId(1));
+    let job = only_batch(b.effects());
+    let batch = job.batch;
+    let answers = b.answers(job);
+    b.core.batch_done(ms(3), batch, answers);
+    b.effects();
+    assert_eq!(b.core.snapshot(TaskId(1)).unwrap().owner, RobotId(0));
+
+    // The same round from another robot: refused by the scheduler's ownership check, not
+    // answered from the cache.
+    let other = b.valid(1, 1, 0, ms(4), 1.0);
+    b.core.submit(ms(4), other, ms(4), WaiterId(2));
+    let effects = b.effects();
+    let answers = answers_of(&effects);
+    assert_eq!(
+        answers[0].1.as_ref().unwrap_err().code,
+        ErrorCode::Forbidden
+    );
+    let own = b.valid(0, 1, 0, ms(5), 1.0);
+    b.core.submit(ms(5), own, ms(5), WaiterId(3));
+    let effects = b.effects();
+    assert!(
+        answers_of(&effects)[0].1.is_ok(),
+        "the owner gets the cached reply"
+    );
+
+    b.core.shut_down();
+    assert!(b.core.is_done(), "nothing in flight");
+    let late = b.valid(0, 1, 1, ms(6), 1.0);
+    b.core.submit(ms(6), late, ms(6), WaiterId(4));
+    let effects = b.effects();
+    assert_eq!(
+        answers_of(&effects)[0].1.as_ref().unwrap_err().code,
+        ErrorCode::ShuttingDown
+    );
+}

@@ -1,0 +1,121 @@
+//! The driver's running totals and latency summaries.
+
+use std::collections::VecDeque;
+
+use kairos_sdk::protocol::Timing;
+
+/// Running totals of the driver.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct DriverStats {
+    /// Rounds accepted by the scheduler.
+    pub accepted: u64,
+    /// Rounds refused (any reason).
+    pub refused: u64,
+    /// Re-sent rounds attached to the request already carrying them.
+    pub attached: u64,
+    /// Re-sent rounds answered from the reply cache.
+    pub cached_replies: u64,
+    /// Replies generated and sent.
+    pub replies: u64,
+    /// Rounds whose generation failed.
+    pub failed: u64,
+    /// Pending requests removed because every stream waiting for them went away.
+    pub cancelled: u64,
+    /// Pending requests replaced by a newer round of their task.
+    pub superseded: u64,
+    /// `FetchObservation`s asked of a round's stream.
+    pub refetch_asked: u64,
+    /// Fresh observations received in time and used.
+    pub refetch_used: u64,
+    /// Batches run.
+    pub batches: u64,
+    /// Tasks ended (explicitly or by expiry).
+    pub tasks_ended: u64,
+    /// Server-added latency of recent replies: `timing.total − timing.inference` (queueing
+    /// behind other batches included).
+    pub overhead: LatencySummary,
+    /// The part of `overhead` that is the server's own work, without waiting for an engine or a
+    /// re-fetched observation: from the `Submit` frame read to the scheduler accepting it
+    /// (validation, the driver's queue), plus from dispatch to the reply handed to the stream
+    /// (batch start, engine hand-off, horizon policy, trim, driver), less the forward pass.
+    pub processing: LatencySummary,
+}
+
+/// Percentiles of a latency over the most recent [`RECENT_LATENCIES`] replies, µs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LatencySummary {
+    /// Replies summarised.
+    pub count: u64,
+    /// Median.
+    pub p50_us: u64,
+    /// 99th percentile (nearest rank).
+    pub p99_us: u64,
+    /// Largest.
+    pub max_us: u64,
+}
+
+/// Replies the latency summaries cover.
+pub const RECENT_LATENCIES: usize = 1 << 16;
+
+impl LatencySummary {
+    /// Nearest-rank percentiles of `values`.
+    pub fn of(values: impl Iterator<Item = u64>) -> LatencySummary {
+        let mut sorted: Vec<u64> = values.collect();
+        if sorted.is_empty() {
+            return LatencySummary::default();
+        }
+        sorted.sort_unstable();
+        let rank = |p: f64| {
+            let index = ((p * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
+            sorted[index]
+        };
+        LatencySummary {
+            count: sorted.len() as u64,
+            p50_us: rank(0.50),
+            p99_us: rank(0.99),
+            max_us: sorted[sorted.len() - 1],
+        }
+    }
+}
+
+/// The latest [`RECENT_LATENCIES`] values of server-added latency.
+#[derive(Debug, Default)]
+pub(super) struct RecentLatencies {
+    /// `(overhead, processing)` per reply, µs.
+    values: VecDeque<(u64, u64)>,
+}
+
+impl RecentLatencies {
+    pub(super) fn record(&mut self, timing: &Timing, processing_us: u64) {
+        if self.values.len() >= RECENT_LATENCIES {
+            self.values.pop_front();
+        }
+        let overhead = timing.total_us.saturating_sub(timing.inference_us);
+        self.values.push_back((overhead, processing_us));
+    }
+
+    pub(super) fn summaries(&self) -> (LatencySummary, LatencySummary) {
+        (
+            LatencySummary::of(self.values.iter().map(|v| v.0)),
+            LatencySummary::of(self.values.iter().map(|v| v.1)),
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn latency_summary_uses_nearest_rank() {
+        let s = LatencySummary::of((1..=200).rev());
+        assert_eq!(
+            (s.count, s.p50_us, s.p99_us, s.max_us),
+            (200, 100, 198, 200)
+        );
+        assert_eq!(
+            LatencySummary::of(std::iter::empty()),
+            LatencySummary::default()
+        );
+    }
+}
