@@ -468,7 +468,13 @@ impl Scheduler {
             return;
         }
         b.generated_at = Some(now);
-        if let Some(engine) = self.engines.get_mut(b.engine.0)
+        let engine = b.engine;
+        self.release_engine(engine, batch);
+    }
+
+    /// The engine instance is idle, unless it already runs another batch than `batch`.
+    fn release_engine(&mut self, engine: EngineId, batch: BatchId) {
+        if let Some(engine) = self.engines.get_mut(engine.0)
             && engine.busy == Some(batch)
         {
             engine.busy = None;
@@ -490,11 +496,7 @@ impl Scheduler {
             self.counters.ignored_events += 1;
             return;
         };
-        if let Some(engine) = self.engines.get_mut(b.engine.0)
-            && engine.busy == Some(batch)
-        {
-            engine.busy = None;
-        }
+        self.release_engine(b.engine, batch);
         let now = b.generated_at.unwrap_or(now);
         let started = b.started_at.unwrap_or(b.dispatched_at);
         let generation = now.saturating_since(started);
