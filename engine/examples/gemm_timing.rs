@@ -78,8 +78,10 @@ fn fma_peak_gflops() -> f64 {
         }
         let n = 100_000_000;
         let t = thread_cpu_s();
-        // SAFETY: the example is only meaningful on AVX2 machines; it checks first.
-        let r = if std::arch::is_x86_feature_detected!("fma") {
+        let r = if std::arch::is_x86_feature_detected!("avx2")
+            && std::arch::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: `chains` needs AVX2 and FMA, both just detected on this CPU.
             unsafe { chains(n) }
         } else {
             0.0
