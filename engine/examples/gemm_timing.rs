@@ -57,6 +57,10 @@ fn main() {
 fn fma_peak_gflops() -> f64 {
     #[cfg(target_arch = "x86_64")]
     {
+        /// `n` rounds of 12 independent FMA chains.
+        ///
+        /// # Safety
+        /// Call only on a CPU with AVX2 and FMA.
         #[target_feature(enable = "avx2,fma")]
         fn chains(n: usize) -> f32 {
             use std::arch::x86_64::*;

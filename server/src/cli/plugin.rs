@@ -319,17 +319,8 @@ mod tests {
         command: PluginCommand,
     }
 
-    /// A file under `plugins/build` (built by `plugins/build.sh`, as CI does first).
     fn built(path: &str) -> String {
-        let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-            .join("../plugins/build")
-            .join(path);
-        assert!(
-            path.exists(),
-            "{} is missing: build the shipped plugins first with `bash plugins/build.sh`",
-            path.display()
-        );
-        path.display().to_string()
+        crate::plugin::testing::built(path).display().to_string()
     }
 
     fn plugin(args: &[&str]) -> anyhow::Result<()> {

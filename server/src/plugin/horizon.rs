@@ -466,21 +466,14 @@ impl HorizonPolicy for WasmHorizonPolicy {
 
 #[cfg(test)]
 mod tests {
-    use std::time::Duration;
-
     use super::*;
     use crate::horizon::ChunkView;
-    use crate::plugin::runtime::testing::shipped;
+    use crate::plugin::runtime::testing::{shipped, short_patience};
 
     #[test]
     fn a_stuck_worker_thread_is_abandoned_and_replaced() {
         // As `priority`'s test of the same name, for `choose`: one wrapper, one behaviour.
-        let options = PluginOptions {
-            deadline: Duration::from_millis(5),
-            instantiate_deadline: Duration::from_millis(50),
-            reload_poll: None,
-            ..PluginOptions::horizon()
-        };
+        let options = short_patience(PluginOptions::horizon());
         let plugin = HorizonPlugin::load(&shipped("threshold"), options).unwrap();
         // The C plugin runs inline; give its one pooled executor a worker thread, as a WASI
         // component gets.

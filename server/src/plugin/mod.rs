@@ -44,6 +44,8 @@ use std::time::Duration;
 pub use health::{FailureKind, PluginStats};
 pub use horizon::{HorizonPlugin, OwnedHorizonInput, WasmHorizonPolicy};
 pub use priority::WasmPriorityPolicy;
+#[cfg(test)]
+pub(crate) use runtime::testing;
 pub use runtime::{CallCost, CallFailure, LoadError, PluginMeta};
 
 /// Which world a plugin implements.

@@ -543,7 +543,7 @@ mod tests {
     use std::time::Duration;
 
     use super::*;
-    use crate::plugin::runtime::testing::shipped;
+    use crate::plugin::runtime::testing::{shipped, short_patience};
     use crate::scheduler::{PolicySpec, RemainingWork, RequestId, TaskId, build_policy};
 
     fn view(request: u64, arrived_us: u64) -> PendingView {
@@ -630,14 +630,7 @@ mod tests {
 
     #[test]
     fn a_stuck_worker_thread_is_abandoned_and_replaced_in_every_export() {
-        // Patience: 4 × 5 ms + 50 ms + 250 ms. The outcome does not depend on it: the blocked
-        // thread never answers before the test releases it.
-        let options = PluginOptions {
-            deadline: Duration::from_millis(5),
-            instantiate_deadline: Duration::from_millis(50),
-            reload_poll: None,
-            ..PluginOptions::priority()
-        };
+        let options = short_patience(PluginOptions::priority());
         let fallback = build_policy(&PolicySpec::named("fifo")).unwrap();
         let mut policy = WasmPriorityPolicy::load(
             &shipped("fifo"),

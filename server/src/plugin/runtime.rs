@@ -537,9 +537,10 @@ fn worker_patience(options: &PluginOptions) -> Duration {
 pub(crate) mod testing {
     use std::path::PathBuf;
     use std::sync::mpsc;
+    use std::time::Duration;
 
     use super::{Exec, World};
-    use crate::plugin::PluginSource;
+    use crate::plugin::{PluginOptions, PluginSource};
 
     impl<W: World> Exec<W> {
         /// Blocks this executor's worker thread as a host call that never returns would, until
@@ -562,16 +563,34 @@ pub(crate) mod testing {
         }
     }
 
-    /// A shipped plugin (`plugins/build.sh` builds them, as CI does first).
-    pub(crate) fn shipped(name: &str) -> PluginSource {
+    /// A file under `plugins/build` (`plugins/build.sh` builds the shipped plugins there, as
+    /// CI does first); a missing one fails the test.
+    pub(crate) fn built(path: &str) -> PathBuf {
         let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
             .join("../plugins/build")
-            .join(format!("{name}.wasm"));
+            .join(path);
         assert!(
             path.exists(),
             "{} is missing: build the shipped plugins first with `bash plugins/build.sh`",
             path.display()
         );
-        PluginSource::File(path)
+        path
+    }
+
+    /// `base` with a worker patience of 4 × 5 ms + 50 ms + 250 ms and no reload watcher, for
+    /// tests of stuck workers. Their outcome does not depend on the patience: a blocked thread
+    /// never answers before the test releases it; the patience only bounds how long they wait.
+    pub(crate) fn short_patience(base: PluginOptions) -> PluginOptions {
+        PluginOptions {
+            deadline: Duration::from_millis(5),
+            instantiate_deadline: Duration::from_millis(50),
+            reload_poll: None,
+            ..base
+        }
+    }
+
+    /// The shipped plugin `name`.
+    pub(crate) fn shipped(name: &str) -> PluginSource {
+        PluginSource::File(built(&format!("{name}.wasm")))
     }
 }
