@@ -76,7 +76,7 @@ check "$OUT/plas.wasm"
 check "$OUT/kairos.wasm"
 check "$OUT/srw.wasm"
 check "$OUT/fifo_v0_1.wasm"
-check "$OUT/kairos_py.wasm" --deadline-ms 2000 --memory-mib 256
+check "$OUT/kairos_py.wasm" --memory-mib 256
 # The author templates (sdk/guest/templates), so they never rot.
 KAIROS="$PWD/$KAIROS" bash sdk/guest/templates/c/build.sh "$OUT/templates" >/dev/null
 KAIROS="$PWD/$KAIROS" COMPONENTIZE_PY="$COMPONENTIZE_PY" \

@@ -57,6 +57,10 @@ fn main() {
 fn fma_peak_gflops() -> f64 {
     #[cfg(target_arch = "x86_64")]
     {
+        /// `n` rounds of 12 independent FMA chains.
+        ///
+        /// # Safety
+        /// Call only on a CPU with AVX2 and FMA.
         #[target_feature(enable = "avx2,fma")]
         fn chains(n: usize) -> f32 {
             use std::arch::x86_64::*;
@@ -78,8 +82,10 @@ fn fma_peak_gflops() -> f64 {
         }
         let n = 100_000_000;
         let t = thread_cpu_s();
-        // SAFETY: the example is only meaningful on AVX2 machines; it checks first.
-        let r = if std::arch::is_x86_feature_detected!("fma") {
+        let r = if std::arch::is_x86_feature_detected!("avx2")
+            && std::arch::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: `chains` needs AVX2 and FMA, both just detected on this CPU.
             unsafe { chains(n) }
         } else {
             0.0

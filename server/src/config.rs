@@ -155,7 +155,8 @@ pub struct PluginConfig {
     /// (horizon) or `kairos` (priority).
     #[serde(default)]
     pub fallback: Option<String>,
-    /// Longest a call may run, in ms; default 5 (horizon) or 50 (priority).
+    /// Longest a call may run, in ms; default 5 (horizon) or 50 (priority), 500 for a component
+    /// that imports WASI (`plugin::WASI_DEADLINE`).
     #[serde(default)]
     pub deadline_ms: Option<u64>,
     /// Most linear memory an instance may have, in MiB; default 64.

@@ -17,7 +17,7 @@ use kairos_server::plugin::{
     WasmPriorityPolicy,
 };
 use kairos_server::scheduler::{
-    PendingView, PolicyError, PriorityPolicy, RequestId, TaskId, validate_order,
+    FinishedTask, PendingView, PolicyError, PriorityPolicy, RequestId, TaskId, validate_order,
 };
 use kairos_server::time::Timestamp;
 use plugin_common::*;
@@ -645,4 +645,78 @@ fn handles_of_one_plugin_share_health_and_warm_instances_across_threads() {
         (800, 800, 0),
         "{stats:?}"
     );
+}
+
+/// What a plugin that never returns from one export did to its health after `calls` calls.
+fn stuck_outcome(stats: &kairos_server::plugin::PluginStats) -> (u64, u64, bool) {
+    (
+        stats.failures_of(FailureKind::Timeout),
+        stats.quarantines,
+        stats.quarantined,
+    )
+}
+
+#[test]
+fn a_call_that_never_returns_is_handled_alike_in_every_export() {
+    // Each export in turn loops forever; the others behave. Every such call goes through the
+    // one call wrapper: interrupted at its deadline, its instance discarded, counted as a
+    // timeout, and the plugin quarantined after `quarantine_after` of them, whichever export.
+    let options = PluginOptions {
+        quarantine_after: 3,
+        ..horizon_options(5)
+    };
+    let chunk = Chunk::new();
+    let mut choose = horizon_plugin(horizon_component(HORIZON_LOOP), options.clone());
+    for round in 0..3 {
+        assert_eq!(
+            choose.choose(&chunk.input(2, 40, round)),
+            Ok(2),
+            "the fallback answers"
+        );
+    }
+    let options = PluginOptions {
+        deadline: Duration::from_millis(5),
+        ..options
+    };
+    // `order` loops, but only on non-empty lists: the load's trial call (empty) passes.
+    let order_loop =
+        format!("(if (i32.eqz (local.get 2)) (then (return (i32.const 0)))) {PRIORITY_LOOP}");
+    let mut order = priority_plugin(priority_component(&order_loop), options.clone());
+    let pending = pending(4);
+    for _ in 0..3 {
+        let mut answer = Vec::new();
+        order
+            .order(Timestamp::from_micros(5_000), &pending, &mut answer)
+            .unwrap();
+        assert_eq!(answer, [3, 2, 1, 0], "the fallback orders");
+    }
+    let finished = FinishedTask {
+        task: TaskId(1),
+        rounds: 4,
+        latency: Duration::from_secs(2),
+        attained_service: Duration::from_millis(300),
+        wait: Duration::from_millis(100),
+    };
+    let mut notified = priority_plugin(
+        component(
+            &priority_wat_notified(PRIORITY_IDENTITY, FINISHED_LOOP),
+            PluginKind::Priority,
+        ),
+        options,
+    );
+    for _ in 0..3 {
+        notified.task_finished(&finished);
+    }
+    // A quarantined plugin is not told either: nothing more is counted.
+    notified.task_finished(&finished);
+    for (export, stats) in [
+        ("choose", choose.stats()),
+        ("order", order.stats()),
+        ("task-finished", notified.stats()),
+    ] {
+        assert_eq!(stuck_outcome(&stats), (3, 1, true), "{export}: {stats:?}");
+    }
+    // Decisions fell back; a notification has nothing to fall back for.
+    assert_eq!((choose.stats().fallbacks, order.stats().fallbacks), (3, 3));
+    assert_eq!(notified.stats().fallbacks, 0);
 }

@@ -76,10 +76,11 @@ impl Shared {
                     None => return,
                 }
             };
-            // SAFETY: the part was claimed in the region whose `run` call is still waiting for
-            // `remaining` to reach zero, so the closure is alive.
-            let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| unsafe {
-                (job.call)(job.data, part)
+            let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                // SAFETY: the part was claimed in the region whose `run` call is still waiting
+                // for `remaining` to reach zero, so the closure `job.data` points to is alive,
+                // and `job.call` is the `call` that `run` paired with it.
+                unsafe { (job.call)(job.data, part) }
             }));
             if let (Err(payload), Ok(mut slot)) = (result, self.panic.lock()) {
                 slot.get_or_insert(payload);
@@ -152,6 +153,12 @@ impl Team {
             Ok(g) => g,
             Err(poisoned) => poisoned.into_inner(),
         };
+        /// Runs part `part` of the region's closure.
+        ///
+        /// # Safety
+        /// `data` must be the `&&(dyn Fn(usize) + Sync)` that `run` stored beside this function
+        /// in the region's [`JobRef`], and that region's `run` call must not have returned (it
+        /// waits for every claimed part, so the closure is alive while a part runs).
         unsafe fn call(data: *const (), part: usize) {
             // SAFETY: `data` is the `&&dyn Fn` below, alive for the whole region.
             let f = unsafe { &*(data as *const &(dyn Fn(usize) + Sync)) };

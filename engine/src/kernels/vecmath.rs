@@ -14,6 +14,10 @@ macro_rules! multiversion {
         pub fn $name(isa: Isa, $($arg: $ty),*) {
             #[inline(always)]
             fn body($($arg: $ty),*) $body
+            /// `body` compiled for AVX2 and FMA.
+            ///
+            /// # Safety
+            /// Call only on a CPU with AVX2 and FMA (`Isa::Avx2Fma`).
             #[cfg(target_arch = "x86_64")]
             #[target_feature(enable = "avx2,fma")]
             fn avx2($($arg: $ty),*) { body($($arg),*) }

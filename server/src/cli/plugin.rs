@@ -18,7 +18,7 @@ use clap::{Args, Subcommand, ValueEnum};
 
 use super::parse_param;
 use crate::plugin::cache::CodeCache;
-use crate::plugin::conformance::{CheckConfig, CheckReport};
+use crate::plugin::conformance::{CheckConfig, CheckError, CheckReport};
 use crate::plugin::{PluginKind, PluginOptions, PluginSource};
 
 /// `kairos plugin`.
@@ -133,10 +133,25 @@ pub fn run(args: PluginArgs) -> anyhow::Result<()> {
 }
 
 fn check(args: CheckArgs) -> anyhow::Result<()> {
-    let kind = args.world.map(PluginKind::from);
     let source = PluginSource::File(args.file.clone());
-    let defaults = PluginOptions::for_kind(kind.unwrap_or(PluginKind::Horizon));
-    let mut options = PluginOptions {
+    let wasm =
+        std::fs::read(&args.file).with_context(|| format!("reading {}", args.file.display()))?;
+    let info = crate::plugin::inspect::inspect(&wasm)
+        .with_context(|| format!("{} is not a usable plugin", args.file.display()))?;
+    let detected = match args.world {
+        Some(world) => PluginKind::from(world),
+        None => info
+            .exports
+            .first()
+            .map(|(kind, _)| *kind)
+            .context("the component exports no policy interface")?,
+    };
+    // The server's defaults for this component (a WASI-importing one gets more time).
+    let defaults = PluginOptions::for_component(detected, info.imports_wasi);
+    let options = PluginOptions {
+        deadline: args
+            .deadline_ms
+            .map_or(defaults.deadline, Duration::from_millis),
         memory_limit: args.memory_mib << 20,
         cache: open_cache(args.cache_dir.clone(), args.no_cache)?,
         ..defaults
@@ -146,23 +161,6 @@ fn check(args: CheckArgs) -> anyhow::Result<()> {
         random_cases: args.cases,
         seed: args.seed.unwrap_or(CheckConfig::default().seed),
     };
-    let detected = match kind {
-        Some(kind) => kind,
-        None => {
-            let wasm = std::fs::read(&args.file)
-                .with_context(|| format!("reading {}", args.file.display()))?;
-            let info = crate::plugin::inspect::inspect(&wasm)
-                .with_context(|| format!("{} is not a usable plugin", args.file.display()))?;
-            info.exports
-                .first()
-                .map(|(kind, _)| *kind)
-                .context("the component exports no policy interface")?
-        }
-    };
-    options.deadline = args
-        .deadline_ms
-        .map(Duration::from_millis)
-        .unwrap_or(PluginOptions::for_kind(detected).deadline);
 
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(
@@ -182,9 +180,18 @@ fn check(args: CheckArgs) -> anyhow::Result<()> {
             }
             bar.set_position(done as u64);
         },
-    )
-    .with_context(|| format!("loading {}", args.file.display()))?;
+    );
     bar.finish_and_clear();
+    let report = match report {
+        Ok(report) => report,
+        // Said once, up front: every case would fail alike.
+        Err(error @ CheckError::Params { .. }) => return Err(error.into()),
+        Err(CheckError::Load(error)) => {
+            return Err(
+                anyhow::Error::new(error).context(format!("loading {}", args.file.display()))
+            );
+        }
+    };
 
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
@@ -301,7 +308,66 @@ fn wit(out: Option<PathBuf>) -> anyhow::Result<()> {
 
 #[cfg(test)]
 mod tests {
+    use clap::Parser;
+
     use super::*;
+
+    /// `kairos plugin ...` as the binary parses it, so defaults are the real ones.
+    #[derive(Parser)]
+    struct PluginCli {
+        #[command(subcommand)]
+        command: PluginCommand,
+    }
+
+    fn built(path: &str) -> String {
+        crate::plugin::testing::built(path).display().to_string()
+    }
+
+    fn plugin(args: &[&str]) -> anyhow::Result<()> {
+        let cli = PluginCli::try_parse_from(std::iter::once("plugin").chain(args.iter().copied()))
+            .expect("arguments parse");
+        run(PluginArgs {
+            command: cli.command,
+        })
+    }
+
+    fn refusals(error: &anyhow::Error) -> &[crate::plugin::conformance::ParamRefusal] {
+        match error.downcast_ref::<CheckError>() {
+            Some(CheckError::Params { refused, .. }) => refused,
+            _ => panic!("expected a parameter error up front, got: {error:#}"),
+        }
+    }
+
+    #[test]
+    fn check_names_a_missing_required_parameter_once_before_any_case() {
+        let (file, cache) = (built("static.wasm"), built("cache"));
+        let error = plugin(&["check", &file, "--cache-dir", &cache]).unwrap_err();
+        let refused = refusals(&error);
+        assert_eq!(refused.len(), 1, "{refused:?}");
+        assert_eq!((refused[0].name.as_str(), refused[0].given), ("h", None));
+        let message = error.to_string();
+        assert!(
+            message.contains("requires a parameter: `h`")
+                && message.contains("--param NAME=VALUE")
+                && message.contains("no cases were run"),
+            "{message}"
+        );
+        // A given value the plugin refuses is named once too, with the value.
+        let error =
+            plugin(&["check", &file, "--cache-dir", &cache, "--param", "h=0.5"]).unwrap_err();
+        assert_eq!(refusals(&error)[0].given, Some(0.5));
+        assert!(error.to_string().contains("refuses `h=0.5`"), "{error}");
+        // With the parameter, every case passes.
+        plugin(&["check", &file, "--cache-dir", &cache, "--param", "h=8"]).unwrap();
+    }
+
+    #[test]
+    fn the_python_template_passes_the_check_at_default_settings() {
+        // No --deadline-ms, no --param: what a user who starts from the template runs.
+        let file = built("templates/bound_py.wasm");
+        let cache = built("templates/cache");
+        plugin(&["check", &file, "--cache-dir", &cache]).unwrap();
+    }
 
     #[test]
     fn params_parse() {

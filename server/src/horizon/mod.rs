@@ -10,7 +10,8 @@
 //! - [`fixed`]: a static horizon `h`;
 //! - [`spread`]: agreement across `S ≥ 2` samples of the chunk.
 //!
-//! [`builtin`] builds one by name with validated parameters. The parameters given there are the
+//! [`NATIVE_POLICIES`] is their table (what the horizon registry registers); [`builtin`] builds
+//! one by name with validated parameters. The parameters given there are the
 //! policy's defaults; a non-empty [`HorizonInput::params`] overrides them for that call (validated
 //! the same way), so one instance can serve requests with different parameters.
 
@@ -20,6 +21,8 @@ pub mod spread;
 pub mod threshold;
 
 use std::collections::BTreeMap;
+
+use crate::registry::{HorizonKind, Native, build_native};
 
 /// User parameters of a policy, e.g. `{"t": 0.4, "h_min": 8}`. Sorted, so hashing and
 /// wire encoding are deterministic.
@@ -142,38 +145,41 @@ pub fn validate_horizon(horizon: usize, input: &HorizonInput<'_>) -> Result<usiz
     Ok(horizon)
 }
 
-/// Names [`builtin`] accepts, with a one-line description each.
-pub const BUILTIN_POLICIES: &[(&str, &str)] = &[
-    (
-        "threshold",
-        "paper §3.1: cut at the first action whose final diffusion update exceeds (1+t)x its earlier mean; params t (0.4), h_min",
-    ),
-    ("static", "always h actions; param h (required)"),
-    (
-        "spread",
-        "cut where S>=2 samples disagree by more than threshold (RMS std over dims); params threshold (0.1), h_min",
-    ),
+/// The native horizon policies: the one table [`crate::registry::HorizonRegistry`] registers.
+pub const NATIVE_POLICIES: &[Native<HorizonKind>] = &[
+    Native {
+        name: "threshold",
+        summary: "paper §3.1: cut at the first action whose final diffusion update exceeds (1+t)x its earlier mean; params t (0.4), h_min",
+        build: build_threshold,
+    },
+    Native {
+        name: "static",
+        summary: "always h actions; param h (required)",
+        build: build_static,
+    },
+    Native {
+        name: "spread",
+        summary: "cut where S>=2 samples disagree by more than threshold (RMS std over dims); params threshold (0.1), h_min",
+        build: build_spread,
+    },
 ];
 
+fn build_threshold(params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, HorizonError> {
+    Ok(Box::new(threshold::Threshold::from_params(params)?))
+}
+
+fn build_static(params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, HorizonError> {
+    Ok(Box::new(fixed::StaticHorizon::from_params(params)?))
+}
+
+fn build_spread(params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, HorizonError> {
+    Ok(Box::new(spread::Spread::from_params(params)?))
+}
+
 /// Builds the native policy `name` with `params` (validated: unknown names, out-of-range or
-/// non-integral values are errors).
+/// non-integral values are errors), from [`NATIVE_POLICIES`].
 pub fn builtin(name: &str, params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, HorizonError> {
-    match name {
-        "threshold" => Ok(Box::new(threshold::Threshold::from_params(params)?)),
-        "static" => Ok(Box::new(fixed::StaticHorizon::from_params(params)?)),
-        "spread" => Ok(Box::new(spread::Spread::from_params(params)?)),
-        other => Err(HorizonError::InvalidParam {
-            name: "policy".into(),
-            reason: format!(
-                "unknown horizon policy `{other}` (built in: {})",
-                BUILTIN_POLICIES
-                    .iter()
-                    .map(|(n, _)| *n)
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            ),
-        }),
-    }
+    build_native::<HorizonKind>(name, params)
 }
 
 #[cfg(test)]

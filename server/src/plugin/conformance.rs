@@ -106,15 +106,79 @@ impl CheckReport {
     }
 }
 
+/// A parameter a plugin refused before any case ran.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct ParamRefusal {
+    /// The parameter.
+    pub name: String,
+    /// The plugin's reason.
+    pub reason: String,
+    /// The value given, or `None` when it was not given (the plugin requires it).
+    pub given: Option<f64>,
+}
+
+/// Why a check could not run its cases.
+#[derive(Debug, thiserror::Error)]
+pub enum CheckError {
+    /// The plugin could not be loaded.
+    #[error(transparent)]
+    Load(#[from] LoadError),
+    /// The plugin refused the parameters on a trial call, so every case would fail alike.
+    #[error("{}", describe_refusals(plugin, refused))]
+    Params {
+        /// The plugin.
+        plugin: String,
+        /// What it refused, missing parameters first in the order it named them.
+        refused: Vec<ParamRefusal>,
+    },
+}
+
+fn describe_refusals(plugin: &str, refused: &[ParamRefusal]) -> String {
+    let missing: Vec<String> = refused
+        .iter()
+        .filter(|r| r.given.is_none())
+        .map(|r| format!("`{}` ({})", r.name, r.reason))
+        .collect();
+    let invalid: Vec<String> = refused
+        .iter()
+        .filter_map(|r| {
+            r.given
+                .map(|value| format!("`{}={value}` ({})", r.name, r.reason))
+        })
+        .collect();
+    let mut parts = Vec::new();
+    if !missing.is_empty() {
+        parts.push(format!(
+            "plugin `{plugin}` requires {}: {}; pass {} with --param NAME=VALUE",
+            if missing.len() == 1 {
+                "a parameter"
+            } else {
+                "parameters"
+            },
+            missing.join(", "),
+            if missing.len() == 1 { "it" } else { "them" },
+        ));
+    }
+    if !invalid.is_empty() {
+        parts.push(format!("plugin `{plugin}` refuses {}", invalid.join(", ")));
+    }
+    format!("{}; no cases were run", parts.join("; "))
+}
+
 /// Loads `source` (of `kind`, or whichever world it implements) and runs the suite.
 /// `progress(done, total)` is called after every case.
+///
+/// A horizon plugin is first asked once, on a SmolVLA-sized chunk, with `config.params`; if it
+/// refuses a parameter (`invalid-param`), the check stops with [`CheckError::Params`] naming
+/// every parameter it requires and was not given, instead of failing every case with the same
+/// refusal. (A priority plugin's parameters are checked by its load, which makes a trial call.)
 pub fn check(
     source: &PluginSource,
     kind: Option<PluginKind>,
     options: PluginOptions,
     config: &CheckConfig,
     progress: &mut dyn FnMut(usize, usize),
-) -> Result<CheckReport, LoadError> {
+) -> Result<CheckReport, CheckError> {
     let kind = match kind {
         Some(kind) => kind,
         None => detect_kind(source)?,
@@ -127,8 +191,50 @@ pub fn check(
     };
     match kind {
         PluginKind::Horizon => check_horizon(source, options, config, progress),
-        PluginKind::Priority => check_priority(source, options, config, progress),
+        PluginKind::Priority => Ok(check_priority(source, options, config, progress)?),
     }
+}
+
+/// Most parameters a trial finds missing before it gives up.
+const MAX_MISSING_PARAMS: usize = 16;
+
+/// Asks `policy` once on `case` with `given`, and again after each refusal of a parameter that
+/// was not given (with that parameter set to 1, a valid count or size for most policies), to
+/// collect every parameter it requires. Stops at the first answer, at a refusal of a given
+/// parameter (recorded) or of one it set itself (its placeholder was not acceptable: the
+/// parameter is already recorded as missing), or at anything else.
+fn refused_params(
+    policy: &mut WasmHorizonPolicy,
+    case: &HorizonCase,
+    given: &PolicyParams,
+) -> Vec<ParamRefusal> {
+    let mut params = given.clone();
+    let mut refused: Vec<ParamRefusal> = Vec::new();
+    while refused.len() < MAX_MISSING_PARAMS {
+        let Ok((Err(HorizonError::InvalidParam { name, reason }), _)) =
+            policy.call_plugin(&case.input(&params))
+        else {
+            break;
+        };
+        if let Some(&value) = given.get(&name) {
+            refused.push(ParamRefusal {
+                name,
+                reason,
+                given: Some(value),
+            });
+            break;
+        }
+        if params.contains_key(&name) {
+            break;
+        }
+        params.insert(name.clone(), 1.0);
+        refused.push(ParamRefusal {
+            name,
+            reason,
+            given: None,
+        });
+    }
+    refused
 }
 
 fn detect_kind(source: &PluginSource) -> Result<PluginKind, LoadError> {
@@ -412,9 +518,18 @@ fn check_horizon(
     options: PluginOptions,
     config: &CheckConfig,
     progress: &mut dyn FnMut(usize, usize),
-) -> Result<CheckReport, LoadError> {
+) -> Result<CheckReport, CheckError> {
     let mut policy = WasmHorizonPolicy::load(source, options, Box::new(NoFallback))?;
     let cases = horizon_cases(config.seed, config.random_cases);
+    if let Some(first) = cases.first() {
+        let refused = refused_params(&mut policy, first, &config.params);
+        if !refused.is_empty() {
+            return Err(CheckError::Params {
+                plugin: policy.meta().name,
+                refused,
+            });
+        }
+    }
     let mut failures = Vec::new();
     let mut unsupported = Vec::new();
     let mut times: Vec<(String, Duration)> = Vec::new();

@@ -12,7 +12,9 @@ use super::{
 };
 use crate::config::PluginConfig;
 use crate::horizon::{self, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
-use crate::registry::{HorizonRegistry, PriorityRegistry};
+use crate::registry::{
+    HorizonKind, HorizonRegistry, Origin, PolicyKind, PriorityKind, PriorityRegistry, RegistryError,
+};
 use crate::scheduler::{PolicySpec, PolicySpecError, PriorityPolicy, build_policy};
 
 /// Calls a native policy with its own default parameters, whatever the request carried (those
@@ -128,6 +130,9 @@ pub enum PluginSetupError {
         /// Why.
         source: PolicySpecError,
     },
+    /// Two plugins of one kind under one name.
+    #[error(transparent)]
+    Registry(#[from] RegistryError),
     /// The code cache directory cannot be used.
     #[error("plugin code cache: {0}")]
     Cache(#[from] super::cache::CacheError),
@@ -148,8 +153,8 @@ pub fn load_configured(
     let cache = CodeCache::open(cache_dir)?;
     for plugin in plugins {
         let name = plugin.name();
-        let kind = world_of(plugin, &name)?;
-        let defaults = PluginOptions::for_kind(kind);
+        let (kind, imports_wasi) = world_of(plugin, &name)?;
+        let defaults = PluginOptions::for_component(kind, imports_wasi);
         // Registered under `name`, the plugin also answers to it: replies and logs say what the
         // configuration and the robots call it, not the file stem.
         let options = PluginOptions {
@@ -180,7 +185,8 @@ pub fn load_configured(
                     }
                 })?;
                 tracing::info!(plugin = %name, file = %plugin.file.display(), fallback, "horizon plugin loaded");
-                horizons.register(name, factory);
+                let shadowed = horizons.register_plugin(name.clone(), factory)?;
+                note_shadowing::<HorizonKind>(&name, shadowed);
             }
             PluginKind::Priority => {
                 let fallback: PolicySpec =
@@ -200,16 +206,27 @@ pub fn load_configured(
                     }
                 })?;
                 tracing::info!(plugin = %name, file = %plugin.file.display(), "priority plugin loaded");
-                priorities.register(name, factory);
+                let shadowed = priorities.register_plugin(name.clone(), factory)?;
+                note_shadowing::<PriorityKind>(&name, shadowed);
             }
         }
     }
     Ok((horizons, priorities))
 }
 
+/// Says when a plugin takes a native policy's name: requests for that name get the plugin.
+/// `shadowed` is what the plugin registry had under the name; it holds plugins only, so the
+/// natives are consulted too.
+fn note_shadowing<K: PolicyKind>(name: &str, shadowed: Option<Origin>) {
+    if shadowed.is_some() || K::NATIVES.iter().any(|n| n.name == name) {
+        tracing::warn!(plugin = %name, kind = K::NAME,
+            "plugin shadows the native policy of the same name: requests for it get the plugin");
+    }
+}
+
 /// The world `plugin` implements, read from the component (which must export exactly one, in a
-/// version this host supports).
-fn world_of(plugin: &PluginConfig, name: &str) -> Result<PluginKind, PluginSetupError> {
+/// version this host supports), and whether it imports WASI.
+fn world_of(plugin: &PluginConfig, name: &str) -> Result<(PluginKind, bool), PluginSetupError> {
     let wasm = std::fs::read(&plugin.file).map_err(|source| LoadError::Read {
         path: plugin.file.clone(),
         source,
@@ -230,5 +247,5 @@ fn world_of(plugin: &PluginConfig, name: &str) -> Result<PluginKind, PluginSetup
         }
     };
     info.check(kind).map_err(|e| world_error(e.to_string()))?;
-    Ok(kind)
+    Ok((kind, info.imports_wasi))
 }

@@ -35,10 +35,13 @@ pub enum FailureKind {
     Refused,
     /// Quarantined: not called at all.
     Quarantined,
+    /// The worker thread running the call did not answer in time (stuck in a host call, which
+    /// an epoch deadline cannot interrupt); it was abandoned and replaced.
+    Stuck,
 }
 
 impl FailureKind {
-    const ALL: [FailureKind; 8] = [
+    const ALL: [FailureKind; 9] = [
         FailureKind::Timeout,
         FailureKind::OverLimit,
         FailureKind::OutOfFuel,
@@ -47,6 +50,7 @@ impl FailureKind {
         FailureKind::InvalidAnswer,
         FailureKind::Refused,
         FailureKind::Quarantined,
+        FailureKind::Stuck,
     ];
 
     fn index(self) -> usize {
@@ -65,6 +69,7 @@ impl std::fmt::Display for FailureKind {
             FailureKind::InvalidAnswer => "invalid answer",
             FailureKind::Refused => "refused",
             FailureKind::Quarantined => "quarantined",
+            FailureKind::Stuck => "worker thread stuck",
         })
     }
 }
@@ -163,10 +168,26 @@ impl Health {
     /// The plugin failed this decision; the caller answers with the fallback.
     pub fn failed(&mut self, kind: FailureKind, message: &str) {
         self.stats.fallbacks += 1;
+        self.record_failure(kind, message);
+    }
+
+    /// A call that is not a decision (`task-finished`) failed: counted, logged and quarantined
+    /// like a decision's failure, but there was no answer to fall back for. Its successes do
+    /// not reset the failure streak: a plugin that fails every decision stays quarantined.
+    pub fn notice_failed(&mut self, kind: FailureKind, message: &str) {
+        self.record_failure(kind, message);
+    }
+
+    /// Whether the plugin is quarantined now (sitting out, or waiting for its probe).
+    pub fn quarantined(&self) -> bool {
+        self.sitting_out.is_some()
+    }
+
+    fn record_failure(&mut self, kind: FailureKind, message: &str) {
         self.count(kind);
         if !std::mem::replace(&mut self.logged[kind.index()], true) {
             tracing::warn!(plugin = %self.name, failure = %kind, %message,
-                "plugin failed; this decision used the fallback policy (further failures of this kind are counted, not logged)");
+                "plugin failed; a decision uses the fallback policy (further failures of this kind are counted, not logged)");
         } else {
             tracing::debug!(plugin = %self.name, failure = %kind, %message, "plugin failed again");
         }

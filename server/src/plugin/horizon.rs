@@ -388,47 +388,32 @@ impl WasmHorizonPolicy {
             );
         }
         let (plugin, mut exec) = self.plugin.checkout()?;
-        let result = match &mut exec {
-            Exec::Inline(live) => {
-                let params = &self.params.1;
-                live.call(|store, instance| call_choose(store, instance, input, params))
-            }
-            Exec::Worker(worker) => {
+        let params = &self.params.1;
+        let outcome = exec.call(
+            |store, instance| call_choose(store, instance, input, params),
+            || {
                 let owned = OwnedHorizonInput::copy_of(input);
-                let params = self.params.1.clone();
-                let answer = worker.run(move |live| {
-                    let input = owned.view();
-                    live.call(|store, instance| call_choose(store, instance, &input, &params))
-                });
-                match answer {
-                    Some(answer) => answer,
-                    // Stuck in the host: abandon this worker (not returned to the pool).
-                    None => {
-                        return Err(CallFailure::new(
-                            FailureKind::Timeout,
-                            "the plugin's worker thread did not answer; replaced it",
-                        ));
-                    }
-                }
-            }
-        };
-        let outcome = match result {
-            Ok((Ok(h), cost)) => match validate_horizon(h as usize, input) {
-                Ok(h) => Ok((Ok(h), cost)),
-                Err(e) => {
-                    exec.discard();
-                    Err(CallFailure::new(FailureKind::InvalidAnswer, e.to_string()))
-                }
+                let params = params.clone();
+                Box::new(move |store, instance| {
+                    call_choose(store, instance, &owned.view(), &params)
+                })
             },
-            Ok((Err(refusal), cost)) => Ok((Err(refusal), cost)),
-            Err(failure) => Err(failure),
-        };
+            |answer| match answer {
+                Ok(h) => validate_horizon(h as usize, input)
+                    .map(Ok)
+                    .map_err(|e| CallFailure::new(FailureKind::InvalidAnswer, e.to_string())),
+                // The plugin's own refusal is an answer, passed on like a native policy's error.
+                Err(refusal) => Ok(Err(refusal)),
+            },
+        );
         if let Ok((_, cost)) = &outcome {
             self.plugin
                 .0
                 .peak_memory
                 .fetch_max(cost.peak_memory, Ordering::Relaxed);
         }
+        // Whatever happened, the executor is usable again: a failed instance was discarded, a
+        // stuck worker thread replaced.
         self.plugin.checkin(plugin, exec);
         outcome
     }
@@ -476,5 +461,67 @@ impl HorizonPolicy for WasmHorizonPolicy {
                 self.fall_back(input)
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::horizon::ChunkView;
+    use crate::plugin::runtime::testing::{shipped, short_patience};
+
+    #[test]
+    fn a_stuck_worker_thread_is_abandoned_and_replaced() {
+        // As `priority`'s test of the same name, for `choose`: one wrapper, one behaviour.
+        let options = short_patience(PluginOptions::horizon());
+        let plugin = HorizonPlugin::load(&shipped("threshold"), options).unwrap();
+        // The C plugin runs inline; give its one pooled executor a worker thread, as a WASI
+        // component gets.
+        let release = {
+            let current = lock(&plugin.0.current).clone();
+            let mut exec = Exec::worker(current.clone(), plugin.0.options.clone()).unwrap();
+            let release = exec.block_worker();
+            let mut idle = lock(&plugin.0.idle);
+            idle.clear();
+            idle.push((current, exec));
+            release
+        };
+        let fallback =
+            crate::horizon::builtin("static", &PolicyParams::from([("h".to_string(), 3.0)]))
+                .unwrap();
+        let mut policy = plugin.policy(fallback);
+        let updates = [0.1, 0.1, 0.1, 0.1, 0.2, 0.2, 0.2, 0.2];
+        let (actions, params) = ([0.0; 4], PolicyParams::new());
+        let input = HorizonInput {
+            chunk: ChunkView {
+                samples: 1,
+                steps: 2,
+                chunk_len: 4,
+                action_dim: 1,
+                updates: &updates,
+                actions: &actions,
+            },
+            h_min: 1,
+            h_max: 4,
+            control_hz: 10.0,
+            round_index: 0,
+            recent_horizons: &[],
+            params: &params,
+        };
+        assert_eq!(policy.choose(&input), Ok(3), "the fallback answers");
+        let stats = policy.stats();
+        assert_eq!(
+            (stats.failures_of(FailureKind::Stuck), stats.fallbacks),
+            (1, 1)
+        );
+        let answer = policy.choose(&input);
+        assert_eq!(policy.stats().answered, 1, "the replacement thread answers");
+        let mut native = crate::horizon::builtin("threshold", &params).unwrap();
+        assert_eq!(
+            answer,
+            native.choose(&input),
+            "the plugin is the native policy's twin"
+        );
+        drop(release);
     }
 }

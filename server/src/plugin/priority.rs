@@ -345,7 +345,6 @@ fn call_task_finished(
 /// fallback fail too), so the scheduler always gets a complete order.
 pub struct WasmPriorityPolicy {
     plugin: Arc<Compiled<PriorityWorld>>,
-    options: Arc<PluginOptions>,
     exec: Exec<PriorityWorld>,
     health: Health,
     fallback: Box<dyn PriorityPolicy>,
@@ -385,7 +384,6 @@ impl WasmPriorityPolicy {
             exec: Exec::new(plugin.clone(), options.clone())?,
             health: Health::new(name.clone(), &options),
             plugin,
-            options,
             fallback,
             reloader,
             params: params.iter().map(|(k, v)| (k.clone(), *v)).collect(),
@@ -418,25 +416,17 @@ impl WasmPriorityPolicy {
         self.peak_memory
     }
 
-    /// Tells the plugin (only) that a task finished, reporting any failure.
+    /// Tells the plugin (only) that a task finished, reporting any failure; no health
+    /// accounting. For `kairos plugin check`, benches and tests.
     pub fn call_task_finished(&mut self, summary: &FinishedTask) -> Result<(), CallFailure> {
         let summary = *summary;
-        match &mut self.exec {
-            Exec::Inline(live) => live
-                .call(|store, instance| call_task_finished(store, instance, &summary))
-                .map(drop),
-            Exec::Worker(worker) => worker
-                .run(move |live| {
-                    live.call(|store, instance| call_task_finished(store, instance, &summary))
-                        .map(drop)
-                })
-                .unwrap_or_else(|| {
-                    Err(CallFailure::new(
-                        FailureKind::Timeout,
-                        "worker did not answer",
-                    ))
-                }),
-        }
+        let (answer, cost) = self.exec.call(
+            |store, instance| call_task_finished(store, instance, &summary),
+            || Box::new(move |store, instance| call_task_finished(store, instance, &summary)),
+            Ok,
+        )?;
+        self.peak_memory = self.peak_memory.max(cost.peak_memory);
+        Ok(answer)
     }
 
     /// One call into the plugin with no fallback and no health accounting: fills `order`
@@ -449,82 +439,49 @@ impl WasmPriorityPolicy {
         order: &mut Vec<usize>,
     ) -> Result<CallCost, CallFailure> {
         order.clear();
-        let result = match &mut self.exec {
-            Exec::Inline(live) => {
-                let (params, columns) = (&self.params, &mut self.columns);
-                live.call(|store, instance| {
-                    call_rank(store, instance, now, pending, params, columns)
-                })
-            }
-            Exec::Worker(worker) => {
+        let (params, columns, sort_rows) = (&self.params, &mut self.columns, &mut self.sort_rows);
+        let result = self.exec.call(
+            |store, instance| call_rank(store, instance, now, pending, params, columns),
+            || {
                 let owned = pending.to_vec();
-                let params = self.params.clone();
-                let answer = worker.run(move |live| {
+                let params = params.clone();
+                Box::new(move |store, instance| {
                     let mut columns = PendingColumns::default();
-                    live.call(|store, instance| {
-                        call_rank(store, instance, now, &owned, &params, &mut columns)
-                    })
-                });
-                match answer {
-                    Some(answer) => answer,
-                    None => {
-                        self.exec =
-                            Exec::new(self.plugin.clone(), self.options.clone()).map_err(|e| {
-                                CallFailure::new(FailureKind::Instantiate, e.to_string())
-                            })?;
-                        return Err(CallFailure::new(
-                            FailureKind::Timeout,
-                            "the plugin's worker thread did not answer; replaced it",
-                        ));
-                    }
+                    call_rank(store, instance, now, &owned, &params, &mut columns)
+                })
+            },
+            |answer| match answer {
+                Ok(Ranking::Order(indices)) => {
+                    order.extend(indices.iter().map(|&i| i as usize));
+                    validate_order(pending.len(), order)
+                        .map_err(|e| CallFailure::new(FailureKind::InvalidAnswer, e.to_string()))
                 }
-            }
-        };
-        let (answer, cost) = result?;
-        self.peak_memory = self.peak_memory.max(cost.peak_memory);
-        let failure = match answer {
-            Ok(Ranking::Order(indices)) => {
-                order.extend(indices.iter().map(|&i| i as usize));
-                match validate_order(pending.len(), order) {
-                    Ok(()) => return Ok(cost),
-                    Err(e) => CallFailure::new(FailureKind::InvalidAnswer, e.to_string()),
+                Ok(Ranking::Keys { major, minor }) => {
+                    order_by_sort_keys(pending, &major, &minor, sort_rows, order)
+                        .map_err(|e| CallFailure::new(FailureKind::InvalidAnswer, e))
                 }
+                Err(reason) => Err(CallFailure::new(FailureKind::Refused, reason)),
+            },
+        );
+        match result {
+            Ok(((), cost)) => {
+                self.peak_memory = self.peak_memory.max(cost.peak_memory);
+                Ok(cost)
             }
-            Ok(Ranking::Keys { major, minor }) => {
-                match order_by_sort_keys(pending, &major, &minor, &mut self.sort_rows, order) {
-                    Ok(()) => return Ok(cost),
-                    Err(e) => CallFailure::new(FailureKind::InvalidAnswer, e),
-                }
+            Err(failure) => {
+                order.clear();
+                Err(failure)
             }
-            Err(reason) => CallFailure::new(FailureKind::Refused, reason),
-        };
-        order.clear();
-        self.exec.discard();
-        Err(failure)
+        }
     }
 
     fn check_reload(&mut self) {
         let Some(plugin) = self.reloader.as_ref().and_then(Reloader::poll) else {
             return;
         };
-        let swapped = match &mut self.exec {
-            Exec::Inline(live) => {
-                live.replace(plugin.clone());
-                Ok(())
-            }
-            Exec::Worker(_) => {
-                Exec::new(plugin.clone(), self.options.clone()).map(|exec| self.exec = exec)
-            }
-        };
-        match swapped {
-            Ok(()) => {
-                self.plugin = plugin;
-                self.health.reloaded();
-            }
-            Err(error) => {
-                tracing::error!(plugin = %self.plugin.meta.name, %error, "cannot swap in the reloaded plugin; keeping the running version");
-            }
-        }
+        self.exec.replace(plugin.clone());
+        self.plugin = plugin;
+        self.health.reloaded();
     }
 
     fn fall_back(&mut self, now: Timestamp, pending: &[PendingView], order: &mut Vec<usize>) {
@@ -568,8 +525,15 @@ impl PriorityPolicy for WasmPriorityPolicy {
     fn task_finished(&mut self, summary: &FinishedTask) {
         // The fallback learns too, so it is ready whenever it has to step in.
         self.fallback.task_finished(summary);
+        self.check_reload();
+        // A quarantined plugin is not called; its probe is a decision.
+        if self.health.quarantined() {
+            return;
+        }
+        // Failures count like a decision's (kind, log once, quarantine); there is no answer
+        // to fall back for.
         if let Err(failure) = self.call_task_finished(summary) {
-            tracing::debug!(plugin = %self.plugin.meta.name, %failure, "task-finished failed");
+            self.health.notice_failed(failure.kind, &failure.message);
         }
     }
 }
@@ -579,7 +543,8 @@ mod tests {
     use std::time::Duration;
 
     use super::*;
-    use crate::scheduler::{RemainingWork, RequestId, TaskId};
+    use crate::plugin::runtime::testing::{shipped, short_patience};
+    use crate::scheduler::{PolicySpec, RemainingWork, RequestId, TaskId, build_policy};
 
     fn view(request: u64, arrived_us: u64) -> PendingView {
         PendingView {
@@ -661,5 +626,57 @@ mod tests {
         columns.fill(&[view(9, 1)]);
         assert_eq!(columns.0.request, [9]);
         assert_eq!(columns.0.present, [0]);
+    }
+
+    #[test]
+    fn a_stuck_worker_thread_is_abandoned_and_replaced_in_every_export() {
+        let options = short_patience(PluginOptions::priority());
+        let fallback = build_policy(&PolicySpec::named("fifo")).unwrap();
+        let mut policy = WasmPriorityPolicy::load(
+            &shipped("fifo"),
+            &PolicyParams::new(),
+            options.clone(),
+            fallback,
+        )
+        .unwrap();
+        // The C plugin runs inline; give it a worker thread as a WASI component gets.
+        policy.exec = Exec::worker(policy.plugin.clone(), Arc::new(options)).unwrap();
+        let pending = [view(1, 10), view(2, 5)];
+        let now = Timestamp::from_micros(100);
+        let summary = FinishedTask {
+            task: TaskId(1),
+            rounds: 2,
+            latency: Duration::from_secs(1),
+            attained_service: Duration::from_millis(100),
+            wait: Duration::from_millis(10),
+        };
+        let mut order = Vec::new();
+
+        // `order`: the stuck thread is given up, the fallback orders, a new thread answers next.
+        let stuck = policy.exec.block_worker();
+        policy.order(now, &pending, &mut order).unwrap();
+        assert_eq!(order, [1, 0]);
+        let stats = policy.stats();
+        assert_eq!(
+            (stats.failures_of(FailureKind::Stuck), stats.fallbacks),
+            (1, 1)
+        );
+        order.clear();
+        policy.order(now, &pending, &mut order).unwrap();
+        assert_eq!(policy.stats().answered, 1, "the replacement thread answers");
+        // Released now, the abandoned thread's late answer goes nowhere.
+        drop(stuck);
+
+        // `task-finished`: the same, through the same wrapper.
+        let stuck = policy.exec.block_worker();
+        policy.task_finished(&summary);
+        assert_eq!(policy.stats().failures_of(FailureKind::Stuck), 2);
+        assert_eq!(policy.call_task_finished(&summary), Ok(()));
+        order.clear();
+        policy.order(now, &pending, &mut order).unwrap();
+        assert_eq!(order, [1, 0]);
+        let stats = policy.stats();
+        assert_eq!((stats.answered, stats.fallbacks), (2, 1));
+        drop(stuck);
     }
 }

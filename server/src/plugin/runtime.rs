@@ -333,40 +333,78 @@ fn classify(
 
 type Job<W> = Box<dyn FnOnce(&mut Live<W>) + Send>;
 
+/// One call of an export with owned arguments, to run on a worker thread.
+pub(crate) type OwnedCall<W, R> =
+    Box<dyn FnOnce(&mut Store<HostState>, &<W as World>::Instance) -> wasmtime::Result<R> + Send>;
+
 /// A thread that owns a plugin's [`Live`] and runs calls sent to it. Used for components
 /// that import WASI (see the module documentation of `plugin`).
-pub(crate) struct Worker<W: World> {
+struct Worker<W: World> {
     jobs: mpsc::Sender<Job<W>>,
-    /// How long to wait for an answer before giving the worker up for lost.
-    patience: Duration,
 }
 
 impl<W: World> Worker<W> {
-    pub fn spawn(live: Live<W>, patience: Duration) -> std::io::Result<Self> {
+    fn spawn(live: Live<W>) -> std::io::Result<Self> {
         let (jobs, inbox) = mpsc::channel::<Job<W>>();
         let name = format!("kairos-plugin-{}", live.plugin.meta.name);
         std::thread::Builder::new().name(name).spawn(move || {
             let mut live = live;
+            // Ends when the `Worker` is dropped (its sender with it), after the job in hand:
+            // an abandoned, stuck thread exits as soon as its host call returns.
             while let Ok(job) = inbox.recv() {
                 job(&mut live);
             }
         })?;
-        Ok(Worker { jobs, patience })
+        Ok(Worker { jobs })
     }
 
-    /// Runs `job` on the worker and waits for its answer. `None` if the worker is gone or
-    /// did not answer within its patience (a host call that hung); the caller then replaces
-    /// the worker.
-    pub fn run<R: Send + 'static>(
+    /// Runs `job` on the worker and waits up to `patience` for its answer. `None` if the
+    /// worker is gone or did not answer in time.
+    fn run<R: Send + 'static>(
         &self,
+        patience: Duration,
         job: impl FnOnce(&mut Live<W>) -> R + Send + 'static,
     ) -> Option<R> {
         let (reply, answer) = mpsc::sync_channel(1);
-        let job: Job<W> = Box::new(move |live| {
+        self.post(move |live| {
+            // The caller may have given up on this answer; nobody else wants it.
             let _ = reply.send(job(live));
         });
-        self.jobs.send(job).ok()?;
-        answer.recv_timeout(self.patience).ok()
+        answer.recv_timeout(patience).ok()
+    }
+
+    /// Queues `job` without waiting for it; jobs run in order, so the next call sees its effect.
+    fn post(&self, job: impl FnOnce(&mut Live<W>) + Send + 'static) {
+        // A send fails only if the thread is gone; the next `run` then reports it.
+        let _ = self.jobs.send(Box::new(job));
+    }
+}
+
+/// A worker thread and what is needed to start a replacement.
+pub(crate) struct WorkerSlot<W: World> {
+    /// `None` after a replacement could not be started; the next call tries again.
+    worker: Option<Worker<W>>,
+    plugin: Arc<Compiled<W>>,
+    options: Arc<PluginOptions>,
+    /// How long to wait for an answer before giving the worker up for lost.
+    patience: Duration,
+}
+
+impl<W: World> WorkerSlot<W> {
+    fn start(&mut self) -> Result<&Worker<W>, CallFailure> {
+        if self.worker.is_none() {
+            let live = Live::new(self.plugin.clone(), self.options.clone());
+            let worker = Worker::spawn(live).map_err(|e| {
+                CallFailure::new(
+                    FailureKind::Instantiate,
+                    format!("cannot start a worker thread: {e}"),
+                )
+            })?;
+            self.worker = Some(worker);
+        }
+        self.worker
+            .as_ref()
+            .ok_or_else(|| CallFailure::new(FailureKind::Instantiate, "no worker thread"))
     }
 }
 
@@ -375,34 +413,115 @@ pub(crate) enum Exec<W: World> {
     /// On the caller's thread.
     Inline(Live<W>),
     /// On a dedicated worker thread.
-    Worker(Worker<W>),
+    Worker(WorkerSlot<W>),
 }
 
 impl<W: World> Exec<W> {
-    /// The right executor for `plugin`.
+    /// The right executor for `plugin`: a worker thread if it imports WASI, else the caller's.
     pub fn new(plugin: Arc<Compiled<W>>, options: Arc<PluginOptions>) -> Result<Self, LoadError> {
-        let wasi = plugin.meta.info.imports_wasi;
-        let name = plugin.meta.name.clone();
-        let live = Live::new(plugin, options.clone());
-        if !wasi {
-            return Ok(Exec::Inline(live));
+        if plugin.meta.info.imports_wasi {
+            Self::worker(plugin, options)
+        } else {
+            Ok(Exec::Inline(Live::new(plugin, options)))
         }
-        Worker::spawn(live, worker_patience(&options))
-            .map(Exec::Worker)
-            .map_err(|e| LoadError::Compile {
-                name,
-                message: format!("cannot start its worker thread: {e}"),
-            })
     }
-}
 
-impl<W: World> Exec<W> {
+    /// An executor with a worker thread of its own, started now (so a thread that cannot start
+    /// fails the load rather than a call).
+    pub fn worker(
+        plugin: Arc<Compiled<W>>,
+        options: Arc<PluginOptions>,
+    ) -> Result<Self, LoadError> {
+        let name = plugin.meta.name.clone();
+        let mut slot = WorkerSlot {
+            worker: None,
+            patience: worker_patience(&options),
+            plugin,
+            options,
+        };
+        slot.start().map_err(|failure| LoadError::Compile {
+            name,
+            message: failure.message,
+        })?;
+        Ok(Exec::Worker(slot))
+    }
+
+    /// The one way every export is called (horizon `choose`, priority `rank`/`order`,
+    /// `task-finished`), so that every failure is handled alike:
+    ///
+    /// - the call runs under the deadline, memory cap and fuel budget ([`Live::call`]); a trap,
+    ///   a timeout or an exceeded limit discards the instance;
+    /// - `check` validates the answer; an invalid one discards the instance too;
+    /// - on a worker thread that does not answer within its patience (stuck in a host call,
+    ///   which an epoch deadline cannot interrupt), the thread is abandoned (it exits once its
+    ///   host call returns; its late answer goes nowhere) and a fresh one with a fresh instance
+    ///   replaces it, so the next call is not queued behind the stuck one.
+    ///
+    /// Every failure comes back as a [`CallFailure`] of its kind; counting it and quarantine
+    /// are the policy's [`Health`](super::health::Health)'s business. `inline` runs the call on
+    /// the caller's thread with borrowed arguments; `owned` makes the same call with owned
+    /// arguments for a worker thread (only called for one).
+    pub fn call<R: Send + 'static, T>(
+        &mut self,
+        inline: impl FnOnce(&mut Store<HostState>, &W::Instance) -> wasmtime::Result<R>,
+        owned: impl FnOnce() -> OwnedCall<W, R>,
+        check: impl FnOnce(R) -> Result<T, CallFailure>,
+    ) -> Result<(T, CallCost), CallFailure> {
+        let (answer, cost) = match self {
+            Exec::Inline(live) => live.call(inline)?,
+            Exec::Worker(slot) => {
+                let job = owned();
+                let patience = slot.patience;
+                match slot.start()?.run(patience, move |live| live.call(job)) {
+                    Some(result) => result?,
+                    None => {
+                        slot.worker = None;
+                        let replaced = slot.start().is_ok();
+                        return Err(CallFailure::new(
+                            FailureKind::Stuck,
+                            format!(
+                                "its worker thread did not answer within {patience:?}; abandoned it{}",
+                                if replaced {
+                                    " and started a new one"
+                                } else {
+                                    " (a new one could not start yet)"
+                                }
+                            ),
+                        ));
+                    }
+                }
+            }
+        };
+        match check(answer) {
+            Ok(value) => Ok((value, cost)),
+            Err(failure) => {
+                self.discard();
+                Err(failure)
+            }
+        }
+    }
+
     /// Drops the instance (the next call makes a new one).
     pub fn discard(&mut self) {
         match self {
             Exec::Inline(live) => live.discard(),
-            Exec::Worker(worker) => {
-                let _ = worker.run(|live| live.discard());
+            Exec::Worker(slot) => {
+                if let Some(worker) = &slot.worker {
+                    worker.post(Live::discard);
+                }
+            }
+        }
+    }
+
+    /// Swaps in a reloaded plugin; the old instance is dropped between calls.
+    pub fn replace(&mut self, plugin: Arc<Compiled<W>>) {
+        match self {
+            Exec::Inline(live) => live.replace(plugin),
+            Exec::Worker(slot) => {
+                slot.plugin = plugin.clone();
+                if let Some(worker) = &slot.worker {
+                    worker.post(move |live| live.replace(plugin));
+                }
             }
         }
     }
@@ -411,4 +530,67 @@ impl<W: World> Exec<W> {
 /// A worker that has not answered well after its deadline is stuck in the host.
 fn worker_patience(options: &PluginOptions) -> Duration {
     options.deadline * 4 + options.instantiate_deadline + Duration::from_millis(250)
+}
+
+/// Test helpers shared by the wrappers' tests.
+#[cfg(test)]
+pub(crate) mod testing {
+    use std::path::PathBuf;
+    use std::sync::mpsc;
+    use std::time::Duration;
+
+    use super::{Exec, World};
+    use crate::plugin::{PluginOptions, PluginSource};
+
+    impl<W: World> Exec<W> {
+        /// Blocks this executor's worker thread as a host call that never returns would, until
+        /// the returned sender sends or is dropped. Returns once the thread is blocked.
+        pub(crate) fn block_worker(&mut self) -> mpsc::Sender<()> {
+            let Exec::Worker(slot) = self else {
+                panic!("not a worker-thread executor")
+            };
+            let worker = slot.start().expect("a worker thread");
+            let (entered_tx, entered) = mpsc::channel();
+            let (release, released) = mpsc::channel::<()>();
+            worker.post(move |_| {
+                let _ = entered_tx.send(());
+                let _ = released.recv();
+            });
+            entered
+                .recv()
+                .expect("the worker thread runs the blocking job");
+            release
+        }
+    }
+
+    /// A file under `plugins/build` (`plugins/build.sh` builds the shipped plugins there, as
+    /// CI does first); a missing one fails the test.
+    pub(crate) fn built(path: &str) -> PathBuf {
+        let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("../plugins/build")
+            .join(path);
+        assert!(
+            path.exists(),
+            "{} is missing: build the shipped plugins first with `bash plugins/build.sh`",
+            path.display()
+        );
+        path
+    }
+
+    /// `base` with a worker patience of 4 × 5 ms + 50 ms + 250 ms and no reload watcher, for
+    /// tests of stuck workers. Their outcome does not depend on the patience: a blocked thread
+    /// never answers before the test releases it; the patience only bounds how long they wait.
+    pub(crate) fn short_patience(base: PluginOptions) -> PluginOptions {
+        PluginOptions {
+            deadline: Duration::from_millis(5),
+            instantiate_deadline: Duration::from_millis(50),
+            reload_poll: None,
+            ..base
+        }
+    }
+
+    /// The shipped plugin `name`.
+    pub(crate) fn shipped(name: &str) -> PluginSource {
+        PluginSource::File(built(&format!("{name}.wasm")))
+    }
 }

@@ -5,9 +5,10 @@
 //! in serde), [`build`] turns it into a policy, validating every parameter.
 //!
 //! Adding a native policy: write `scheduler/<name>.rs` implementing
-//! [`PriorityPolicy`], declare it in `scheduler/mod.rs`, and add one
-//! [`PolicyFactory`] line to [`BUILTIN`] whose `build` reads its parameters through
-//! [`PolicySpec::take`] helpers and ends with [`PolicySpec::finish`].
+//! [`PriorityPolicy`], declare it in `scheduler/mod.rs`, and add one [`Native`] line to
+//! [`NATIVE_POLICIES`] whose `build` reads its parameters through [`PolicySpec::take`] helpers
+//! and ends with [`PolicySpec::finish`]. The priority registry
+//! ([`crate::registry::PriorityRegistry`]) registers that table; plugins register beside it.
 
 use std::collections::BTreeMap;
 use std::fmt;
@@ -18,6 +19,7 @@ use super::fifo::Fifo;
 use super::kairos::{IntraBucket, Kairos, KairosConfig};
 use super::plas::{Plas, PlasConfig};
 use super::srw::{DueOrder, Srw, SrwConfig};
+use crate::registry::{Native, PriorityKind, build_native};
 
 /// Why a policy spec was refused.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
@@ -31,7 +33,7 @@ pub enum PolicySpecError {
         reason: String,
     },
     /// No policy has this name.
-    #[error("unknown priority policy `{name}` (built in: {known})")]
+    #[error("unknown priority policy `{name}` (known: {known})")]
     UnknownPolicy {
         /// The name given.
         name: String,
@@ -177,63 +179,33 @@ impl From<PolicySpec> for String {
     }
 }
 
-/// One buildable policy.
-#[derive(Clone, Copy)]
-pub struct PolicyFactory {
-    /// Its name in specs.
-    pub name: &'static str,
-    /// One line for `--help` and error messages: what it does and its parameters.
-    pub summary: &'static str,
-    /// Builds it from a spec with this name, consuming and validating the parameters.
-    pub build: fn(PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError>,
-}
-
-impl fmt::Debug for PolicyFactory {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.debug_struct("PolicyFactory")
-            .field("name", &self.name)
-            .finish()
-    }
-}
-
-/// The native priority policies.
-pub const BUILTIN: &[PolicyFactory] = &[
-    PolicyFactory {
+/// The native priority policies: the one table [`crate::registry::PriorityRegistry`] registers.
+pub const NATIVE_POLICIES: &[Native<PriorityKind>] = &[
+    Native {
         name: "fifo",
         summary: "first come, first served by request arrival (vLLM default); no parameters",
         build: build_fifo,
     },
-    PolicyFactory {
+    Native {
         name: "plas",
         summary: "Autellix PLAS: least attained generation service in exponential queues; queues=8, quantum_ms=1000, growth=2, beta=8",
         build: build_plas,
     },
-    PolicyFactory {
+    Native {
         name: "kairos",
         summary: "paper Algorithm 1: wait-ratio buckets, aging, longest execution first; buckets=10 (or inf), aging=4, intra=longest-exec|fifo",
         build: build_kairos,
     },
-    PolicyFactory {
+    Native {
         name: "srw",
         summary: "slack-aware shortest remaining work: robots already out of actions first (by remaining rounds from the hint or a learned Gittins index, aged by wait ratio), the rest by deadline; hints=1, warmup=20, slack=1, due_order=work|deadline",
         build: build_srw,
     },
 ];
 
-/// Builds the policy `spec` names.
+/// Builds the native policy `spec` names, from [`NATIVE_POLICIES`].
 pub fn build(spec: &PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
-    let factory = BUILTIN
-        .iter()
-        .find(|f| f.name == spec.name)
-        .ok_or_else(|| PolicySpecError::UnknownPolicy {
-            name: spec.name.clone(),
-            known: BUILTIN
-                .iter()
-                .map(|f| f.name)
-                .collect::<Vec<_>>()
-                .join(", "),
-        })?;
-    (factory.build)(spec.clone())
+    build_native::<PriorityKind>(&spec.name, spec)
 }
 
 /// Parses `s` as a whole number in `[min, max]`.
@@ -256,12 +228,14 @@ pub fn parse_real(s: &str, min_exclusive: f64) -> Result<f64, String> {
     Ok(v)
 }
 
-fn build_fifo(spec: PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
+fn build_fifo(spec: &PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
     spec.finish()?;
     Ok(Box::new(Fifo::default()))
 }
 
-fn build_plas(mut spec: PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
+fn build_plas(spec: &PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
+    // `take` consumes parameters so that `finish` can name any left over.
+    let mut spec = spec.clone();
     let d = PlasConfig::default();
     let queues = spec.take("queues", d.queues, |s| parse_int(s, 1, 64))?;
     let quantum_us = spec.take("quantum_ms", d.quantum_us, |s| {
@@ -283,7 +257,9 @@ fn build_plas(mut spec: PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpe
     })))
 }
 
-fn build_kairos(mut spec: PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
+fn build_kairos(spec: &PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
+    // `take` consumes parameters so that `finish` can name any left over.
+    let mut spec = spec.clone();
     let d = KairosConfig::default();
     let buckets = spec.take("buckets", d.buckets, |s| {
         if s == "inf" || s == "∞" {
@@ -306,7 +282,9 @@ fn build_kairos(mut spec: PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicyS
     })))
 }
 
-fn build_srw(mut spec: PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
+fn build_srw(spec: &PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError> {
+    // `take` consumes parameters so that `finish` can name any left over.
+    let mut spec = spec.clone();
     let d = SrwConfig::default();
     let flag = |s: &str| match s {
         "1" | "true" => Ok(true),

@@ -59,6 +59,12 @@ pub fn horizon_wat(body: &str) -> String {
 /// A priority core module whose `order` runs `body` with the pending list at locals 1-2
 /// (ptr, len); `body` must leave (ptr, len) of the answer list on the stack.
 pub fn priority_wat(body: &str) -> String {
+    priority_wat_notified(body, "")
+}
+
+/// [`priority_wat`] whose `task-finished` runs `finished` (locals 0-4: task, rounds, latency,
+/// attained service, wait; it leaves nothing on the stack).
+pub fn priority_wat_notified(body: &str, finished: &str) -> String {
     format!(
         r#"(module
   {ALLOCATOR}
@@ -75,7 +81,8 @@ pub fn priority_wat(body: &str) -> String {
   (func (export "cabi_post_kairos:policy/priority@0.1.0#order") (param i32)
     (global.set $heap (i32.const 1024)))
   (func (export "kairos:policy/priority@0.1.0#task-finished")
-    (param i64 i32 i64 i64 i64))
+    (param i64 i32 i64 i64 i64)
+    {finished})
 )"#
     )
 }
@@ -124,6 +131,8 @@ pub const PRIORITY_DUPLICATE: &str = r#"
     (local.set $out (call $alloc (i32.const 0) (i32.const 0) (i32.const 4) (i32.shl (local.get 2) (i32.const 2))))
     (memory.fill (local.get $out) (i32.const 0) (i32.shl (local.get 2) (i32.const 2)))
     (local.get $out) (local.get 2)"#;
+/// Loops forever (a `task-finished` body).
+pub const FINISHED_LOOP: &str = "(loop $spin (br $spin))";
 /// Loops forever.
 pub const PRIORITY_LOOP: &str = "(loop $spin (br $spin)) (i32.const 0) (i32.const 0)";
 /// Grows memory forever.

@@ -9,5 +9,5 @@ COMPONENTIZE_PY="${COMPONENTIZE_PY:-componentize-py}"
 mkdir -p "$OUT/wit"
 "$KAIROS" plugin wit --out "$OUT/wit" >/dev/null
 "$COMPONENTIZE_PY" -d "$OUT/wit" -w horizon-policy componentize app -p "$HERE" -o "$OUT/bound_py.wasm" >/dev/null
-"$KAIROS" plugin check "$OUT/bound_py.wasm" --param bound=0.05 --deadline-ms 2000 --cases 50 \
-    --cache-dir "$OUT/cache"
+# Default settings: what a user who starts from the template runs.
+"$KAIROS" plugin check "$OUT/bound_py.wasm" --cache-dir "$OUT/cache"
