@@ -2,8 +2,6 @@
 //! virtual time and reproduces the paper's experiments (tables, CSV, plots); `traces` turns a
 //! workload file into a trace file.
 
-pub(crate) mod plot;
-
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -377,7 +375,7 @@ fn run_sim(a: SimArgs) -> anyhow::Result<()> {
     write(&a.out.join("summary.md"), &summary)?;
     write(&a.out.join("results.csv"), &report.csv())?;
     if !a.no_plots {
-        plot::all(&report, &a.out)?;
+        crate::plot::all(&report, &a.out)?;
     }
     println!("{summary}");
     println!(
