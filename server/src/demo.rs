@@ -413,14 +413,7 @@ pub async fn run_fleet(
         .generated_robot()
         .context("the server generated no robot token")?;
     let clients = fleet::connect(&client_config, fleet.len()).await?;
-    let model = clients
-        .first()
-        .context("the fleet is empty")?
-        .welcome()
-        .await
-        .context("connected but got no Welcome")?
-        .model
-        .clone();
+    let model = fleet::served_model(&clients).await?;
     let runner = RobotRunner::new(RunnerConfig {
         control_hz: control_hz as f32,
         trigger: 0.5,

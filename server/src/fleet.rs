@@ -17,6 +17,7 @@ use std::net::SocketAddr;
 use std::time::Duration;
 
 use kairos_sdk::client::{Client, ClientConfig, ClientError};
+use kairos_sdk::protocol::ModelInfo;
 use kairos_sdk::tls::Fingerprint;
 use tokio::task::JoinError;
 use tokio::time::Instant;
@@ -47,6 +48,12 @@ pub enum FleetError {
         /// The client's error.
         source: ClientError,
     },
+    /// The fleet has no robot to ask the server for its model.
+    #[error("the fleet is empty")]
+    Empty,
+    /// The first robot holds no `Welcome` (which names the model) from the server.
+    #[error("connected but got no Welcome")]
+    NoWelcome,
 }
 
 /// A server running in this process, and what its robots connect with.
@@ -124,6 +131,13 @@ pub async fn connect(config: &ClientConfig, robots: usize) -> Result<Vec<Client>
         }
     }))
     .await
+}
+
+/// The model the fleet's server serves, from the first robot's `Welcome`.
+pub async fn served_model(clients: &[Client]) -> Result<ModelInfo, FleetError> {
+    let first = clients.first().ok_or(FleetError::Empty)?;
+    let welcome = first.welcome().await.ok_or(FleetError::NoWelcome)?;
+    Ok(welcome.model.clone())
 }
 
 /// Runs robot `index`'s task, `robot(index)`, from `t0 + starts[index]`, every robot

@@ -329,14 +329,7 @@ pub async fn run_live(
     let clients = fleet::connect(&client_config, schedule.len())
         .await
         .with_context(|| format!("connecting the robots to {addr}"))?;
-    let model = clients
-        .first()
-        .context("no task to run")?
-        .welcome()
-        .await
-        .context("connected but got no Welcome")?
-        .model
-        .clone();
+    let model = fleet::served_model(&clients).await?;
     if model.name != crate::pool::replay::REPLAY_MODEL {
         bail!(
             "{addr} serves `{}`, not the trace-replay engine (start one with `kairos bench live --serve`)",
