@@ -4,7 +4,7 @@ use clap::{Parser, Subcommand};
 
 /// Kairos: an execution-aware serving system for robot foundation models.
 #[derive(Parser, Debug)]
-#[command(name = "kairos", version, about)]
+#[command(name = "kairos", version)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

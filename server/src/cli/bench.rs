@@ -34,7 +34,7 @@ pub enum BenchCommand {
     /// unloaded value (how the shipped workloads' peak rates were placed).
     Calibrate(CalibrateArgs),
     /// Replay the same traces live: simulated robots over QUIC against a real server with the
-    /// trace-replay engine, side by side with the simulation (`cli::bench_live`).
+    /// trace-replay engine, side by side with the simulation.
     Live(Box<super::bench_live::LiveArgs>),
 }
 
