@@ -366,7 +366,7 @@ pub struct Compared<'a> {
     /// Its label.
     pub label: &'a str,
     /// Its latency summary, seconds.
-    pub summary: &'a crate::sim::stats::Summary,
+    pub summary: &'a crate::stats::Summary,
     /// Every task's latency, seconds.
     pub latencies: &'a [f64],
 }
