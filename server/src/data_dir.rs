@@ -195,7 +195,7 @@ mod tests {
                 p.file_name().and_then(|n| n.to_str()).unwrap()
             })
             .collect();
-        // docs/SERVER.md ("Data directory") and `kairos robot --help` name these files.
+        // docs/SERVER.md ("Data directory") documents these names for operators.
         assert_eq!(
             names,
             [
