@@ -4,7 +4,7 @@ use clap::{Parser, Subcommand};
 
 /// Kairos: an execution-aware serving system for robot foundation models.
 #[derive(Parser, Debug)]
-#[command(name = "kairos", version, about)]
+#[command(name = "kairos", version)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -14,7 +14,7 @@ struct Cli {
 enum Command {
     /// Run the whole system on built-in defaults: a server with the built-in model and a fleet
     /// of simulated robots over QUIC on loopback, once per scheduler, with a summary and a plot.
-    Demo(Box<kairos_server::cli::demo::DemoArgs>),
+    Demo(Box<kairos_server::demo::DemoArgs>),
     /// Serve robots over QUIC (built-in defaults, or `--config kairos.toml`).
     Serve(Box<kairos_server::cli::serve::ServeArgs>),
     /// Measure a model's latency against batch size and write its engine profile.

@@ -1,7 +1,8 @@
 //! Starting a real server in-process and driving simulated robots against it.
 //!
-//! [`TestServer::start`] runs the whole server (`transport::launch::start`: QUIC with TLS 1.3,
-//! the driver, the scheduler, an engine pool) on `127.0.0.1:0` with a temporary data dir.
+//! [`TestServer::start`] runs the whole server (QUIC with TLS 1.3, the driver, the scheduler, an
+//! engine pool) on `127.0.0.1:0` with a temporary data dir, through the server's fleet harness
+//! (`kairos_server::fleet`, which `kairos demo` and `kairos bench live` use too).
 //! [`run_task`] plays one robot through a multi-round task with asynchronous inference (the next
 //! request goes out while the current chunk still executes) and logs, on the robot's own clock,
 //! what it did: when each request was sent and answered, when each chunk started executing, and
@@ -19,9 +20,10 @@ use kairos_sdk::protocol::{
     HorizonSelection, LastExecInfo, Observation, TaskEnded, TaskOutcome, Tensor,
 };
 use kairos_sdk::tls::Fingerprint;
-use kairos_server::config::{Config, RobotConfig, TokensFile, hash_token};
+use kairos_server::config::{Config, RobotConfig, hash_token};
+use kairos_server::fleet::{self, LocalServer};
 use kairos_server::pool::{EngineInstance, EnginePool, LocalEngine};
-use kairos_server::transport::launch::{Policies, RunningServer, ServerReport, start};
+use kairos_server::transport::launch::{Policies, RunningServer, ServerReport};
 
 use crate::model::TestFlow;
 
@@ -51,7 +53,7 @@ impl Default for ServerOptions {
 
 /// A server running in this process.
 pub struct TestServer {
-    server: Option<RunningServer>,
+    server: Option<LocalServer>,
     /// The `default` robot's token (when robots were generated) or the first configured one.
     pub token: String,
     /// The certificate pin.
@@ -113,26 +115,19 @@ impl TestServer {
             })
             .collect();
         let pool = EnginePool::new(instances)?;
-        let server = start(&config, pool, Policies::default()).await?;
+        let server = LocalServer::start(&config, pool, Policies::default()).await?;
         let token = match options.robots.first() {
             Some((_, token)) => token.clone(),
-            None => {
-                let path = server
-                    .tokens_file
-                    .clone()
-                    .context("no tokens file for the generated robot")?;
-                TokensFile::read(&path)?
-                    .token(kairos_server::config::DEFAULT_ROBOT)
-                    .context("no default robot in the tokens file")?
-                    .to_string()
-            }
+            None => server
+                .token
+                .clone()
+                .context("no token for the generated robot")?,
         };
-        let pin: Fingerprint = server.fingerprint.parse()?;
         Ok(TestServer {
-            addr: server.local_addr,
+            addr: server.addr(),
+            pin: server.pin,
             server: Some(server),
             token,
-            pin,
             dir,
         })
     }
@@ -140,14 +135,14 @@ impl TestServer {
     /// The running server.
     pub fn server(&self) -> &RunningServer {
         // Present until `shutdown` consumes `self`.
-        self.server.as_ref().expect("server running")
+        &self.server.as_ref().expect("server running").server
     }
 
     /// A client config pinned to this server, for `token`, connecting to `addr` (the server
     /// itself or a proxy in front of it).
     pub fn client_config(&self, addr: SocketAddr, token: &str) -> ClientConfig {
         let mut config = ClientConfig::pinned(addr, self.pin, token);
-        config.connect_timeout = Duration::from_secs(10);
+        config.connect_timeout = fleet::CONNECT_TIMEOUT;
         config
     }
 
@@ -186,7 +181,7 @@ impl TestServer {
 impl Drop for TestServer {
     fn drop(&mut self) {
         if let Some(server) = self.server.as_ref() {
-            server.begin_shutdown();
+            server.server.begin_shutdown();
         }
     }
 }
@@ -279,20 +274,24 @@ pub fn observation(client: &Client, state1: f32) -> Observation {
 /// Runs every plan as its own robot (one QUIC connection each, the server's token),
 /// concurrently, and returns their logs in plan order.
 pub async fn run_fleet(server: &TestServer, plans: Vec<RobotPlan>) -> anyhow::Result<Vec<TaskLog>> {
-    let mut robots = Vec::new();
-    for plan in plans {
-        let client = server.connect(&server.token).await?;
-        robots.push(tokio::spawn(async move {
+    // One handshake at a time, not `fleet::connect`: each robot's estimate of the server clock
+    // comes from its own handshake, and uncontended handshakes keep that estimate within the
+    // tolerance the record comparisons (`compare_records`) allow.
+    let mut clients = Vec::with_capacity(plans.len());
+    for _ in &plans {
+        clients.push(server.connect(&server.token).await?);
+    }
+    let starts = vec![Duration::ZERO; plans.len()];
+    let outcomes = fleet::run_from(tokio::time::Instant::now(), &starts, |index| {
+        let (client, plan) = (clients[index].clone(), plans[index].clone());
+        async move {
             let log = run_task(&client, &plan, None).await;
             client.close().await;
             log
-        }));
-    }
-    let mut logs = Vec::new();
-    for robot in robots {
-        logs.push(robot.await??);
-    }
-    Ok(logs)
+        }
+    })
+    .await;
+    outcomes.into_iter().map(|outcome| outcome?).collect()
 }
 
 /// Something to do between rounds (e.g. rebind the client's socket), given the round just done.

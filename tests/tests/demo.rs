@@ -1,7 +1,7 @@
 //! `kairos demo`'s code path, small: the built-in flow head profiled at start, a fresh server per
 //! scheduler, two robots over QUIC, a few rounds each, and the summary and plot at the end.
 
-use kairos_server::cli::demo::{DemoArgs, Horizons, execute, fleet};
+use kairos_server::demo::{DemoArgs, Horizons, execute, fleet};
 
 #[test]
 fn a_small_demo_answers_every_round_of_every_scheduler_and_writes_its_summary() {
@@ -15,7 +15,7 @@ fn a_small_demo_answers_every_round_of_every_scheduler_and_writes_its_summary() 
         ..DemoArgs::default()
     };
     let planned = fleet(&args);
-    let report = execute(&args, false).unwrap();
+    let report = execute(&args, std::sync::Arc::new(())).unwrap();
 
     assert!(report.engine.contains("flow-head"), "{}", report.engine);
     let labels: Vec<&str> = report
@@ -104,13 +104,13 @@ fn dynamic_horizons_for_every_scheduler_when_asked() {
         schedulers: vec!["fifo".into(), "kairos:buckets=5".into()],
         ..DemoArgs::default()
     };
-    let runs = kairos_server::cli::demo::scheduler_runs(&args).unwrap();
+    let runs = kairos_server::demo::scheduler_runs(&args).unwrap();
     assert!(runs.iter().all(|r| r.dynamic()));
     assert_eq!(runs[1].policy.to_string(), "kairos:buckets=5");
     let bad = DemoArgs {
         schedulers: vec!["lottery".into()],
         ..DemoArgs::default()
     };
-    let error = kairos_server::cli::demo::scheduler_runs(&bad).unwrap_err();
+    let error = kairos_server::demo::scheduler_runs(&bad).unwrap_err();
     assert!(error.to_string().contains("lottery"), "{error}");
 }

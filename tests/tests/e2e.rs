@@ -87,7 +87,8 @@ async fn serve_with_defaults_answers_a_robot_that_reads_the_data_dir() {
     use kairos_sdk::client::{Client, ClientConfig, NoRefetch, RoundRequest};
     use kairos_sdk::protocol::{Observation, Tensor};
     use kairos_server::cli::serve::{ServeArgs, config, start_engines};
-    use kairos_server::config::{DEFAULT_ROBOT, TokensFile};
+    use kairos_server::config::DEFAULT_ROBOT;
+    use kairos_server::data_dir::DataDir;
     use kairos_server::transport::launch::{Policies, start};
 
     let dir = tempfile::tempdir().unwrap();
@@ -108,20 +109,12 @@ async fn serve_with_defaults_answers_a_robot_that_reads_the_data_dir() {
     let server = start(&config, pool, Policies::default()).await.unwrap();
     assert_eq!(server.model.name, "flow-head-small");
 
-    let data_dir = dir.path().join("kairos-data");
-    let pin = std::fs::read_to_string(data_dir.join("fingerprint.txt")).unwrap();
-    let token = TokensFile::read(&data_dir.join("tokens.toml"))
-        .unwrap()
-        .token(DEFAULT_ROBOT)
-        .unwrap()
-        .to_string();
-    let client = Client::connect(ClientConfig::pinned(
-        server.local_addr,
-        pin.trim().parse().unwrap(),
-        token,
-    ))
-    .await
-    .unwrap();
+    let data_dir = DataDir::new(dir.path().join("kairos-data"));
+    let pin = data_dir.read_pin().unwrap();
+    let token = data_dir.token(DEFAULT_ROBOT).unwrap();
+    let client = Client::connect(ClientConfig::pinned(server.local_addr, pin, token))
+        .await
+        .unwrap();
     let spec = &server.model;
     let mut task = client.task(1);
     let observation = Observation {

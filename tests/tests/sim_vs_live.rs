@@ -41,7 +41,7 @@
 //!   or a horizon policy that did not see the recorded confidence, changes rounds per task by far
 //!   more than 10% (Kairos asks for 4.8 rounds per task, FIFO 8.8).
 
-use kairos_server::cli::bench_live::{
+use kairos_server::live_replay::{
     Comparison, LiveOutcome, SimNetworkMode, Target, compare, live_job, relative_diff, run_live,
     scale_traces, variant,
 };

@@ -2,8 +2,6 @@
 //! virtual time and reproduces the paper's experiments (tables, CSV, plots); `traces` turns a
 //! workload file into a trace file.
 
-pub(crate) mod plot;
-
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -36,7 +34,7 @@ pub enum BenchCommand {
     /// unloaded value (how the shipped workloads' peak rates were placed).
     Calibrate(CalibrateArgs),
     /// Replay the same traces live: simulated robots over QUIC against a real server with the
-    /// trace-replay engine, side by side with the simulation (`cli::bench_live`).
+    /// trace-replay engine, side by side with the simulation.
     Live(Box<super::bench_live::LiveArgs>),
 }
 
@@ -377,7 +375,7 @@ fn run_sim(a: SimArgs) -> anyhow::Result<()> {
     write(&a.out.join("summary.md"), &summary)?;
     write(&a.out.join("results.csv"), &report.csv())?;
     if !a.no_plots {
-        plot::all(&report, &a.out)?;
+        crate::plot::all(&report, &a.out)?;
     }
     println!("{summary}");
     println!(

@@ -1,769 +1,133 @@
-//! `kairos demo`: the whole system in one process, in about a minute, with nothing to set up.
-//!
-//! For each scheduler in turn (FIFO, Autellix, Kairos, and SRW, the better policy of
-//! docs/EVALUATION.md) it starts the real server on `127.0.0.1:0` — QUIC with TLS 1.3, the driver,
-//! the scheduler, the action manager — whose engine is the engine crate's built-in flow head
-//! running real forward passes (profiled once at start, like `kairos serve` does), and a fleet
-//! of simulated robots, one QUIC connection each, that start at Poisson-staggered times and each
-//! run one task with the SDK's [`RobotRunner`]: actions execute in real time at the control
-//! frequency while the next chunk is generated, and the server's horizon policy decides how much
-//! of each chunk runs. Every scheduler sees the same fleet: the same start times and task
-//! lengths (from `--seed`).
-//!
-//! Horizons follow the paper's comparison by default (`--horizons paper`): the baselines (FIFO,
-//! Autellix) execute a static `H`, Kairos and SRW the §3.1 threshold policy on the chunk's
-//! diffusion updates; `--horizons dynamic` gives every scheduler the threshold policy, which
-//! isolates the schedulers.
-//!
-//! It ends with a per-scheduler table (average / P25 / P95 task latency, rounds, mean horizon,
-//! server queueing, batch size, engine utilisation), a few sentences reading it, and a PNG plot.
-//! Everything it writes goes under `--out` (default `./kairos-demo/`): the server's state
-//! (certificate, token), `summary.md`, `demo.png`/`.svg`.
+//! `kairos demo`: runs [`crate::demo`] with progress bars and prints its summary.
 
-use std::collections::BTreeMap;
-use std::fmt::Write as _;
-use std::future::Future;
-use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
-use anyhow::{Context, bail};
+use anyhow::bail;
 use indicatif::{ProgressBar, ProgressStyle};
-use kairos_sdk::client::{Client, ClientConfig};
-use kairos_sdk::protocol::{HorizonSelection, Observation};
-use kairos_sdk::robot::{
-    Robot, RobotError, RobotRunner, RunnerConfig, RunnerEvent, SimulatedRobot, TaskSummary,
+
+use crate::demo::{
+    DemoArgs, DemoEvent, DemoProgress, FleetTask, QUICK_ENV, RunResult, SchedulerRun, execute,
 };
-use kairos_sdk::tls::Fingerprint;
-use rand::{Rng, SeedableRng, rngs::StdRng};
-use rand_distr::StandardNormal;
-use tokio::time::Instant;
+use crate::pool::BuildEvent;
 
-use crate::config::{Config, EngineConfig, TokensFile};
-use crate::pool::{BuildEvent, EnginePool, build_pool};
-use crate::scheduler::PolicySpec;
-use crate::sim::stats::{Summary, reduction, summarize};
-use crate::transport::launch::{Policies, ServerReport, start};
-
-/// Which horizon policy each scheduler's robots ask for.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
-pub enum Horizons {
-    /// As in the paper's comparison: FIFO and Autellix a static `H`, the others the threshold
-    /// policy (the dynamic horizon).
-    #[default]
-    Paper,
-    /// Every scheduler with the threshold policy: only the scheduling differs.
-    Dynamic,
-    /// Every scheduler with the static `H`.
-    Static,
+/// Progress bars for the engine's profiling and each scheduler's run, and a line per run.
+struct Terminal {
+    /// The bar in use: the engine's, then each run's.
+    bar: Mutex<ProgressBar>,
+    /// Rounds answered in the current run.
+    rounds: AtomicU64,
 }
 
-/// Run the server and a fleet of simulated robots in one process, once per scheduler, and
-/// compare.
-#[derive(clap::Args, Debug, Clone)]
-pub struct DemoArgs {
-    /// Robots in the fleet: each runs one task over its own QUIC connection.
-    #[arg(long, default_value_t = 24, value_parser = clap::value_parser!(u32).range(1..=1024))]
-    pub robots: u32,
-    /// Median task length, seconds of execution (log-normal, σ = 0.5, within 0.25x–3x).
-    #[arg(long, default_value_t = 3.0, value_parser = parse_positive)]
-    pub task_s: f64,
-    /// Mean gap between robot starts (Poisson arrivals), seconds.
-    #[arg(long, default_value_t = 0.1, value_parser = parse_non_negative)]
-    pub stagger_s: f64,
-    /// Schedulers to compare, comma-separated priority policies (`fifo`, `plas` = Autellix,
-    /// `kairos`, `srw`, or any `name:key=value` spec the server accepts).
-    #[arg(long, value_delimiter = ',', default_value = "fifo,plas,kairos,srw")]
-    pub schedulers: Vec<String>,
-    /// Horizon policy per scheduler.
-    #[arg(long, value_enum, default_value_t = Horizons::Paper)]
-    pub horizons: Horizons,
-    /// The static horizon `H`.
-    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..))]
-    pub static_h: u32,
-    /// Threshold `t` of the dynamic horizon (paper §3.1).
-    #[arg(long, default_value_t = 0.4, value_parser = parse_non_negative)]
-    pub threshold: f64,
-    /// `H_min` of the dynamic horizon.
-    #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]
-    pub h_min: u32,
-    /// Robot control frequency, actions per second.
-    #[arg(long, default_value_t = 30.0, value_parser = parse_positive)]
-    pub control_hz: f64,
-    /// Largest batch measured when profiling the engine at start.
-    #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=64))]
-    pub profile_max_batch: u32,
-    /// Seed of the fleet (start times, task lengths).
-    #[arg(long, default_value_t = 7)]
-    pub seed: u64,
-    /// Output directory.
-    #[arg(long, short = 'o', default_value = "kairos-demo")]
-    pub out: PathBuf,
-    /// Skip the plot.
-    #[arg(long)]
-    pub no_plot: bool,
-}
-
-impl Default for DemoArgs {
-    fn default() -> Self {
-        DemoArgs {
-            robots: 24,
-            task_s: 3.0,
-            stagger_s: 0.1,
-            schedulers: ["fifo", "plas", "kairos", "srw"].map(String::from).to_vec(),
-            horizons: Horizons::Paper,
-            static_h: 10,
-            threshold: 0.4,
-            h_min: 5,
-            control_hz: 30.0,
-            profile_max_batch: 16,
-            seed: 7,
-            out: PathBuf::from("kairos-demo"),
-            no_plot: false,
+impl Terminal {
+    fn new() -> Terminal {
+        Terminal {
+            bar: Mutex::new(bar(
+                0,
+                "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} {msg}",
+            )),
+            rounds: AtomicU64::new(0),
         }
     }
-}
 
-fn parse_positive(text: &str) -> Result<f64, String> {
-    match text.parse::<f64>() {
-        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
-        _ => Err(format!("expected a positive number, got {text:?}")),
+    fn bar(&self) -> ProgressBar {
+        // A bar is a handle; a poisoned lock still holds a usable one.
+        self.bar
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
     }
 }
 
-fn parse_non_negative(text: &str) -> Result<f64, String> {
-    match text.parse::<f64>() {
-        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
-        _ => Err(format!("expected a number >= 0, got {text:?}")),
-    }
-}
-
-/// One robot's task in the fleet.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct FleetTask {
-    /// When the robot starts, from the run's start.
-    pub start: Duration,
-    /// Actions the task takes.
-    pub actions: u64,
-}
-
-/// The fleet every scheduler sees: Poisson start times and log-normal task lengths.
-pub fn fleet(args: &DemoArgs) -> Vec<FleetTask> {
-    let mut rng = StdRng::seed_from_u64(args.seed);
-    let median = args.task_s * args.control_hz;
-    let mut at = 0.0f64;
-    (0..args.robots)
-        .map(|_| {
-            let z: f64 = rng.sample(StandardNormal);
-            let actions = (median * (0.5 * z).exp()).clamp(0.25 * median, 3.0 * median);
-            let task = FleetTask {
-                start: Duration::from_secs_f64(at),
-                actions: (actions.round() as u64).max(1),
-            };
-            let u: f64 = rng.random();
-            at += -(1.0 - u).ln() * args.stagger_s;
-            task
-        })
-        .collect()
-}
-
-/// One scheduler's configuration in the comparison.
-#[derive(Clone, Debug, PartialEq)]
-pub struct SchedulerRun {
-    /// Colour key for the plot (`fifo`, `autellix`, `kairos`, `srw`, other).
-    pub key: String,
-    /// Label.
-    pub label: String,
-    /// The server's priority policy.
-    pub policy: PolicySpec,
-    /// The horizon policy the robots ask for.
-    pub horizon: HorizonSelection,
-}
-
-impl SchedulerRun {
-    /// Whether the robots ask for the dynamic (threshold) horizon.
-    pub fn dynamic(&self) -> bool {
-        self.horizon.policy == "threshold"
-    }
-}
-
-/// The runs `args` asks for, in order.
-pub fn scheduler_runs(args: &DemoArgs) -> anyhow::Result<Vec<SchedulerRun>> {
-    if args.schedulers.is_empty() {
-        bail!("--schedulers is empty");
-    }
-    let static_h = HorizonSelection {
-        policy: "static".into(),
-        params: BTreeMap::from([("h".to_string(), f64::from(args.static_h))]),
-        samples: 1,
-    };
-    let dynamic = HorizonSelection {
-        policy: "threshold".into(),
-        params: BTreeMap::from([
-            ("t".to_string(), args.threshold),
-            ("h_min".to_string(), f64::from(args.h_min)),
-        ]),
-        samples: 1,
-    };
-    args.schedulers
-        .iter()
-        .map(|text| {
-            let policy: PolicySpec = text.trim().parse()?;
-            crate::scheduler::build_policy(&policy)?;
-            let (key, name) = match policy.name.as_str() {
-                "fifo" => ("fifo", "FIFO"),
-                "plas" => ("autellix", "Autellix"),
-                "kairos" => ("kairos", "Kairos"),
-                "srw" => ("srw", "SRW (ours)"),
-                other => (other, other),
-            };
-            let baseline = matches!(key, "fifo" | "autellix");
-            let horizon = match args.horizons {
-                Horizons::Paper if baseline => static_h.clone(),
-                Horizons::Paper | Horizons::Dynamic => dynamic.clone(),
-                Horizons::Static => static_h.clone(),
-            };
-            let label = if policy.params.is_empty() {
-                name.to_string()
-            } else {
-                format!("{name} ({policy})")
-            };
-            let label = match horizon.policy.as_str() {
-                "static" => format!("{label}, H={}", args.static_h),
-                _ => format!("{label}, dyn. H"),
-            };
-            Ok(SchedulerRun {
-                key: key.to_string(),
-                label,
-                policy,
-                horizon,
-            })
-        })
-        .collect()
-}
-
-/// A [`SimulatedRobot`] whose task is done after a fixed number of actions.
-struct FleetRobot {
-    inner: SimulatedRobot,
-    actions: u64,
-}
-
-impl Robot for FleetRobot {
-    fn get_obs(
-        &mut self,
-        now_us: u64,
-    ) -> impl Future<Output = Result<Observation, RobotError>> + Send {
-        self.inner.get_obs(now_us)
-    }
-
-    fn send_act(&mut self, action: &[f32]) -> impl Future<Output = Result<(), RobotError>> + Send {
-        self.inner.send_act(action)
-    }
-
-    fn task_done(&self) -> bool {
-        self.inner.executed() >= self.actions
-    }
-}
-
-/// One scheduler's run.
-#[derive(Clone, Debug)]
-pub struct RunResult {
-    /// What ran.
-    pub run: SchedulerRun,
-    /// Every finished task, in fleet order.
-    pub tasks: Vec<TaskSummary>,
-    /// Tasks that failed, with why.
-    pub failures: Vec<String>,
-    /// The server's counters.
-    pub server: ServerReport,
-    /// Wall-clock time of the run.
-    pub wall: Duration,
-}
-
-impl RunResult {
-    /// Task latencies (first request → last action), seconds.
-    pub fn latencies(&self) -> Vec<f64> {
-        self.tasks
-            .iter()
-            .map(|t| t.latency_us() as f64 / 1e6)
-            .collect()
-    }
-
-    /// P25 / mean / P95 of the task latencies.
-    pub fn summary(&self) -> Summary {
-        summarize(&self.latencies())
-    }
-
-    fn rounds(&self) -> impl Iterator<Item = &kairos_sdk::robot::RoundRecord> {
-        self.tasks.iter().flat_map(|t| &t.rounds)
-    }
-
-    /// Answered rounds.
-    pub fn round_count(&self) -> usize {
-        self.rounds().count()
-    }
-
-    /// Mean horizon `H` the server chose.
-    pub fn mean_horizon(&self) -> f64 {
-        mean(self.rounds().map(|r| f64::from(r.horizon)))
-    }
-
-    /// Mean server queueing per round (arrival → dispatch), ms.
-    pub fn mean_queue_ms(&self) -> f64 {
-        mean(self.rounds().map(|r| r.timing.queue_us as f64 / 1e3))
-    }
-
-    /// Mean batch size, over batches.
-    pub fn mean_batch(&self) -> f64 {
-        let batches = self.server.driver.batches.max(1) as f64;
-        self.server.driver.replies as f64 / batches
-    }
-
-    /// Share of the run's wall-clock time the engine spent generating.
-    pub fn engine_busy(&self) -> f64 {
-        let busy_us: f64 = self
-            .rounds()
-            .map(|r| r.timing.inference_us as f64 / f64::from(r.timing.batch_size.max(1)))
-            .sum();
-        busy_us / 1e6 / self.wall.as_secs_f64().max(1e-9)
-    }
-
-    /// Mean time a robot sat idle waiting for actions, per task, seconds.
-    pub fn mean_idle_s(&self) -> f64 {
-        mean(self.tasks.iter().map(|t| t.idle_us as f64 / 1e6))
-    }
-}
-
-fn mean(values: impl Iterator<Item = f64>) -> f64 {
-    let (sum, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
-    if n == 0 { 0.0 } else { sum / n as f64 }
-}
-
-/// Progress of a run.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum DemoEvent {
-    /// A round was answered.
-    Round,
-    /// A robot finished its task (or failed).
-    TaskDone,
-}
-
-/// Runs the fleet against a fresh server with `run`'s scheduler on `pool`, keeping the server's
-/// state in `data_dir`.
-pub async fn run_fleet(
-    pool: EnginePool,
-    fleet: &[FleetTask],
-    run: &SchedulerRun,
-    control_hz: f64,
-    data_dir: &Path,
-    on_event: impl Fn(DemoEvent) + Send + Sync + 'static,
-) -> anyhow::Result<RunResult> {
-    let mut config = Config {
-        listen: "127.0.0.1:0".parse()?,
-        data_dir: data_dir.to_path_buf(),
-        ..Config::default()
-    };
-    config.scheduler.policy = run.policy.clone();
-    let server = start(&config, pool, Policies::default())
-        .await
-        .context("starting the server")?;
-    let tokens = server
-        .tokens_file
-        .clone()
-        .context("the server generated no robot token")?;
-    let token = TokensFile::read(&tokens)?
-        .token(crate::config::DEFAULT_ROBOT)
-        .context("no default robot in the tokens file")?
-        .to_string();
-    let pin: Fingerprint = server.fingerprint.parse()?;
-    let mut client_config = ClientConfig::pinned(server.local_addr, pin, token);
-    client_config.connect_timeout = Duration::from_secs(20);
-    let clients = futures::future::try_join_all(fleet.iter().map(|_| {
-        let config = client_config.clone();
-        async move { Client::connect(config).await }
-    }))
-    .await
-    .context("connecting the robots")?;
-    let model = clients
-        .first()
-        .context("the fleet is empty")?
-        .welcome()
-        .await
-        .context("connected but got no Welcome")?
-        .model
-        .clone();
-    let runner = RobotRunner::new(RunnerConfig {
-        control_hz: control_hz as f32,
-        trigger: 0.5,
-        // The task ends on its action count (`FleetRobot::task_done`); a round budget this large
-        // also keeps the runner from sending a remaining-rounds hint it cannot know.
-        rounds: u64::MAX,
-        horizon: Some(run.horizon.clone()),
-        ..RunnerConfig::default()
-    });
-
-    let on_event = Arc::new(on_event);
-    let t0 = Instant::now() + Duration::from_millis(100);
-    let mut robots = tokio::task::JoinSet::new();
-    for (index, (task, client)) in fleet.iter().zip(&clients).enumerate() {
-        let (runner, client, on_event, task) =
-            (runner.clone(), client.clone(), Arc::clone(&on_event), *task);
-        let cameras = model.max_images.min(2) as usize;
-        let state_dim = model.state_dim as usize;
-        robots.spawn(async move {
-            tokio::time::sleep_until(t0 + task.start).await;
-            let mut robot = FleetRobot {
-                inner: SimulatedRobot::new(state_dim, cameras, 64, 64),
-                actions: task.actions,
-            };
-            let summary = runner
-                .run(&mut robot, client.task(index as u64), |event| {
-                    if let RunnerEvent::ReplyReceived { .. } = event {
-                        on_event(DemoEvent::Round);
-                    }
-                })
-                .await;
-            on_event(DemoEvent::TaskDone);
-            (index, summary)
-        });
-    }
-    let mut tasks: Vec<Option<TaskSummary>> = vec![None; fleet.len()];
-    let mut failures = Vec::new();
-    while let Some(joined) = robots.join_next().await {
-        match joined {
-            Ok((index, Ok(summary))) => tasks[index] = Some(summary),
-            Ok((index, Err(error))) => failures.push(format!("robot {index}: {error}")),
-            Err(error) => failures.push(format!("a robot panicked: {error}")),
-        }
-    }
-    let wall = t0.elapsed();
-    for client in &clients {
-        client.close().await;
-    }
-    let server = server.shutdown().await;
-    Ok(RunResult {
-        run: run.clone(),
-        tasks: tasks.into_iter().flatten().collect(),
-        failures,
-        server,
-        wall,
-    })
-}
-
-/// The per-scheduler table.
-pub fn summary_table(results: &[RunResult]) -> String {
-    let mut s = String::new();
-    let _ = writeln!(
-        s,
-        "| Scheduler | tasks | avg (s) | P25 (s) | P95 (s) | avg vs FIFO | rounds | rounds/task | mean H | queue (ms) | batch | engine busy | idle/task (s) |"
+fn bar(len: u64, template: &str) -> ProgressBar {
+    let bar = ProgressBar::new(len);
+    bar.set_style(
+        ProgressStyle::with_template(template).unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
-    let fifo = results.iter().find(|r| r.run.key == "fifo");
-    for r in results {
-        let m = r.summary();
-        let vs = match fifo {
-            Some(f) if f.run.label != r.run.label => {
-                format!("{:+.1}%", -reduction(f.summary().mean, m.mean))
+    bar.enable_steady_tick(Duration::from_millis(150));
+    bar
+}
+
+impl DemoProgress for Terminal {
+    fn engine(&self, event: &BuildEvent) {
+        let bar = self.bar();
+        match event {
+            BuildEvent::Loading { model, .. } => bar.set_message(format!("loading {model}")),
+            BuildEvent::Measured {
+                batch, done, total, ..
+            } => {
+                bar.set_length(*total as u64);
+                bar.set_position(*done as u64);
+                bar.set_message(format!("profiling the engine: batch {batch}"));
             }
-            _ => "–".to_string(),
-        };
-        let _ = writeln!(
-            s,
-            "| {} | {} | {:.2} | {:.2} | {:.2} | {} | {} | {:.1} | {:.1} | {:.0} | {:.2} | {:.0}% | {:.2} |",
-            r.run.label,
-            r.tasks.len(),
-            m.mean,
-            m.p25,
-            m.p95,
-            vs,
-            r.round_count(),
-            r.round_count() as f64 / r.tasks.len().max(1) as f64,
-            r.mean_horizon(),
-            r.mean_queue_ms(),
-            r.mean_batch(),
-            r.engine_busy() * 100.0,
-            r.mean_idle_s(),
-        );
+            BuildEvent::Ready { .. } => {}
+        }
     }
-    s
-}
 
-/// A few sentences reading the table: what won and by how much, how much of it is the horizon
-/// and how much the scheduler, and whether a difference is more than the run-to-run noise of a
-/// one-minute demo.
-pub fn reading(results: &[RunResult]) -> String {
-    let mut s = String::new();
-    let avg = |r: &RunResult| r.summary().mean;
-    let Some(best) = results.iter().min_by(|a, b| avg(a).total_cmp(&avg(b))) else {
-        return s;
-    };
-    match results.iter().find(|r| r.run.key == "fifo") {
-        Some(fifo) if fifo.run.label != best.run.label => {
-            let _ = write!(
-                s,
-                "Lowest average latency: {}, {:.1}% below {}. ",
-                best.run.label,
-                reduction(avg(fifo), avg(best)),
-                fifo.run.label
-            );
-        }
-        _ => {
-            let _ = write!(s, "Lowest average latency: {}. ", best.run.label);
-        }
-    }
-    let rounds_per_task = |rs: &[&RunResult]| {
-        mean(
-            rs.iter()
-                .map(|r| r.round_count() as f64 / r.tasks.len().max(1) as f64),
-        )
-    };
-    let (dynamic, fixed): (Vec<&RunResult>, Vec<&RunResult>) =
-        results.iter().partition(|r| r.run.dynamic());
-    if !dynamic.is_empty() && !fixed.is_empty() {
-        let (rd, rf) = (rounds_per_task(&dynamic), rounds_per_task(&fixed));
-        let _ = write!(
-            s,
-            "Most of that is the horizon, not the scheduler: the dynamic horizon executed {:.1} actions per chunk on average against the static {:.0}, so its tasks needed {:.1} rounds instead of {:.1} ({:.0}% fewer requests for the same work) — in the paper, too, the dynamic horizon carries most of the gain. ",
-            mean(dynamic.iter().map(|r| r.mean_horizon())),
-            mean(fixed.iter().map(|r| r.mean_horizon())),
-            rd,
-            rf,
-            reduction(rf, rd)
-        );
-    }
-    for group in [&fixed, &dynamic] {
-        let Some((first, others)) = group.split_first() else {
-            continue;
-        };
-        for other in others {
-            let change = -reduction(avg(first), avg(other));
-            let _ = write!(
-                s,
-                "Same horizon, different scheduler: {} has {:+.1}% average latency against {}{}. ",
-                other.run.label,
-                change,
-                first.run.label,
-                if change.abs() < 5.0 {
-                    " — within the run-to-run noise of a one-minute run on a shared machine, read it as a tie"
-                } else {
-                    ""
-                }
-            );
-        }
-    }
-    let busy = results
-        .iter()
-        .map(RunResult::engine_busy)
-        .fold(0.0, f64::max);
-    // Queueing, not utilisation over the whole run (which includes the fleet's ramp-up and
-    // tail), says whether the order mattered.
-    let queue_ms = results
-        .iter()
-        .map(RunResult::mean_queue_ms)
-        .fold(0.0, f64::max);
-    if queue_ms < 20.0 {
-        let _ = write!(
-            s,
-            "Requests waited at most {queue_ms:.0} ms on average for the engine (busy at most {:.0}% of the run), so the order a scheduler picks matters little; raise --robots or lower --stagger-s to contend it harder. ",
-            busy * 100.0
-        );
-    } else {
-        let _ = write!(
-            s,
-            "Requests waited up to {queue_ms:.0} ms on average for the engine (busy up to {:.0}% of the run): they queued, and the scheduler's order decided who waited. ",
-            busy * 100.0
-        );
-    }
-    if !dynamic.is_empty() {
-        let _ = write!(
-            s,
-            "The flow head's weights are random (nothing is downloaded), so the threshold policy reads an untrained model's diffusion updates: its H shows the mechanism, not a tuned accuracy/efficiency trade-off."
-        );
-    }
-    s
-}
-
-/// What a demo produced.
-#[derive(Clone, Debug)]
-pub struct DemoReport {
-    /// Per scheduler, in order.
-    pub results: Vec<RunResult>,
-    /// The engine's profile line.
-    pub engine: String,
-    /// `summary.md`'s text.
-    pub summary: String,
-    /// The plot, if drawn.
-    pub plot: Option<PathBuf>,
-}
-
-/// Runs the demo and returns its report; `progress` shows bars on the terminal.
-pub fn execute(args: &DemoArgs, progress: bool) -> anyhow::Result<DemoReport> {
-    let runs = scheduler_runs(args)?;
-    let fleet = fleet(args);
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
-    let bar = |len: u64, template: &str| {
-        let bar = if progress {
-            ProgressBar::new(len)
-        } else {
-            ProgressBar::hidden()
-        };
-        bar.set_style(
-            ProgressStyle::with_template(template).unwrap_or_else(|_| ProgressStyle::default_bar()),
-        );
-        bar.enable_steady_tick(Duration::from_millis(150));
-        bar
-    };
-
-    let profiling = bar(
-        0,
-        "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} {msg}",
-    );
-    profiling.set_message("loading the built-in flow head");
-    let engine_config = EngineConfig {
-        profile_max_batch: args.profile_max_batch,
-        ..EngineConfig::default()
-    };
-    let mut engine = String::new();
-    let pool = build_pool(&[engine_config], |event| match event {
-        BuildEvent::Loading { model, .. } => profiling.set_message(format!("loading {model}")),
-        BuildEvent::Measured {
-            batch, done, total, ..
-        } => {
-            profiling.set_length(total as u64);
-            profiling.set_position(done as u64);
-            profiling.set_message(format!("profiling the engine: batch {batch}"));
-        }
-        BuildEvent::Ready { profile, .. } => {
-            engine = format!(
-                "{} on {}, batches up to {} ({})",
-                profile.model,
-                profile.device,
-                profile.max_batch,
-                profile
-                    .points
-                    .iter()
-                    .map(|p| format!("{}: {:.1} ms", p.batch, p.latency_ms))
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            );
-        }
-    })
-    .context("starting the engine")?;
-    profiling.finish_and_clear();
-    if progress {
+    fn ready(&self, engine: &str, fleet: &[FleetTask], runs: &[SchedulerRun], args: &DemoArgs) {
+        self.bar().finish_and_clear();
         println!("engine: {engine}");
+        let seconds = |actions: Option<u64>| actions.unwrap_or(0) as f64 / args.control_hz;
         println!(
-            "fleet: {} robots, tasks of {:.1}–{:.1} s at {} Hz, starts over {:.1} s; schedulers: {}",
+            "fleet: {} robots, tasks of {:.1}–{:.1} s at {} Hz, starts over {:.1} s; schedulers: {}{}",
             fleet.len(),
-            fleet.iter().map(|t| t.actions).min().unwrap_or(0) as f64 / args.control_hz,
-            fleet.iter().map(|t| t.actions).max().unwrap_or(0) as f64 / args.control_hz,
+            seconds(fleet.iter().map(|t| t.actions).min()),
+            seconds(fleet.iter().map(|t| t.actions).max()),
             args.control_hz,
             fleet.last().map_or(0.0, |t| t.start.as_secs_f64()),
             runs.iter()
                 .map(|r| r.label.as_str())
                 .collect::<Vec<_>>()
-                .join(" | ")
+                .join(" | "),
+            if args.quick { " (quick run)" } else { "" }
         );
     }
 
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .context("cannot start the tokio runtime")?;
-    let mut results = Vec::new();
-    for run in &runs {
-        let bar = bar(
-            fleet.len() as u64,
+    fn run_started(&self, run: &SchedulerRun, robots: usize) {
+        let next = bar(
+            robots as u64,
             "{spinner} {prefix:<26} [{elapsed_precise}] {bar:30} {pos}/{len} tasks, {msg}",
         );
-        bar.set_prefix(run.label.clone());
-        bar.set_message("connecting");
-        let rounds = Arc::new(AtomicU64::new(0));
-        let (events_bar, events_rounds) = (bar.clone(), Arc::clone(&rounds));
-        let result = runtime.block_on(run_fleet(
-            pool.clone(),
-            &fleet,
-            run,
-            args.control_hz,
-            &args.out.join("server-data"),
-            move |event| match event {
-                DemoEvent::Round => {
-                    let n = events_rounds.fetch_add(1, Ordering::Relaxed) + 1;
-                    events_bar.set_message(format!("{n} rounds"));
-                }
-                DemoEvent::TaskDone => events_bar.inc(1),
-            },
-        ))?;
-        bar.finish_and_clear();
-        if progress {
-            let m = result.summary();
-            println!(
-                "{:<26} avg {:.2} s, P95 {:.2} s, {} rounds, mean H {:.1} ({:.1} s)",
-                run.label,
-                m.mean,
-                m.p95,
-                result.round_count(),
-                result.mean_horizon(),
-                result.wall.as_secs_f64()
-            );
-            for failure in &result.failures {
-                eprintln!("  {failure}");
-            }
-        }
-        results.push(result);
+        next.set_prefix(run.label.clone());
+        next.set_message("connecting");
+        self.rounds.store(0, Ordering::Relaxed);
+        *self.bar.lock().unwrap_or_else(PoisonError::into_inner) = next;
     }
 
-    let mut summary = format!(
-        "# kairos demo\n\nOne process: the real server (QUIC + TLS 1.3 on loopback, scheduler, action manager) with the built-in flow head doing real forward passes ({engine}), and {} simulated robots, one connection each, starting as a Poisson process (mean gap {} s), each running one task of {:.1}–{:.1} s of actions at {} Hz with asynchronous inference. Every scheduler sees the same fleet (seed {}). Latency = first request to last action.\n\n",
-        fleet.len(),
-        args.stagger_s,
-        fleet.iter().map(|t| t.actions).min().unwrap_or(0) as f64 / args.control_hz,
-        fleet.iter().map(|t| t.actions).max().unwrap_or(0) as f64 / args.control_hz,
-        args.control_hz,
-        args.seed,
-    );
-    summary.push_str(&summary_table(&results));
-    summary.push('\n');
-    summary.push_str(&reading(&results));
-    summary.push('\n');
-    let plot = if args.no_plot {
-        None
-    } else {
-        let latencies: Vec<Vec<f64>> = results.iter().map(RunResult::latencies).collect();
-        let summaries: Vec<Summary> = results.iter().map(RunResult::summary).collect();
-        let systems: Vec<super::bench::plot::Compared<'_>> = results
-            .iter()
-            .zip(&latencies)
-            .zip(&summaries)
-            .map(|((r, l), m)| super::bench::plot::Compared {
-                key: &r.run.key,
-                label: &r.run.label,
-                summary: m,
-                latencies: l,
-            })
-            .collect();
-        Some(super::bench::plot::comparison(
-            &args.out,
-            "demo",
-            &format!("{} robots, real flow head", fleet.len()),
-            &systems,
-        )?)
-    };
-    std::fs::write(args.out.join("summary.md"), &summary)
-        .with_context(|| format!("writing {}", args.out.join("summary.md").display()))?;
-    Ok(DemoReport {
-        results,
-        engine,
-        summary,
-        plot,
-    })
+    fn event(&self, event: DemoEvent) {
+        let bar = self.bar();
+        match event {
+            DemoEvent::Round => {
+                let n = self.rounds.fetch_add(1, Ordering::Relaxed) + 1;
+                bar.set_message(format!("{n} rounds"));
+            }
+            DemoEvent::TaskDone => bar.inc(1),
+        }
+    }
+
+    fn run_finished(&self, result: &RunResult) {
+        self.bar().finish_and_clear();
+        let m = result.summary();
+        println!(
+            "{:<26} avg {:.2} s, P95 {:.2} s, {} rounds, mean H {:.1} ({:.1} s)",
+            result.run.label,
+            m.mean,
+            m.p95,
+            result.round_count(),
+            result.mean_horizon(),
+            result.wall.as_secs_f64()
+        );
+        for failure in &result.failures {
+            eprintln!("  {failure}");
+        }
+    }
 }
 
 /// Runs `kairos demo`.
 pub fn run(args: DemoArgs) -> anyhow::Result<()> {
-    let report = execute(&args, true)?;
+    let args = args.resolve_quick(std::env::var_os(QUICK_ENV).as_deref());
+    let report = execute(&args, Arc::new(Terminal::new()))?;
     println!("\n{}", report.summary);
     if let Some(plot) = &report.plot {
         println!("plot: {}", plot.display());
@@ -773,53 +137,4 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         bail!("some robots failed (listed above)");
     }
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn the_fleet_is_a_function_of_the_seed() {
-        let args = DemoArgs::default();
-        let a = fleet(&args);
-        assert_eq!(a, fleet(&args));
-        assert_eq!(a.len(), args.robots as usize);
-        assert_eq!(a[0].start, Duration::ZERO);
-        assert!(a.windows(2).all(|w| w[0].start <= w[1].start));
-        let median = args.task_s * args.control_hz;
-        assert!(a.iter().all(|t| {
-            let x = t.actions as f64;
-            x >= (0.25 * median).floor() && x <= (3.0 * median).ceil()
-        }));
-        let other = fleet(&DemoArgs {
-            seed: 8,
-            ..DemoArgs::default()
-        });
-        assert_ne!(a, other);
-    }
-
-    #[test]
-    fn the_paper_setup_gives_the_baselines_the_static_horizon() {
-        let runs = scheduler_runs(&DemoArgs::default()).unwrap();
-        let summary: Vec<(&str, bool)> =
-            runs.iter().map(|r| (r.key.as_str(), r.dynamic())).collect();
-        assert_eq!(
-            summary,
-            [
-                ("fifo", false),
-                ("autellix", false),
-                ("kairos", true),
-                ("srw", true)
-            ]
-        );
-        assert_eq!(runs[0].horizon.params["h"], 10.0);
-        assert_eq!(runs[2].horizon.params["t"], 0.4);
-        let all_static = scheduler_runs(&DemoArgs {
-            horizons: Horizons::Static,
-            ..DemoArgs::default()
-        })
-        .unwrap();
-        assert!(all_static.iter().all(|r| !r.dynamic()));
-    }
 }

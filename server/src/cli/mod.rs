@@ -1,5 +1,7 @@
 //! The `kairos` command line: one module per subcommand, each with a `clap::Args` struct and a
-//! `run` function. `main.rs` only parses and dispatches.
+//! `run` function that calls the library (`demo`, `live_replay`, `fleet`, `sim`, ...) and prints.
+//! Nothing here is reused by other code: tests and other subcommands import the library modules.
+//! `main.rs` only parses and dispatches.
 pub mod bench;
 pub mod bench_live;
 pub mod demo;

@@ -5,15 +5,16 @@
 //! trigger, chunks are aligned on arrival. At the end it prints task and round latency
 //! percentiles and the server's timing breakdown.
 //!
-//! Against a local `kairos serve`, no flag is needed: the pin comes from
-//! `<data-dir>/fingerprint.txt` and the token of `--robot-name` from `<data-dir>/tokens.toml`.
+//! Against a local `kairos serve`, no flag is needed: the pin and the token of `--robot-name` come
+//! from the server's data directory ([`DataDir`]).
 //!
-//! `run` is synchronous: it builds its own multi-threaded tokio runtime.
+//! `run` is synchronous: it builds its own multi-threaded tokio runtime. The robots run through
+//! [`crate::fleet`], like `kairos demo` and `kairos bench live`.
 
 use std::collections::BTreeMap;
 use std::io::Write;
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -26,12 +27,11 @@ use kairos_sdk::robot::{
 };
 use kairos_sdk::tls::{Fingerprint, ServerTrust};
 use kairos_sdk::trace::{HorizonSetting, RecordSetup, RunnerTraceRecorder};
-use serde::Deserialize;
+use tokio::time::Instant;
 
-/// Certificate fingerprint a local `kairos serve` writes into its data directory.
-pub const FINGERPRINT_FILE: &str = "fingerprint.txt";
-/// Plaintext tokens a local `kairos serve` writes into its data directory.
-pub const TOKENS_FILE: &str = "tokens.toml";
+use crate::data_dir::DataDir;
+use crate::fleet;
+use crate::stats::{Summary, summarize_u64};
 
 /// Run N simulated robots against a server and report per-task latency.
 #[derive(clap::Args, Debug, Clone)]
@@ -42,8 +42,8 @@ pub struct RobotArgs {
     /// TLS server name (any name works with a pinned certificate).
     #[arg(long, default_value = "kairos")]
     pub server_name: String,
-    /// Data directory of a local `kairos serve`, read for `fingerprint.txt` and `tokens.toml`
-    /// when `--pin` or `--token` is not given.
+    /// Data directory of a local `kairos serve`, read for the certificate pin and the robot's
+    /// token when `--pin` or `--token` is not given.
     #[arg(long, default_value = "kairos-data")]
     pub data_dir: PathBuf,
     /// Pinned server certificate, `sha256:<64 hex>`.
@@ -52,10 +52,10 @@ pub struct RobotArgs {
     /// Verify the server against the CA certificates in this PEM file instead of a pin.
     #[arg(long)]
     pub ca_file: Option<PathBuf>,
-    /// The robots' token (default: `--robot-name`'s entry in `<data-dir>/tokens.toml`).
+    /// The robots' token (default: `--robot-name`'s entry in the data directory's tokens file).
     #[arg(long)]
     pub token: Option<String>,
-    /// Robot whose token is read from `tokens.toml`.
+    /// Robot whose token is read from the data directory.
     #[arg(long, default_value = "default")]
     pub robot_name: String,
     /// Number of simulated robots, each with its own connection and task.
@@ -123,19 +123,6 @@ fn parse_size(text: &str) -> Result<(u32, u32), String> {
     parse().ok_or_else(|| format!("expected HEIGHTxWIDTH, e.g. 224x224, got {text:?}"))
 }
 
-/// `tokens.toml` as `kairos serve` writes it: `[[robot]]` tables with `name` and `token`.
-#[derive(Debug, Deserialize)]
-struct TokensFile {
-    #[serde(default)]
-    robot: Vec<TokenEntry>,
-}
-
-#[derive(Debug, Deserialize)]
-struct TokenEntry {
-    name: String,
-    token: String,
-}
-
 /// The trust decision: `--pin`, `--ca-file`, or the data directory's fingerprint.
 fn resolve_trust(args: &RobotArgs) -> anyhow::Result<ServerTrust> {
     if let Some(pin) = args.pin {
@@ -144,16 +131,9 @@ fn resolve_trust(args: &RobotArgs) -> anyhow::Result<ServerTrust> {
     if let Some(path) = &args.ca_file {
         return Ok(ServerTrust::ca_file(path)?);
     }
-    let path = args.data_dir.join(FINGERPRINT_FILE);
-    let text = std::fs::read_to_string(&path).with_context(|| {
-        format!(
-            "no --pin given and cannot read {}; pass the fingerprint `kairos serve` printed",
-            path.display()
-        )
-    })?;
-    let pin = text
-        .parse::<Fingerprint>()
-        .with_context(|| format!("bad fingerprint in {}", path.display()))?;
+    let pin = DataDir::new(&args.data_dir)
+        .read_pin()
+        .context("no --pin given; pass the fingerprint `kairos serve` printed")?;
     Ok(ServerTrust::Pinned(pin))
 }
 
@@ -162,22 +142,9 @@ fn resolve_token(args: &RobotArgs) -> anyhow::Result<String> {
     if let Some(token) = &args.token {
         return Ok(token.clone());
     }
-    read_token(&args.data_dir.join(TOKENS_FILE), &args.robot_name)
-}
-
-fn read_token(path: &Path, robot: &str) -> anyhow::Result<String> {
-    let text = std::fs::read_to_string(path).with_context(|| {
-        format!(
-            "no --token given and cannot read {}; pass the robot's token",
-            path.display()
-        )
-    })?;
-    let tokens: TokensFile =
-        toml::from_str(&text).with_context(|| format!("bad tokens file {}", path.display()))?;
-    match tokens.robot.into_iter().find(|entry| entry.name == robot) {
-        Some(entry) => Ok(entry.token),
-        None => bail!("{} has no robot named {robot:?}", path.display()),
-    }
+    DataDir::new(&args.data_dir)
+        .token(&args.robot_name)
+        .context("no --token given; pass the robot's token")
 }
 
 /// Runs the fleet and prints the report. Builds its own tokio runtime.
@@ -333,13 +300,14 @@ async fn run_fleet(args: &RobotArgs) -> anyhow::Result<FleetOutcome> {
         None => None,
     };
 
-    let mut robots = tokio::task::JoinSet::new();
-    for index in 0..args.robots {
+    let starts: Vec<Duration> = (0..u64::from(args.robots))
+        .map(|index| Duration::from_millis(args.stagger_ms.saturating_mul(index)))
+        .collect();
+    let outcomes = fleet::run_from(Instant::now(), &starts, |index| {
         let (config, runner, progress) = (config.clone(), runner.clone(), progress.clone());
         let recorder = recorder.clone();
-        let delay = Duration::from_millis(args.stagger_ms.saturating_mul(u64::from(index)));
-        robots.spawn(async move {
-            tokio::time::sleep(delay).await;
+        async move {
+            // Each robot connects at its start, so a large fleet does not handshake all at once.
             let client = Client::connect(config)
                 .await
                 .with_context(|| format!("robot {index}: cannot connect"))?;
@@ -374,14 +342,15 @@ async fn run_fleet(args: &RobotArgs) -> anyhow::Result<FleetOutcome> {
                 .with_context(|| format!("robot {index}"))?;
             client.close().await;
             anyhow::Ok(summary)
-        });
-    }
+        }
+    })
+    .await;
     let mut outcome = FleetOutcome {
         summaries: Vec::new(),
         errors: Vec::new(),
     };
-    while let Some(joined) = robots.join_next().await {
-        match joined {
+    for robot in outcomes {
+        match robot {
             Ok(Ok(summary)) => outcome.summaries.push(summary),
             Ok(Err(error)) => outcome.errors.push(error),
             Err(error) => outcome.errors.push(error.into()),
@@ -406,38 +375,6 @@ async fn run_fleet(args: &RobotArgs) -> anyhow::Result<FleetOutcome> {
         .summaries
         .sort_by_key(|summary| summary.started_at_us);
     Ok(outcome)
-}
-
-/// p50, p95, mean and max of a sample, in the sample's unit.
-#[derive(Clone, Copy, Debug, PartialEq)]
-struct Percentiles {
-    p50: f64,
-    p95: f64,
-    p99: f64,
-    mean: f64,
-    max: f64,
-}
-
-impl Percentiles {
-    /// Nearest-rank percentiles; `None` for an empty sample.
-    fn of(values: &[u64]) -> Option<Percentiles> {
-        if values.is_empty() {
-            return None;
-        }
-        let mut sorted = values.to_vec();
-        sorted.sort_unstable();
-        let rank = |p: f64| {
-            let index = ((p * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
-            sorted[index] as f64
-        };
-        Some(Percentiles {
-            p50: rank(0.50),
-            p95: rank(0.95),
-            p99: rank(0.99),
-            mean: sorted.iter().map(|&v| v as f64).sum::<f64>() / sorted.len() as f64,
-            max: sorted[sorted.len() - 1] as f64,
-        })
-    }
 }
 
 fn ms(us: f64) -> String {
@@ -473,7 +410,7 @@ fn report(args: &RobotArgs, summaries: &[TaskSummary]) -> String {
     let rounds: Vec<_> = summaries.iter().flat_map(|s| &s.rounds).collect();
     let tasks: Vec<u64> = summaries.iter().map(TaskSummary::latency_us).collect();
     let round_latencies: Vec<u64> = rounds.iter().map(|r| r.latency_us()).collect();
-    let line = |name: &str, stats: Option<Percentiles>| match stats {
+    let line = |name: &str, stats: Option<Summary>| match stats {
         Some(p) => format!(
             "{name:<15} p50 {:>9}  p95 {:>9}  avg {:>9}  max {:>9}\n",
             ms(p.p50),
@@ -484,9 +421,9 @@ fn report(args: &RobotArgs, summaries: &[TaskSummary]) -> String {
         None => format!("{name:<15} no data\n"),
     };
     out.push_str("task latency = first request to last action; round latency = request to reply\n");
-    out.push_str(&line("task latency", Percentiles::of(&tasks)));
-    out.push_str(&line("round latency", Percentiles::of(&round_latencies)));
-    let tail = |name: &str, values: Vec<u64>| match Percentiles::of(&values) {
+    out.push_str(&line("task latency", summarize_u64(&tasks)));
+    out.push_str(&line("round latency", summarize_u64(&round_latencies)));
+    let tail = |name: &str, values: Vec<u64>| match summarize_u64(&values) {
         Some(p) => format!(
             "{name:<15} p50 {:>9}  p99 {:>9}  max {:>9}\n",
             ms3(p.p50),
@@ -546,7 +483,7 @@ fn report(args: &RobotArgs, summaries: &[TaskSummary]) -> String {
     );
     for summary in summaries {
         let latencies: Vec<u64> = summary.rounds.iter().map(|r| r.latency_us()).collect();
-        let stats = Percentiles::of(&latencies);
+        let stats = summarize_u64(&latencies);
         let _ = writeln!(
             out,
             "{:<18} {:>6} {:>10} {:>10} {:>10} {:>10} {:>8} {:>6}",
@@ -622,9 +559,10 @@ mod tests {
     fn pin_and_token_come_from_the_data_dir() {
         let dir = tempfile::tempdir().unwrap();
         let pin = Fingerprint([7; 32]);
-        std::fs::write(dir.path().join(FINGERPRINT_FILE), format!("{pin}\n")).unwrap();
+        let data_dir = DataDir::new(dir.path());
+        data_dir.write_fingerprint(&pin.to_string()).unwrap();
         std::fs::write(
-            dir.path().join(TOKENS_FILE),
+            data_dir.tokens(),
             "[[robot]]\nname = \"default\"\ntoken = \"kairos_abc\"\n\n[[robot]]\nname = \"arm2\"\ntoken = \"kairos_def\"\n",
         )
         .unwrap();
@@ -646,7 +584,7 @@ mod tests {
             matches!(resolve_trust(&flags).unwrap(), ServerTrust::Pinned(p) if p == Fingerprint([1; 32]))
         );
         let missing = parse(&["--data-dir", data_dir, "--robot-name", "nobody"]).unwrap();
-        let error = resolve_token(&missing).unwrap_err().to_string();
+        let error = format!("{:#}", resolve_token(&missing).unwrap_err());
         assert!(error.contains("nobody"), "{error}");
         let empty = tempfile::tempdir().unwrap();
         let nothing = parse(&["--data-dir", empty.path().to_str().unwrap()]).unwrap();
@@ -686,16 +624,6 @@ mod tests {
     }
 
     #[test]
-    fn percentiles_use_nearest_rank() {
-        let values: Vec<u64> = (1..=100).collect();
-        let p = Percentiles::of(&values).unwrap();
-        assert_eq!((p.p50, p.p95, p.max), (50.0, 95.0, 100.0));
-        assert_eq!(p.mean, 50.5);
-        assert_eq!(Percentiles::of(&[7]).unwrap().p95, 7.0);
-        assert!(Percentiles::of(&[]).is_none());
-    }
-
-    #[test]
     fn report_shows_latencies_and_the_timing_breakdown() {
         let record = |round: u64, latency_ms: u64| RoundRecord {
             round,
@@ -728,7 +656,8 @@ mod tests {
         };
         let args = parse(&[]).unwrap();
         let text = report(&args, &[summary]);
-        assert!(text.contains("round latency   p50  100.0 ms"), "{text}");
+        // The project's one percentile (crate::stats): 100 and 120 ms have a median of 110.
+        assert!(text.contains("round latency   p50  110.0 ms"), "{text}");
         assert!(text.contains("queue 30.0 ms"), "{text}");
         assert!(text.contains("network + client 30.0 ms"), "{text}");
         // total 80 ms - inference 50 ms; round latency 100/120 ms - total 80 ms.
@@ -737,7 +666,7 @@ mod tests {
             "{text}"
         );
         assert!(
-            text.contains("network+client  p50 20.000 ms  p99 40.000 ms"),
+            text.contains("network+client  p50 30.000 ms  p99 39.800 ms"),
             "{text}"
         );
         assert!(text.contains("0000000000000abc"), "{text}");

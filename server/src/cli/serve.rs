@@ -248,8 +248,8 @@ fn print_banner(config: &Config, server: &RunningServer) {
     );
     println!(
         "  pin file       {}",
-        data_dir
-            .join(crate::transport::tls::FINGERPRINT_FILE)
+        crate::data_dir::DataDir::new(data_dir)
+            .fingerprint()
             .display()
     );
     match &server.tokens_file {

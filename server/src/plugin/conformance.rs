@@ -746,7 +746,8 @@ fn summarize(times: Vec<(String, Duration)>) -> Vec<Timing> {
         .into_iter()
         .map(|(group, mut ts)| {
             ts.sort_unstable();
-            let at = |q: f64| ts[((ts.len() - 1) as f64 * q).round() as usize];
+            let secs: Vec<f64> = ts.iter().map(Duration::as_secs_f64).collect();
+            let at = |q: f64| Duration::from_secs_f64(crate::stats::quantile(&secs, q));
             Timing {
                 group,
                 calls: ts.len(),

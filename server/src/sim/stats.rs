@@ -1,58 +1,9 @@
-//! Summary statistics of end-to-end latencies.
+//! Summary statistics of end-to-end latencies: reductions and empirical CDFs, on top of the
+//! percentile of [`crate::stats`].
 
-/// P25 / mean / P50 / P95 / P99 / max of a sample.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct Summary {
-    /// Sample size.
-    pub n: usize,
-    /// Arithmetic mean.
-    pub mean: f64,
-    /// 25th percentile.
-    pub p25: f64,
-    /// Median.
-    pub p50: f64,
-    /// 95th percentile.
-    pub p95: f64,
-    /// 99th percentile.
-    pub p99: f64,
-    /// Largest value.
-    pub max: f64,
-}
-
-/// The `q`-quantile (0..=1) of an ascending sample, interpolating linearly between order
-/// statistics (NumPy's default, so the numbers can be checked with `numpy.percentile`).
-pub fn quantile(sorted: &[f64], q: f64) -> f64 {
-    match sorted.len() {
-        0 => f64::NAN,
-        1 => sorted[0],
-        n => {
-            let pos = q.clamp(0.0, 1.0) * (n - 1) as f64;
-            let lo = pos.floor() as usize;
-            let hi = (lo + 1).min(n - 1);
-            sorted[lo] + (sorted[hi] - sorted[lo]) * (pos - lo as f64)
-        }
-    }
-}
-
-/// Summarises a sample (NaN fields for an empty one).
-pub fn summarize(values: &[f64]) -> Summary {
-    let mut v = values.to_vec();
-    v.sort_by(f64::total_cmp);
-    let mean = if v.is_empty() {
-        f64::NAN
-    } else {
-        v.iter().sum::<f64>() / v.len() as f64
-    };
-    Summary {
-        n: v.len(),
-        mean,
-        p25: quantile(&v, 0.25),
-        p50: quantile(&v, 0.50),
-        p95: quantile(&v, 0.95),
-        p99: quantile(&v, 0.99),
-        max: v.last().copied().unwrap_or(f64::NAN),
-    }
-}
+// The percentile is the project's one definition, in `crate::stats`; it is re-exported here
+// because the simulator's reports are built on it.
+pub use crate::stats::{Summary, quantile, summarize};
 
 /// How much lower `ours` is than `base`, in percent (negative: higher).
 pub fn reduction(base: f64, ours: f64) -> f64 {
@@ -85,18 +36,6 @@ pub fn ecdf(values: &[f64], max_points: usize) -> Vec<(f64, f64)> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn quantiles_match_numpy_linear_interpolation() {
-        // numpy.percentile([1, 2, 3, 4, 10], [25, 50, 95]) == [2.0, 3.0, 8.8]
-        let s = summarize(&[10.0, 3.0, 1.0, 4.0, 2.0]);
-        assert_eq!(s.p25, 2.0);
-        assert_eq!(s.p50, 3.0);
-        assert!((s.p95 - 8.8).abs() < 1e-12);
-        assert_eq!(s.mean, 4.0);
-        assert_eq!(s.max, 10.0);
-        assert!(summarize(&[]).mean.is_nan());
-    }
 
     #[test]
     fn reduction_is_relative_to_the_baseline() {

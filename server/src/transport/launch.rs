@@ -144,7 +144,7 @@ pub async fn start(
     // Configured plugins first, so that policies passed in by the caller shadow them.
     let (mut horizons, mut priorities) = crate::plugin::factory::load_configured(
         &config.plugins,
-        &config.data_dir.join("plugin-cache"),
+        &crate::data_dir::DataDir::new(&config.data_dir).plugin_cache(),
     )?;
     horizons.extend(policies.horizon);
     priorities.extend(policies.priority);

@@ -2,9 +2,10 @@
 //!
 //! - TLS 1.3 only (QUIC requires it), *ring* provider, ALPN `kairos/1`.
 //! - Certificate: the configured PEM/DER files, or else a self-signed certificate generated on
-//!   first start and kept in the data dir (`cert.der`, `key.der` with mode 0600), reused on every
-//!   later start so pinned clients keep working. Its SHA-256 fingerprint is printed and written to
-//!   `fingerprint.txt`; clients pin it instead of trusting a CA.
+//!   first start and kept in the data dir ([`DataDir::certificate`], [`DataDir::private_key`] with
+//!   mode 0600), reused on every later start so pinned clients keep working. Its SHA-256
+//!   fingerprint is printed and written to [`DataDir::fingerprint`]; clients pin it instead of
+//!   trusting a CA.
 //! - 0-RTT: accepted. Resumption is *stateful* (rustls' in-memory session cache, no stateless
 //!   ticketer), which makes every TLS 1.3 ticket single-use: a replayed ClientHello finds its
 //!   ticket already consumed and falls back to a full handshake with its early data rejected. So
@@ -22,13 +23,7 @@ use rustls_pki_types::pem::PemObject;
 use rustls_pki_types::{CertificateDer, PrivateKeyDer, PrivatePkcs8KeyDer};
 
 use crate::config::{Config, ConfigError, write_private};
-
-/// Certificate file in the data dir (DER).
-pub const CERT_FILE: &str = "cert.der";
-/// Private key file in the data dir (PKCS#8 DER, mode 0600).
-pub const KEY_FILE: &str = "key.der";
-/// The certificate's SHA-256 fingerprint, one line of hex, for clients to pin.
-pub const FINGERPRINT_FILE: &str = "fingerprint.txt";
+use crate::data_dir::DataDir;
 
 /// Names the generated certificate is valid for. Clients pin the fingerprint, so the names only
 /// matter to clients that verify them; these cover local use.
@@ -80,19 +75,14 @@ pub fn fingerprint(cert_der: &[u8]) -> String {
 }
 
 /// Loads the configured certificate, or the one in the data dir, generating it on first start.
-/// Writes `<data-dir>/fingerprint.txt` either way.
+/// Writes the data dir's fingerprint file either way.
 pub fn load_or_generate(config: &Config) -> Result<ServerIdentity, TlsError> {
+    let data_dir = DataDir::new(&config.data_dir);
     let identity = match (&config.tls.cert, &config.tls.key) {
         (Some(cert), Some(key)) => ServerIdentity::from_files(cert, key)?,
-        _ => ServerIdentity::self_signed_in(&config.data_dir)?,
+        _ => ServerIdentity::self_signed_in(&data_dir)?,
     };
-    let path = config.data_dir.join(FINGERPRINT_FILE);
-    fs::create_dir_all(&config.data_dir).map_err(|source| ConfigError::Io {
-        path: config.data_dir.clone(),
-        source,
-    })?;
-    fs::write(&path, format!("{}\n", identity.fingerprint))
-        .map_err(|source| ConfigError::Io { path, source })?;
+    data_dir.write_fingerprint(&identity.fingerprint)?;
     Ok(identity)
 }
 
@@ -125,9 +115,9 @@ impl ServerIdentity {
     }
 
     /// The self-signed identity kept in `data_dir`, generated if absent.
-    pub fn self_signed_in(data_dir: &Path) -> Result<ServerIdentity, TlsError> {
-        let cert_path = data_dir.join(CERT_FILE);
-        let key_path = data_dir.join(KEY_FILE);
+    pub fn self_signed_in(data_dir: &DataDir) -> Result<ServerIdentity, TlsError> {
+        let cert_path = data_dir.certificate();
+        let key_path = data_dir.private_key();
         if cert_path.exists() && key_path.exists() {
             let mut identity = ServerIdentity::from_files(&cert_path, &key_path)?;
             identity.generated = false;
@@ -208,12 +198,13 @@ mod tests {
         assert!(first.generated);
         assert!(first.fingerprint.starts_with("sha256:"));
         assert_eq!(first.fingerprint.len(), 7 + 64);
-        let on_disk = fs::read_to_string(config.data_dir.join(FINGERPRINT_FILE)).unwrap();
+        let data_dir = DataDir::new(&config.data_dir);
+        let on_disk = fs::read_to_string(data_dir.fingerprint()).unwrap();
         assert_eq!(on_disk.trim(), first.fingerprint);
         #[cfg(unix)]
         {
             use std::os::unix::fs::PermissionsExt;
-            let mode = fs::metadata(config.data_dir.join(KEY_FILE))
+            let mode = fs::metadata(data_dir.private_key())
                 .unwrap()
                 .permissions()
                 .mode();

@@ -7,14 +7,22 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
+use clap::Parser;
 use kairos_engine::EngineOptions;
 use kairos_engine::flow_head::{FlowHead, FlowHeadConfig};
 
+/// Write a tiny flow-head checkpoint (state 8, actions 16 × 7, 4 flow steps, no cameras, one
+/// transformer layer of width 32) for load runs: `[[engine]] model = "DIR"`.
+#[derive(Parser, Debug)]
+#[command(name = "kairos-tiny-model", version)]
+struct Args {
+    /// Directory to write the checkpoint into (created if missing).
+    dir: PathBuf,
+}
+
 fn main() -> anyhow::Result<()> {
-    let dir: PathBuf = std::env::args_os()
-        .nth(1)
-        .map(PathBuf::from)
-        .context("usage: kairos-tiny-model DIR")?;
+    // Parsing comes first: `--help` and bad arguments end here, before anything is written.
+    let Args { dir } = Args::parse();
     let config = FlowHeadConfig {
         name: "flow-head-tiny".into(),
         state_dim: 8,

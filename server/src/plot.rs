@@ -1,4 +1,5 @@
-//! Plots of `kairos bench sim` results, as PNG and SVG, with plotters.
+//! Plots of `kairos bench sim`, `kairos bench live` and `kairos demo` results, as PNG and SVG,
+//! with plotters.
 
 use std::path::Path;
 use std::sync::Once;
@@ -12,7 +13,7 @@ use crate::sim::experiment::{Experiment, Report};
 use crate::sim::stats::ecdf;
 
 /// DejaVu Sans (Bitstream Vera licence, see assets/fonts/): the bitmap backend needs a font.
-static FONT: &[u8] = include_bytes!("../../../../assets/fonts/DejaVuSans.ttf");
+static FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
 const FAMILY: &str = "kairos-sans";
 
 const PANEL_W: u32 = 480;
@@ -365,7 +366,7 @@ pub struct Compared<'a> {
     /// Its label.
     pub label: &'a str,
     /// Its latency summary, seconds.
-    pub summary: &'a crate::sim::stats::Summary,
+    pub summary: &'a crate::stats::Summary,
     /// Every task's latency, seconds.
     pub latencies: &'a [f64],
 }
