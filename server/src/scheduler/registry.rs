@@ -186,6 +186,10 @@ pub struct PolicyFactory {
     pub summary: &'static str,
     /// Builds it from a spec with this name, consuming and validating the parameters.
     pub build: fn(PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecError>,
+    /// Whether the system this policy stands for re-fetches stale observations
+    /// (`SchedulerConfig::refetch`) unless configured otherwise: Algorithm 1 does (line 16), and
+    /// so does SRW, which replaces only its ordering; the FIFO and Autellix baselines do not.
+    pub refetch: bool,
 }
 
 impl fmt::Debug for PolicyFactory {
@@ -202,21 +206,25 @@ pub const BUILTIN: &[PolicyFactory] = &[
         name: "fifo",
         summary: "first come, first served by request arrival (vLLM default); no parameters",
         build: build_fifo,
+        refetch: false,
     },
     PolicyFactory {
         name: "plas",
         summary: "Autellix PLAS: least attained generation service in exponential queues; queues=8, quantum_ms=1000, growth=2, beta=8",
         build: build_plas,
+        refetch: false,
     },
     PolicyFactory {
         name: "kairos",
         summary: "paper Algorithm 1: wait-ratio buckets, aging, longest execution first; buckets=10 (or inf), aging=4, intra=longest-exec|fifo",
         build: build_kairos,
+        refetch: true,
     },
     PolicyFactory {
         name: "srw",
         summary: "slack-aware shortest remaining work: robots already out of actions first (by remaining rounds from the hint or a learned Gittins index, aged by wait ratio), the rest by deadline; hints=1, warmup=20, slack=1, due_order=work|deadline",
         build: build_srw,
+        refetch: true,
     },
 ];
 
@@ -234,6 +242,17 @@ pub fn build(spec: &PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecErr
                 .join(", "),
         })?;
     (factory.build)(spec.clone())
+}
+
+/// Whether a scheduler ordering by the policy named `name` re-fetches stale observations when the
+/// configuration does not say (see [`PolicyFactory::refetch`]). A name that is no native policy
+/// (a plugin's) runs inside Kairos and gets Algorithm 1's re-fetch; a plugin that shadows a
+/// native name gets that policy's setting.
+pub fn refetch_by_default(name: &str) -> bool {
+    BUILTIN
+        .iter()
+        .find(|f| f.name == name)
+        .is_none_or(|f| f.refetch)
 }
 
 /// Parses `s` as a whole number in `[min, max]`.
@@ -354,6 +373,15 @@ mod tests {
         let json = serde_json::to_string(&spec).unwrap();
         assert_eq!(json, "\"kairos:buckets=inf,intra=fifo\"");
         assert_eq!(serde_json::from_str::<PolicySpec>(&json).unwrap(), spec);
+    }
+
+    #[test]
+    fn only_the_baselines_skip_the_refetch_by_default() {
+        assert!(!refetch_by_default("fifo"));
+        assert!(!refetch_by_default("plas"));
+        assert!(refetch_by_default("kairos"));
+        assert!(refetch_by_default("srw"));
+        assert!(refetch_by_default("my-plugin"));
     }
 
     #[test]
