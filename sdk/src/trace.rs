@@ -111,8 +111,9 @@ pub struct RoundTrace {
     pub issued_at_action: u32,
     /// Task-wide action index the chunk's action 0 corresponds to, when that is later than
     /// `issued_at_action`: the server re-fetched a fresher observation while the request queued,
-    /// and the chunk was generated from that one. Absent means `issued_at_action`. Replay ignores
-    /// it (a re-fetch depends on the load; the simulator models it); validation uses it.
+    /// and the chunk was generated from that one. Absent means `issued_at_action`. The simulator
+    /// replays the chunk at this alignment whatever the load (the replayed work is the
+    /// recording's); validation uses it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub aligned_at_action: Option<u32>,
     /// The horizon `H` the recorded setting chose for this round's chunk.

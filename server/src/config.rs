@@ -265,7 +265,13 @@ pub struct SchedulerSection {
     /// Priority policy and its parameters, `name` or `name:key=value,...`
     /// (e.g. `kairos:buckets=10,aging=4`); `fifo`, `plas`, `kairos`, or a plugin's name.
     pub policy: PolicySpec,
-    /// An observation older than this at dispatch is re-fetched, in milliseconds.
+    /// Whether stale observations are re-fetched before dispatch (Algorithm 1, line 16). Absent:
+    /// the policy's default (on for `kairos`, `srw` and plugins, off for the `fifo` and `plas`
+    /// baselines; `scheduler::refetch_by_default`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub refetch: Option<bool>,
+    /// With re-fetch on, an observation older than this at dispatch is re-fetched, in
+    /// milliseconds.
     pub stale_after_ms: u64,
     /// A task with no request for this long ends as expired, in seconds.
     pub task_idle_timeout_s: u64,
@@ -282,6 +288,7 @@ impl Default for SchedulerSection {
         let core = SchedulerConfig::default();
         SchedulerSection {
             policy: PolicySpec::named("kairos"),
+            refetch: None,
             stale_after_ms: u64::try_from(core.stale_after.as_millis()).unwrap_or(u64::MAX),
             task_idle_timeout_s: core.task_idle_timeout.as_secs(),
             max_pending: core.max_pending,
@@ -295,6 +302,9 @@ impl SchedulerSection {
     /// The scheduler core's tunables.
     pub fn core(&self) -> SchedulerConfig {
         SchedulerConfig {
+            refetch: self
+                .refetch
+                .unwrap_or_else(|| crate::scheduler::refetch_by_default(&self.policy.name)),
             stale_after: Duration::from_millis(self.stale_after_ms),
             task_idle_timeout: Duration::from_secs(self.task_idle_timeout_s),
             max_pending: self.max_pending,
@@ -655,6 +665,22 @@ mod tests {
     }
 
     #[test]
+    fn refetch_follows_the_policy_unless_configured() {
+        let core = |text: &str| {
+            Config::parse(text, Path::new("k.toml"))
+                .unwrap()
+                .scheduler
+                .core()
+        };
+        assert!(core("").refetch, "the default policy is kairos");
+        assert!(!core("[scheduler]\npolicy = \"fifo\"\n").refetch);
+        assert!(!core("[scheduler]\npolicy = \"plas\"\n").refetch);
+        assert!(core("[scheduler]\npolicy = \"srw\"\n").refetch);
+        assert!(core("[scheduler]\npolicy = \"fifo\"\nrefetch = true\n").refetch);
+        assert!(!core("[scheduler]\nrefetch = false\n").refetch);
+    }
+
+    #[test]
     fn full_example_parses() {
         let text = r#"
             listen = "0.0.0.0:5000"
@@ -719,6 +745,7 @@ mod tests {
         assert_eq!(c.scheduler.core().stale_after, Duration::from_millis(50));
         assert_eq!(c.scheduler.policy.name, "kairos");
         assert_eq!(c.scheduler.policy.params["aging"], "3");
+        assert!(c.scheduler.core().refetch, "kairos re-fetches by default");
         assert_eq!(c.connections.max_connections, 10);
         assert_eq!(c.limits.max_frame, 1_000_000);
         assert_eq!(c.limits.max_image_bytes, Limits::default().max_image_bytes);

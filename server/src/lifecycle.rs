@@ -17,7 +17,11 @@
 //! # The wait rule
 //!
 //! For consecutive answered rounds `j, j+1`, round `j` is generation-dominated iff
-//! `|G_j| ≥ |E_j|` (a round whose execution was never reported has `|E_j| = 0`). Then
+//! `|G_j| ≥ |E_j|` (a round whose execution was never reported has `|E_j| = 0`). `|E_j|` counts
+//! only what chunk `j` can execute: the report's `E_j.end` assumes the chunk runs to its end, but
+//! chunk `j+1` replaces it when it arrives and drops its unexecuted tail, so `E_j` is cut at
+//! `G_{j+1}.end` when the dominance is decided, and at `E_{j+1}.start` once that is reported (the
+//! history then keeps the executed interval). Then
 //! `W_j = G_{j+1}.start − G_j.end`; otherwise `W_j = E_{j+1}.start − E_j.end`. Both are clamped at
 //! zero. Two interpretations the paper leaves open (docs/ARCHITECTURE.md, "The wait-time rule"):
 //!
@@ -103,6 +107,16 @@ pub fn exec_interval(report: &ExecReport, reference: Timestamp) -> Result<Interv
         start: report.started_at,
         end: reference + remaining,
     })
+}
+
+/// The part of a reported execution `exec` that can have run by `cut`: a newer chunk that reaches
+/// the robot replaces the one executing and drops its actions not yet started, so a chunk's
+/// execution ends at the newer chunk's start if that comes before the reported end.
+fn executed_until(exec: Interval, cut: Timestamp) -> Interval {
+    Interval {
+        start: exec.start,
+        end: exec.end.min(cut).max(exec.start),
+    }
 }
 
 /// Which phase of a round dominated it, and so on which side its wait is measured.
@@ -386,15 +400,22 @@ impl TaskRecord {
             // Nothing answered yet: there is no chunk this report can describe.
             return;
         }
-        if let Some(prev_exec_end) = self.open_exec_wait.take() {
-            let w = exec.start.saturating_since(prev_exec_end);
+        let wait = self
+            .open_exec_wait
+            .take()
+            .map(|prev_exec_end| exec.start.saturating_since(prev_exec_end));
+        if let Some(w) = wait {
             self.closed_wait += w;
-            let len = self.history.len();
-            if len >= 2
-                && let Some(prev) = self.history.get_mut(len - 2)
-            {
+        }
+        let len = self.history.len();
+        if len >= 2
+            && let Some(prev) = self.history.get_mut(len - 2)
+        {
+            if let Some(w) = wait {
                 prev.wait = Some(w);
             }
+            // This chunk's first action ended the previous chunk's execution.
+            prev.execution = prev.execution.map(|e| executed_until(e, exec.start));
         }
         self.last_exec = Some(exec);
         if let Some(last) = self.history.back_mut() {
@@ -423,7 +444,12 @@ impl TaskRecord {
                 // now followed by another answered round, so no report about E_m will come.
                 self.closed_wait += self.provisional_exec_wait();
                 self.open_exec_wait = None;
-                let exec_len = self.last_exec.map(|e| e.len()).unwrap_or(Duration::ZERO);
+                // The chunk just generated replaces the one executing: only what that one ran
+                // until now counts as its execution.
+                let exec_len = self
+                    .last_exec
+                    .map(|e| executed_until(e, now).len())
+                    .unwrap_or(Duration::ZERO);
                 match Dominance::of(prev_gen.len(), exec_len) {
                     Dominance::Generation => {
                         let w = g.start.saturating_since(prev_gen.end);
@@ -1015,6 +1041,35 @@ mod tests {
     }
 
     #[test]
+    fn a_replaced_chunk_counts_only_its_executed_actions() {
+        // 20 Hz (50 ms per action), chunks of 10. G_0 = [0, 300]; chunk 0's first action starts
+        // at 300 and round 1 goes out at once with 9 actions left: E_0 as reported is
+        // [300, 300 + 9 × 50] = [300, 750], 450 ms. Round 1 is generated 400..550 and its chunk
+        // takes over at the tick of 550, dropping chunk 0's last 4 actions: chunk 0 executed
+        // 300..550, 250 ms. So |G_0| = 300 ≥ |E_0| = 250: round 0 is generation-dominated and
+        // W_0 = G_1.start − G_0.end = 100 ms (counting the tail, 300 < 450, would have made it
+        // execution-dominated with W_0 = max(0, E_1.start − 750) = 0).
+        let at_20hz = |start_ms: u64, remaining: u32| ExecReport {
+            started_at: t(start_ms),
+            actions_remaining: remaining,
+            control_hz: 20.0,
+        };
+        let mut d = Driver::new(8);
+        let r0 = d.submit(0, 1, None);
+        d.generate(r0, 0, 300);
+        let r1 = d.submit(300, 2, Some(at_20hz(300, 9)));
+        assert_eq!(d.record().last_execution(), Some(ms(450)), "as reported");
+        d.generate(r1, 400, 550);
+        assert_eq!(d.record().wait_at(t(600)), ms(100));
+        // Round 2 reports chunk 1 starting at 550: the history keeps what chunk 0 executed.
+        let _r2 = d.submit(700, 3, Some(at_20hz(550, 7)));
+        let h: Vec<_> = d.record().history().copied().collect();
+        assert_eq!(h[0].execution.map(|e| e.len()), Some(ms(250)));
+        assert_eq!(h[0].wait, Some(ms(100)));
+        assert_eq!(d.record().wait_at(t(700)), ms(100));
+    }
+
+    #[test]
     fn unreported_execution_counts_as_generation_dominated() {
         let mut d = Driver::new(8);
         let r0 = d.submit(0, 1, None);
@@ -1153,7 +1208,10 @@ mod tests {
         for pair in rounds.windows(2) {
             let (g, e) = pair[0];
             let (g_next, e_next) = pair[1];
-            let e_len = e.map(|e| e.len()).unwrap_or_default();
+            // A chunk executes at most until the next one is generated.
+            let e_len = e
+                .map(|e| executed_until(e, g_next.end).len())
+                .unwrap_or_default();
             w += if g.len() >= e_len {
                 g_next.start.saturating_since(g.end)
             } else {

@@ -293,6 +293,7 @@ pub async fn start_replay_server(
         ..Config::default()
     };
     config.scheduler.policy = job.config.policy.clone();
+    config.scheduler.refetch = Some(job.config.scheduler.refetch);
     config.scheduler.stale_after_ms =
         u64::try_from(job.config.scheduler.stale_after.as_millis()).unwrap_or(u64::MAX);
     config.scheduler.max_pending = job.config.scheduler.max_pending;

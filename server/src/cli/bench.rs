@@ -68,12 +68,12 @@ pub struct SimArgs {
     /// supplies the engines, network and experiment list).
     #[arg(long)]
     pub traces: Option<PathBuf>,
-    /// Experiments to run, comma-separated: online, fleet, hybrid, buckets, intra.
+    /// Experiments to run, comma-separated: online, fleet, hybrid, buckets, intra, refetch.
     #[arg(
         long,
         short = 'e',
         value_delimiter = ',',
-        default_value = "online,fleet,hybrid,buckets,intra"
+        default_value = "online,fleet,hybrid,buckets,intra,refetch"
     )]
     pub experiments: Vec<String>,
     /// Extra priority policy to compare in the online experiment, e.g. `srw:starve=0.3`
@@ -137,14 +137,7 @@ fn run_calibrate(a: CalibrateArgs) -> anyhow::Result<()> {
     };
     let spec: PolicySpec = a.policy.parse()?;
     crate::scheduler::build_policy(&spec)?;
-    let variant = Variant {
-        key: spec.to_string(),
-        label: spec.to_string(),
-        policy: spec,
-        setting: DYNAMIC,
-        hints: false,
-        placement: experiment::Placement::Edge,
-    };
+    let variant = Variant::new(&spec.to_string(), &spec.to_string(), spec, DYNAMIC);
     for f in &files {
         let w = Workload::load(f)?;
         let set = generate::generate(&w, a.trace_seed)
@@ -258,7 +251,7 @@ fn run_sim(a: SimArgs) -> anyhow::Result<()> {
     let mut experiments = Vec::new();
     for name in &a.experiments {
         let e = Experiment::parse(name.trim()).with_context(|| {
-            format!("unknown experiment `{name}` (expected online, fleet, hybrid, buckets, intra)")
+            format!("unknown experiment `{name}` (expected online, fleet, hybrid, buckets, intra, refetch)")
         })?;
         if !experiments.contains(&e) {
             experiments.push(e);
@@ -268,14 +261,9 @@ fn run_sim(a: SimArgs) -> anyhow::Result<()> {
     for p in &a.policies {
         let spec: PolicySpec = p.parse()?;
         crate::scheduler::build_policy(&spec)?;
-        extra.push(Variant {
-            key: format!("extra:{spec}"),
-            label: spec.to_string(),
-            policy: spec,
-            setting: DYNAMIC,
-            hints: a.hints,
-            placement: experiment::Placement::Edge,
-        });
+        let mut v = Variant::new(&format!("extra:{spec}"), &spec.to_string(), spec, DYNAMIC);
+        v.hints = a.hints;
+        extra.push(v);
     }
 
     let mut workloads = Vec::new();
@@ -427,6 +415,10 @@ fn summary_markdown(report: &Report<'_>, a: &SimArgs) -> String {
     if has(Experiment::Intra) {
         s.push_str("\n## Ablation: intra-bucket order at the highest rate, average (P95) s\n");
         s.push_str(&report.sweep_table(Experiment::Intra, "tasks/s"));
+    }
+    if has(Experiment::Refetch) {
+        s.push_str("\n## Ablation: each system's re-fetch setting flipped, at the highest rate\n");
+        s.push_str(&report.refetch_table());
     }
     s
 }

@@ -15,7 +15,10 @@
 //! Each request carries the round's recorded confidence as its state (what the trace-replay
 //! engine turns back into the chunk, `pool::replay`), one blank frame of the recorded observation
 //! size, and the trace's horizon setting (the recorded `H` as `static` for a round recorded
-//! without confidence). A server re-fetch is answered with a new capture of the same round.
+//! without confidence). A server re-fetch is answered with a new capture of the same round, and
+//! the chunk stays aligned where the request went out: the replay engine answers with the
+//! recorded chunk, meant for the recorded steps, so the replayed work is the recording's (as in
+//! the simulator, `sim` module doc).
 
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
@@ -229,16 +232,12 @@ pub async fn replay_task(
             let request = requests.request(sent, now_us, last_exec);
             let index = sent;
             sent += 1;
-            let (shared, source_requests) = (Arc::clone(&executor), Arc::clone(&requests));
+            let source_requests = Arc::clone(&requests);
             let round_clock = clock;
             in_flight = Some((
                 index,
                 tokio::spawn(async move {
                     let mut refetch = move |_: &FetchObservation| {
-                        shared
-                            .lock()
-                            .unwrap_or_else(PoisonError::into_inner)
-                            .observation_refreshed();
                         Some(source_requests.observation(index, round_clock.now_us()))
                     };
                     let result = round_task.submit(request, &mut refetch).await;

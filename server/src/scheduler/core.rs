@@ -327,7 +327,8 @@ impl Scheduler {
                 let Some(entry) = self.pending.remove(&request) else {
                     continue;
                 };
-                let stale = now.saturating_since(entry.obs_captured_at) > self.config.stale_after;
+                let stale = self.config.refetch
+                    && now.saturating_since(entry.obs_captured_at) > self.config.stale_after;
                 refetch += usize::from(stale);
                 requests.push(DispatchedRequest {
                     request,

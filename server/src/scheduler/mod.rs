@@ -28,7 +28,8 @@
 //! one request is pending; otherwise it returns nothing and changes nothing. A decision asks the
 //! priority policy once for an order of every pending request, places batches on all idle engine
 //! instances at once (edge first, each up to its `profile.max_batch`; cloud only when its latency
-//! plus RTT beats the request's edge queueing delay), flags stale observations for re-fetch, and,
+//! plus RTT beats the request's edge queueing delay), flags stale observations for re-fetch (when
+//! `SchedulerConfig::refetch` is on), and,
 //! if it dispatched anything, adds one to the skip counter of every request it left pending. The
 //! driver (and the simulator) call `poll_dispatch` after every event that can make work runnable:
 //! a submit, a batch end, a cancel. Nothing in the scheduler changes with the mere passage of time
@@ -57,7 +58,7 @@ pub use policy::{
     FinishedTask, PendingView, PolicyError, PriorityPolicy, RemainingWork, order_by_indexed_key,
     order_by_key, validate_order,
 };
-pub use registry::{PolicySpec, PolicySpecError, build as build_policy};
+pub use registry::{PolicySpec, PolicySpecError, build as build_policy, refetch_by_default};
 
 use crate::time::Timestamp;
 
@@ -195,8 +196,9 @@ pub struct DispatchedRequest {
     pub task: TaskId,
     /// Its round id.
     pub round: u64,
-    /// Its observation is older than `SchedulerConfig::stale_after`: fetch a fresh one from
-    /// the client before the forward pass (Algorithm 1, `fetch_obs`).
+    /// Re-fetch is on (`SchedulerConfig::refetch`) and its observation is older than
+    /// `SchedulerConfig::stale_after`: fetch a fresh one from the client before the forward pass
+    /// (Algorithm 1, `fetch_obs`).
     pub refetch: bool,
 }
 
@@ -238,7 +240,11 @@ pub enum TaskEnd {
 /// Tunables of the scheduler core.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SchedulerConfig {
-    /// An observation older than this at dispatch is re-fetched from the client.
+    /// Whether a stale observation is re-fetched from the client before dispatch (Algorithm 1,
+    /// line 16). A per-system setting: Kairos's Algorithm 1 re-fetches, the FIFO and Autellix
+    /// baselines do not ([`registry::refetch_by_default`]).
+    pub refetch: bool,
+    /// With `refetch`, an observation older than this at dispatch is re-fetched from the client.
     pub stale_after: Duration,
     /// A task with no request for this long is ended as `Expired`.
     pub task_idle_timeout: Duration,
@@ -256,6 +262,7 @@ pub struct SchedulerConfig {
 impl Default for SchedulerConfig {
     fn default() -> Self {
         SchedulerConfig {
+            refetch: true,
             stale_after: Duration::from_millis(100),
             task_idle_timeout: Duration::from_secs(60),
             max_pending: 100_000,

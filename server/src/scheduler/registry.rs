@@ -208,6 +208,18 @@ pub fn build(spec: &PolicySpec) -> Result<Box<dyn PriorityPolicy>, PolicySpecErr
     build_native::<PriorityKind>(&spec.name, spec)
 }
 
+/// Whether a scheduler ordering by the policy named `name` re-fetches stale observations when the
+/// configuration does not say (`SchedulerConfig::refetch`). Algorithm 1 re-fetches (line 16), and so
+/// does SRW, which replaces only its ordering; the FIFO and Autellix baselines do not
+/// ([`BASELINES_WITHOUT_REFETCH`]). A name that is no native policy (a plugin's) runs inside Kairos
+/// and gets Algorithm 1's re-fetch; a plugin that shadows a native name gets that policy's setting.
+pub fn refetch_by_default(name: &str) -> bool {
+    !BASELINES_WITHOUT_REFETCH.contains(&name)
+}
+
+/// The native policies that stand for systems without stale-observation re-fetch.
+pub const BASELINES_WITHOUT_REFETCH: &[&str] = &["fifo", "plas"];
+
 /// Parses `s` as a whole number in `[min, max]`.
 pub fn parse_int<T: TryFrom<u64>>(s: &str, min: u64, max: u64) -> Result<T, String> {
     let v: u64 = s
@@ -332,6 +344,15 @@ mod tests {
         let json = serde_json::to_string(&spec).unwrap();
         assert_eq!(json, "\"kairos:buckets=inf,intra=fifo\"");
         assert_eq!(serde_json::from_str::<PolicySpec>(&json).unwrap(), spec);
+    }
+
+    #[test]
+    fn only_the_baselines_skip_the_refetch_by_default() {
+        assert!(!refetch_by_default("fifo"));
+        assert!(!refetch_by_default("plas"));
+        assert!(refetch_by_default("kairos"));
+        assert!(refetch_by_default("srw"));
+        assert!(refetch_by_default("my-plugin"));
     }
 
     #[test]

@@ -519,6 +519,27 @@ fn stale_observations_are_flagged_for_refetch() {
 }
 
 #[test]
+fn with_refetch_off_no_observation_is_flagged() {
+    let mut s = fifo_edge(
+        SchedulerConfig {
+            refetch: false,
+            stale_after: Duration::from_millis(100),
+            ..SchedulerConfig::default()
+        },
+        4,
+    );
+    let old = RoundSubmit {
+        obs_captured_at: ms(500),
+        ..submit_at(1, 1, ms(950), None)
+    };
+    s.handle_submit(ms(1_000), old).unwrap();
+    let d = s.poll_dispatch(ms(1_000));
+    assert_eq!(d[0].requests.len(), 1);
+    assert!(!d[0].requests[0].refetch, "500 ms old, but re-fetch is off");
+    assert_eq!(s.last_decision().unwrap().refetch, 0);
+}
+
+#[test]
 fn newer_round_supersedes_a_pending_one_and_inherits_its_skips() {
     let mut s = one_edge(100.0, 1, "fifo");
     let a = s

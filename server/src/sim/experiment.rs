@@ -14,7 +14,7 @@ use kairos_sdk::trace::TraceSet;
 
 use super::stats::{Summary, reduction, summarize};
 use super::{Load, SimConfig, SimError, SimNetwork, simulate};
-use crate::scheduler::{EngineSpec, PolicySpec, SchedulerConfig, Tier};
+use crate::scheduler::{EngineSpec, PolicySpec, SchedulerConfig, Tier, refetch_by_default};
 use crate::workload::Workload;
 use crate::workload::generate::{DYNAMIC, STATIC};
 
@@ -32,16 +32,20 @@ pub enum Experiment {
     Buckets,
     /// Intra-bucket order (Fig. "microbenchmark-intra-bin").
     Intra,
+    /// Each online system at the peak rate with its re-fetch setting and with it flipped: the
+    /// "re-fetch for all" (and "re-fetch for none") ablation.
+    Refetch,
 }
 
 impl Experiment {
     /// Every experiment, in report order.
-    pub const ALL: [Experiment; 5] = [
+    pub const ALL: [Experiment; 6] = [
         Experiment::Online,
         Experiment::Fleet,
         Experiment::Hybrid,
         Experiment::Buckets,
         Experiment::Intra,
+        Experiment::Refetch,
     ];
 
     /// Its name on the command line and in CSV.
@@ -52,6 +56,7 @@ impl Experiment {
             Experiment::Hybrid => "hybrid",
             Experiment::Buckets => "buckets",
             Experiment::Intra => "intra",
+            Experiment::Refetch => "refetch",
         }
     }
 
@@ -85,26 +90,66 @@ pub struct Variant {
     pub setting: &'static str,
     /// Whether robots send the remaining-work hint.
     pub hints: bool,
+    /// Whether the scheduler re-fetches stale observations (`SchedulerConfig::refetch`).
+    pub refetch: bool,
     /// Engines.
     pub placement: Placement,
 }
 
-fn variant(key: &str, label: &str, policy: &str, setting: &'static str) -> Variant {
-    Variant {
-        key: key.to_string(),
-        label: label.to_string(),
-        policy: policy.parse().unwrap_or_else(|_| PolicySpec::named(policy)),
-        setting,
-        hints: false,
-        placement: Placement::Edge,
+impl Variant {
+    /// `policy` on one edge engine replaying `setting`, without hints, with the policy's own
+    /// re-fetch setting ([`refetch_by_default`]).
+    pub fn new(key: &str, label: &str, policy: PolicySpec, setting: &'static str) -> Self {
+        Variant {
+            key: key.to_string(),
+            label: label.to_string(),
+            refetch: refetch_by_default(&policy.name),
+            policy,
+            setting,
+            hints: false,
+            placement: Placement::Edge,
+        }
     }
+
+    /// The same system with its re-fetch setting flipped, for the re-fetch ablation: key and
+    /// label say which way.
+    pub fn refetch_flipped(&self) -> Variant {
+        let (key, label) = if self.refetch {
+            (
+                format!("{}-norefetch", self.key),
+                format!("{} w/o re-fetch", self.label),
+            )
+        } else {
+            (
+                format!("{}-refetch", self.key),
+                format!("{} + re-fetch", self.label),
+            )
+        };
+        Variant {
+            key,
+            label,
+            refetch: !self.refetch,
+            ..self.clone()
+        }
+    }
+}
+
+fn variant(key: &str, label: &str, policy: &str, setting: &'static str) -> Variant {
+    Variant::new(
+        key,
+        label,
+        policy.parse().unwrap_or_else(|_| PolicySpec::named(policy)),
+        setting,
+    )
 }
 
 /// Name of the better priority policy in the registry.
 pub const BETTER: &str = "srw";
 
 /// The variants of the online experiment: the paper's three systems and two ablations, plus the
-/// better policy without and with the client's remaining-work hint.
+/// better policy without and with the client's remaining-work hint. Each with its system's own
+/// re-fetch setting: Algorithm 1 (Kairos, with either horizon) and SRW re-fetch stale observations,
+/// FIFO and Autellix (with either horizon) do not.
 pub fn online_variants() -> Vec<Variant> {
     let mut with_hint = variant("srw-hint", "SRW + hint (ours)", BETTER, DYNAMIC);
     with_hint.hints = true;
@@ -129,6 +174,17 @@ fn fleet_variants() -> Vec<Variant> {
     online_variants()
         .into_iter()
         .filter(|v| ["fifo", "autellix", "kairos", "srw"].contains(&v.key.as_str()))
+        .collect()
+}
+
+/// The re-fetch ablation: every online system with its own re-fetch setting and flipped.
+fn refetch_variants() -> Vec<Variant> {
+    online_variants()
+        .into_iter()
+        .flat_map(|v| {
+            let flipped = v.refetch_flipped();
+            [v, flipped]
+        })
         .collect()
 }
 
@@ -232,7 +288,10 @@ pub fn config(w: &Workload, variant: &Variant, load: Load, seed: u64) -> SimConf
     };
     SimConfig {
         engines,
-        scheduler: SchedulerConfig::default(),
+        scheduler: SchedulerConfig {
+            refetch: variant.refetch,
+            ..SchedulerConfig::default()
+        },
         policy: variant.policy.clone(),
         setting: variant.setting.to_string(),
         network: SimNetwork {
@@ -308,6 +367,11 @@ pub fn plan(workloads: &[Workload], plan: &Plan) -> Vec<Job> {
                 }
                 Experiment::Intra => {
                     for v in &intra_variants() {
+                        push(e, peak, v, Load::Poisson { rate: peak, tasks });
+                    }
+                }
+                Experiment::Refetch => {
+                    for v in &refetch_variants() {
                         push(e, peak, v, Load::Poisson { rate: peak, tasks });
                     }
                 }
@@ -633,6 +697,49 @@ impl Report<'_> {
         s
     }
 
+    /// The re-fetch ablation at each workload's peak: every online system with its own re-fetch
+    /// setting and with it flipped, average (P95) latency, rounds per task and share of requests
+    /// re-fetched. Replayed work is fixed, so the rounds must not move.
+    pub fn refetch_table(&self) -> String {
+        let mut s = String::new();
+        for (wi, w) in self.workloads.iter().enumerate() {
+            let Some(&x) = self.xs(wi, Experiment::Refetch).last() else {
+                continue;
+            };
+            let _ = writeln!(s, "\n**{}** at {x} tasks/s\n", w.title);
+            let _ = writeln!(
+                s,
+                "| System | own re-fetch | avg (P95) s | rounds/task | re-fetched | flipped: avg (P95) s | rounds/task | re-fetched | avg change |"
+            );
+            let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|");
+            for own in online_variants() {
+                let flipped = own.refetch_flipped();
+                let (Some(a), Some(b)) = (
+                    self.find(wi, Experiment::Refetch, x, &own.key),
+                    self.find(wi, Experiment::Refetch, x, &flipped.key),
+                ) else {
+                    continue;
+                };
+                let _ = writeln!(
+                    s,
+                    "| {} | {} | {:.2} ({:.2}) | {:.1} | {:.0}% | {:.2} ({:.2}) | {:.1} | {:.0}% | {} |",
+                    own.label,
+                    if own.refetch { "on" } else { "off" },
+                    a.summary.mean,
+                    a.summary.p95,
+                    a.rounds_per_task,
+                    a.refetch_share * 100.0,
+                    b.summary.mean,
+                    b.summary.p95,
+                    b.rounds_per_task,
+                    b.refetch_share * 100.0,
+                    pct(-reduction(a.summary.mean, b.summary.mean)),
+                );
+            }
+        }
+        s
+    }
+
     /// Average latency per x for `experiment` (one row per x, one column per variant), with
     /// Kairos's reduction against the first two variants where present.
     pub fn sweep_table(&self, experiment: Experiment, x_name: &str) -> String {
@@ -668,14 +775,14 @@ impl Report<'_> {
     /// Every job as one CSV row.
     pub fn csv(&self) -> String {
         let mut s = String::from(
-            "workload,experiment,x,variant,policy,setting,hints,tasks,p25_s,mean_s,p50_s,p95_s,p99_s,max_s,rounds_per_task,mean_batch,refetch_share,cloud_share,mean_queue_s,events\n",
+            "workload,experiment,x,variant,policy,setting,hints,refetch,tasks,p25_s,mean_s,p50_s,p95_s,p99_s,max_s,rounds_per_task,mean_batch,refetch_share,cloud_share,mean_queue_s,events\n",
         );
         for (j, r) in self.jobs.iter().zip(self.results) {
             let w = &self.workloads[j.workload];
             let m = &r.summary;
             let _ = writeln!(
                 s,
-                "{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.2},{:.3},{:.4},{:.4},{:.4},{}",
+                "{},{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.2},{:.3},{:.4},{:.4},{:.4},{}",
                 w.name,
                 j.experiment.name(),
                 j.x,
@@ -683,6 +790,7 @@ impl Report<'_> {
                 j.variant.policy,
                 j.variant.setting,
                 j.variant.hints,
+                j.variant.refetch,
                 m.n,
                 m.p25,
                 m.mean,

@@ -10,6 +10,14 @@
 //!   executed `issued_at_action` actions and holds the reply to round `i − 1` (paper §5.1,
 //!   "at the recorded action index"), and executes chunks by the shared execution rule
 //!   ([`robot`]).
+//! - **The work is the recording's.** Round `i`'s chunk covers the steps its recording says
+//!   (`aligned_at_action`, `horizon`), whatever the load and whether the scheduler re-fetched its
+//!   observation: a replay has only the recorded chunk, meant for the recorded steps. A late
+//!   reply therefore stalls the robot (it runs out of actions and idles) and never lets it skip
+//!   recorded rounds, so every system is asked for exactly the recorded rounds of each task
+//!   (paper §5.1: "faithfully preserving the original execution horizon"). A re-fetch costs its
+//!   fetch (half a round trip out, the observation back) before the forward pass; what a fresher
+//!   observation buys — accuracy — is not something a latency replay can measure.
 //! - **Network**: robot ↔ edge is a fixed round trip plus the observation's transfer time on the
 //!   uplink; edge ↔ cloud is each cloud engine's `rtt` plus the batch's observations on the WAN.
 //! - **Engines** take `profile.latency(batch)` per batch.
@@ -208,7 +216,10 @@ enum Event {
 struct Outstanding {
     round: usize,
     sent_at: Timestamp,
+    /// Actions started when the request went out (its observation's step).
     obs_step: u32,
+    /// The step the chunk's action 0 is meant for: the recording's alignment of this round.
+    aligned: u32,
     obs_bytes: u32,
     request: Option<RequestId>,
     /// Generation time of its batch, once finished.
@@ -336,16 +347,34 @@ impl<'a> Sim<'a> {
     }
 
     fn send(&mut self, inst: usize, now: Timestamp) -> Result<(), SimError> {
+        let obs_step = self.insts[inst].exec.started_at(now);
+        self.send_observed(inst, now, obs_step)
+    }
+
+    /// Sends the next round at `now` with an observation taken after `obs_step` started actions.
+    fn send_observed(
+        &mut self,
+        inst: usize,
+        now: Timestamp,
+        obs_step: u32,
+    ) -> Result<(), SimError> {
         let one_way = self.one_way();
         let i = &mut self.insts[inst];
         let round = i.sent;
         i.sent += 1;
         let obs_bytes = i.round(round).0.obs_bytes;
-        let obs_step = i.exec.started_at(now);
+        // A round past the recording (only after the replay drifted from it) is aligned where it
+        // was sent.
+        let aligned = i
+            .trace
+            .rounds
+            .get(round)
+            .map_or(obs_step, RoundTrace::aligned_at_action);
         i.outstanding = Some(Outstanding {
             round,
             sent_at: now,
             obs_step,
+            aligned,
             obs_bytes,
             request: None,
             inference: Duration::ZERO,
@@ -427,17 +456,16 @@ impl<'a> Sim<'a> {
             if let Some(arrived) = self.arrived_at_server.remove(&r.request) {
                 self.out.queue_s += now.saturating_since(arrived).as_secs_f64();
             }
-            let i = &mut self.insts[inst];
-            let Some(o) = &mut i.outstanding else {
+            let Some(o) = &self.insts[inst].outstanding else {
                 continue;
             };
             let bytes = o.obs_bytes;
             if r.refetch {
-                // The fetch reaches the robot, which captures a fresh observation there and
-                // sends it back; the robot's timeline up to then is already determined.
-                let captured = now + one_way;
-                o.obs_step = i.exec.started_at(captured);
-                let back = captured + one_way + transfer(bytes, self.cfg.network.robot_uplink_mbps);
+                // The fetch reaches the robot, which sends a fresh observation back. The chunk
+                // stays the recorded one, for the recorded steps (module doc: the work is the
+                // recording's).
+                let back =
+                    now + one_way + one_way + transfer(bytes, self.cfg.network.robot_uplink_mbps);
                 ready = ready.max(back);
                 self.out.refetches += 1;
             }
@@ -503,17 +531,43 @@ impl<'a> Sim<'a> {
             return Ok(());
         };
         let confidence = i.round(o.round).0.confidence.clone();
+        if o.aligned > o.obs_step {
+            // The recording's chunk answered a fresher observation than the request's (the
+            // server re-fetched it when the trace was recorded): say so, as the robot would.
+            record(
+                &mut i.recording,
+                RoundEvent::Refetched {
+                    round: o.round as u64,
+                    at_action: o.aligned,
+                },
+            )?;
+        }
+        // The recording says which steps the chunk covered. A robot that had to pass the round's
+        // recorded index while it waited for the previous reply observed later than the chunk's
+        // alignment, which a trace cannot express (a chunk is never aligned before its request):
+        // it records the steps left from its observation, the chunk's end unchanged (at least
+        // one action, as a trace requires, for a chunk with none left).
+        let recorded_horizon = if o.aligned < o.obs_step {
+            (o.aligned + horizon).saturating_sub(o.obs_step).max(1)
+        } else {
+            horizon
+        };
         record(
             &mut i.recording,
             RoundEvent::Replied {
                 round: o.round as u64,
                 received_at_us: now.as_micros(),
-                horizon,
+                horizon: recorded_horizon,
                 inference_us: crate::time::duration_micros(o.inference),
                 confidence,
             },
         )?;
-        match i.exec.accept(now, o.obs_step, horizon) {
+        // An idle robot starts the new chunk's first action at once; a request that was only
+        // waiting for this reply goes out first, with the observation from before that action
+        // (as the SDK runner does: it checks for a due request before its next tick).
+        let idle_at = i.exec.is_idle(now).then(|| i.exec.started_at(now));
+        let accepted = i.exec.accept(now, o.aligned, horizon);
+        match accepted {
             Accepted::Used { from_step, .. } => {
                 if let Some((round, from)) = i.running.replace((o.round, from_step)) {
                     record(
@@ -532,6 +586,12 @@ impl<'a> Sim<'a> {
                     executed: 0,
                 },
             )?,
+        }
+        if let (Some(position), Accepted::Used { .. }) = (idle_at, accepted)
+            && i.exec.until() < i.trace.total_actions
+            && i.round(i.sent).1 <= position
+        {
+            self.send_observed(inst, now, position)?;
         }
         self.plan(inst, now);
         Ok(())

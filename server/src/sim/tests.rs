@@ -376,3 +376,120 @@ fn bad_configurations_are_refused() {
     c.load = Load::Explicit(vec![(ms(0), 99)]);
     assert!(matches!(simulate(&traces, &c), Err(SimError::Config(_))));
 }
+
+/// A shipped workload file (`workloads/NAME.toml`).
+fn shipped(name: &str) -> crate::workload::Workload {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../workloads")
+        .join(format!("{name}.toml"));
+    crate::workload::Workload::load(&path).unwrap()
+}
+
+#[test]
+fn every_system_issues_exactly_the_recorded_rounds_of_each_task() {
+    // Under load (each workload's peak rate, where requests queue and most observations go
+    // stale), every system of the online experiment and of the re-fetch ablation asks for the
+    // same work: each task issues exactly its recorded rounds, at their recorded action indices,
+    // and the recording of what each robot experienced is a valid trace.
+    let mut w_tiny = tiny();
+    w_tiny.experiments.rates = vec![4.0];
+    let workloads = [w_tiny, shipped("libero-smolvla"), shipped("isaac-gr00t")];
+    for w in &workloads {
+        let traces = generate::generate(w, 42).unwrap();
+        let peak = *w.experiments.rates.last().unwrap();
+        let mut variants = experiment::online_variants();
+        variants.extend(
+            variants
+                .clone()
+                .iter()
+                .map(experiment::Variant::refetch_flipped),
+        );
+        let mut refetched = 0;
+        for v in &variants {
+            let load = Load::Poisson {
+                rate: peak,
+                tasks: 60,
+            };
+            let mut cfg = experiment::config(w, v, load, 1);
+            cfg.record = true;
+            let r = simulate(&traces, &cfg).unwrap();
+            assert_eq!(r.tasks.len(), 60, "{} {}", w.name, v.key);
+            let recorded = |id: u64| traces.variant(v.setting).find(|t| t.task == id).unwrap();
+            let mut expected = 0;
+            for t in &r.tasks {
+                let original = recorded(t.trace_task);
+                assert_eq!(
+                    t.rounds as usize,
+                    original.rounds.len(),
+                    "{} {}: task {} issued {} rounds, recorded {}",
+                    w.name,
+                    v.key,
+                    t.trace_task,
+                    t.rounds,
+                    original.rounds.len()
+                );
+                expected += original.rounds.len() as u64;
+            }
+            assert_eq!(r.requests, expected, "{} {}", w.name, v.key);
+            for replayed in &r.recorded {
+                // Round by round: never issued before its recorded index (later only when the
+                // robot passed it waiting for the previous reply), and its chunk ends where the
+                // recorded one did: the same steps to execute.
+                let original = recorded(replayed.task);
+                assert_eq!(replayed.rounds.len(), original.rounds.len());
+                for (a, b) in replayed.rounds.iter().zip(&original.rounds) {
+                    assert!(
+                        a.issued_at_action >= b.issued_at_action,
+                        "{} {}",
+                        w.name,
+                        v.key
+                    );
+                    let end = |r: &RoundTrace| r.aligned_at_action() + r.horizon;
+                    if end(b) > a.issued_at_action {
+                        assert_eq!(end(a), end(b), "{} {}", w.name, v.key);
+                    }
+                }
+                let executed: u32 = replayed.rounds.iter().map(|r| r.executed).sum();
+                assert_eq!(executed, original.total_actions, "{} {}", w.name, v.key);
+                assert_eq!(replayed.total_actions, original.total_actions);
+                replayed.validate().unwrap();
+            }
+            if v.refetch {
+                assert!(r.refetches > 0, "{} {}: nothing re-fetched", w.name, v.key);
+                refetched += 1;
+            } else {
+                assert_eq!(r.refetches, 0, "{} {} re-fetched", w.name, v.key);
+            }
+        }
+        assert!(refetched >= 4, "{}: too few systems re-fetched", w.name);
+    }
+}
+
+#[test]
+fn a_recorded_refetch_keeps_its_alignment_on_replay() {
+    // 10 Hz, 100 ms per batch, no network. Round 0 (sent at 0) arrives at 100: actions 0..3 at
+    // 100, 200, 300, 400. Round 1 was issued after 2 actions (sent at 200) and, when recorded,
+    // answered a re-fetched observation captured after 3: its chunk covers steps [3, 7). It
+    // arrives at 300, as action 2 starts: round 0 executed 0, 1, 2; round 1 executes 3..6 at
+    // 400..700 -> 700 ms, and its recording says it was aligned at 3.
+    let mut t = task(1, 7, &[(0, 4), (2, 4)]);
+    t.rounds[1].aligned_at_action = Some(3);
+    t.validate().unwrap();
+    let mut cfg = config(
+        "kairos",
+        STATIC,
+        Load::Explicit(vec![(ms(0), 1)]),
+        vec![flat_engine(100.0, 1)],
+    );
+    cfg.record = true;
+    let r = simulate(&set(vec![t]), &cfg).unwrap();
+    assert_eq!(latencies(&r), BTreeMap::from([(1, 700)]));
+    assert_eq!(r.requests, 2, "the recorded work, no extra round");
+    let replayed = &r.recorded[0];
+    let rounds: Vec<_> = replayed
+        .rounds
+        .iter()
+        .map(|r| (r.issued_at_action, r.aligned_at_action, r.executed))
+        .collect();
+    assert_eq!(rounds, vec![(0, None, 3), (2, Some(3), 4)]);
+}
