@@ -2,16 +2,14 @@
 
 #![allow(clippy::unwrap_used)] // helpers outside #[test] fns
 
-mod support;
-
 use std::time::Duration;
 
+use crate::support::{Behavior, Kill, Responder, observation};
 use kairos_sdk::client::{
     Client, ClientConfig, ClientError, NoRefetch, ROUND_CANCELLED, RoundRequest,
 };
 use kairos_sdk::protocol::{ErrorCode, FetchObservation, Observation, TaskOutcome};
 use kairos_sdk::tls::Fingerprint;
-use support::{Behavior, Kill, Responder, observation};
 
 fn config(responder: &Responder) -> ClientConfig {
     let mut config = ClientConfig::pinned(responder.addr, responder.fingerprint, "secret");
