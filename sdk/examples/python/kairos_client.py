@@ -4,7 +4,7 @@
 It connects over QUIC (aioquic), pins the server certificate, sends Hello, runs ROUNDS rounds of
 one task (answering FetchObservation on the round's stream), ends the task, and prints one line per
 round. It exists to show the protocol document is sufficient, and is exercised against the Rust
-responder by `cargo test -p kairos-sdk --test python_client -- --ignored`.
+responder by `cargo test -p kairos-sdk --test it python_client:: -- --ignored`.
 
     pip install aioquic msgpack numpy
     python kairos_client.py HOST:PORT sha256:<64 hex> TOKEN [ROUNDS]

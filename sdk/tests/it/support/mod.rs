@@ -25,6 +25,16 @@ pub enum Kill {
     AfterGeneration,
 }
 
+/// Holds a round between reading its Submit and generating it, so a test can act while the
+/// round is in flight on the server (an event, not a guess at how long that takes).
+#[derive(Debug, Default)]
+pub struct Hold {
+    /// Notified when a round reaches the hold (the permit is kept if nobody waits yet).
+    pub entered: tokio::sync::Notify,
+    /// Notify to let the held round generate and answer.
+    pub release: tokio::sync::Notify,
+}
+
 /// How the responder behaves.
 #[derive(Clone, Debug)]
 pub struct Behavior {
@@ -41,6 +51,8 @@ pub struct Behavior {
     pub tuning: TransportTuning,
     /// The version `Welcome` announces.
     pub welcome_protocol: u32,
+    /// Hold every round before generating it until the test releases it.
+    pub hold: Option<Arc<Hold>>,
 }
 
 impl Default for Behavior {
@@ -56,6 +68,7 @@ impl Default for Behavior {
             fail_round: None,
             tuning: TransportTuning::default(),
             welcome_protocol: PROTOCOL_VERSION,
+            hold: None,
         }
     }
 }
@@ -292,6 +305,10 @@ async fn serve_stream(
                     }
                     other => panic!("expected FreshObservation, got {other:?}"),
                 }
+            }
+            if let Some(hold) = &behavior.hold {
+                hold.entered.notify_one();
+                hold.release.notified().await;
             }
             tokio::select! {
                 () = tokio::time::sleep(behavior.generation) => {}

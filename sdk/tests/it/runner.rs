@@ -3,12 +3,11 @@
 
 #![allow(clippy::unwrap_used)] // helpers outside #[test] fns
 
-mod support;
-
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use crate::support::{Behavior, Responder};
 use kairos_sdk::client::{
     Client, ClientConfig, ClientError, Clock, ObservationSource, RoundReply, RoundRequest,
 };
@@ -20,7 +19,6 @@ use kairos_sdk::robot::{
     Robot, RobotError, RobotRunner, RoundTransport, RunnerConfig, RunnerError, RunnerEvent,
     SimulatedRobot,
 };
-use support::{Behavior, Responder};
 
 /// What the scripted server saw of one request.
 #[derive(Clone, Debug, PartialEq)]

@@ -1,6 +1,6 @@
 //! Plugin components built in-test from WAT: well-behaved ones and hostile ones.
 //!
-//! Shared by the `plugin_*` integration tests (`mod plugin_common;`). Every fixture is a
+//! Shared by the `plugin_*` modules of the server's integration test binary. Every fixture is a
 //! real component: a core module assembled from WAT with `wat`, given the `kairos:policy`
 //! world and encoded with `wit-component` (through the server's own componentize step, or
 //! directly for worlds the server does not know).

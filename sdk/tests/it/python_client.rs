@@ -2,14 +2,12 @@
 //! alone, against the Rust protocol responder over real QUIC/TLS.
 //!
 //! Ignored by default because it needs a Python with `aioquic`, `msgpack` and `numpy`:
-//! `KAIROS_PYTHON=/path/to/python cargo test -p kairos-sdk --test python_client -- --ignored`
+//! `KAIROS_PYTHON=/path/to/python cargo test -p kairos-sdk --test it python_client:: -- --ignored`
 
 #![allow(clippy::unwrap_used)] // helpers outside #[test] fns
 
-mod support;
-
+use crate::support::{Behavior, Responder};
 use kairos_sdk::protocol::TaskOutcome;
-use support::{Behavior, Responder};
 
 /// Runs the example client with `args` and returns its output.
 async fn run_client(args: Vec<String>) -> std::process::Output {

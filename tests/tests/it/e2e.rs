@@ -8,21 +8,31 @@ use std::collections::BTreeMap;
 
 use kairos_sdk::protocol::HorizonSelection;
 use kairos_tests::harness::{
-    RecordError, RobotPlan, ServerOptions, TestServer, compare_records, run_fleet,
+    RecordError, RobotPlan, ServerOptions, TaskLog, TestServer, compare_records, run_fleet,
 };
 
 const ROBOTS: u64 = 20;
 const ROUNDS: u64 = 6;
 
-/// Timing tolerance for matching the server's records with the robots' logs, µs.
+/// How far the server's records may be from the robots' logs: the uncertainty of the clock
+/// mapping, which the run itself measures, not a fixed margin that a loaded machine outgrows.
 ///
-/// The server maps robot clocks onto its own per connection (min over recent messages of
-/// `server_read − sent_at`, minus RTT/2). On loopback the least-delayed message's one-way delay
-/// is tens of µs, but with 20 robots, the server and the test sharing 2 cores, a message can wait
-/// a few ms for a thread, and the smoothed RTT moves between requests; 5 ms bounds both with a
-/// margin while still catching any real bookkeeping error (a wrong round's interval, a missing
-/// `remaining / control_hz`, a unit slip: those are tens of ms or more at 200 Hz).
-const TOLERANCE_US: u64 = 5_000;
+/// The server maps a robot's clock onto its own per connection: offset = min over messages of
+/// `server_read − sent_at`, minus RTT/2 (`server::validation`). Its error is at most the least
+/// one-way delay (≤ any round trip the robot saw) one way and RTT/2 (≤ the largest round trip:
+/// every application round trip contains a transport one) the other, so a `G` mapped back to the
+/// robot's clock is off by at most the largest round trip `rt_max` the fleet saw, and an `E`
+/// (mapped in with one estimate, back out with a later one) by at most `2 · rt_max`. On a quiet
+/// machine `rt_max` is a few ms and this still catches a real bookkeeping error (a wrong round's
+/// interval, a missing `remaining / control_hz`, a unit slip: tens of ms or more at 200 Hz); on a
+/// loaded one the bound grows with the delays that loosen the mapping, instead of failing.
+fn clock_uncertainty_us(logs: &[TaskLog]) -> u64 {
+    logs.iter()
+        .flat_map(|log| &log.rounds)
+        .map(|round| round.received_at_us.saturating_sub(round.sent_at_us))
+        .max()
+        .unwrap_or(0)
+}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn twenty_robots_complete_multi_round_tasks_and_records_match() {
@@ -68,10 +78,20 @@ async fn twenty_robots_complete_multi_round_tasks_and_records_match() {
         // Server side: one generation per (task, round).
         server.assert_generated_once(log.task, ROUNDS).await;
     }
-    println!("largest record error vs robot logs: {worst:?}");
-    assert!(worst.generation_outside_us <= TOLERANCE_US, "{worst:?}");
-    assert!(worst.exec_start_us <= TOLERANCE_US, "{worst:?}");
-    assert!(worst.exec_end_us <= TOLERANCE_US, "{worst:?}");
+    let rt_max = clock_uncertainty_us(&logs);
+    println!("largest record error vs robot logs: {worst:?}; largest round trip {rt_max} µs");
+    assert!(
+        worst.generation_outside_us <= rt_max,
+        "{worst:?}, rt_max {rt_max} µs"
+    );
+    assert!(
+        worst.exec_start_us <= 2 * rt_max,
+        "{worst:?}, rt_max {rt_max} µs"
+    );
+    assert!(
+        worst.exec_end_us <= 2 * rt_max,
+        "{worst:?}, rt_max {rt_max} µs"
+    );
 
     let report = server.shutdown().await;
     assert_eq!(report.driver.replies, ROBOTS * ROUNDS);

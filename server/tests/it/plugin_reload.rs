@@ -2,14 +2,13 @@
 //! decisions; no decision in flight is dropped or answered by the fallback, a broken new
 //! version is ignored, and a reload lifts a quarantine.
 
-mod plugin_common;
-
 use std::path::Path;
+use std::sync::{Condvar, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
+use crate::plugin_common::*;
 use kairos_server::horizon::{ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
 use kairos_server::plugin::{PluginOptions, PluginSource, WasmHorizonPolicy};
-use plugin_common::*;
 
 /// Answers 1, so a fallback answer is visible (the fixtures answer h_min = 2 or h_max = 40).
 struct One;
@@ -20,6 +19,88 @@ impl HorizonPolicy for One {
     }
     fn choose(&mut self, _: &HorizonInput<'_>) -> Result<usize, HorizonError> {
         Ok(1)
+    }
+}
+
+/// The watcher's refusals of new versions, per plugin name: the error it logs when a changed
+/// file does not load ("keeping the running version") is the one sign of a refusal an operator
+/// gets, and the event this test waits for (no sleep that a loaded machine could outlast).
+#[derive(Default)]
+struct Refusals {
+    by_plugin: Mutex<Vec<String>>,
+    changed: Condvar,
+}
+
+impl Refusals {
+    /// The process-wide log collector (installed once; the other tests of this binary log
+    /// nothing at ERROR from the reload watcher's module with our plugin names).
+    fn get() -> &'static Refusals {
+        static REFUSALS: OnceLock<&'static Refusals> = OnceLock::new();
+        REFUSALS.get_or_init(|| {
+            use tracing_subscriber::layer::SubscriberExt;
+            let refusals: &'static Refusals = Box::leak(Box::default());
+            let subscriber = tracing_subscriber::registry().with(RefusalLayer(refusals));
+            tracing::subscriber::set_global_default(subscriber)
+                .expect("no other global subscriber in this test binary");
+            refusals
+        })
+    }
+
+    fn count(&self, plugin: &str) -> usize {
+        let seen = self.by_plugin.lock().expect("not poisoned");
+        seen.iter().filter(|p| *p == plugin).count()
+    }
+
+    /// Waits until the watcher of `plugin` has refused `n` versions. The limit only turns a
+    /// watcher that never refuses into a failure instead of a hang.
+    fn wait_for(&self, plugin: &str, n: usize) {
+        let limit = Duration::from_secs(60);
+        let seen = self.by_plugin.lock().expect("not poisoned");
+        let (seen, wait) = self
+            .changed
+            .wait_timeout_while(seen, limit, |seen| {
+                seen.iter().filter(|p| *p == plugin).count() < n
+            })
+            .expect("not poisoned");
+        assert!(
+            !wait.timed_out(),
+            "{plugin}: {} refusals, expected {n}",
+            seen.len()
+        );
+    }
+}
+
+struct RefusalLayer(&'static Refusals);
+
+impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for RefusalLayer {
+    /// Only the watcher's errors: the other tests of the binary pay nothing for the collector.
+    fn enabled(
+        &self,
+        meta: &tracing::Metadata<'_>,
+        _: tracing_subscriber::layer::Context<'_, S>,
+    ) -> bool {
+        *meta.level() == tracing::Level::ERROR && meta.target().ends_with("plugin::reload")
+    }
+
+    fn on_event(&self, event: &tracing::Event<'_>, _: tracing_subscriber::layer::Context<'_, S>) {
+        let meta = event.metadata();
+        if *meta.level() != tracing::Level::ERROR || !meta.target().ends_with("plugin::reload") {
+            return;
+        }
+        struct Plugin(Option<String>);
+        impl tracing::field::Visit for Plugin {
+            fn record_debug(&mut self, field: &tracing::field::Field, value: &dyn std::fmt::Debug) {
+                if field.name() == "plugin" {
+                    self.0 = Some(format!("{value:?}"));
+                }
+            }
+        }
+        let mut plugin = Plugin(None);
+        event.record(&mut plugin);
+        if let Some(name) = plugin.0 {
+            self.0.by_plugin.lock().expect("not poisoned").push(name);
+            self.0.changed.notify_all();
+        }
     }
 }
 
@@ -105,8 +186,10 @@ fn options() -> PluginOptions {
 
 #[test]
 fn a_new_version_is_swapped_in_between_decisions_and_broken_ones_are_ignored() {
+    let refusals = Refusals::get();
     let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("policy.wasm");
+    // The file stem names the plugin in the watcher's log.
+    let path = dir.path().join("swapped.wasm");
     install(&path, &horizon_component("(i32.const 2)"));
     let mut policy =
         WasmHorizonPolicy::load(&PluginSource::File(path.clone()), options(), Box::new(One))
@@ -123,14 +206,17 @@ fn a_new_version_is_swapped_in_between_decisions_and_broken_ones_are_ignored() {
         "no decision fell back during the swap: {stats:?}"
     );
 
-    // Garbage, then a plugin for the other world: both refused, the running version stays.
+    // Garbage, then a plugin for the other world: each is read and refused by the watcher (we
+    // wait for its refusal before installing the next, so neither is skipped unread), and the
+    // running version answers throughout.
+    assert_eq!(refusals.count("swapped"), 0);
     install(&path, b"\0asm garbage");
-    std::thread::sleep(Duration::from_millis(100));
+    refusals.wait_for("swapped", 1);
+    assert_eq!(robot.decide(&mut policy), 40);
     install(&path, &priority_component(PRIORITY_IDENTITY));
-    let until = Instant::now() + Duration::from_millis(300);
-    while Instant::now() < until {
+    refusals.wait_for("swapped", 2);
+    for _ in 0..10 {
         assert_eq!(robot.decide(&mut policy), 40);
-        std::thread::sleep(Duration::from_millis(5));
     }
     let stats = policy.stats();
     assert_eq!((stats.reloads, stats.fallbacks), (1, 0), "{stats:?}");

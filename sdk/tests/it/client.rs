@@ -2,16 +2,15 @@
 
 #![allow(clippy::unwrap_used)] // helpers outside #[test] fns
 
-mod support;
-
+use std::sync::Arc;
 use std::time::Duration;
 
+use crate::support::{Behavior, Hold, Kill, Responder, observation};
 use kairos_sdk::client::{
     Client, ClientConfig, ClientError, NoRefetch, ROUND_CANCELLED, RoundRequest,
 };
 use kairos_sdk::protocol::{ErrorCode, FetchObservation, Observation, TaskOutcome};
 use kairos_sdk::tls::Fingerprint;
-use support::{Behavior, Kill, Responder, observation};
 
 fn config(responder: &Responder) -> ClientConfig {
     let mut config = ClientConfig::pinned(responder.addr, responder.fingerprint, "secret");
@@ -261,8 +260,11 @@ async fn oversized_requests_are_refused_locally() {
 
 #[tokio::test]
 async fn rebind_mid_round_keeps_the_connection() {
+    // The responder holds the round after reading its Submit; the client rebinds while it is
+    // held, and only then is the round generated and answered (to the new address).
+    let hold = Arc::new(Hold::default());
     let responder = Responder::start(Behavior {
-        generation: Duration::from_millis(300),
+        hold: Some(hold.clone()),
         ..Behavior::default()
     });
     let client = Client::connect(config(&responder)).await.unwrap();
@@ -270,9 +272,10 @@ async fn rebind_mid_round_keeps_the_connection() {
     let mut task = client.task(4);
     let roaming = client.clone();
     let roam = tokio::spawn(async move {
-        tokio::time::sleep(Duration::from_millis(100)).await;
+        hold.entered.notified().await;
         let socket = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
         roaming.rebind(socket).unwrap();
+        hold.release.notify_one();
     });
     let reply = task
         .submit(RoundRequest::new(observation(0)), &mut NoRefetch)

@@ -1,12 +1,12 @@
-//! Hostile plugins are contained: each is stopped within its deadline (plus a margin), its
-//! instance is discarded, the decision is answered by the fallback policy, and every robot
-//! request still gets a valid answer. Plugins for the wrong world, version or imports are
+//! Hostile plugins are contained: each is stopped (a call that returns at all was contained: an
+//! uncontained loop never returns) for the reason its fixture provokes (deadline, memory cap,
+//! trap, invalid answer), its instance is discarded, the decision is answered by the fallback
+//! policy, and every robot request still gets a valid answer. Plugins for the wrong world, version or imports are
 //! refused at load with a clear error.
-
-mod plugin_common;
 
 use std::time::{Duration, Instant};
 
+use crate::plugin_common::*;
 use kairos_server::horizon::{
     ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams, validate_horizon,
 };
@@ -20,12 +20,12 @@ use kairos_server::scheduler::{
     FinishedTask, PendingView, PolicyError, PriorityPolicy, RequestId, TaskId, validate_order,
 };
 use kairos_server::time::Timestamp;
-use plugin_common::*;
 
-/// How far past its deadline a contained call may end on a loaded 2-core CI machine. An
-/// uncontained plugin never returns at all, so any finite bound proves containment; the
-/// generous margin keeps the test from depending on machine load.
-const MARGIN: Duration = Duration::from_millis(250);
+// No upper bounds on how long a contained call took: a loaded machine can stretch any wall-clock
+// margin. That a call returns proves containment (the loop fixtures never would); the failure
+// kind recorded proves which mechanism stopped it. Lower bounds (a deadline is not cut short)
+// are safe: load only makes calls longer. How fast containment is lives in the plugin
+// benchmarks (docs/BENCHMARKS.md).
 
 /// The fallback of these tests: always `h_min`, recognisable in the answers.
 struct MinHorizon;
@@ -171,20 +171,24 @@ fn an_infinite_loop_is_interrupted_at_its_deadline() {
     let took = started.elapsed();
     assert_eq!(answer, Ok(4), "the fallback (h_min) answers");
     assert!(took >= deadline, "cut short: {took:?} < {deadline:?}");
-    assert!(took < deadline + MARGIN, "contained too late: {took:?}");
-    assert_eq!(policy.stats().failures_of(FailureKind::Timeout), 1);
+    let stats = policy.stats();
+    assert_eq!(stats.failures_of(FailureKind::Timeout), 1, "{stats:?}");
+    assert_eq!(
+        stats.failures.len(),
+        1,
+        "stopped by its deadline only: {stats:?}"
+    );
 }
 
 #[test]
 fn a_memory_hog_is_stopped_at_its_cap() {
     let chunk = Chunk::new();
     let mut policy = horizon_plugin(horizon_component(HORIZON_HOG), horizon_options(1_000));
-    let started = Instant::now();
     assert_eq!(policy.choose(&chunk.input(5, 30, 0)), Ok(5));
-    // Stopped by the limiter, long before the 1 s deadline.
-    assert!(started.elapsed() < MARGIN, "{:?}", started.elapsed());
+    // Stopped by the limiter, not by the 1 s deadline.
     let stats = policy.stats();
     assert_eq!(stats.failures_of(FailureKind::OverLimit), 1, "{stats:?}");
+    assert_eq!(stats.failures_of(FailureKind::Timeout), 0, "{stats:?}");
     assert!(policy.peak_memory() <= 8 << 20);
 }
 
@@ -239,12 +243,11 @@ fn a_plugin_that_keeps_failing_is_quarantined_and_costs_nothing_meanwhile() {
         assert_eq!(policy.choose(&chunk.input(1, 50, round)), Ok(1));
     }
     assert!(policy.stats().quarantined);
-    let started = Instant::now();
     for round in 3..53 {
         assert_eq!(policy.choose(&chunk.input(1, 50, round)), Ok(1));
     }
-    // 50 decisions sat out: none paid the 10 ms deadline.
-    assert!(started.elapsed() < MARGIN, "{:?}", started.elapsed());
+    // 50 decisions sat out: none called the plugin (no new timeout), so none paid the 10 ms
+    // deadline.
     let stats = policy.stats();
     assert_eq!(stats.failures_of(FailureKind::Timeout), 3);
     assert_eq!(stats.failures_of(FailureKind::Quarantined), 50);
@@ -267,8 +270,12 @@ fn every_robot_request_is_answered_whatever_the_horizon_plugin_does() {
         ("too long", HORIZON_TOO_LONG),
         ("zero", HORIZON_ZERO),
     ] {
-        let mut policy = horizon_plugin(horizon_component(body), horizon_options(5));
-        let started = Instant::now();
+        let options = PluginOptions {
+            quarantine_after: 3,
+            probation: 100,
+            ..horizon_options(5)
+        };
+        let mut policy = horizon_plugin(horizon_component(body), options);
         let robots = 40;
         let rounds = 10;
         for round in 0..rounds {
@@ -287,12 +294,11 @@ fn every_robot_request_is_answered_whatever_the_horizon_plugin_does() {
         assert_eq!(stats.decisions, robots as u64 * rounds);
         assert_eq!(stats.fallbacks, stats.decisions, "{name}: {stats:?}");
         assert!(stats.quarantined, "{name}: {stats:?}");
-        // 400 decisions; at most 3 failures before quarantine, each ≤ 5 ms + margin.
-        assert!(
-            started.elapsed() < 3 * (Duration::from_millis(5) + MARGIN),
-            "{name}: {:?}",
-            started.elapsed()
-        );
+        // Of 400 decisions only 5 called the plugin (so at most 5 paid a deadline): 3 failures
+        // start a quarantine of 100 decisions, the probe after it fails and doubles it to 200,
+        // the probe after that fails and doubles it to 400, which outlasts the run.
+        let called = stats.decisions - stats.failures_of(FailureKind::Quarantined);
+        assert_eq!((called, stats.quarantines), (5, 3), "{name}: {stats:?}");
     }
 }
 
@@ -342,11 +348,9 @@ fn hostile_priority_plugins_are_contained_and_every_request_is_ordered() {
             // At least two requests: a one-element "duplicate" order would be valid.
             let pending = pending(2 + decision * 7);
             let mut order = Vec::new();
-            let started = Instant::now();
             policy
                 .order(Timestamp::from_micros(100_000), &pending, &mut order)
                 .expect("a wrapped policy always orders");
-            assert!(started.elapsed() < deadline + MARGIN, "{name}");
             validate_order(pending.len(), &order).expect("complete order");
             let reverse: Vec<usize> = (0..pending.len()).rev().collect();
             assert_eq!(
@@ -386,7 +390,6 @@ fn hostile_priority_plugins_that_pass_the_load_check_are_contained_at_run_time()
                 .order(Timestamp::from_micros(100_000), &pending, &mut order)
                 .expect("a wrapped policy always orders");
             let took = started.elapsed();
-            assert!(took < deadline + MARGIN, "{name}: {took:?}");
             if kind == FailureKind::Timeout {
                 assert!(took >= deadline, "{name}: cut short at {took:?}");
             }
@@ -607,11 +610,10 @@ fn start_code_that_never_returns_is_interrupted_at_the_instantiation_deadline() 
     let started = Instant::now();
     assert_eq!(policy.choose(&chunk.input(3, 30, 0)), Ok(3));
     let took = started.elapsed();
-    assert!(
-        took >= Duration::from_millis(30) && took < Duration::from_millis(30) + MARGIN,
-        "{took:?}"
-    );
-    assert_eq!(policy.stats().failures_of(FailureKind::Instantiate), 1);
+    assert!(took >= Duration::from_millis(30), "cut short: {took:?}");
+    let stats = policy.stats();
+    assert_eq!(stats.failures_of(FailureKind::Instantiate), 1, "{stats:?}");
+    assert_eq!(stats.failures.len(), 1, "{stats:?}");
 }
 
 #[test]

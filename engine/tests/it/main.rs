@@ -1,0 +1,9 @@
+//! The engine's integration tests, one test binary (`cargo test -p kairos-engine --test it`).
+//!
+//! Each module was a test binary of its own; every binary links Candle, so one binary instead of
+//! several saves a link and a compile of the shared code per module (see "CI time" in
+//! docs/BENCHMARKS.md). A new integration test is a new module here, not a new file in `tests/`.
+
+mod loader_errors;
+mod models;
+mod smolvla_parity;

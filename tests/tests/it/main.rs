@@ -1,0 +1,16 @@
+//! The cross-crate tests, one test binary (`cargo test -p kairos-tests --test it`; one module:
+//! `cargo test -p kairos-tests --test it e2e::`).
+//!
+//! Each module was a test binary of its own; every binary links the whole server (wasmtime,
+//! Candle, quinn), so one binary instead of eight saves a link and a compile of the shared code
+//! per module (see "CI time" in docs/BENCHMARKS.md). A new cross-crate test is a new module
+//! here, not a new file in `tests/`.
+
+mod auth;
+mod demo;
+mod e2e;
+mod lossy;
+mod malformed;
+mod plugins_served;
+mod sim_runner_agreement;
+mod sim_vs_live;
