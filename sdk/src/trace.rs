@@ -1098,6 +1098,7 @@ mod tests {
                 idle_us: 50_000,
                 failed_rounds: 0,
                 server_record: None,
+                end_error: None,
             }),
         ];
         let mut rec = RunnerTraceRecorder::new(Vec::new(), setup).unwrap();
@@ -1198,6 +1199,7 @@ mod tests {
                 idle_us: 0,
                 failed_rounds: 0,
                 server_record: None,
+                end_error: None,
             }),
         ];
         let mut rec = RunnerTraceRecorder::new(Vec::new(), setup).unwrap();

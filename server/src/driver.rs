@@ -932,10 +932,16 @@ impl Driver {
                             round_index: round.round_index,
                             recent_horizons: &round.recent,
                         };
-                        let result = actions
-                            .choose(&mut round.policy, &chunk, context)
-                            .map(|choice| build_reply(round.task, round.round, &chunk, &choice))
-                            .map_err(|e| ErrorReply::from(&RequestError::Internal(e.to_string())));
+                        let result = match chunk {
+                            Ok(chunk) => actions
+                                .choose(&mut round.policy, &chunk, context)
+                                .map(|choice| build_reply(round.task, round.round, &chunk, &choice))
+                                .map_err(|e| {
+                                    ErrorReply::from(&RequestError::Internal(e.to_string()))
+                                }),
+                            // The engine failed this request alone; the batch's others go on.
+                            Err(error) => Err(ErrorReply::from(&RequestError::Engine(error))),
+                        };
                         (round.request, result)
                     })
                     .collect(),
@@ -1312,17 +1318,18 @@ mod tests {
         let (own, _a) = f.submit(0, wire_submit(&f, 1, 0, 1.0, None)).await;
         own.answer.await.unwrap().unwrap();
         // Robot 1 re-sends robot 0's finished round: no cached reply for it.
+        // Another robot's task is answered like an unknown one (validation.rs).
         let (read, _b) = f.submit(1, wire_submit(&f, 1, 0, 1.0, None)).await;
         assert_eq!(
             read.answer.await.unwrap().unwrap_err().code,
-            ErrorCode::Forbidden
+            ErrorCode::UnknownTask
         );
         let (advance, _c) = f.submit(1, wire_submit(&f, 1, 1, 1.0, None)).await;
         assert_eq!(
             advance.answer.await.unwrap().unwrap_err().code,
-            ErrorCode::Forbidden
+            ErrorCode::UnknownTask
         );
-        assert_eq!(f.end(1, 1).await.unwrap_err().code, ErrorCode::Forbidden);
+        assert_eq!(f.end(1, 1).await.unwrap_err().code, ErrorCode::UnknownTask);
         assert_eq!(f.end(0, 1).await.unwrap().rounds, 1);
     }
 
