@@ -417,9 +417,10 @@ pub enum ErrorCode {
     UnsupportedVersion,
     /// The token is unknown.
     Unauthorized,
-    /// The task belongs to another robot.
+    /// Reserved: the task belongs to another robot. Servers of this version answer
+    /// `UnknownTask` instead, so that the answer does not reveal which task ids exist.
     Forbidden,
-    /// The task is unknown or has ended.
+    /// The task is not open for this robot: unknown, ended, or another robot's.
     UnknownTask,
     /// The round id is not after the task's last one.
     RoundOutOfOrder,
