@@ -44,3 +44,20 @@ pub enum EngineError {
     #[error(transparent)]
     Candle(#[from] candle_core::Error),
 }
+
+/// One field of a request the model cannot take. `field` is a path inside the request
+/// (`state`, `images[1]`, `samples`), so the server can name the wire field it came from.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{field}: {reason}")]
+pub struct InputError {
+    /// Which field.
+    pub field: String,
+    /// What is wrong with it.
+    pub reason: String,
+}
+
+impl From<InputError> for EngineError {
+    fn from(error: InputError) -> EngineError {
+        EngineError::InvalidInput(error.to_string())
+    }
+}

@@ -9,43 +9,186 @@
 //! Cell `(i, j)` covers rows `[floor(i H / g), floor((i+1) H / g))` and the analogous columns,
 //! widened to at least one pixel when the image is smaller than the grid.
 
+use image::ImageDecoder;
+
 use crate::{EngineError, ImageFormat, ImageInput};
 
 /// Largest accepted image side, to bound decoding work on untrusted input.
 pub const MAX_SIDE: usize = 8192;
 
-/// Pool `image` to `grid x grid x 3` features in `[-1, 1]`.
-pub fn pooled_features(image: &ImageInput, grid: usize) -> Result<Vec<f32>, EngineError> {
-    if grid == 0 {
-        return Err(EngineError::InvalidInput(
-            "image grid must be at least 1".into(),
-        ));
+/// Most pixels of one image the engine decodes at all: 64 times the 512 x 512 input of SmolVLA's
+/// vision encoder (4096 x 4096, 48 MiB as RGB). A server sets a lower cap per deployment (the
+/// protocol's `max_image_pixels`, checked before a round is queued); this one bounds direct
+/// callers of the engine. An 8192 x 8192 decompression bomb is refused from its header.
+pub const MAX_PIXELS: usize = 64 * 512 * 512;
+
+/// Bounds on the images a request may carry. They are checked against the image's header (or a
+/// raw image's shape) before a single pixel is decoded or allocated.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ImageLimits {
+    /// Longest side, pixels.
+    pub max_side: usize,
+    /// Most pixels (`height * width`).
+    pub max_pixels: usize,
+}
+
+impl Default for ImageLimits {
+    fn default() -> Self {
+        ImageLimits {
+            max_side: MAX_SIDE,
+            max_pixels: MAX_PIXELS,
+        }
     }
+}
+
+/// An image's size as its header or shape declares it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ImageSize {
+    /// Rows.
+    pub height: usize,
+    /// Columns.
+    pub width: usize,
+}
+
+impl ImageLimits {
+    fn check(&self, size: ImageSize) -> Result<(), String> {
+        let ImageSize { height, width } = size;
+        if height == 0 || width == 0 {
+            return Err(format!("image is {height}x{width}; an image has pixels"));
+        }
+        if height > self.max_side || width > self.max_side {
+            return Err(format!(
+                "image is {height}x{width}; sides must be at most {}",
+                self.max_side
+            ));
+        }
+        if height.saturating_mul(width) > self.max_pixels {
+            return Err(format!(
+                "image is {height}x{width} = {} pixels, over the limit of {}",
+                height.saturating_mul(width),
+                self.max_pixels
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Checks everything about `image` that the engine would refuse, without decoding pixels: an
+/// encoded file's header (format, declared size) and a raw image's shape, length and values.
+/// Returns the declared size. The error is the reason, for the caller to attach to a field.
+pub fn check_image(image: &ImageInput, limits: &ImageLimits) -> Result<ImageSize, String> {
     match image {
         ImageInput::Encoded { format, bytes } => {
-            let fmt = match format {
-                ImageFormat::Jpeg => image::ImageFormat::Jpeg,
-                ImageFormat::Png => image::ImageFormat::Png,
-            };
-            let mut reader = image::ImageReader::with_format(std::io::Cursor::new(bytes), fmt);
-            let mut limits = image::Limits::default();
-            limits.max_image_width = Some(MAX_SIDE as u32);
-            limits.max_image_height = Some(MAX_SIDE as u32);
-            reader.limits(limits);
-            let decoded = reader.decode().map_err(|e| {
-                EngineError::InvalidInput(format!("cannot decode {format:?} image: {e}"))
-            })?;
-            let rgb = decoded.to_rgb32f();
-            let (w, h) = (rgb.width() as usize, rgb.height() as usize);
-            Ok(pool(rgb.as_raw(), h, w, 3, grid))
+            let decoder = header(*format, bytes, limits)?;
+            Ok(decoder_size(&decoder))
         }
         ImageInput::RawU8 {
             height,
             width,
             channels,
             data,
+        } => check_raw(*height, *width, *channels, data.len(), limits),
+        ImageInput::RawF32 {
+            height,
+            width,
+            channels,
+            data,
         } => {
-            check_raw(*height, *width, *channels, data.len())?;
+            let size = check_raw(*height, *width, *channels, data.len(), limits)?;
+            if let Some(at) = data.iter().position(|v| !v.is_finite()) {
+                return Err(format!(
+                    "image contains a non-finite value ({} at index {at})",
+                    data[at]
+                ));
+            }
+            Ok(size)
+        }
+    }
+}
+
+/// Decodes an encoded image to 8-bit RGB, `[height][width][3]`, after checking its header
+/// against `limits`: a file that declares too many pixels is refused before any pixel buffer
+/// is allocated. Raw images are returned unchanged (after [`check_image`]).
+pub fn decode(image: &ImageInput, limits: &ImageLimits) -> Result<ImageInput, String> {
+    let ImageInput::Encoded { format, bytes } = image else {
+        check_image(image, limits)?;
+        return Ok(image.clone());
+    };
+    let decoder = header(*format, bytes, limits)?;
+    let ImageSize { height, width } = decoder_size(&decoder);
+    let decoded = image::DynamicImage::from_decoder(decoder)
+        .map_err(|e| format!("cannot decode {format:?} image: {e}"))?;
+    let rgb = decoded.into_rgb8();
+    Ok(ImageInput::RawU8 {
+        height,
+        width,
+        channels: 3,
+        data: rgb.into_raw(),
+    })
+}
+
+/// A decoder that has read only the file's header, with the declared size within `limits` and
+/// the decoder's own allocation limit set to what that size needs.
+fn header<'a>(
+    format: ImageFormat,
+    bytes: &'a [u8],
+    limits: &ImageLimits,
+) -> Result<impl ImageDecoder + 'a, String> {
+    let fmt = match format {
+        ImageFormat::Jpeg => image::ImageFormat::Jpeg,
+        ImageFormat::Png => image::ImageFormat::Png,
+    };
+    let reader = image::ImageReader::with_format(std::io::Cursor::new(bytes), fmt);
+    let mut decoder = reader
+        .into_decoder()
+        .map_err(|e| format!("not a readable {format:?} file: {e}"))?;
+    limits.check(decoder_size(&decoder))?;
+    // The declared size is within the limits; hold the decoder to what that size needs (16-bit
+    // RGBA is the widest output of the two codecs), so a lying header cannot make it allocate
+    // more.
+    let mut decoder_limits = image::Limits::default();
+    decoder_limits.max_alloc = Some(limits.max_pixels as u64 * 8);
+    decoder
+        .set_limits(decoder_limits)
+        .map_err(|e| format!("cannot decode {format:?} image: {e}"))?;
+    Ok(decoder)
+}
+
+fn decoder_size(decoder: &impl ImageDecoder) -> ImageSize {
+    let (width, height) = decoder.dimensions();
+    ImageSize {
+        height: height as usize,
+        width: width as usize,
+    }
+}
+
+/// Pool `image` to `grid x grid x 3` features in `[-1, 1]`, within the default [`ImageLimits`].
+pub fn pooled_features(image: &ImageInput, grid: usize) -> Result<Vec<f32>, EngineError> {
+    if grid == 0 {
+        return Err(EngineError::InvalidInput(
+            "image grid must be at least 1".into(),
+        ));
+    }
+    let limits = ImageLimits::default();
+    let invalid = |reason: String| EngineError::InvalidInput(reason);
+    let decoded;
+    let image = match image {
+        ImageInput::Encoded { .. } => {
+            decoded = decode(image, &limits).map_err(invalid)?;
+            &decoded
+        }
+        raw => {
+            check_image(raw, &limits).map_err(invalid)?;
+            raw
+        }
+    };
+    match image {
+        ImageInput::RawU8 {
+            height,
+            width,
+            channels,
+            data,
+        } => {
             let values: Vec<f32> = data.iter().map(|&v| f32::from(v) / 255.0).collect();
             Ok(pool(&values, *height, *width, *channels, grid))
         }
@@ -54,36 +197,34 @@ pub fn pooled_features(image: &ImageInput, grid: usize) -> Result<Vec<f32>, Engi
             width,
             channels,
             data,
-        } => {
-            check_raw(*height, *width, *channels, data.len())?;
-            if data.iter().any(|v| !v.is_finite()) {
-                return Err(EngineError::InvalidInput(
-                    "image contains a non-finite value".into(),
-                ));
-            }
-            Ok(pool(data, *height, *width, *channels, grid))
-        }
+        } => Ok(pool(data, *height, *width, *channels, grid)),
+        ImageInput::Encoded { .. } => Err(EngineError::InvalidInput(
+            "an image was still encoded after decoding".into(),
+        )),
     }
 }
 
-fn check_raw(height: usize, width: usize, channels: usize, len: usize) -> Result<(), EngineError> {
+fn check_raw(
+    height: usize,
+    width: usize,
+    channels: usize,
+    len: usize,
+    limits: &ImageLimits,
+) -> Result<ImageSize, String> {
     if !matches!(channels, 1 | 3 | 4) {
-        return Err(EngineError::InvalidInput(format!(
+        return Err(format!(
             "image has {channels} channels; 1, 3 or 4 supported"
-        )));
+        ));
     }
-    if height == 0 || width == 0 || height > MAX_SIDE || width > MAX_SIDE {
-        return Err(EngineError::InvalidInput(format!(
-            "image is {height}x{width}; sides must be 1..={MAX_SIDE}"
-        )));
-    }
+    let size = ImageSize { height, width };
+    limits.check(size)?;
     if len != height * width * channels {
-        return Err(EngineError::InvalidInput(format!(
+        return Err(format!(
             "image data has {len} values, {height}x{width}x{channels} needs {}",
             height * width * channels
-        )));
+        ));
     }
-    Ok(())
+    Ok(size)
 }
 
 /// Average-pool `[h][w][c]` pixels (c = 1, 3 or 4) to `[grid][grid][3]`, mapped to `[-1, 1]`.
@@ -235,6 +376,70 @@ mod tests {
     }
 
     #[test]
+    fn sizes_are_checked_from_the_header_before_decoding() {
+        let png = ImageInput::Encoded {
+            format: ImageFormat::Png,
+            bytes: encode(image::ImageFormat::Png),
+        };
+        let roomy = ImageLimits::default();
+        assert_eq!(
+            check_image(&png, &roomy),
+            Ok(ImageSize {
+                height: 4,
+                width: 6
+            })
+        );
+        // 24 pixels against a cap of 23: refused by the header alone, before any pixel buffer
+        // exists, with the same answer from the check and the decoder.
+        let tight = ImageLimits {
+            max_side: 8,
+            max_pixels: 23,
+        };
+        let refusal = check_image(&png, &tight).unwrap_err();
+        assert!(
+            refusal.contains("4x6 = 24 pixels, over the limit of 23"),
+            "{refusal}"
+        );
+        assert_eq!(decode(&png, &tight).unwrap_err(), refusal);
+        let narrow = ImageLimits {
+            max_side: 5,
+            max_pixels: 100,
+        };
+        assert!(
+            check_image(&png, &narrow)
+                .unwrap_err()
+                .contains("at most 5")
+        );
+        // Decoding within the limits gives the raw pixels.
+        assert_eq!(
+            decode(&png, &roomy).unwrap(),
+            ImageInput::RawU8 {
+                height: 4,
+                width: 6,
+                channels: 3,
+                data: quadrants()
+            }
+        );
+    }
+
+    #[test]
+    fn a_file_that_is_not_what_it_claims_is_refused_by_the_check() {
+        let mislabelled = ImageInput::Encoded {
+            format: ImageFormat::Jpeg,
+            bytes: encode(image::ImageFormat::Png),
+        };
+        let refusal = check_image(&mislabelled, &ImageLimits::default()).unwrap_err();
+        assert!(refusal.contains("not a readable Jpeg file"), "{refusal}");
+        let empty = ImageInput::RawU8 {
+            height: 0,
+            width: 3,
+            channels: 3,
+            data: Vec::new(),
+        };
+        assert!(check_image(&empty, &ImageLimits::default()).is_err());
+    }
+
+    #[test]
     fn bad_images_are_clear_errors() {
         let short = ImageInput::RawU8 {
             height: 4,
@@ -263,7 +468,7 @@ mod tests {
             pooled_features(&garbage, 2)
                 .unwrap_err()
                 .to_string()
-                .contains("cannot decode")
+                .contains("not a readable Jpeg file")
         );
         let nan = ImageInput::RawF32 {
             height: 1,

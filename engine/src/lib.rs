@@ -24,7 +24,10 @@ pub mod weights;
 
 pub use builtin::{default_model, load_model, load_model_with, resolve_model};
 pub use chunk::ActionChunk;
-pub use error::EngineError;
-pub use model::{ActionModel, ActionRequest, ImageFormat, ImageInput, MAX_SAMPLES, ModelSpec};
+pub use error::{EngineError, InputError};
+pub use image_features::ImageLimits;
+pub use model::{
+    ActionModel, ActionRequest, ImageFormat, ImageInput, MAX_SAMPLES, ModelSpec, generate_isolated,
+};
 pub use options::{DeviceKind, EngineOptions, Kernels};
 pub use profile::{EngineProfile, ProfilePoint};

@@ -1,5 +1,7 @@
 //! The interface between the server and every model.
 
+use crate::error::InputError;
+use crate::image_features::{ImageLimits, check_image};
 use crate::{ActionChunk, EngineError};
 
 /// What a model produces and consumes; the server validates requests against it.
@@ -23,38 +25,124 @@ pub struct ModelSpec {
 pub const MAX_SAMPLES: usize = 64;
 
 impl ModelSpec {
-    /// Check every request of `batch` against this spec: state length, finite state values,
-    /// image count and `1 <= samples <= MAX_SAMPLES`. Errors name the request's index.
-    pub fn validate(&self, batch: &[ActionRequest]) -> Result<(), EngineError> {
-        for (i, r) in batch.iter().enumerate() {
-            let fail = |m: String| Err(EngineError::InvalidInput(format!("request {i}: {m}")));
-            if r.state.len() != self.state_dim {
-                return fail(format!(
-                    "state has {} values, model `{}` needs {}",
-                    r.state.len(),
+    /// Checks one request against this spec: state length, finite state values, image count,
+    /// `1 <= samples <= MAX_SAMPLES`, and every image within `images` (from its header or shape,
+    /// see [`check_image`]). This is everything the model would refuse, so a request that passes
+    /// fails in `generate` only through a model bug.
+    pub fn check_request(
+        &self,
+        request: &ActionRequest,
+        images: &ImageLimits,
+    ) -> Result<(), InputError> {
+        let fail = |field: String, reason: String| Err(InputError { field, reason });
+        if request.state.len() != self.state_dim {
+            return fail(
+                "state".into(),
+                format!(
+                    "{} values, model `{}` needs {}",
+                    request.state.len(),
                     self.name,
                     self.state_dim
-                ));
-            }
-            if r.state.iter().any(|v| !v.is_finite()) {
-                return fail("state contains a non-finite value".into());
-            }
-            if r.images.len() > self.max_images {
-                return fail(format!(
-                    "{} images, at most {}",
-                    r.images.len(),
+                ),
+            );
+        }
+        if let Some(at) = request.state.iter().position(|v| !v.is_finite()) {
+            return fail(
+                format!("state[{at}]"),
+                format!("{} is not a finite number", request.state[at]),
+            );
+        }
+        if request.images.len() > self.max_images {
+            return fail(
+                "images".into(),
+                format!(
+                    "{} images, model `{}` takes at most {}",
+                    request.images.len(),
+                    self.name,
                     self.max_images
-                ));
+                ),
+            );
+        }
+        for (i, image) in request.images.iter().enumerate() {
+            if let Err(reason) = check_image(image, images) {
+                return fail(format!("images[{i}]"), reason);
             }
-            if r.samples == 0 || r.samples > MAX_SAMPLES {
-                return fail(format!(
-                    "samples = {}, must be 1..={MAX_SAMPLES}",
-                    r.samples
-                ));
-            }
+        }
+        if request.samples == 0 || request.samples > MAX_SAMPLES {
+            return fail(
+                "samples".into(),
+                format!("{}, must be 1..={MAX_SAMPLES}", request.samples),
+            );
         }
         Ok(())
     }
+
+    /// Checks every request of `batch` with [`ModelSpec::check_request`] and the default
+    /// [`ImageLimits`]. Errors name the request's index.
+    pub fn validate(&self, batch: &[ActionRequest]) -> Result<(), EngineError> {
+        let images = ImageLimits::default();
+        for (i, request) in batch.iter().enumerate() {
+            self.check_request(request, &images)
+                .map_err(|e| EngineError::InvalidInput(format!("request {i}: {e}")))?;
+        }
+        Ok(())
+    }
+}
+
+/// Runs `batch` so that a request that fails fails alone.
+///
+/// Requests that `check` refuses get its error and are left out; the rest run as one batch
+/// through `run`. If that batch fails as a whole, each of its requests runs alone, so a failure
+/// the check did not foresee (a model bug, a panic that `run` turns into an error) stays with
+/// the request that causes it. [`ActionModel::generate`] gives each request the chunk it would
+/// get alone, so the requests that succeed get exactly the chunks of a clean batch.
+///
+/// `run` answering `Ok` with a chunk count other than its batch's is an error built by
+/// `wrong_count(chunks, requests)`. Returns one result per request, in order.
+pub fn generate_isolated<E>(
+    batch: &[ActionRequest],
+    check: impl Fn(&ActionRequest) -> Result<(), E>,
+    mut run: impl FnMut(&[ActionRequest]) -> Result<Vec<ActionChunk>, E>,
+    wrong_count: impl Fn(usize, usize) -> E,
+) -> Vec<Result<ActionChunk, E>> {
+    let mut run = |requests: &[ActionRequest]| {
+        run(requests).and_then(|chunks| {
+            if chunks.len() == requests.len() {
+                Ok(chunks)
+            } else {
+                Err(wrong_count(chunks.len(), requests.len()))
+            }
+        })
+    };
+    let mut results: Vec<Option<Result<ActionChunk, E>>> = batch
+        .iter()
+        .map(|request| check(request).err().map(Err))
+        .collect();
+    let good: Vec<usize> = (0..batch.len()).filter(|&i| results[i].is_none()).collect();
+    let batched = match good.len() {
+        0 => Ok(Vec::new()),
+        n if n == batch.len() => run(batch),
+        // Only on the failure path: a copy without the refused requests.
+        _ => run(&good.iter().map(|&i| batch[i].clone()).collect::<Vec<_>>()),
+    };
+    match batched {
+        Ok(chunks) => {
+            for (&i, chunk) in good.iter().zip(chunks) {
+                results[i] = Some(Ok(chunk));
+            }
+        }
+        Err(error) if good.len() == 1 => results[good[0]] = Some(Err(error)),
+        Err(_) => {
+            for &i in &good {
+                let alone = run(std::slice::from_ref(&batch[i]))
+                    .map(|chunks| chunks.into_iter().next())
+                    .transpose()
+                    .unwrap_or_else(|| Err(wrong_count(0, 1)));
+                results[i] = Some(alone);
+            }
+        }
+    }
+    results.into_iter().flatten().collect()
 }
 
 /// Encodings the engine can decode.
@@ -126,4 +214,158 @@ pub trait ActionModel: Send + Sync {
 
     /// Generate one [`ActionChunk`] per request, in request order.
     fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError>;
+}
+
+#[cfg(test)]
+mod tests {
+    use std::cell::Cell;
+
+    use super::*;
+    use crate::flow_head::{FlowHead, FlowHeadConfig};
+    use crate::{EngineOptions, InputError};
+
+    fn head() -> FlowHead {
+        // The default head, cut to one layer and a short chunk (test time).
+        let config = FlowHeadConfig {
+            layers: 1,
+            self_attn_every_n_layers: 1,
+            chunk_size: 8,
+            num_steps: 3,
+            ..Default::default()
+        };
+        let options = EngineOptions {
+            threads: 1,
+            ..Default::default()
+        };
+        FlowHead::random(config, 3, &options).unwrap()
+    }
+
+    fn request(k: f32, seed: u64) -> ActionRequest {
+        ActionRequest {
+            state: (0..8).map(|i| (i as f32 * 0.4 + k).sin()).collect(),
+            images: vec![ImageInput::RawU8 {
+                height: 4,
+                width: 4,
+                channels: 3,
+                data: (0..48)
+                    .map(|i| (i as u8).wrapping_mul(seed as u8 + 1))
+                    .collect(),
+            }],
+            instruction: "pick".into(),
+            samples: 1,
+            seed,
+        }
+    }
+
+    fn nan_state() -> ActionRequest {
+        let mut bad = request(9.0, 4);
+        bad.state[2] = f32::NAN;
+        bad
+    }
+
+    #[test]
+    fn one_bad_request_fails_alone_and_the_rest_get_the_chunks_of_a_clean_batch() {
+        let model = head();
+        let good = [request(0.0, 1), request(1.0, 2), request(2.0, 3)];
+        let clean = model.generate(&good).unwrap();
+        // Today's whole-batch answer: one bad request fails everyone.
+        let mut batch = good.to_vec();
+        batch.insert(1, nan_state());
+        let whole = model.generate(&batch).unwrap_err().to_string();
+        assert!(whole.contains("request 1: state[2]"), "{whole}");
+
+        let wrong_count = |chunks: usize, requests: usize| {
+            EngineError::InvalidInput(format!("{chunks} chunks for {requests} requests"))
+        };
+        // Unforeseen by a check: the batch fails, then each request runs alone.
+        let runs = Cell::new(0);
+        let results = generate_isolated(
+            &batch,
+            |_| Ok(()),
+            |b| {
+                runs.set(runs.get() + 1);
+                model.generate(b)
+            },
+            wrong_count,
+        );
+        assert_eq!(runs.get(), 1 + 4);
+        assert!(
+            results[1]
+                .as_ref()
+                .unwrap_err()
+                .to_string()
+                .contains("state[2]")
+        );
+        let rest: Vec<&ActionChunk> = [0, 2, 3]
+            .iter()
+            .map(|&i| results[i].as_ref().unwrap())
+            .collect();
+        assert_eq!(rest, clean.iter().collect::<Vec<_>>(), "bit-identical");
+
+        // Refused by the spec's check: the other three run as one batch.
+        let runs = Cell::new(0);
+        let images = ImageLimits::default();
+        let results = generate_isolated(
+            &batch,
+            |r| {
+                model
+                    .spec()
+                    .check_request(r, &images)
+                    .map_err(EngineError::from)
+            },
+            |b| {
+                runs.set(runs.get() + 1);
+                model.generate(b)
+            },
+            wrong_count,
+        );
+        assert_eq!(runs.get(), 1);
+        assert!(results[1].is_err());
+        let rest: Vec<&ActionChunk> = [0, 2, 3]
+            .iter()
+            .map(|&i| results[i].as_ref().unwrap())
+            .collect();
+        assert_eq!(rest, clean.iter().collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn a_runner_that_miscounts_is_an_error_not_a_panic() {
+        let results = generate_isolated(
+            &[request(0.0, 1), request(1.0, 2)],
+            |_| Ok::<(), String>(()),
+            |_| Ok(Vec::new()),
+            |chunks, requests| format!("{chunks} for {requests}"),
+        );
+        assert_eq!(
+            results,
+            vec![Err("0 for 1".to_owned()), Err("0 for 1".to_owned())]
+        );
+    }
+
+    #[test]
+    fn check_request_names_each_field() {
+        let spec = head().spec().clone();
+        let images = ImageLimits::default();
+        let field = |r: ActionRequest| spec.check_request(&r, &images).unwrap_err().field;
+        assert_eq!(field(nan_state()), "state[2]");
+        let mut r = request(0.0, 1);
+        r.state.pop();
+        assert_eq!(field(r), "state");
+        let mut r = request(0.0, 1);
+        r.images = vec![r.images[0].clone(); 3];
+        assert_eq!(field(r), "images");
+        let mut r = request(0.0, 1);
+        r.images[0] = ImageInput::RawF32 {
+            height: 0,
+            width: 2,
+            channels: 1,
+            data: Vec::new(),
+        };
+        assert_eq!(field(r), "images[0]");
+        let mut r = request(0.0, 1);
+        r.samples = MAX_SAMPLES + 1;
+        assert_eq!(field(r), "samples");
+        let r = request(0.0, 1);
+        assert_eq!(spec.check_request(&r, &images), Ok::<(), InputError>(()));
+    }
 }

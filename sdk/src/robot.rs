@@ -494,6 +494,10 @@ pub struct TaskSummary {
     pub failed_rounds: u32,
     /// The server's record, if `EndTask` succeeded.
     pub server_record: Option<TaskEnded>,
+    /// Why `EndTask` failed, if it did (then `server_record` is `None`): the task may still be
+    /// open on the server until its idle timeout, e.g. after a server restart forgot it
+    /// (`unknown_task`) or the connection was lost. Reports count these.
+    pub end_error: Option<String>,
 }
 
 impl TaskSummary {
@@ -858,9 +862,15 @@ impl<R: Robot, T: RoundTransport, E: FnMut(&RunnerEvent) + Send> Run<'_, R, T, E
         let now_us = self.clock.now_us();
         let finished_at_us = self.last_action_at_us.unwrap_or(now_us);
         let last_exec = self.executor.last_exec(now_us);
-        let server_record = match self.transport.take() {
-            Some(transport) => transport.end(TaskOutcome::Done, last_exec).await.ok(),
-            None => None,
+        let (server_record, end_error) = match self.transport.take() {
+            Some(transport) => match transport.end(TaskOutcome::Done, last_exec).await {
+                Ok(record) => (Some(record), None),
+                Err(error) => {
+                    tracing::warn!(task = self.task, %error, "EndTask failed");
+                    (None, Some(error.to_string()))
+                }
+            },
+            None => (None, None),
         };
         let summary = TaskSummary {
             task: self.task,
@@ -871,6 +881,7 @@ impl<R: Robot, T: RoundTransport, E: FnMut(&RunnerEvent) + Send> Run<'_, R, T, E
             idle_us: self.idle_us,
             failed_rounds: self.failed_rounds,
             server_record,
+            end_error,
         };
         (self.on_event)(&RunnerEvent::TaskFinished(summary.clone()));
         Ok(summary)

@@ -1099,6 +1099,7 @@ mod tests {
                 idle_us: 50_000,
                 failed_rounds: 0,
                 server_record: None,
+                end_error: None,
             }),
         ];
         let mut rec = RunnerTraceRecorder::new(Vec::new(), setup).unwrap();
@@ -1199,6 +1200,7 @@ mod tests {
                 idle_us: 0,
                 failed_rounds: 0,
                 server_record: None,
+                end_error: None,
             }),
         ];
         let mut rec = RunnerTraceRecorder::new(Vec::new(), setup).unwrap();

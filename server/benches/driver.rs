@@ -25,7 +25,7 @@ use kairos_engine::{ActionChunk, ActionRequest, EngineProfile, ModelSpec, Profil
 use kairos_sdk::protocol::{Limits, Observation, Submit, Tensor};
 use kairos_server::action::ActionManager;
 use kairos_server::driver::{DriverConfig, RefetchAsk};
-use kairos_server::pool::{EngineInstance, EnginePool, PoolError};
+use kairos_server::pool::{BatchChunks, EngineInstance, EnginePool, PoolError};
 use kairos_server::registry::native_horizon_policies;
 use kairos_server::scheduler::fifo::Fifo;
 use kairos_server::scheduler::{RobotId, Scheduler, SchedulerConfig, Tier};
@@ -144,11 +144,12 @@ impl EngineInstance for Instant0 {
     fn run(
         &self,
         batch: Vec<ActionRequest>,
-    ) -> BoxFuture<'static, Result<Vec<ActionChunk>, PoolError>> {
+    ) -> BoxFuture<'static, Result<BatchChunks, PoolError>> {
         let s = self.spec.clone();
         let chunks = batch
             .iter()
-            .map(|_| ActionChunk {
+            .map(|_| {
+                Ok(ActionChunk {
                 samples: 1,
                 steps: s.steps,
                 chunk_len: s.chunk_len,
@@ -156,6 +157,7 @@ impl EngineInstance for Instant0 {
                 actions: vec![0.0; s.chunk_len * s.action_dim],
                 updates: vec![0.0; s.steps * s.chunk_len * s.action_dim],
                 noise: vec![0.0; s.chunk_len * s.action_dim],
+                })
             })
             .collect();
         async move { Ok(chunks) }.boxed()

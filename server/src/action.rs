@@ -15,6 +15,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use kairos_engine::ActionChunk;
 use kairos_sdk::protocol::{ErrorReply, Reply, Tensor, Timing};
 
+use crate::pool::BatchChunks;
 use crate::horizon::{
     ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams, validate_horizon,
 };
@@ -277,18 +278,25 @@ pub struct HorizonJob {
 impl ActionManager {
     /// The answer to each round of a generated batch: its horizon policy (or the fallback) on its
     /// chunk, then the trimmed reply. `jobs` and `chunks` pair up in order; a round without a
-    /// chunk fails. Blocking: runs every round's policy in turn on the calling thread.
+    /// chunk fails, and so does a round the engine failed alone (the batch's others go on).
+    /// Blocking: runs every round's policy in turn on the calling thread.
     pub fn answer_batch(
         &self,
         jobs: Vec<HorizonJob>,
-        chunks: Vec<ActionChunk>,
+        chunks: BatchChunks,
     ) -> Vec<(RequestId, Result<Reply, ErrorReply>)> {
         let mut chunks = chunks.into_iter();
         jobs.into_iter()
             .map(|mut job| {
-                let Some(chunk) = chunks.next() else {
-                    let error = RequestError::Internal("the engine returned no chunk".into());
-                    return (job.request, Err(ErrorReply::from(&error)));
+                let chunk = match chunks.next() {
+                    Some(Ok(chunk)) => chunk,
+                    Some(Err(error)) => {
+                        return (job.request, Err(ErrorReply::from(&RequestError::Engine(error))));
+                    }
+                    None => {
+                        let error = RequestError::Internal("the engine returned no chunk".into());
+                        return (job.request, Err(ErrorReply::from(&error)));
+                    }
                 };
                 let context = RoundContext {
                     control_hz: job.control_hz,

@@ -557,6 +557,7 @@ impl Config {
             ("limits.max_frame", u64::from(l.max_frame)),
             ("limits.max_samples", u64::from(l.max_samples)),
             ("limits.max_state_len", u64::from(l.max_state_len)),
+            ("limits.max_image_pixels", u64::from(l.max_image_pixels)),
             ("connections.max_connections", c.max_connections as u64),
             (
                 "connections.max_streams_per_connection",
@@ -566,6 +567,16 @@ impl Config {
             if value == 0 {
                 return Err(invalid(key.into(), "must be at least 1".into()));
             }
+        }
+        if l.max_image_pixels as usize > kairos_engine::image_features::MAX_PIXELS {
+            return Err(invalid(
+                "limits.max_image_pixels".into(),
+                format!(
+                    "{} is over the most the engine decodes, {}",
+                    l.max_image_pixels,
+                    kairos_engine::image_features::MAX_PIXELS
+                ),
+            ));
         }
         Ok(())
     }
@@ -800,6 +811,14 @@ mod tests {
             ),
             ("[tls]\ncert = \"c.pem\"\n", "tls"),
             ("[limits]\nmax_samples = 0\n", "limits.max_samples"),
+            (
+                "[limits]\nmax_image_pixels = 0\n",
+                "limits.max_image_pixels",
+            ),
+            (
+                "[limits]\nmax_image_pixels = 16777217\n",
+                "limits.max_image_pixels",
+            ),
             ("[[engine]]\nrtt_ms = -1\n", "engine[0].rtt_ms"),
             ("[[engine]]\nrtt_ms = 5\n", "engine[0].rtt_ms"),
             ("[[engine]]\ndevice = \"gpu\"\n", "engine[0].device"),

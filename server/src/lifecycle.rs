@@ -96,17 +96,21 @@ pub fn exec_interval(report: &ExecReport, reference: Timestamp) -> Result<Interv
             report.started_at, reference
         )));
     }
-    let micros = (f64::from(report.actions_remaining) * 1e6 / hz).round();
+    Ok(Interval {
+        start: report.started_at,
+        end: reference + actions_duration(report.actions_remaining, report.control_hz),
+    })
+}
+
+/// How long `actions` actions take at `control_hz` (> 0), to the microsecond.
+pub fn actions_duration(actions: u32, control_hz: f32) -> Duration {
+    let micros = (f64::from(actions) * 1e6 / f64::from(control_hz)).round();
     // Anything beyond ~10^12 s is nonsense from the client; saturate rather than wrap.
-    let remaining = if micros >= 1.8e19 {
+    if micros >= 1.8e19 {
         Duration::from_micros(u64::MAX)
     } else {
         Duration::from_micros(micros as u64)
-    };
-    Ok(Interval {
-        start: report.started_at,
-        end: reference + remaining,
-    })
+    }
 }
 
 /// The part of a reported execution `exec` that can have run by `cut`: a newer chunk that reaches
@@ -118,6 +122,11 @@ fn executed_until(exec: Interval, cut: Timestamp) -> Interval {
         end: exec.end.min(cut).max(exec.start),
     }
 }
+
+/// The longest execution of one granted chunk the idle clock waits for (see
+/// [`TaskTable::new`]): a robot reporting an absurdly low control rate cannot keep a task it
+/// abandoned open for longer than this past the idle timeout.
+pub const MAX_GRANTED_EXECUTION: Duration = Duration::from_secs(3600);
 
 /// Which phase of a round dominated it, and so on which side its wait is measured.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -241,6 +250,11 @@ pub struct TaskRecord {
     recent_horizons: Vec<u32>,
     actions: u64,
     failed_attempts: u32,
+    /// The robot's control rate, from its latest Last Exec Info.
+    control_hz: Option<f32>,
+    /// When the robot finishes executing the last answered chunk's `H` actions, if they were
+    /// answered at a known control rate: until then the task is busy on the robot, not idle.
+    granted_until: Option<Timestamp>,
     idle_deadline: Option<Timestamp>,
 }
 
@@ -266,6 +280,8 @@ impl TaskRecord {
             recent_horizons: Vec::with_capacity(RECENT_HORIZONS),
             actions: 0,
             failed_attempts: 0,
+            control_hz: None,
+            granted_until: None,
             idle_deadline: None,
         }
     }
@@ -485,6 +501,9 @@ impl TaskRecord {
         }
         self.recent_horizons.push(horizon);
         self.last_activity = now;
+        self.granted_until = self
+            .control_hz
+            .map(|hz| now + actions_duration(horizon, hz).min(MAX_GRANTED_EXECUTION));
     }
 
     /// The current request's generation failed: the round may be sent again.
@@ -579,7 +598,8 @@ pub struct TaskTable {
 
 impl TaskTable {
     /// An empty table keeping `history_rounds` rounds per task, expiring tasks idle for
-    /// `idle_timeout`, and remembering the last `ended_limit` ended task ids (so late rounds of an
+    /// `idle_timeout` (counted from the end of the execution the server last granted, see
+    /// `refresh_idle`, at most [`MAX_GRANTED_EXECUTION`] after the answer), and remembering the last `ended_limit` ended task ids (so late rounds of an
     /// ended task get `TaskEnded` rather than opening a new task).
     pub fn new(history_rounds: usize, idle_timeout: Duration, ended_limit: usize) -> Self {
         TaskTable {
@@ -686,6 +706,9 @@ impl TaskTable {
         }
         if let Some(exec) = plan.exec {
             record.apply_exec_report(exec);
+        }
+        if let Some(report) = &submit.last_exec {
+            record.control_hz = Some(report.control_hz);
         }
         record.last_round = submit.round;
         record.retry_allowed = false;
@@ -864,13 +887,22 @@ impl TaskTable {
     }
 
     /// Keeps the idle index in step with the task: a task with no current request expires
-    /// `idle_timeout` after its last activity.
+    /// `idle_timeout` after its last activity, or after the robot finishes executing the chunk
+    /// the server last granted it, whichever is later. A robot executing the server's own chunk
+    /// is not idle, however slow its control rate: the last answer's `H` actions at the rate of
+    /// its latest Last Exec Info (a task's first chunk, answered before any report, counts from
+    /// its answer alone, the rate being unknown).
     fn refresh_idle(&mut self, task: TaskId) {
         let Some(record) = self.tasks.get_mut(&task) else {
             return;
         };
+        let busy_until = record
+            .granted_until
+            .map_or(record.last_activity, |granted| {
+                granted.max(record.last_activity)
+            });
         let wanted = match record.attempt {
-            None => Some(record.last_activity + self.idle_timeout),
+            None => Some(busy_until + self.idle_timeout),
             Some(_) => None,
         };
         if record.idle_deadline != wanted {
@@ -953,6 +985,50 @@ mod tests {
         fn record(&self) -> &TaskRecord {
             self.table.get(TaskId(7)).unwrap()
         }
+    }
+
+    #[test]
+    fn a_robot_executing_the_chunk_it_was_granted_is_not_idle() {
+        // A slow robot: 0.0625 Hz, 16 s per action. Each answer grants H = 5 actions = 80 s,
+        // longer than the 60 s idle timeout.
+        let slow = |start_ms: u64, remaining: u32| ExecReport {
+            control_hz: 0.0625,
+            ..report(start_ms, remaining)
+        };
+        let mut d = Driver::new(8);
+        let r0 = d.submit(0, 0, None);
+        d.generate(r0, 0, 100);
+        // Before any Last Exec Info the rate is unknown: the clock runs from the answer.
+        assert_eq!(d.table.next_expiry(), Some(t(60_100)));
+        let r1 = d.submit(50_000, 1, Some(slow(200, 3)));
+        assert_eq!(
+            d.table.next_expiry(),
+            None,
+            "a task with a request is never idle"
+        );
+        d.generate(r1, 50_000, 50_100);
+        // Round 1's chunk runs until 50.1 s + 80 s; idle only after that.
+        assert_eq!(d.table.next_expiry(), Some(t(130_100 + 60_000)));
+        assert!(
+            d.table.expired(t(110_100)).is_empty(),
+            "60 s after the answer the robot is still executing the chunk"
+        );
+        assert!(d.table.expired(t(190_099)).is_empty());
+        assert_eq!(d.table.expired(t(190_100)), vec![TaskId(7)]);
+
+        // An absurd rate cannot keep an abandoned task open for more than an hour.
+        let r2 = d.submit(60_000, 2, Some(slow(50_200, 2)));
+        let crawl = ExecReport {
+            control_hz: 1e-9,
+            ..report(60_000, 1)
+        };
+        let r3 = d.submit(61_000, 3, Some(crawl));
+        assert_ne!(r2, r3);
+        d.generate(r3, 61_000, 61_100);
+        assert_eq!(
+            d.table.next_expiry(),
+            Some(t(61_100) + MAX_GRANTED_EXECUTION + Duration::from_secs(60))
+        );
     }
 
     #[test]

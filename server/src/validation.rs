@@ -24,7 +24,10 @@
 
 use std::time::Duration;
 
-use kairos_engine::{ActionRequest, ImageFormat, ImageInput, ModelSpec};
+use kairos_engine::image_features::{self, ImageLimits};
+use kairos_engine::{
+    ActionRequest, EngineError, ImageFormat, ImageInput, InputError, MAX_SAMPLES, ModelSpec,
+};
 use kairos_sdk::protocol::{
     DType, EndTask, ErrorCode, ErrorReply, FrameError, FreshObservation, Hello, ImagePayload,
     LastExecInfo, Limits, Observation, PROTOCOL_VERSION, Submit, TaskOutcome, Validate,
@@ -232,10 +235,10 @@ impl RequestError {
             RequestError::Policy(PolicyLookupError::Params { .. }) => ErrorCode::InvalidRequest,
             RequestError::Admit(e) => match e {
                 AdmitError::Overloaded { .. } => ErrorCode::Overloaded,
-                AdmitError::Forbidden { .. } => ErrorCode::Forbidden,
-                AdmitError::UnknownTask { .. } | AdmitError::TaskEnded { .. } => {
-                    ErrorCode::UnknownTask
-                }
+                // One answer for all three, so a robot cannot learn which ids other robots use.
+                AdmitError::Forbidden { .. }
+                | AdmitError::UnknownTask { .. }
+                | AdmitError::TaskEnded { .. } => ErrorCode::UnknownTask,
                 AdmitError::RoundOutOfOrder { .. } | AdmitError::RoundInProgress { .. } => {
                     ErrorCode::RoundOutOfOrder
                 }
@@ -244,6 +247,12 @@ impl RequestError {
             RequestError::UnsupportedVersion(_) => ErrorCode::UnsupportedVersion,
             RequestError::Unauthorized => ErrorCode::Unauthorized,
             RequestError::Superseded { .. } => ErrorCode::RoundOutOfOrder,
+            // A request the model refused is the request's fault (defence in depth: validation
+            // checks everything the engine would refuse); any other engine failure is ours.
+            RequestError::Engine(PoolError::Engine {
+                source: EngineError::InvalidInput(_),
+                ..
+            }) => ErrorCode::InvalidObservation,
             RequestError::Engine(_) | RequestError::Internal(_) => ErrorCode::Internal,
             RequestError::ShuttingDown => ErrorCode::ShuttingDown,
         }
@@ -253,9 +262,27 @@ impl RequestError {
 /// How long an overloaded client is asked to wait before retrying.
 pub const OVERLOADED_RETRY_AFTER_MS: u32 = 50;
 
+/// The text of every refusal that concerns a task the robot may not use, whether the id is
+/// unknown, ended, or another robot's: one text (and one code, `unknown_task`), so that the
+/// answer does not tell a robot which task ids exist.
+pub fn task_not_open_message(task: TaskId) -> String {
+    format!(
+        "task {} is not open for this robot (unknown, ended, or another robot's)",
+        task.0
+    )
+}
+
 impl From<&RequestError> for ErrorReply {
     fn from(error: &RequestError) -> ErrorReply {
-        let mut reply = ErrorReply::new(error.code(), error.to_string());
+        let message = match error {
+            RequestError::Admit(
+                AdmitError::Forbidden { task }
+                | AdmitError::UnknownTask { task }
+                | AdmitError::TaskEnded { task },
+            ) => task_not_open_message(*task),
+            other => other.to_string(),
+        };
+        let mut reply = ErrorReply::new(error.code(), message);
         if matches!(error, RequestError::Admit(AdmitError::Overloaded { .. })) {
             reply.retry_after_ms = Some(OVERLOADED_RETRY_AFTER_MS);
         }
@@ -320,6 +347,12 @@ impl Validator {
             ),
             None => (actions.build(None, None)?, 1),
         };
+        if samples > MAX_SAMPLES {
+            return Err(invalid(
+                "horizon.samples",
+                format!("{samples}, the engine draws at most {MAX_SAMPLES}"),
+            ));
+        }
         let mut observation = observation;
         observation.request.samples = samples;
         observation.request.seed = round_seed(submit.task, submit.round);
@@ -390,46 +423,102 @@ impl Validator {
                 ),
             ));
         }
-        let state_len = observation.state.shape.first().copied().unwrap_or(0) as usize;
-        if state_len != spec.state_dim {
-            return Err(observation_error(
-                "observation.state",
-                format!(
-                    "model `{}` expects a state of {} values, got {state_len}",
-                    spec.name, spec.state_dim
-                ),
-            ));
-        }
         let state = observation
             .state
             .to_f32()
             .map_err(|e| observation_error("observation.state", e.to_string()))?;
-        if observation.images.len() > spec.max_images {
-            return Err(observation_error(
-                "observation.images",
-                format!(
-                    "model `{}` takes at most {} images, got {}",
-                    spec.name,
-                    spec.max_images,
-                    observation.images.len()
-                ),
-            ));
-        }
         let mut images = Vec::with_capacity(observation.images.len());
         for (i, image) in observation.images.into_iter().enumerate() {
             images.push(image_input(i, image.payload)?);
         }
+        let request = ActionRequest {
+            state,
+            images,
+            instruction: observation.instruction,
+            samples: 1,
+            seed: 0,
+        };
+        // Everything the engine would refuse, refused here with the field named, so that a bad
+        // observation fails only its own round and never reaches a batch.
+        spec.check_request(&request, &self.image_limits()).map_err(
+            |InputError { field, reason }| {
+                observation_error(format!("observation.{field}"), reason)
+            },
+        )?;
         Ok(ValidObservation {
             captured_at: clock.to_server(observation.captured_at_us),
-            request: ActionRequest {
-                state,
-                images,
-                instruction: observation.instruction,
-                samples: 1,
-                seed: 0,
-            },
+            request,
         })
     }
+
+    /// The image bounds of [`Limits`]: raw and encoded images alike, the latter checked from
+    /// their headers.
+    pub fn image_limits(&self) -> ImageLimits {
+        ImageLimits {
+            max_side: self.limits.max_tensor_dim as usize,
+            max_pixels: self.limits.max_image_pixels as usize,
+        }
+    }
+
+    /// Decodes a checked observation's JPEG and PNG images to pixels, on the bounded decode pool
+    /// ([`decode_slots`]): off the async runtime, off the engine threads, and before the round is
+    /// queued, so a file whose body is corrupt (its header passed [`Validator::submit`]) fails
+    /// its own round with `invalid_observation` and engines never decode.
+    pub async fn decode(
+        &self,
+        mut observation: ValidObservation,
+    ) -> Result<ValidObservation, RequestError> {
+        if !observation
+            .request
+            .images
+            .iter()
+            .any(|i| matches!(i, ImageInput::Encoded { .. }))
+        {
+            return Ok(observation);
+        }
+        let limits = self.image_limits();
+        let images = std::mem::take(&mut observation.request.images);
+        let _slot = decode_slots()
+            .acquire()
+            .await
+            .map_err(|_| RequestError::ShuttingDown)?;
+        let decoded = tokio::task::spawn_blocking(move || {
+            images
+                .iter()
+                .enumerate()
+                .map(|(i, image)| {
+                    image_features::decode(image, &limits).map_err(|reason| {
+                        observation_error(format!("observation.images[{i}]"), reason)
+                    })
+                })
+                .collect::<Result<Vec<_>, _>>()
+        })
+        .await
+        .map_err(|e| RequestError::Internal(format!("image decoding failed: {e}")))??;
+        observation.request.images = decoded;
+        Ok(observation)
+    }
+
+    /// [`Validator::decode`] for a round request.
+    pub async fn decode_submit(
+        &self,
+        mut submit: ValidSubmit,
+    ) -> Result<ValidSubmit, RequestError> {
+        submit.observation = self.decode(submit.observation).await?;
+        Ok(submit)
+    }
+}
+
+/// The decode pool's bound: how many observations are decoded at once, process-wide. Waiting
+/// rounds queue on the semaphore (no thread each); a permit's holder runs on tokio's blocking
+/// pool. One pool per process, like the engine's kernel threads, sized to the cores (at most 4:
+/// a capped image decodes in tens of milliseconds, and engines need the rest).
+pub fn decode_slots() -> &'static tokio::sync::Semaphore {
+    static SLOTS: std::sync::OnceLock<tokio::sync::Semaphore> = std::sync::OnceLock::new();
+    SLOTS.get_or_init(|| {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        tokio::sync::Semaphore::new(cores.clamp(1, 4))
+    })
 }
 
 fn image_input(index: usize, payload: ImagePayload) -> Result<ImageInput, RequestError> {
@@ -454,12 +543,6 @@ fn image_input(index: usize, payload: ImagePayload) -> Result<ImageInput, Reques
                     ));
                 }
             };
-            if !matches!(channels, 1 | 3 | 4) {
-                return Err(observation_error(
-                    format!("{field}.payload.tensor.shape[2]"),
-                    format!("an image has 1, 3 or 4 channels, got {channels}"),
-                ));
-            }
             match tensor.dtype {
                 DType::U8 => ImageInput::RawU8 {
                     height,
@@ -511,7 +594,7 @@ fn exec_report(
 mod tests {
     use std::collections::BTreeMap;
 
-    use kairos_sdk::protocol::{HorizonSelection, Image, Tensor};
+    use kairos_sdk::protocol::{HorizonSelection, Image, MAX_ROUND, Tensor};
 
     use super::*;
     use crate::registry::native_horizon_policies;
@@ -719,13 +802,202 @@ mod tests {
         assert_eq!(v.policy.policy.name(), "static");
     }
 
+    /// A 2x2 RGB PNG.
+    const PNG_2X2: [u8; 73] = [
+        0x89, 0x50, 0x4e, 0x47, 0x0d, 0x0a, 0x1a, 0x0a, 0x00, 0x00, 0x00, 0x0d, 0x49, 0x48, 0x44,
+        0x52, 0x00, 0x00, 0x00, 0x02, 0x00, 0x00, 0x00, 0x02, 0x08, 0x02, 0x00, 0x00, 0x00, 0xfd,
+        0xd4, 0x9a, 0x73, 0x00, 0x00, 0x00, 0x10, 0x49, 0x44, 0x41, 0x54, 0x78, 0x9c, 0x63, 0x10,
+        0x50, 0x30, 0x00, 0x22, 0x06, 0x08, 0x05, 0x00, 0x0a, 0x0e, 0x01, 0x81, 0x56, 0x33, 0xee,
+        0xf3, 0x00, 0x00, 0x00, 0x00, 0x49, 0x45, 0x4e, 0x44, 0xae, 0x42, 0x60, 0x82,
+    ];
+
+    /// The head of a decompression bomb: a PNG header declaring 8192x8192 RGB (192 MiB of
+    /// pixels) and the first 26 bytes of its data.
+    const PNG_BOMB_HEAD: [u8; 83] = [
+        0x89, 0x50, 0x4e, 0x47, 0x0d, 0x0a, 0x1a, 0x0a, 0x00, 0x00, 0x00, 0x0d, 0x49, 0x48, 0x44,
+        0x52, 0x00, 0x00, 0x20, 0x00, 0x00, 0x00, 0x20, 0x00, 0x08, 0x02, 0x00, 0x00, 0x00, 0xfd,
+        0xc8, 0x5d, 0x0e, 0x00, 0x00, 0x00, 0x1a, 0x49, 0x44, 0x41, 0x54, 0x78, 0x9c, 0xed, 0xc1,
+        0x01, 0x0d, 0x00, 0x00, 0x00, 0xc2, 0xa0, 0xf7, 0x4f, 0x6d, 0x0f, 0x07, 0x14, 0x00, 0x00,
+        0x00, 0xf0, 0x6e, 0x10, 0x00, 0x00, 0x01, 0x4b, 0x9e, 0xa3, 0x3c, 0x00, 0x00, 0x00, 0x00,
+        0x49, 0x45, 0x4e, 0x44, 0xae, 0x42, 0x60, 0x82,
+    ];
+
+    fn with_image(payload: ImagePayload) -> Submit {
+        let mut s = submit();
+        s.observation.images = vec![Image {
+            camera: "front".into(),
+            payload,
+        }];
+        s
+    }
+
+    /// The refusal's wire form: it must be `invalid_observation`, not retryable, and name
+    /// `field`.
+    fn refused(s: Submit, field: &str) -> String {
+        let reply = ErrorReply::from(&check(s).unwrap_err());
+        assert_eq!(
+            reply.code,
+            ErrorCode::InvalidObservation,
+            "{}",
+            reply.message
+        );
+        assert!(!reply.retryable);
+        assert!(
+            reply.message.contains(field),
+            "{} names {field}",
+            reply.message
+        );
+        reply.message
+    }
+
+    #[test]
+    fn everything_the_engine_would_refuse_is_refused_before_the_queue() {
+        let mut s = submit();
+        s.observation.state = Tensor::from_f32(vec![3], &[1.0, f32::NAN, 3.0]).unwrap();
+        refused(s, "observation.state[1]");
+        let mut s = submit();
+        s.observation.state = Tensor::from_f32(vec![3], &[f32::INFINITY, 0.0, 3.0]).unwrap();
+        refused(s, "observation.state[0]");
+
+        // Bytes that claim to be an image but are not one.
+        refused(
+            with_image(ImagePayload::Png {
+                data: b"GIF89a, not a PNG".to_vec(),
+            }),
+            "observation.images[0]",
+        );
+        refused(
+            with_image(ImagePayload::Jpeg {
+                data: PNG_2X2.to_vec(),
+            }),
+            "observation.images[0]",
+        );
+        assert!(
+            check(with_image(ImagePayload::Png {
+                data: PNG_2X2.to_vec()
+            }))
+            .is_ok()
+        );
+
+        let raw_f32 = |shape: Vec<u32>, values: &[f32]| ImagePayload::Raw {
+            tensor: Tensor::from_f32(shape, values).unwrap(),
+        };
+        refused(
+            with_image(raw_f32(vec![1, 2, 1], &[0.5, f32::NAN])),
+            "observation.images[0]",
+        );
+        assert!(check(with_image(raw_f32(vec![1, 2, 1], &[0.5, 1.0]))).is_ok());
+        // No pixels: a 0-wide image.
+        let message = refused(
+            with_image(raw_f32(vec![4, 0, 3], &[])),
+            "observation.images[0]",
+        );
+        assert!(message.contains("4x0"), "{message}");
+    }
+
+    #[test]
+    fn a_decompression_bomb_is_refused_from_its_header() {
+        let message = refused(
+            with_image(ImagePayload::Png {
+                data: PNG_BOMB_HEAD.to_vec(),
+            }),
+            "observation.images[0]",
+        );
+        assert!(message.contains("8192x8192"), "{message}");
+        assert!(message.contains("over the limit"), "{message}");
+        // The cap is the configured one: the 2x2 image passes at 4 pixels, not at 3.
+        let mut v = validator();
+        v.limits.max_image_pixels = 3;
+        let small = with_image(ImagePayload::Png {
+            data: PNG_2X2.to_vec(),
+        });
+        let clock = ClockMap::new(Timestamp::from_micros(5_000_000), 1_000_000, Duration::ZERO);
+        let error = v.submit(small, RobotId(1), &actions(), clock).unwrap_err();
+        assert_eq!(error.code(), ErrorCode::InvalidObservation);
+        assert!(error.to_string().contains("4 pixels"), "{error}");
+    }
+
+    #[tokio::test]
+    async fn decoding_turns_files_into_pixels_before_the_queue() {
+        let v = validator();
+        let valid = check(with_image(ImagePayload::Png {
+            data: PNG_2X2.to_vec(),
+        }))
+        .unwrap();
+        let decoded = v.decode_submit(valid).await.unwrap();
+        assert_eq!(
+            decoded.observation.request.images,
+            vec![ImageInput::RawU8 {
+                height: 2,
+                width: 2,
+                channels: 3,
+                data: [0x10, 0x20, 0x30].repeat(4),
+            }]
+        );
+        // A file whose header is fine but whose pixel data is cut off fails its own round here.
+        let mut truncated = PNG_2X2.to_vec();
+        truncated.truncate(50);
+        let valid = check(with_image(ImagePayload::Png { data: truncated })).unwrap();
+        let error = v.decode_submit(valid).await.unwrap_err();
+        assert_eq!(error.code(), ErrorCode::InvalidObservation);
+        assert!(
+            error.to_string().contains("observation.images[0]"),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn round_ids_are_bounded() {
+        let mut s = submit();
+        s.round = MAX_ROUND;
+        assert!(check(s).is_ok());
+        for round in [MAX_ROUND + 1, u64::MAX] {
+            let mut s = submit();
+            s.round = round;
+            let reply = ErrorReply::from(&check(s).unwrap_err());
+            assert_eq!(reply.code, ErrorCode::InvalidRequest);
+            assert!(reply.message.contains("round"), "{}", reply.message);
+        }
+    }
+
+    #[test]
+    fn a_task_that_is_not_the_robots_gets_one_answer_whatever_the_reason() {
+        let task = TaskId(42);
+        let replies: Vec<ErrorReply> = [
+            AdmitError::Forbidden { task },
+            AdmitError::UnknownTask { task },
+            AdmitError::TaskEnded { task },
+        ]
+        .into_iter()
+        .map(|e| ErrorReply::from(&RequestError::from(e)))
+        .collect();
+        assert_eq!(replies[0].code, ErrorCode::UnknownTask);
+        assert!(replies.iter().all(|r| *r == replies[0]), "{replies:?}");
+    }
+
+    #[test]
+    fn an_engine_refusal_is_the_requests_fault_and_a_crash_is_ours() {
+        let refused = RequestError::Engine(PoolError::Engine {
+            engine: "e".into(),
+            source: EngineError::InvalidInput("state[0]: NaN".into()),
+        });
+        assert_eq!(refused.code(), ErrorCode::InvalidObservation);
+        assert!(!ErrorReply::from(&refused).retryable);
+        let crashed = RequestError::Engine(PoolError::Panicked {
+            engine: "e".into(),
+            message: "bug".into(),
+        });
+        assert_eq!(crashed.code(), ErrorCode::Internal);
+        assert!(ErrorReply::from(&crashed).retryable);
+    }
+
     #[test]
     fn admit_errors_map_to_their_wire_codes() {
         let cases = [
             (AdmitError::Overloaded { pending: 3 }, ErrorCode::Overloaded),
             (
                 AdmitError::Forbidden { task: TaskId(1) },
-                ErrorCode::Forbidden,
+                ErrorCode::UnknownTask,
             ),
             (
                 AdmitError::UnknownTask { task: TaskId(1) },

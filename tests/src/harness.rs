@@ -491,6 +491,64 @@ pub fn compare_records(log: &TaskLog) -> anyhow::Result<RecordError> {
     Ok(error)
 }
 
+/// Checks the facts of the server's `TaskEnded` record that hold exactly, whatever the machine's
+/// load: they compare durations measured on one clock, or apply one clock mapping both ways, so
+/// no timing tolerance is involved (beyond 2 µs of integer rounding).
+///
+/// - Every `G` fits inside its round's round trip: generation happens after the request left the
+///   robot and before the reply reached it, so `|G| ≤ received − sent` (a wrong round's interval,
+///   or a generation interval in the wrong unit, breaks it).
+/// - The last round's `E` was reported with the task end and is mapped back with that same
+///   message's clock mapping: `E.start` is the robot's chunk start exactly, and `E.end`, stamped
+///   when the server read the end, is no earlier than `end sent + remaining / hz` (a missing
+///   `remaining / control_hz` or a unit slip breaks it).
+///
+/// [`compare_records`] measures the rest (absolute positions, which move with the clock mapping's
+/// error under load) without judging it.
+pub fn check_exact_records(log: &TaskLog) -> anyhow::Result<()> {
+    const ROUNDING_US: u64 = 2;
+    compare_records(log)?;
+    let us_per_action = 1e6 / f64::from(log.control_hz);
+    for (server, robot) in log.ended.history.iter().zip(&log.rounds) {
+        let g = server
+            .generation
+            .with_context(|| format!("task {} round {}: no G", log.task, robot.round))?;
+        let generation = g.end_us.saturating_sub(g.start_us);
+        let round_trip = robot.received_at_us.saturating_sub(robot.sent_at_us);
+        if generation > round_trip + ROUNDING_US {
+            bail!(
+                "task {} round {}: |G| = {generation} µs exceeds the robot's round trip of {round_trip} µs",
+                log.task,
+                robot.round
+            );
+        }
+    }
+    let (Some(server), Some(robot)) = (log.ended.history.last(), log.rounds.last()) else {
+        bail!("task {}: no rounds", log.task);
+    };
+    let e = server
+        .execution
+        .with_context(|| format!("task {}: the last round has no E", log.task))?;
+    if e.start_us.abs_diff(robot.exec_start_us) > ROUNDING_US {
+        bail!(
+            "task {}: last E.start {} µs, the robot started its chunk at {} µs",
+            log.task,
+            e.start_us,
+            robot.exec_start_us
+        );
+    }
+    let earliest_end =
+        robot.next_sent_at_us + (f64::from(robot.remaining_at_next) * us_per_action).round() as u64;
+    if e.end_us + ROUNDING_US < earliest_end {
+        bail!(
+            "task {}: last E.end {} µs is before the end was even sent plus the remaining actions ({earliest_end} µs)",
+            log.task,
+            e.end_us
+        );
+    }
+    Ok(())
+}
+
 /// A hand-driven protocol connection: real QUIC and TLS (pinned), but frames written byte by
 /// byte by the test, for malformed-input and authentication tests.
 pub struct RawConnection {

@@ -51,11 +51,22 @@ pub struct Limits {
     pub max_message_bytes: u32,
     /// Most rounds in a `TaskEnded` history.
     pub max_history: u32,
+    /// Most pixels (`height * width`) of one camera image, raw or encoded. An encoded image is
+    /// checked from its header, before the server decodes it, so a small file that declares a
+    /// huge image (a decompression bomb) is refused without allocating its pixels.
+    pub max_image_pixels: u32,
 }
+
+/// Highest round id a `Submit` may carry: 2^53 − 1. Round ids must increase, so a task whose
+/// round reached `u64::MAX` could never send another round; the bound keeps every accepted id
+/// followed by room for any realistic task (2^53 rounds at 1 kHz is 285 000 years), and it is
+/// the largest integer every JSON and JavaScript consumer of traces represents exactly.
+pub const MAX_ROUND: u64 = (1 << 53) - 1;
 
 impl Default for Limits {
     /// Defaults sized for SmolVLA/pi0-class models: two or three cameras of up to 640×480 RGB
-    /// sent raw (0.9 MB each as `u8`), a 32-dim state, a 50×32 chunk back.
+    /// sent raw (0.9 MB each as `u8`), a 32-dim state, a 50×32 chunk back. Images may have up to
+    /// 16 times the pixels of the 512×512 input of SmolVLA's vision encoder (2048×2048).
     fn default() -> Limits {
         Limits {
             max_frame: 16 << 20,
@@ -71,6 +82,7 @@ impl Default for Limits {
             max_token_bytes: 512,
             max_message_bytes: 4096,
             max_history: 4096,
+            max_image_pixels: 16 * 512 * 512,
         }
     }
 }
@@ -225,6 +237,14 @@ fn check_image(field: &str, image: &Image, limits: &Limits) -> Result<(), Valida
                     "a raw image is u8 or f32",
                 ));
             }
+            let pixels = u64::from(tensor.shape[0]) * u64::from(tensor.shape[1]);
+            if pixels > u64::from(limits.max_image_pixels) {
+                return Err(ValidationError::TooLarge {
+                    field: format!("{field}.shape (pixels)"),
+                    len: pixels,
+                    max: u64::from(limits.max_image_pixels),
+                });
+            }
         }
     }
     Ok(())
@@ -356,6 +376,12 @@ impl Validate for Welcome {
 
 impl Validate for Submit {
     fn validate(&self, limits: &Limits) -> Result<(), ValidationError> {
+        if self.round > MAX_ROUND {
+            return Err(invalid_request(
+                "round",
+                format!("{} is over the highest round id {MAX_ROUND}", self.round),
+            ));
+        }
         self.observation.validate(limits)?;
         if let Some(last_exec) = &self.last_exec {
             last_exec.validate(limits)?;

@@ -9,6 +9,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 
 use super::limits::Limits;
+use super::strict;
 
 /// Frame kind byte of each message.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -110,7 +111,7 @@ pub struct Tensor {
     /// Dimensions, outermost first.
     pub shape: Vec<u32>,
     /// Little-endian, row-major elements.
-    #[serde(with = "serde_bytes")]
+    #[serde(with = "strict::bin")]
     pub data: Vec<u8>,
 }
 
@@ -121,13 +122,13 @@ pub enum ImagePayload {
     /// JPEG file bytes.
     Jpeg {
         /// The file.
-        #[serde(with = "serde_bytes")]
+        #[serde(with = "strict::bin")]
         data: Vec<u8>,
     },
     /// PNG file bytes.
     Png {
         /// The file.
-        #[serde(with = "serde_bytes")]
+        #[serde(with = "strict::bin")]
         data: Vec<u8>,
     },
     /// Raw pixels `[height, width, channels]`, dtype `u8` or `f32`.
@@ -141,6 +142,7 @@ pub enum ImagePayload {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Image {
     /// Camera name, e.g. `front`, `wrist`.
+    #[serde(deserialize_with = "strict::text")]
     pub camera: String,
     /// The pixels.
     pub payload: ImagePayload,
@@ -156,6 +158,7 @@ pub struct Observation {
     /// Camera images.
     pub images: Vec<Image>,
     /// Task instruction text.
+    #[serde(deserialize_with = "strict::text")]
     pub instruction: String,
 }
 
@@ -174,9 +177,10 @@ pub struct LastExecInfo {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct HorizonSelection {
     /// Policy name: `threshold` (default, §3.1), `static`, or a loaded plugin's name.
+    #[serde(deserialize_with = "strict::text")]
     pub policy: String,
     /// Parameters, e.g. `{"t": 0.4, "h_min": 8}` or `{"h": 10}`.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "strict::text_keyed_f64")]
     pub params: BTreeMap<String, f64>,
     /// Samples of the chunk to draw for the policy (1 = none extra).
     #[serde(default = "one")]
@@ -204,8 +208,10 @@ pub struct Hello {
     /// Highest protocol version the client speaks.
     pub protocol: u32,
     /// The robot's auth token.
+    #[serde(deserialize_with = "strict::text")]
     pub token: String,
     /// Client software, e.g. `kairos-sdk/0.1.0`.
+    #[serde(deserialize_with = "strict::text")]
     pub client: String,
 }
 
@@ -215,8 +221,10 @@ pub struct Welcome {
     /// Protocol version the server will speak on this connection.
     pub protocol: u32,
     /// Server software, e.g. `kairos/0.1.0`.
+    #[serde(deserialize_with = "strict::text")]
     pub server: String,
     /// The robot name the token belongs to.
+    #[serde(deserialize_with = "strict::text")]
     pub robot: String,
     /// What the served model expects and returns.
     pub model: ModelInfo,
@@ -228,6 +236,7 @@ pub struct Welcome {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ModelInfo {
     /// Model name.
+    #[serde(deserialize_with = "strict::text")]
     pub name: String,
     /// Actions per chunk `N`.
     pub chunk_len: u32,
@@ -322,6 +331,7 @@ pub struct Reply {
     pub actions: Tensor,
     /// Name of the horizon policy that chose `H` (it can differ from the one requested if
     /// that one failed and the fallback answered).
+    #[serde(deserialize_with = "strict::text")]
     pub policy: String,
     /// Server-side timing.
     pub timing: Timing,
@@ -407,9 +417,10 @@ pub enum ErrorCode {
     UnsupportedVersion,
     /// The token is unknown.
     Unauthorized,
-    /// The task belongs to another robot.
+    /// Reserved: the task belongs to another robot. Servers of this version answer
+    /// `UnknownTask` instead, so that the answer does not reveal which task ids exist.
     Forbidden,
-    /// The task is unknown or has ended.
+    /// The task is not open for this robot: unknown, ended, or another robot's.
     UnknownTask,
     /// The round id is not after the task's last one.
     RoundOutOfOrder,
@@ -429,6 +440,7 @@ pub struct ErrorReply {
     /// Machine-readable code.
     pub code: ErrorCode,
     /// Human-readable explanation.
+    #[serde(deserialize_with = "strict::text")]
     pub message: String,
     /// Whether sending the same request again may succeed.
     pub retryable: bool,

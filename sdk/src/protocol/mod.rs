@@ -18,6 +18,7 @@ pub mod frame;
 pub mod io;
 pub mod limits;
 pub mod messages;
+mod strict;
 mod tensor;
 
 pub use codec::{EncodeError, MAX_DEPTH, Message, WireBody, encode_body};
@@ -26,7 +27,7 @@ pub use io::{
     ReadFrameError, WriteFrameError, read_frame, read_message, write_body, write_frame,
     write_message,
 };
-pub use limits::{Limits, Validate, ValidationError};
+pub use limits::{Limits, MAX_ROUND, Validate, ValidationError};
 pub use messages::*;
 pub use tensor::TensorError;
 

@@ -91,7 +91,7 @@ fn remaining() -> impl Strategy<Value = RemainingHint> {
 }
 
 fn limits() -> impl Strategy<Value = Limits> {
-    (vec(any::<u32>(), 13)).prop_map(|v| Limits {
+    (vec(any::<u32>(), 14)).prop_map(|v| Limits {
         max_frame: v[0],
         max_image_bytes: v[1],
         max_images: v[2],
@@ -105,6 +105,7 @@ fn limits() -> impl Strategy<Value = Limits> {
         max_token_bytes: v[10],
         max_message_bytes: v[11],
         max_history: v[12],
+        max_image_pixels: v[13],
     })
 }
 

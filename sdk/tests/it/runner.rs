@@ -39,6 +39,8 @@ struct Scripted {
     fail: HashMap<u64, ErrorCode>,
     seen: Arc<Mutex<Vec<Seen>>>,
     ended: Arc<Mutex<Option<TaskOutcome>>>,
+    /// `EndTask` answers this error (a restarted server that forgot the task).
+    end_error: Option<ErrorCode>,
 }
 
 impl Scripted {
@@ -52,6 +54,7 @@ impl Scripted {
             fail: HashMap::new(),
             seen: Arc::default(),
             ended: Arc::default(),
+            end_error: None,
         }
     }
 }
@@ -130,6 +133,12 @@ impl RoundTransport for Scripted {
         _last_exec: Option<LastExecInfo>,
     ) -> Result<TaskEnded, ClientError> {
         *self.ended.lock().unwrap() = Some(outcome);
+        if let Some(code) = self.end_error {
+            return Err(ClientError::Server(ErrorReply::new(
+                code,
+                "task 1 is not open",
+            )));
+        }
         Ok(TaskEnded {
             task: 1,
             rounds: self.next_round as u32,
@@ -351,6 +360,29 @@ async fn a_finished_task_executes_no_action_past_its_goal() {
         executed: 4,
         dropped: 3
     }));
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_refused_end_task_is_reported_in_the_summary() {
+    let run = |end_error| async move {
+        let mut transport = Scripted::new(100, 10);
+        transport.end_error = end_error;
+        let ended = transport.ended.clone();
+        let mut robot = Recorder::new(transport.clock);
+        let summary = runner(0.5, 2)
+            .run(&mut robot, transport, |_| {})
+            .await
+            .unwrap();
+        assert_eq!(*ended.lock().unwrap(), Some(TaskOutcome::Done));
+        summary
+    };
+    let acknowledged = run(None).await;
+    assert!(acknowledged.server_record.is_some());
+    assert_eq!(acknowledged.end_error, None);
+    let refused = run(Some(ErrorCode::UnknownTask)).await;
+    assert!(refused.server_record.is_none());
+    let error = refused.end_error.unwrap();
+    assert!(error.contains("unknown_task"), "{error}");
 }
 
 #[tokio::test(start_paused = true)]

@@ -476,6 +476,16 @@ fn report(args: &RobotArgs, summaries: &[TaskSummary]) -> String {
             mean(rounds.iter().map(|r| f64::from(r.refetches))),
         );
     }
+    let unended: Vec<&TaskSummary> = summaries.iter().filter(|s| s.end_error.is_some()).collect();
+    if let Some(first) = unended.first() {
+        let _ = writeln!(
+            out,
+            "tasks not ended on the server: {} (task {:016x}: {})",
+            unended.len(),
+            first.task,
+            first.end_error.as_deref().unwrap_or_default()
+        );
+    }
     let _ = writeln!(
         out,
         "{:<18} {:>6} {:>10} {:>10} {:>10} {:>10} {:>8} {:>6}",
@@ -653,9 +663,23 @@ mod tests {
             idle_us: 100_000,
             failed_rounds: 0,
             server_record: None,
+            end_error: None,
         };
         let args = parse(&[]).unwrap();
+        let unended = TaskSummary {
+            task: 0xdef,
+            end_error: Some("server error unknown_task: task 3567 is not open".into()),
+            ..summary.clone()
+        };
+        let text = report(&args, &[summary.clone(), unended]);
+        assert!(
+            text.contains(
+                "tasks not ended on the server: 1 (task 0000000000000def: server error unknown_task"
+            ),
+            "{text}"
+        );
         let text = report(&args, &[summary]);
+        assert!(!text.contains("not ended"), "{text}");
         // The project's one percentile (crate::stats): 100 and 120 ms have a median of 110.
         assert!(text.contains("round latency   p50  110.0 ms"), "{text}");
         assert!(text.contains("queue 30.0 ms"), "{text}");

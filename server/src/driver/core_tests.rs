@@ -103,7 +103,8 @@ impl Bench {
     /// What the shell does with a batch, synchronously: the model, then the horizon policies.
     fn answers(&self, job: BatchJob) -> Vec<(RequestId, RoundAnswer)> {
         let chunks = self.model.generate(&job.inputs).unwrap();
-        self.actions.answer_batch(job.rounds, chunks)
+        self.actions
+            .answer_batch(job.rounds, chunks.into_iter().map(Ok).collect())
     }
 }
 
@@ -275,15 +276,15 @@ fn the_owner_comes_from_the_scheduler_and_a_draining_core_refuses_rounds() {
     b.effects();
     assert_eq!(b.core.snapshot(TaskId(1)).unwrap().owner, RobotId(0));
 
-    // The same round from another robot: refused by the scheduler's ownership check, not
-    // answered from the cache.
+    // The same round from another robot: refused by the scheduler's ownership check (answered
+    // like an unknown task, so a prober learns nothing), not answered from the cache.
     let other = b.valid(1, 1, 0, ms(4), 1.0);
     b.core.submit(ms(4), other, ms(4), WaiterId(2));
     let effects = b.effects();
     let answers = answers_of(&effects);
     assert_eq!(
         answers[0].1.as_ref().unwrap_err().code,
-        ErrorCode::Forbidden
+        ErrorCode::UnknownTask
     );
     let own = b.valid(0, 1, 0, ms(5), 1.0);
     b.core.submit(ms(5), own, ms(5), WaiterId(3));

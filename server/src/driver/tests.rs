@@ -20,7 +20,7 @@ use super::*;
 use crate::action::ActionManager;
 use crate::horizon::{HorizonError, HorizonInput, HorizonPolicy};
 use crate::pool::test_model::LinearFlow;
-use crate::pool::{EngineInstance, EnginePool, PoolError};
+use crate::pool::{BatchChunks, EngineInstance, EnginePool, PoolError};
 use crate::registry::{HorizonRegistry, native_horizon_policies};
 use crate::scheduler::fifo::Fifo;
 use crate::scheduler::{Scheduler, SchedulerConfig, Tier};
@@ -54,7 +54,7 @@ impl EngineInstance for GatedEngine {
     fn run(
         &self,
         batch: Vec<ActionRequest>,
-    ) -> BoxFuture<'static, Result<Vec<ActionChunk>, PoolError>> {
+    ) -> BoxFuture<'static, Result<BatchChunks, PoolError>> {
         let (model, gate) = (self.model.clone(), self.gate.clone());
         let mut batch = batch;
         for request in &mut batch {
@@ -67,7 +67,7 @@ impl EngineInstance for GatedEngine {
             gate.acquire().await.map_err(|_| stopped())?.forget();
             let generated = tokio::task::spawn_blocking(move || model.generate(&batch)).await;
             match generated {
-                Ok(Ok(chunks)) => Ok(chunks),
+                Ok(Ok(chunks)) => Ok(chunks.into_iter().map(Ok).collect()),
                 Ok(Err(source)) => Err(PoolError::Engine {
                     engine: "gated".into(),
                     source,
@@ -334,14 +334,14 @@ async fn another_robot_can_neither_advance_nor_read_a_task() {
     let (read, _b) = f.submit(1, wire_submit(&f, 1, 0, 1.0, None)).await;
     assert_eq!(
         read.answer.await.unwrap().unwrap_err().code,
-        ErrorCode::Forbidden
+        ErrorCode::UnknownTask
     );
     let (advance, _c) = f.submit(1, wire_submit(&f, 1, 1, 1.0, None)).await;
     assert_eq!(
         advance.answer.await.unwrap().unwrap_err().code,
-        ErrorCode::Forbidden
+        ErrorCode::UnknownTask
     );
-    assert_eq!(f.end(1, 1).await.unwrap_err().code, ErrorCode::Forbidden);
+    assert_eq!(f.end(1, 1).await.unwrap_err().code, ErrorCode::UnknownTask);
     assert_eq!(f.end(0, 1).await.unwrap().rounds, 1);
 }
 

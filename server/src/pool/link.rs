@@ -5,9 +5,9 @@ use std::time::Duration;
 
 use futures::FutureExt;
 use futures::future::BoxFuture;
-use kairos_engine::{ActionChunk, ActionRequest, EngineProfile, ModelSpec};
+use kairos_engine::{ActionRequest, EngineProfile, ModelSpec};
 
-use super::{EngineInstance, PoolError};
+use super::{BatchChunks, EngineInstance, PoolError};
 use crate::scheduler::Tier;
 
 /// Wraps an instance and adds a fixed round trip to every batch: half before the batch reaches
@@ -54,10 +54,7 @@ impl EngineInstance for EmulatedLinkEngine {
         self.inner.rtt() + self.rtt
     }
 
-    fn run(
-        &self,
-        batch: Vec<ActionRequest>,
-    ) -> BoxFuture<'static, Result<Vec<ActionChunk>, PoolError>> {
+    fn run(&self, batch: Vec<ActionRequest>) -> BoxFuture<'static, Result<BatchChunks, PoolError>> {
         let inner = self.inner.clone();
         let half = self.rtt / 2;
         async move {
@@ -93,6 +90,7 @@ mod tests {
         let started = std::time::Instant::now();
         let chunks = link.run(vec![request(1.0, 1)]).await.unwrap();
         assert_eq!(chunks.len(), 1);
+        assert!(chunks[0].is_ok());
         assert!(started.elapsed() >= Duration::from_millis(30));
     }
 }

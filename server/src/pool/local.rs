@@ -7,13 +7,16 @@ use std::time::Duration;
 
 use futures::FutureExt;
 use futures::future::BoxFuture;
-use kairos_engine::{ActionChunk, ActionModel, ActionRequest, EngineProfile, ModelSpec};
+use kairos_engine::{
+    ActionChunk, ActionModel, ActionRequest, EngineProfile, ImageLimits, ModelSpec,
+    generate_isolated,
+};
 use tokio::sync::oneshot;
 
-use super::{EngineInstance, PoolError, check_output};
+use super::{BatchChunks, EngineInstance, PoolError, check_output};
 use crate::scheduler::Tier;
 
-type Answer = Result<Vec<ActionChunk>, PoolError>;
+type Answer = Result<BatchChunks, PoolError>;
 
 struct Job {
     batch: Vec<ActionRequest>,
@@ -66,28 +69,64 @@ fn worker(name: &str, spec: &ModelSpec, model: &dyn ActionModel, queue: mpsc::Re
         if job.reply.is_closed() {
             continue;
         }
-        let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| model.generate(&job.batch)));
-        let answer = match outcome {
-            Ok(Ok(chunks)) => check_output(name, spec, &job.batch, &chunks).map(|()| chunks),
-            Ok(Err(source)) => Err(PoolError::Engine {
-                engine: name.to_string(),
-                source,
-            }),
-            Err(payload) => {
-                let message = payload
-                    .downcast_ref::<&str>()
-                    .map(|s| s.to_string())
-                    .or_else(|| payload.downcast_ref::<String>().cloned())
-                    .unwrap_or_else(|| "non-string panic payload".into());
-                tracing::error!(engine = %name, %message, "model panicked");
-                Err(PoolError::Panicked {
-                    engine: name.to_string(),
-                    message,
-                })
-            }
-        };
+        let answer = run_isolated(name, spec, model, &job.batch);
         // The caller may have gone away (shutdown); nothing to do then.
-        let _ = job.reply.send(answer);
+        let _ = job.reply.send(Ok(answer));
+    }
+}
+
+/// Runs a batch so that one request that fails, by the model's error or its panic, fails alone:
+/// requests the spec refuses are left out, and a batch that still fails is rerun one request
+/// at a time ([`generate_isolated`]).
+fn run_isolated(
+    name: &str,
+    spec: &ModelSpec,
+    model: &dyn ActionModel,
+    batch: &[ActionRequest],
+) -> BatchChunks {
+    let images = ImageLimits::default();
+    generate_isolated(
+        batch,
+        |request| {
+            spec.check_request(request, &images)
+                .map_err(|error| PoolError::Engine {
+                    engine: name.to_string(),
+                    source: error.into(),
+                })
+        },
+        |requests| generate_guarded(name, spec, model, requests),
+        |chunks, requests| PoolError::BadOutput {
+            engine: name.to_string(),
+            reason: format!("{chunks} chunks for {requests} requests"),
+        },
+    )
+}
+
+/// One forward pass with its panic caught and its output checked.
+fn generate_guarded(
+    name: &str,
+    spec: &ModelSpec,
+    model: &dyn ActionModel,
+    batch: &[ActionRequest],
+) -> Result<Vec<ActionChunk>, PoolError> {
+    match std::panic::catch_unwind(AssertUnwindSafe(|| model.generate(batch))) {
+        Ok(Ok(chunks)) => check_output(name, spec, batch, &chunks).map(|()| chunks),
+        Ok(Err(source)) => Err(PoolError::Engine {
+            engine: name.to_string(),
+            source,
+        }),
+        Err(payload) => {
+            let message = payload
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "non-string panic payload".into());
+            tracing::error!(engine = %name, %message, "model panicked");
+            Err(PoolError::Panicked {
+                engine: name.to_string(),
+                message,
+            })
+        }
     }
 }
 
@@ -142,6 +181,17 @@ mod tests {
         }
     }
 
+    /// The chunks of a batch that must all succeed.
+    async fn chunks(engine: &LocalEngine, batch: Vec<ActionRequest>) -> Vec<ActionChunk> {
+        engine
+            .run(batch)
+            .await
+            .unwrap()
+            .into_iter()
+            .map(Result::unwrap)
+            .collect()
+    }
+
     #[tokio::test]
     async fn runs_batches_on_its_own_thread_and_survives_a_panic() {
         let mut model = LinearFlow::new();
@@ -149,29 +199,87 @@ mod tests {
         let model = Arc::new(model);
         let engine = LocalEngine::start("e0", model.clone(), profile());
 
-        let chunks = engine
-            .run(vec![request(1.0, 7), request(2.0, 8)])
-            .await
-            .unwrap();
-        assert_eq!(chunks.len(), 2);
+        let two = chunks(&engine, vec![request(1.0, 7), request(2.0, 8)]).await;
+        assert_eq!(two.len(), 2);
         // Two Euler steps of dt=1/2 towards the target halve the distance twice.
         let expected = 2.0 + (8.0 - 2.0) * 0.25;
-        assert!((chunks[1].actions[0] - expected).abs() < 1e-5);
+        assert!((two[1].actions[0] - expected).abs() < 1e-5);
 
-        let err = engine.run(vec![request(-1.0, 1)]).await.unwrap_err();
+        let mut answer = engine.run(vec![request(-1.0, 1)]).await.unwrap();
+        let err = answer.pop().unwrap().unwrap_err();
         assert!(matches!(err, PoolError::Panicked { .. }), "{err}");
-        let err = engine
+        let mut answer = engine
             .run(vec![kairos_engine::ActionRequest {
                 state: vec![1.0],
                 ..request(0.0, 0)
             }])
             .await
-            .unwrap_err();
+            .unwrap();
+        let err = answer.pop().unwrap().unwrap_err();
         assert!(matches!(err, PoolError::Engine { .. }), "{err}");
 
-        let again = engine.run(vec![request(3.0, 1)]).await.unwrap();
+        let again = chunks(&engine, vec![request(3.0, 1)]).await;
         assert_eq!(again.len(), 1, "the thread keeps serving after a panic");
-        assert_eq!(model.calls.load(Ordering::SeqCst), 4);
+        assert_eq!(
+            model.calls.load(Ordering::SeqCst),
+            3,
+            "the request of the wrong length was refused before the model ran"
+        );
+    }
+
+    #[tokio::test]
+    async fn a_failing_request_fails_alone_and_the_others_get_their_clean_batch_chunks() {
+        let mut model = LinearFlow::new();
+        // A request the spec accepts but the model fails on (here by panicking): only the rerun
+        // one request at a time can tell which request it was.
+        model.panic_on_state = Some(-1.0);
+        let model = Arc::new(model);
+        let engine = LocalEngine::start("e0", model.clone(), profile());
+        let good = || vec![request(1.0, 7), request(2.0, 8), request(3.0, 9)];
+        let clean = chunks(&engine, good()).await;
+        assert_eq!(model.calls.load(Ordering::SeqCst), 1);
+
+        let mut batch = good();
+        batch.insert(1, request(-1.0, 4));
+        let answer = engine.run(batch).await.unwrap();
+        assert_eq!(answer.len(), 4);
+        assert!(matches!(answer[1], Err(PoolError::Panicked { .. })));
+        let rest: Vec<&ActionChunk> = [0, 2, 3]
+            .iter()
+            .map(|&i| answer[i].as_ref().unwrap())
+            .collect();
+        assert_eq!(
+            rest,
+            clean.iter().collect::<Vec<_>>(),
+            "bit-identical chunks"
+        );
+        assert_eq!(
+            model.calls.load(Ordering::SeqCst),
+            1 + 1 + 4,
+            "the failed batch, then each of its requests alone"
+        );
+
+        // A request the spec refuses (a NaN state) is left out before the model runs: the rest
+        // run as one batch.
+        let mut batch = good();
+        batch.insert(
+            0,
+            ActionRequest {
+                state: vec![f32::NAN, 0.0, 0.0],
+                ..request(0.0, 5)
+            },
+        );
+        let answer = engine.run(batch).await.unwrap();
+        let Err(PoolError::Engine { source, .. }) = &answer[0] else {
+            panic!(
+                "expected the NaN request to fail alone, got {:?}",
+                answer[0]
+            );
+        };
+        assert!(source.to_string().contains("state[0]"), "{source}");
+        let rest: Vec<&ActionChunk> = answer[1..].iter().map(|a| a.as_ref().unwrap()).collect();
+        assert_eq!(rest, clean.iter().collect::<Vec<_>>());
+        assert_eq!(model.calls.load(Ordering::SeqCst), 7, "one batch of three");
     }
 
     #[tokio::test]
@@ -196,8 +304,8 @@ mod tests {
             Arc::new(ThreadProbe(LinearFlow::new().spec)),
             profile(),
         );
-        match engine.run(vec![request(0.0, 0)]).await {
-            Err(PoolError::Engine { source, .. }) => {
+        match engine.run(vec![request(0.0, 0)]).await.unwrap().pop() {
+            Some(Err(PoolError::Engine { source, .. })) => {
                 assert_eq!(source.to_string(), "invalid input: engine-probe")
             }
             other => panic!("unexpected {other:?}"),

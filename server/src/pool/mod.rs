@@ -63,7 +63,10 @@ pub enum PoolError {
     },
 }
 
-/// One engine instance: runs a batch of requests and returns one chunk per request, in order.
+/// One result per request of a batch, in order: its chunk, or why that request got none.
+pub type BatchChunks = Vec<Result<ActionChunk, PoolError>>;
+
+/// One engine instance: runs a batch of requests and returns one result per request, in order.
 pub trait EngineInstance: Send + Sync {
     /// A name for logs and metrics, unique in the pool.
     fn name(&self) -> &str;
@@ -75,11 +78,11 @@ pub trait EngineInstance: Send + Sync {
     fn tier(&self) -> Tier;
     /// Network round trip between the server and the instance, zero when local.
     fn rtt(&self) -> Duration;
-    /// Runs one batch. The future does no heavy work on the caller's thread.
-    fn run(
-        &self,
-        batch: Vec<ActionRequest>,
-    ) -> BoxFuture<'static, Result<Vec<ActionChunk>, PoolError>>;
+    /// Runs one batch. A request the model cannot serve fails alone: its entry is an error and
+    /// the others carry the chunks a clean batch would have given them. The whole answer is an
+    /// error only when the instance could run nothing (it stopped). The future does no heavy
+    /// work on the caller's thread.
+    fn run(&self, batch: Vec<ActionRequest>) -> BoxFuture<'static, Result<BatchChunks, PoolError>>;
 }
 
 /// All engine instances, indexed by [`EngineId`].

@@ -256,6 +256,7 @@ async fn round(
     let valid = context
         .validator
         .submit(submit, peer.robot, &context.actions, clock)?;
+    let valid = context.validator.decode_submit(valid).await?;
     let (link, mut asks) = mpsc::channel::<RefetchAsk>(1);
     let mut pending = context
         .driver
@@ -329,7 +330,11 @@ async fn refetch(
     match fresh {
         Ok(Some(Message::FreshObservation(fresh))) => {
             let clock = peer.clock(context, fresh.sent_at_us, true);
-            match context.validator.fresh(fresh, clock) {
+            let checked = match context.validator.fresh(fresh, clock) {
+                Ok(observation) => context.validator.decode(observation).await,
+                Err(error) => Err(error),
+            };
+            match checked {
                 Ok(observation) => {
                     let _ = ask.reply.send(observation);
                 }

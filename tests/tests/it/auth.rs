@@ -74,17 +74,17 @@ async fn a_robot_cannot_read_advance_or_end_another_robots_task() {
 
     // Advance: the next round id of someone else's task.
     let error = one_round(&intruder, TASK, 2).await.unwrap_err();
-    assert_eq!(server_code(error), ErrorCode::Forbidden);
+    assert_eq!(server_code(error), ErrorCode::UnknownTask);
     // Read: re-sending a finished round would return its cached chunk to its owner.
     let error = one_round(&intruder, TASK, 1).await.unwrap_err();
-    assert_eq!(server_code(error), ErrorCode::Forbidden);
+    assert_eq!(server_code(error), ErrorCode::UnknownTask);
     // End it.
     let error = intruder
         .task_from(TASK, 2)
         .end(kairos_sdk::protocol::TaskOutcome::Failed, None)
         .await
         .unwrap_err();
-    assert_eq!(server_code(error), ErrorCode::Forbidden);
+    assert_eq!(server_code(error), ErrorCode::UnknownTask);
 
     // The owner is unaffected: a re-sent finished round gets its cached chunk, the next round is
     // served, and the task's record has exactly its three rounds.

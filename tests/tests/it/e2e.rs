@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 
 use kairos_sdk::protocol::HorizonSelection;
 use kairos_tests::harness::{
-    RecordError, RobotPlan, ServerOptions, TaskLog, TestServer, compare_records, run_fleet,
+    RecordError, RobotPlan, ServerOptions, TaskLog, TestServer, check_exact_records, compare_records, run_fleet,
 };
 
 const ROBOTS: u64 = 20;
@@ -74,6 +74,7 @@ async fn twenty_robots_complete_multi_round_tasks_and_records_match() {
                 assert_eq!(round.policy, "threshold");
             }
         }
+        check_exact_records(log).unwrap();
         worst = worst.max(compare_records(log).unwrap());
         // Server side: one generation per (task, round).
         server.assert_generated_once(log.task, ROUNDS).await;

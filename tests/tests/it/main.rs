@@ -7,8 +7,10 @@
 //! here, not a new file in `tests/`.
 
 mod auth;
+mod binaries;
 mod demo;
 mod e2e;
+mod isolation;
 mod lossy;
 mod malformed;
 mod plugins_served;
