@@ -4,6 +4,8 @@ use std::collections::VecDeque;
 
 use kairos_sdk::protocol::Timing;
 
+use crate::stats::quantile;
+
 /// Running totals of the driver.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct DriverStats {
@@ -48,7 +50,7 @@ pub struct LatencySummary {
     pub count: u64,
     /// Median.
     pub p50_us: u64,
-    /// 99th percentile (nearest rank).
+    /// 99th percentile (the project's one percentile, [`crate::stats::quantile`]).
     pub p99_us: u64,
     /// Largest.
     pub max_us: u64,
@@ -58,22 +60,20 @@ pub struct LatencySummary {
 pub const RECENT_LATENCIES: usize = 1 << 16;
 
 impl LatencySummary {
-    /// Nearest-rank percentiles of `values`.
+    /// Percentiles of `values` by [`crate::stats::quantile`] (linear interpolation), rounded to
+    /// the microsecond.
     pub fn of(values: impl Iterator<Item = u64>) -> LatencySummary {
-        let mut sorted: Vec<u64> = values.collect();
-        if sorted.is_empty() {
+        let mut sorted: Vec<f64> = values.map(|v| v as f64).collect();
+        sorted.sort_by(f64::total_cmp);
+        let Some(&max) = sorted.last() else {
             return LatencySummary::default();
-        }
-        sorted.sort_unstable();
-        let rank = |p: f64| {
-            let index = ((p * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
-            sorted[index]
         };
+        let at = |q: f64| quantile(&sorted, q).round() as u64;
         LatencySummary {
             count: sorted.len() as u64,
-            p50_us: rank(0.50),
-            p99_us: rank(0.99),
-            max_us: sorted[sorted.len() - 1],
+            p50_us: at(0.50),
+            p99_us: at(0.99),
+            max_us: max as u64,
         }
     }
 }
@@ -107,11 +107,12 @@ mod tests {
     use super::*;
 
     #[test]
-    fn latency_summary_uses_nearest_rank() {
+    fn latency_summary_uses_the_one_percentile() {
+        // 1..=200: the median lies halfway between 100 and 101, p99 at 198.01 (NumPy's default).
         let s = LatencySummary::of((1..=200).rev());
         assert_eq!(
             (s.count, s.p50_us, s.p99_us, s.max_us),
-            (200, 100, 198, 200)
+            (200, 101, 198, 200)
         );
         assert_eq!(
             LatencySummary::of(std::iter::empty()),

@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use futures::FutureExt;
 use futures::future::BoxFuture;
-use kairos_engine::{ActionChunk, ActionModel, ActionRequest, EngineProfile, ModelSpec};
+use kairos_engine::{ActionModel, ActionRequest, EngineProfile, ModelSpec};
 use kairos_sdk::protocol::{
     EndTask, ErrorCode, ErrorReply, FreshObservation, HorizonSelection, LastExecInfo, Limits,
     Observation, Submit, TaskEnded, TaskOutcome, Tensor,
