@@ -141,22 +141,19 @@ impl EngineInstance for Instant0 {
     fn rtt(&self) -> Duration {
         Duration::ZERO
     }
-    fn run(
-        &self,
-        batch: Vec<ActionRequest>,
-    ) -> BoxFuture<'static, Result<BatchChunks, PoolError>> {
+    fn run(&self, batch: Vec<ActionRequest>) -> BoxFuture<'static, Result<BatchChunks, PoolError>> {
         let s = self.spec.clone();
         let chunks = batch
             .iter()
             .map(|_| {
                 Ok(ActionChunk {
-                samples: 1,
-                steps: s.steps,
-                chunk_len: s.chunk_len,
-                action_dim: s.action_dim,
-                actions: vec![0.0; s.chunk_len * s.action_dim],
-                updates: vec![0.0; s.steps * s.chunk_len * s.action_dim],
-                noise: vec![0.0; s.chunk_len * s.action_dim],
+                    samples: 1,
+                    steps: s.steps,
+                    chunk_len: s.chunk_len,
+                    action_dim: s.action_dim,
+                    actions: vec![0.0; s.chunk_len * s.action_dim],
+                    updates: vec![0.0; s.steps * s.chunk_len * s.action_dim],
+                    noise: vec![0.0; s.chunk_len * s.action_dim],
                 })
             })
             .collect();

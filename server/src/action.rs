@@ -15,10 +15,10 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use kairos_engine::ActionChunk;
 use kairos_sdk::protocol::{ErrorReply, Reply, Tensor, Timing};
 
-use crate::pool::BatchChunks;
 use crate::horizon::{
     ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams, validate_horizon,
 };
+use crate::pool::BatchChunks;
 use crate::registry::{Factory, HorizonRegistry};
 use crate::scheduler::RequestId;
 use crate::validation::RequestError;
@@ -291,7 +291,10 @@ impl ActionManager {
                 let chunk = match chunks.next() {
                     Some(Ok(chunk)) => chunk,
                     Some(Err(error)) => {
-                        return (job.request, Err(ErrorReply::from(&RequestError::Engine(error))));
+                        return (
+                            job.request,
+                            Err(ErrorReply::from(&RequestError::Engine(error))),
+                        );
                     }
                     None => {
                         let error = RequestError::Internal("the engine returned no chunk".into());

@@ -51,10 +51,7 @@ impl EngineInstance for GatedEngine {
     fn rtt(&self) -> Duration {
         Duration::ZERO
     }
-    fn run(
-        &self,
-        batch: Vec<ActionRequest>,
-    ) -> BoxFuture<'static, Result<BatchChunks, PoolError>> {
+    fn run(&self, batch: Vec<ActionRequest>) -> BoxFuture<'static, Result<BatchChunks, PoolError>> {
         let (model, gate) = (self.model.clone(), self.gate.clone());
         let mut batch = batch;
         for request in &mut batch {

@@ -8,7 +8,8 @@ use std::collections::BTreeMap;
 
 use kairos_sdk::protocol::HorizonSelection;
 use kairos_tests::harness::{
-    RecordError, RobotPlan, ServerOptions, TaskLog, TestServer, check_exact_records, compare_records, run_fleet,
+    RecordError, RobotPlan, ServerOptions, TaskLog, TestServer, check_exact_records,
+    compare_records, run_fleet,
 };
 
 const ROBOTS: u64 = 20;

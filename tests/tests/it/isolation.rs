@@ -301,12 +301,7 @@ fn a_decompression_bomb_allocates_no_pixels() {
         None => "a_decompression_bomb_allocates_no_pixels".to_owned(),
     };
     let out = std::process::Command::new(exe)
-        .args([
-            "--exact",
-            name.as_str(),
-            "--nocapture",
-            "--test-threads=1",
-        ])
+        .args(["--exact", name.as_str(), "--nocapture", "--test-threads=1"])
         .env(RSS_CHILD, "1")
         .output()
         .unwrap();
