@@ -8,6 +8,13 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# Wall time of each step, so a slow CI run says where the time went (docs/BENCHMARKS.md, "CI time").
+step_started=$SECONDS
+step_done() {
+    echo "[test.sh] $1: $((SECONDS - step_started)) s"
+    step_started=$SECONDS
+}
+
 bash scripts/install-plugin-toolchains.sh
 # The Python example client's packages (sdk/examples/python), for the cross-language test below.
 PY_TEST_DEPS=(aioquic==1.7.2 msgpack==1.2.4 numpy==2.4.6)
@@ -15,13 +22,17 @@ if ! .venv/bin/python -c "import aioquic, msgpack, numpy" 2>/dev/null; then
     echo "installing ${PY_TEST_DEPS[*]} into .venv (pip)"
     .venv/bin/pip install --quiet --disable-pip-version-check "${PY_TEST_DEPS[@]}"
 fi
+step_done "toolchains and Python packages"
 
 # One build of the whole workspace with the test feature set; the plugins are built with the
 # kairos binary it produced (the integration tests need it), so nothing compiles twice.
 cargo test --workspace --locked --no-run
+step_done "build (cargo test --no-run)"
 KAIROS_BIN=target/debug/kairos bash plugins/build.sh
+step_done "plugins"
 
 # --include-ignored: the one ignored test (the Python client against the Rust responder) is
 # ignored in a plain `cargo test` because it needs the Python packages installed above; here
 # they exist, so it runs, and fails rather than skips.
 KAIROS_PYTHON="$PWD/.venv/bin/python" cargo test --workspace --locked -- --include-ignored
+step_done "tests"
