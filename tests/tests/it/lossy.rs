@@ -95,11 +95,15 @@ async fn every_round_completes_exactly_once_through_loss_reordering_and_rebindin
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_connection_lost_mid_round_resumes_without_a_second_generation() {
-    // A forward pass of 200 ms (emulated by the test model) keeps each round in flight long
-    // enough for the connection to drop, the client to reconnect (50 ms backoff) and re-send.
-    let model = Arc::new(kairos_tests::model::TestFlow::with_latency(
-        Duration::from_millis(200),
-    ));
+    const ROBOTS: u64 = 4;
+    const DROPPED_ROUND: u64 = 2;
+    let tasks: Vec<u64> = (0..ROBOTS).map(|i| 700 + i).collect();
+    // The engine stops at each robot's round 2; the test drops that robot's connection while
+    // the round is generating and only then lets the engine go on. An event, not a guess at
+    // when a round is in flight, so machine load cannot move the drop outside the round.
+    let (gate, mut control) =
+        kairos_tests::model::RoundGate::new(tasks.iter().map(|&task| (task, DROPPED_ROUND)));
+    let model = Arc::new(kairos_tests::model::TestFlow::with_gate(gate));
     let server = TestServer::start_with_model(ServerOptions::default(), model)
         .await
         .unwrap();
@@ -112,55 +116,52 @@ async fn a_connection_lost_mid_round_resumes_without_a_second_generation() {
     let proxy = Proxy::start(server.addr, ProxyConfig::symmetric(link, 7))
         .await
         .unwrap();
-    const DROP_AFTER: u64 = 1;
-    // After round 1 the next request leaves (200 Hz, 6 actions, 3 sent ahead) 15 ms into the
-    // chunk; 40 ms in, that round is generating on the server.
-    let drop_mid_round: Hook = Arc::new(|client, round| {
-        if round == DROP_AFTER {
-            let client = client.clone();
-            tokio::spawn(async move {
-                tokio::time::sleep(Duration::from_millis(40)).await;
-                client.drop_connection().await;
-            });
-        }
-    });
+    let mut clients = std::collections::HashMap::new();
     let mut robots = Vec::new();
-    for i in 0..4u64 {
+    for &task in &tasks {
         let client =
             kairos_sdk::client::Client::connect(server.client_config(proxy.addr(), &server.token))
                 .await
                 .unwrap();
-        let plan = RobotPlan::static_horizon(700 + i, 4, 6);
-        let hook = drop_mid_round.clone();
+        clients.insert(task, client.clone());
+        let plan = RobotPlan::static_horizon(task, 4, 6);
         robots.push(tokio::spawn(async move {
-            let log = run_task(&client, &plan, Some(hook)).await;
+            let log = run_task(&client, &plan, None).await;
             let stats = client.stats();
             client.close().await;
             (log, stats)
         }));
+    }
+    let mut dropped = 0;
+    while dropped < tasks.len() {
+        let in_engine = control.entered.recv().await.expect("the engine reports");
+        for (task, round) in in_engine {
+            assert_eq!(round, DROPPED_ROUND);
+            clients[&task].drop_connection().await;
+            dropped += 1;
+        }
+        control.release.send(()).expect("the engine waits");
     }
     for robot in robots {
         let (log, stats) = robot.await.unwrap();
         let log = log.unwrap();
         assert_eq!(log.rounds.len(), 4);
         assert!(
-            log.rounds[DROP_AFTER as usize + 1].attempts > 1,
-            "task {}: round {} was re-sent on a new connection",
+            log.rounds[DROPPED_ROUND as usize].attempts > 1,
+            "task {}: round {DROPPED_ROUND} was re-sent on a new connection",
             log.task,
-            DROP_AFTER + 1
         );
         assert!(stats.connects >= 2, "task {} reconnected", log.task);
         server.assert_generated_once(log.task, 4).await;
     }
-    // A re-sent round found its first copy queued (withdrawn when the old connection died, then
-    // accepted again), running (attached) or answered (cached reply) — or, when the loss ate the
-    // first copy before it arrived, nothing. Never a second generation: every extra acceptance
-    // is a withdrawal.
+    // Each dropped round was generating when its connection died, so its re-sent copy found the
+    // first one running (attached) or answered (cached reply). Never a second generation: every
+    // extra acceptance (a queued round withdrawn with its connection) is a withdrawal.
     let stats = server.server().driver.stats().await.unwrap();
     assert_eq!(stats.accepted, 16 + stats.cancelled, "{stats:?}");
     assert!(
-        stats.attached + stats.cached_replies + stats.cancelled >= 1,
-        "no re-sent round met its first copy: {stats:?}"
+        stats.attached + stats.cached_replies >= ROBOTS,
+        "a re-sent round did not meet its first copy: {stats:?}"
     );
     println!("driver after the drops: {stats:?}");
     let report = server.shutdown().await;

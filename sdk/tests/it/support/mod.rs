@@ -89,6 +89,8 @@ pub struct Seen {
     pub killed: bool,
     /// Stream codes of rounds the client abandoned: (round, STOP_SENDING code).
     pub cancelled: Vec<(u64, u64)>,
+    /// Notified (one stored permit) when a round is added to `cancelled`.
+    pub cancellation: Arc<tokio::sync::Notify>,
 }
 
 pub struct Responder {
@@ -314,7 +316,9 @@ async fn serve_stream(
                 () = tokio::time::sleep(behavior.generation) => {}
                 stopped = send.stopped() => {
                     if let Ok(Some(code)) = stopped {
-                        seen.lock().unwrap().cancelled.push((submit.round, code.into_inner()));
+                        let mut seen = seen.lock().unwrap();
+                        seen.cancelled.push((submit.round, code.into_inner()));
+                        seen.cancellation.notify_one();
                     }
                     return;
                 }
