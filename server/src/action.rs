@@ -225,9 +225,12 @@ impl ActionManager {
             .and_then(|h| validate_horizon(h, &requested_input));
         let requested_error = match requested {
             Ok(horizon) => {
+                // A plugin that failed internally answered through its own native fallback: the
+                // reply names that policy, not the plugin (PROTOCOL.md §6).
+                let answered_by = round.policy.answered_by();
                 return Ok(HorizonChoice {
                     horizon,
-                    policy: round.policy.name().to_string(),
+                    policy: answered_by.unwrap_or(round.policy.name()).to_string(),
                     fallback_reason: None,
                 });
             }
@@ -470,6 +473,31 @@ mod tests {
             assert!(choice.fallback_reason.is_some());
         }
         assert_eq!(manager.fallback_count(), 3);
+    }
+
+    #[test]
+    fn the_reply_names_the_policy_that_answered_inside_a_plugin() {
+        // A plugin that timed out answers through its own native fallback (`answered_by`): the
+        // reply names the fallback, as PROTOCOL.md §6 says, not the plugin.
+        struct FellBack;
+        impl HorizonPolicy for FellBack {
+            fn name(&self) -> &str {
+                "hloop"
+            }
+            fn choose(&mut self, _: &HorizonInput<'_>) -> Result<usize, HorizonError> {
+                Ok(2)
+            }
+            fn answered_by(&self) -> Option<&str> {
+                Some("threshold")
+            }
+        }
+        let manager = manager();
+        let mut round = RoundPolicy {
+            policy: Box::new(FellBack),
+            params: PolicyParams::new(),
+        };
+        let choice = manager.choose(&mut round, &chunk(1), context()).unwrap();
+        assert_eq!((choice.horizon, choice.policy.as_str()), (2, "threshold"));
     }
 
     #[test]

@@ -131,6 +131,14 @@ pub trait HorizonPolicy: Send {
 
     /// Choose the horizon `H` for this round, `h_min <= H <= h_max`.
     fn choose(&mut self, input: &HorizonInput<'_>) -> Result<usize, HorizonError>;
+
+    /// The policy that produced the last successful [`choose`](Self::choose), when it was not this
+    /// policy's own logic: a plugin whose call failed (timeout, trap, quarantine) answers through
+    /// its native fallback, and the reply must name the policy that really chose `H`
+    /// (`docs/PROTOCOL.md` §6). `None`: this policy answered itself.
+    fn answered_by(&self) -> Option<&str> {
+        None
+    }
 }
 
 /// Checks that a policy's answer can be executed: `h_min <= horizon <= h_max`.

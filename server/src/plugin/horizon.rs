@@ -274,6 +274,7 @@ impl HorizonPlugin {
             plugin: self.clone(),
             fallback,
             params: Default::default(),
+            fell_back: false,
         }
     }
 
@@ -342,6 +343,8 @@ pub struct WasmHorizonPolicy {
     fallback: Box<dyn HorizonPolicy>,
     /// The last parameters, converted once and reused while they stay the same.
     params: (PolicyParams, Vec<(String, f64)>),
+    /// Whether the last decision was the fallback's (see [`HorizonPolicy::answered_by`]).
+    fell_back: bool,
 }
 
 impl WasmHorizonPolicy {
@@ -419,6 +422,7 @@ impl WasmHorizonPolicy {
     }
 
     fn fall_back(&mut self, input: &HorizonInput<'_>) -> Result<usize, HorizonError> {
+        self.fell_back = true;
         match self
             .fallback
             .choose(input)
@@ -436,7 +440,12 @@ impl HorizonPolicy for WasmHorizonPolicy {
         &self.name
     }
 
+    fn answered_by(&self) -> Option<&str> {
+        self.fell_back.then(|| self.fallback.name())
+    }
+
     fn choose(&mut self, input: &HorizonInput<'_>) -> Result<usize, HorizonError> {
+        self.fell_back = false;
         if !input.chunk.is_consistent() {
             // Not the plugin's fault, and the WIT promises consistent buffers: no call.
             return self.fall_back(input);
@@ -509,6 +518,7 @@ mod tests {
             params: &params,
         };
         assert_eq!(policy.choose(&input), Ok(3), "the fallback answers");
+        assert_eq!(policy.answered_by(), Some("static"), "and is named as such");
         let stats = policy.stats();
         assert_eq!(
             (stats.failures_of(FailureKind::Stuck), stats.fallbacks),
@@ -516,6 +526,7 @@ mod tests {
         );
         let answer = policy.choose(&input);
         assert_eq!(policy.stats().answered, 1, "the replacement thread answers");
+        assert_eq!(policy.answered_by(), None, "the plugin answered itself");
         let mut native = crate::horizon::builtin("threshold", &params).unwrap();
         assert_eq!(
             answer,
