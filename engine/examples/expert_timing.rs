@@ -20,6 +20,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut prefix_len = 177usize;
     let mut args = std::env::args().skip(1);
     while let Some(flag) = args.next() {
+        if flag == "--help" || flag == "-h" {
+            println!(
+                "Times the SmolVLA expert's denoise loop with seeded random weights.\n\n\
+                 Usage: expert_timing [--batch 1,4,16] [--iters 5] [--threads 2] \
+                 [--kernels fast|portable|candle] [--prefix 177]"
+            );
+            return Ok(());
+        }
         let value = args.next().ok_or_else(|| format!("{flag} needs a value"))?;
         match flag.as_str() {
             "--batch" => batches = value.split(',').map(str::parse).collect::<Result<_, _>>()?,

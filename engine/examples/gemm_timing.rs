@@ -10,6 +10,13 @@ use kairos_engine::kernels::gemm::gemm;
 use kairos_engine::kernels::{Init, Isa, PackedMatrix};
 
 fn main() {
+    if std::env::args().any(|a| a == "--help" || a == "-h") {
+        println!(
+            "GEMM throughput of the fast kernels on the SmolVLA expert's shapes vs this core's FMA peak.\n\n\
+             Usage: gemm_timing [M]   (rows of the activation matrix, default 50)"
+        );
+        return;
+    }
     let args: Vec<usize> = std::env::args()
         .skip(1)
         .filter_map(|a| a.parse().ok())

@@ -4,6 +4,7 @@
 //! several saves a link and a compile of the shared code per module (see "CI time" in
 //! docs/BENCHMARKS.md). A new integration test is a new module here, not a new file in `tests/`.
 
+mod examples_help;
 mod loader_errors;
 mod models;
 mod smolvla_parity;
