@@ -22,6 +22,12 @@ if ! .venv/bin/python -c "import aioquic, msgpack, numpy" 2>/dev/null; then
     echo "installing ${PY_TEST_DEPS[*]} into .venv (pip)"
     .venv/bin/pip install --quiet --disable-pip-version-check "${PY_TEST_DEPS[@]}"
 fi
+# The real openpi-client from PyPI, for the openpi endpoint's tests (tests/tests/it/openpi.rs), in
+# a venv of its own: it needs numpy<2, and it imports typing_extensions without declaring it.
+OPENPI_DEPS=(openpi-client==0.1.2 numpy==1.26.4 websockets==17.4 msgpack==1.2.4 pillow==13.0.0 dm-tree==0.1.10 typing_extensions==4.16.0)
+if ! .venv-openpi/bin/python -c "import openpi_client.websocket_client_policy" 2>/dev/null; then
+    python3 -m venv .venv-openpi && .venv-openpi/bin/pip install --quiet --disable-pip-version-check "${OPENPI_DEPS[@]}"
+fi
 step_done "toolchains and Python packages"
 
 # One build of the whole workspace with the test feature set; the plugins are built with the
@@ -34,5 +40,5 @@ step_done "plugins"
 # --include-ignored: the one ignored test (the Python client against the Rust responder) is
 # ignored in a plain `cargo test` because it needs the Python packages installed above; here
 # they exist, so it runs, and fails rather than skips.
-KAIROS_PYTHON="$PWD/.venv/bin/python" cargo test --workspace --locked -- --include-ignored
+KAIROS_PYTHON="$PWD/.venv/bin/python" KAIROS_OPENPI_PYTHON="$PWD/.venv-openpi/bin/python" cargo test --workspace --locked -- --include-ignored
 step_done "tests"

@@ -96,6 +96,8 @@ pub struct Config {
     /// (horizon) or `[scheduler] policy` (priority) select it by.
     #[serde(rename = "plugin")]
     pub plugins: Vec<PluginConfig>,
+    /// The openpi-compatible websocket endpoint (off unless `listen` is set).
+    pub openpi: OpenpiConfig,
 }
 
 impl Default for Config {
@@ -113,6 +115,7 @@ impl Default for Config {
             limits: Limits::default(),
             connections: ConnectionsConfig::default(),
             plugins: Vec::new(),
+            openpi: OpenpiConfig::default(),
         }
     }
 }
@@ -372,6 +375,49 @@ impl ConnectionsConfig {
     }
 }
 
+/// `[openpi]`: a websocket endpoint that speaks openpi's policy-server protocol, so that an
+/// unmodified `openpi-client` (`WebsocketClientPolicy`) is served by this server's scheduler and
+/// engines (docs/SERVER.md, "openpi endpoint").
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OpenpiConfig {
+    /// TCP address of the websocket endpoint; absent = no endpoint.
+    pub listen: Option<SocketAddr>,
+    /// Observation keys of the model's cameras, in the model's camera order. Keys absent from a
+    /// request are skipped.
+    pub cameras: Vec<String>,
+    /// Observation keys whose values, flattened and concatenated in this order, are the state.
+    pub state: Vec<String>,
+    /// Observation key of the instruction text (empty when absent).
+    pub prompt: String,
+    /// Horizon policy of openpi rounds; absent = `static` with `h` = the model's chunk length,
+    /// so the reply holds the whole chunk, as openpi clients expect (they choose how many
+    /// actions to execute themselves).
+    pub horizon: Option<String>,
+    /// Its parameters.
+    pub horizon_params: BTreeMap<String, f64>,
+    /// The robots' control rate, in Hz, reported to the scheduler; absent = estimated from the
+    /// interval between a reply and the next request (`openpi::exec`).
+    pub control_hz: Option<f32>,
+}
+
+impl Default for OpenpiConfig {
+    fn default() -> Self {
+        OpenpiConfig {
+            listen: None,
+            cameras: vec![
+                "observation/image".into(),
+                "observation/wrist_image".into(),
+            ],
+            state: vec!["observation/state".into()],
+            prompt: "prompt".into(),
+            horizon: None,
+            horizon_params: BTreeMap::new(),
+            control_hz: None,
+        }
+    }
+}
+
 /// Deserialises `[limits]` into the protocol's [`Limits`] (announced to clients in `Welcome`),
 /// refusing keys it does not have: on the wire unknown keys are tolerated for forward
 /// compatibility, but in a config file they are typos.
@@ -516,6 +562,26 @@ impl Config {
             return Err(invalid(
                 format!("horizon.params.{name}"),
                 "must be finite".into(),
+            ));
+        }
+        if let Some((name, _)) = self.openpi.horizon_params.iter().find(|(_, v)| !v.is_finite()) {
+            return Err(invalid(
+                format!("openpi.horizon_params.{name}"),
+                "must be finite".into(),
+            ));
+        }
+        if let Some(hz) = self.openpi.control_hz
+            && !(hz.is_finite() && hz > 0.0)
+        {
+            return Err(invalid(
+                "openpi.control_hz".into(),
+                "must be a finite number > 0".into(),
+            ));
+        }
+        if self.openpi.state.is_empty() {
+            return Err(invalid(
+                "openpi.state".into(),
+                "name at least one observation key".into(),
             ));
         }
         let mut plugin_names = HashSet::new();
@@ -782,6 +848,37 @@ mod tests {
             "the example lists the defaults"
         );
         assert_eq!(config.connections, ConnectionsConfig::default());
+        assert_eq!(config.openpi.listen, Some("127.0.0.1:8000".parse().unwrap()));
+        assert_eq!(
+            OpenpiConfig {
+                listen: None,
+                ..config.openpi
+            },
+            OpenpiConfig::default(),
+            "the example lists the defaults"
+        );
+    }
+
+    #[test]
+    fn openpi_section_is_checked() {
+        let c = Config::parse(
+            "[openpi]\nlisten = \"0.0.0.0:8000\"\nstate = [\"a\", \"b\"]\ncontrol_hz = 15.0\n",
+            Path::new("k.toml"),
+        )
+        .unwrap();
+        assert_eq!(c.openpi.state, ["a", "b"]);
+        assert_eq!(c.openpi.control_hz, Some(15.0));
+        assert_eq!(Config::default().openpi.listen, None, "off by default");
+        for (bad, key) in [
+            ("[openpi]\ncontrol_hz = 0.0\n", "openpi.control_hz"),
+            ("[openpi]\nstate = []\n", "openpi.state"),
+            ("[openpi]\nhorizon_params = { h = nan }\n", "openpi.horizon_params.h"),
+        ] {
+            let err = Config::parse(bad, Path::new("k.toml")).unwrap_err().to_string();
+            assert!(err.contains(key), "{bad}: {err}");
+        }
+        let err = Config::parse("[openpi]\nlisten_on = 1\n", Path::new("k.toml")).unwrap_err();
+        assert!(err.to_string().contains("listen_on"), "{err}");
     }
 
     #[test]

@@ -12,6 +12,7 @@ pub mod fleet;
 pub mod horizon;
 pub mod lifecycle;
 pub mod live_replay;
+pub mod openpi;
 pub mod plot;
 pub mod plugin;
 pub mod pool;

@@ -26,6 +26,10 @@ pub struct ServeArgs {
     /// Listen address, overriding the file's `listen`.
     #[arg(long)]
     pub listen: Option<std::net::SocketAddr>,
+    /// Also serve openpi clients (`openpi-client`'s `WebsocketClientPolicy`) on this TCP
+    /// address, overriding the file's `[openpi] listen` (docs/SERVER.md, "openpi endpoint").
+    #[arg(long, value_name = "ADDR")]
+    pub openpi_listen: Option<std::net::SocketAddr>,
     /// Data directory, overriding the file's `data_dir`.
     #[arg(long)]
     pub data_dir: Option<PathBuf>,
@@ -70,6 +74,9 @@ pub fn config(args: &ServeArgs) -> anyhow::Result<Config> {
     };
     if let Some(listen) = args.listen {
         config.listen = listen;
+    }
+    if let Some(addr) = args.openpi_listen {
+        config.openpi.listen = Some(addr);
     }
     if let Some(dir) = &args.data_dir {
         config.data_dir = dir.clone();
@@ -237,6 +244,9 @@ fn print_banner(config: &Config, server: &RunningServer) {
         "  listening on   {} (QUIC, TLS 1.3, ALPN kairos/1)",
         server.local_addr
     );
+    if let Some(addr) = server.openpi_addr {
+        println!("  openpi         ws://{addr} (openpi-client; Api-Key = a robot token)");
+    }
     println!(
         "  certificate    {}{}",
         server.fingerprint,
@@ -294,6 +304,13 @@ mod tests {
         .unwrap();
         assert_eq!(overridden.listen.port(), 6000);
         assert_eq!(overridden.data_dir, PathBuf::from("/tmp/x"));
+        assert_eq!(overridden.openpi.listen, None);
+        let openpi = config(&ServeArgs {
+            openpi_listen: Some("127.0.0.1:8000".parse().unwrap()),
+            ..ServeArgs::default()
+        })
+        .unwrap();
+        assert_eq!(openpi.openpi.listen, Some("127.0.0.1:8000".parse().unwrap()));
         assert_eq!(config(&ServeArgs::default()).unwrap(), Config::default());
         let missing = config(&ServeArgs {
             config: Some(dir.path().join("nope.toml")),

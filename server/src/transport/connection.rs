@@ -253,16 +253,10 @@ async fn round(
 ) -> Result<(), RequestError> {
     let clock = peer.clock(context, submit.sent_at_us, submit.attempt == 0);
     let (task, round) = (submit.task, submit.round);
-    let valid = context
-        .validator
-        .submit(submit, peer.robot, &context.actions, clock)?;
-    let valid = context.validator.decode_submit(valid).await?;
     let (link, mut asks) = mpsc::channel::<RefetchAsk>(1);
     let mut pending = context
-        .driver
-        .submit(valid, received, link)
-        .await
-        .map_err(|_| RequestError::ShuttingDown)?;
+        .admit(submit, peer.robot, clock, received, link)
+        .await?;
     let stopped = send.stopped();
     tokio::pin!(stopped);
     let answer = loop {

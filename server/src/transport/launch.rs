@@ -53,6 +53,14 @@ pub enum LaunchError {
         /// The limit.
         limit: u32,
     },
+    /// The openpi endpoint's TCP socket could not be bound.
+    #[error("cannot listen for openpi clients on {addr}: {source}")]
+    OpenpiBind {
+        /// The address.
+        addr: SocketAddr,
+        /// The error.
+        source: std::io::Error,
+    },
     /// The UDP socket could not be bound.
     #[error("cannot listen on {addr}: {source}")]
     Bind {
@@ -76,6 +84,8 @@ pub struct Policies {
 pub struct RunningServer {
     /// The address it listens on.
     pub local_addr: SocketAddr,
+    /// The openpi websocket endpoint's address, when `[openpi] listen` is set.
+    pub openpi_addr: Option<SocketAddr>,
     /// Its certificate (leaf), for clients that pin it.
     pub certificate: CertificateDer<'static>,
     /// `sha256:<hex>` of the certificate.
@@ -99,6 +109,8 @@ pub struct ServerReport {
     pub transport: TransportStats,
     /// Rounds.
     pub driver: DriverStats,
+    /// The openpi endpoint's connections.
+    pub openpi: crate::openpi::OpenpiStats,
 }
 
 impl RunningServer {
@@ -181,6 +193,16 @@ pub async fn start(
         source,
     })?;
 
+    let (openpi_listener, openpi_addr) = match config.openpi.listen {
+        Some(addr) => {
+            let bind_error = |source| LaunchError::OpenpiBind { addr, source };
+            let listener = crate::openpi::bind(addr).await.map_err(bind_error)?;
+            let local = listener.local_addr().map_err(bind_error)?;
+            (Some(listener), Some(local))
+        }
+        None => (None, None),
+    };
+
     let (stop, stop_rx) = watch::channel(false);
     let stopped = |mut rx: watch::Receiver<bool>| async move {
         let _ = rx.wait_for(|stop| *stop).await;
@@ -211,13 +233,30 @@ pub async fn start(
         model: model.clone(),
         connections: config.connections.clone(),
     });
+    let openpi_task = openpi_listener.map(|listener| {
+        tokio::spawn(crate::openpi::run(
+            listener,
+            context.clone(),
+            Arc::new(config.openpi.clone()),
+            stop_rx.clone(),
+        ))
+    });
     let task = tokio::spawn(async move {
         let transport = super::run(endpoint, context, stopped(stop_rx)).await;
+        let openpi = match openpi_task {
+            Some(task) => task.await.unwrap_or_default(),
+            None => crate::openpi::OpenpiStats::default(),
+        };
         let driver = driver_task.await.unwrap_or_default();
-        ServerReport { transport, driver }
+        ServerReport {
+            transport,
+            driver,
+            openpi,
+        }
     });
     Ok(RunningServer {
         local_addr,
+        openpi_addr,
         certificate: identity.cert_chain[0].clone(),
         fingerprint: identity.fingerprint.clone(),
         generated_certificate: identity.generated,

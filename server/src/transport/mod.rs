@@ -19,6 +19,7 @@
 //! streams, the driver answers what it has accepted, the stream tasks write those answers, and
 //! the connections are closed with `SHUTTING_DOWN`.
 
+mod admit;
 mod connection;
 pub mod launch;
 pub mod tls;

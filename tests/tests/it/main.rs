@@ -13,6 +13,7 @@ mod e2e;
 mod isolation;
 mod lossy;
 mod malformed;
+mod openpi;
 mod plugins_served;
 mod sim_runner_agreement;
 mod sim_vs_live;

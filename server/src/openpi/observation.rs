@@ -1,0 +1,221 @@
+//! openpi observation dicts → the protocol's [`Observation`], through the configured key map.
+//!
+//! Only the mapping happens here; every check against the served model (state length, image
+//! count, image sizes, finite numbers) is the [`Validator`](crate::validation::Validator)'s, the
+//! same one QUIC rounds go through.
+
+use kairos_sdk::protocol::{DType as WireDType, Image, ImagePayload, Observation, Tensor};
+
+use super::msgpack::{NdArray, Value, numbers};
+use crate::config::OpenpiConfig;
+use crate::validation::RequestError;
+
+fn field_error(field: &str, reason: impl std::fmt::Display) -> RequestError {
+    RequestError::Observation {
+        field: field.to_string(),
+        reason: reason.to_string(),
+    }
+}
+
+/// Builds the observation of one openpi request `dict`, captured at `captured_at_us`.
+///
+/// - `state`: the arrays under `config.state`, in order, flattened and concatenated to `f32`;
+///   every key must be present.
+/// - `images`: the arrays under `config.cameras` that are present, in that order, as raw
+///   `[height, width, channels]` images (`uint8` stays `u8`, any other numeric dtype becomes
+///   `f32`); a `[channels, height, width]` array (channels 1 or 3, openpi's ALOHA layout) is
+///   transposed.
+/// - `instruction`: the text under `config.prompt`, empty when absent.
+///
+/// Other keys are ignored.
+pub fn observation(
+    dict: &Value<'_>,
+    config: &OpenpiConfig,
+    captured_at_us: u64,
+) -> Result<Observation, RequestError> {
+    if !matches!(dict, Value::Map(_)) {
+        return Err(RequestError::Invalid {
+            field: "observation".into(),
+            reason: format!("expected a msgpack map (a dict), got a {}", dict.kind()),
+        });
+    }
+    let mut state = Vec::new();
+    for key in &config.state {
+        let value = dict
+            .get(key)
+            .ok_or_else(|| field_error(key, "missing (the key map's `state`)"))?;
+        state.extend(numbers(value).map_err(|e| field_error(key, e))?);
+    }
+    let state = Tensor::from_f32(vec![u32::try_from(state.len()).unwrap_or(u32::MAX)], &state)
+        .map_err(|e| field_error("state", e))?;
+    let mut images = Vec::new();
+    for key in &config.cameras {
+        if let Some(value) = dict.get(key) {
+            let array = NdArray::from_value(value).map_err(|e| field_error(key, e))?;
+            images.push(Image {
+                camera: key.clone(),
+                payload: ImagePayload::Raw {
+                    tensor: image_tensor(&array).map_err(|e| field_error(key, e))?,
+                },
+            });
+        }
+    }
+    let instruction = match dict.get(&config.prompt) {
+        None | Some(Value::Nil) => String::new(),
+        Some(value) => prompt_text(value)
+            .ok_or_else(|| field_error(&config.prompt, "expected a string"))?
+            .to_string(),
+    };
+    Ok(Observation {
+        captured_at_us,
+        state,
+        images,
+        instruction,
+    })
+}
+
+/// A prompt: a string, UTF-8 bytes, or a numpy string scalar (`np.str_`).
+fn prompt_text<'a>(value: &Value<'a>) -> Option<&'a str> {
+    if value.get("__npgeneric__").is_some() {
+        return value.get("data").and_then(Value::as_text);
+    }
+    value.as_text()
+}
+
+fn image_tensor(array: &NdArray<'_>) -> Result<Tensor, String> {
+    let &[a, b, c] = array.shape.as_slice() else {
+        return Err(format!(
+            "an image is [height, width, channels] (or [channels, height, width]), got shape {:?}",
+            array.shape
+        ));
+    };
+    // [C, H, W] with few channels first and many last: transpose to [H, W, C].
+    let chw = matches!(a, 1 | 3) && !matches!(c, 1 | 3 | 4);
+    let (height, width, channels) = if chw { (b, c, a) } else { (a, b, c) };
+    let dims = [height, width, channels].map(|d| u32::try_from(d).unwrap_or(u32::MAX));
+    // For a [C, H, W] source, the source index of each [H, W, C] output position, in order.
+    let order: Option<Vec<usize>> = chw.then(|| {
+        (0..height * width * channels)
+            .map(|i| (i % channels) * height * width + i / channels)
+            .collect()
+    });
+    if array.dtype.kind == 'u' && array.dtype.size == 1 {
+        let data = match &order {
+            Some(order) => order.iter().map(|&i| array.data[i]).collect(),
+            None => array.data.to_vec(),
+        };
+        return Ok(Tensor {
+            dtype: WireDType::U8,
+            shape: dims.to_vec(),
+            data,
+        });
+    }
+    let values = array.to_f32();
+    let values: Vec<f32> = match &order {
+        Some(order) => order.iter().map(|&i| values[i]).collect(),
+        None => values,
+    };
+    let mut data = Vec::with_capacity(values.len() * 4);
+    for v in values {
+        data.extend_from_slice(&v.to_le_bytes());
+    }
+    Ok(Tensor {
+        dtype: WireDType::F32,
+        shape: dims.to_vec(),
+        data,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::openpi::msgpack::{Writer, decode};
+
+    fn libero_like(state: &[f32], image: (&[usize], &[u8])) -> Vec<u8> {
+        let mut w = Writer::new();
+        w.map(4);
+        w.str("observation/state").ndarray_f32(&[state.len()], state);
+        w.str("observation/image")
+            .ndarray_raw(image.0, "|u1", image.1);
+        w.str("prompt").str("pick up the cup");
+        w.str("extra").uint(1);
+        w.finish()
+    }
+
+    #[test]
+    fn maps_the_default_keys_to_state_images_and_instruction() {
+        let pixels: Vec<u8> = (0..2 * 2 * 3).collect();
+        let frame = libero_like(&[0.5, -1.0], (&[2, 2, 3], &pixels));
+        let config = OpenpiConfig::default();
+        let obs = observation(&decode(&frame, 1000).unwrap(), &config, 7).unwrap();
+        assert_eq!(obs.captured_at_us, 7);
+        assert_eq!(obs.state.to_f32().unwrap(), [0.5, -1.0]);
+        assert_eq!(obs.instruction, "pick up the cup");
+        assert_eq!(obs.images.len(), 1, "the absent wrist camera is skipped");
+        assert_eq!(obs.images[0].camera, "observation/image");
+        match &obs.images[0].payload {
+            ImagePayload::Raw { tensor } => {
+                assert_eq!(tensor.shape, [2, 2, 3]);
+                assert_eq!(tensor.dtype, WireDType::U8);
+                assert_eq!(tensor.data, pixels);
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn channel_first_images_are_transposed() {
+        // [C=3, H=1, W=2]: channel planes [0 1], [10 11], [20 21].
+        let frame = libero_like(&[0.0], (&[3, 1, 2], &[0, 1, 10, 11, 20, 21]));
+        let obs = observation(
+            &decode(&frame, 1000).unwrap(),
+            &OpenpiConfig::default(),
+            0,
+        )
+        .unwrap();
+        let ImagePayload::Raw { tensor } = &obs.images[0].payload else {
+            panic!("raw image expected")
+        };
+        assert_eq!(tensor.shape, [1, 2, 3]);
+        assert_eq!(tensor.data, [0, 10, 20, 1, 11, 21]);
+    }
+
+    #[test]
+    fn several_state_keys_concatenate_and_missing_ones_are_named() {
+        let mut w = Writer::new();
+        w.map(2);
+        w.str("joints").ndarray_f32(&[3], &[1.0, 2.0, 3.0]);
+        w.str("gripper").float(0.5);
+        let frame = w.finish();
+        let config = OpenpiConfig {
+            state: vec!["joints".into(), "gripper".into()],
+            ..OpenpiConfig::default()
+        };
+        let dict = decode(&frame, 100).unwrap();
+        let obs = observation(&dict, &config, 0).unwrap();
+        assert_eq!(obs.state.to_f32().unwrap(), [1.0, 2.0, 3.0, 0.5]);
+        assert_eq!(obs.instruction, "");
+        let missing = observation(&dict, &OpenpiConfig::default(), 0).unwrap_err();
+        assert!(
+            missing.to_string().contains("observation/state: missing"),
+            "{missing}"
+        );
+    }
+
+    #[test]
+    fn wrong_shapes_and_types_are_refused_with_the_key() {
+        let frame = libero_like(&[0.0], (&[4, 3], &[0; 12]));
+        let error = observation(
+            &decode(&frame, 100).unwrap(),
+            &OpenpiConfig::default(),
+            0,
+        )
+        .unwrap_err();
+        assert!(
+            error.to_string().contains("observation/image") && error.to_string().contains("[4, 3]"),
+            "{error}"
+        );
+        let error = observation(&Value::UInt(3), &OpenpiConfig::default(), 0).unwrap_err();
+        assert!(error.to_string().contains("expected a msgpack map"), "{error}");
+    }
+}

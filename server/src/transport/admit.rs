@@ -1,0 +1,34 @@
+//! The one path a round request takes into the driver, whatever transport brought it (a QUIC
+//! stream, an openpi websocket): the validator's checks against the model and limits, image
+//! decoding on the bounded decode pool, then [`DriverHandle::submit`](crate::driver::DriverHandle::submit).
+
+use kairos_sdk::protocol::Submit;
+use tokio::sync::mpsc;
+
+use super::ServerContext;
+use crate::driver::{PendingRound, RefetchAsk};
+use crate::scheduler::RobotId;
+use crate::time::Timestamp;
+use crate::validation::{ClockMap, RequestError};
+
+impl ServerContext {
+    /// Validates `submit` from `robot`, decodes its images and hands it to the driver.
+    /// `received` is when it was read on the driver's clock; re-fetch asks for it go to `link`
+    /// (a link whose receiver is dropped means "this client cannot be asked": the driver then
+    /// uses the queued observation at once).
+    pub async fn admit(
+        &self,
+        submit: Submit,
+        robot: RobotId,
+        clock: ClockMap,
+        received: Timestamp,
+        link: mpsc::Sender<RefetchAsk>,
+    ) -> Result<PendingRound, RequestError> {
+        let valid = self.validator.submit(submit, robot, &self.actions, clock)?;
+        let valid = self.validator.decode_submit(valid).await?;
+        self.driver
+            .submit(valid, received, link)
+            .await
+            .map_err(|_| RequestError::ShuttingDown)
+    }
+}
