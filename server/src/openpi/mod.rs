@@ -273,6 +273,27 @@ impl From<ErrorReply> for End {
     }
 }
 
+/// How long a refused connection waits for the client's side of the close.
+const LINGER: Duration = Duration::from_secs(1);
+
+/// After the server's close frame: waits (up to [`LINGER`]) for the client's close, so that
+/// closing the socket does not reset a client that is still sending (the kernel answers unread
+/// data with a reset, which the client would see instead of the error text). After a message
+/// over the limit the websocket layer cannot parse the rest of it, so the raw bytes are read and
+/// discarded instead.
+async fn linger(ws: &mut Ws, raw: bool) {
+    use tokio::io::AsyncReadExt;
+    let drain = async {
+        if raw {
+            let mut buf = vec![0u8; 64 << 10];
+            while let Ok(1..) = ws.get_mut().read(&mut buf).await {}
+        } else {
+            while let Some(Ok(_)) = ws.next().await {}
+        }
+    };
+    let _ = tokio::time::timeout(LINGER, drain).await;
+}
+
 /// One openpi connection: one task.
 struct Session {
     context: Arc<ServerContext>,
@@ -345,6 +366,7 @@ impl Session {
                         reason: "request refused; the reason is in the previous message".into(),
                     }))
                     .await;
+                linger(&mut ws, code == CloseCode::Size).await;
             }
         }
         self.end_task(failed).await;
