@@ -405,10 +405,7 @@ impl Default for OpenpiConfig {
     fn default() -> Self {
         OpenpiConfig {
             listen: None,
-            cameras: vec![
-                "observation/image".into(),
-                "observation/wrist_image".into(),
-            ],
+            cameras: vec!["observation/image".into(), "observation/wrist_image".into()],
             state: vec!["observation/state".into()],
             prompt: "prompt".into(),
             horizon: None,
@@ -564,7 +561,12 @@ impl Config {
                 "must be finite".into(),
             ));
         }
-        if let Some((name, _)) = self.openpi.horizon_params.iter().find(|(_, v)| !v.is_finite()) {
+        if let Some((name, _)) = self
+            .openpi
+            .horizon_params
+            .iter()
+            .find(|(_, v)| !v.is_finite())
+        {
             return Err(invalid(
                 format!("openpi.horizon_params.{name}"),
                 "must be finite".into(),
@@ -848,7 +850,10 @@ mod tests {
             "the example lists the defaults"
         );
         assert_eq!(config.connections, ConnectionsConfig::default());
-        assert_eq!(config.openpi.listen, Some("127.0.0.1:8000".parse().unwrap()));
+        assert_eq!(
+            config.openpi.listen,
+            Some("127.0.0.1:8000".parse().unwrap())
+        );
         assert_eq!(
             OpenpiConfig {
                 listen: None,
@@ -872,9 +877,14 @@ mod tests {
         for (bad, key) in [
             ("[openpi]\ncontrol_hz = 0.0\n", "openpi.control_hz"),
             ("[openpi]\nstate = []\n", "openpi.state"),
-            ("[openpi]\nhorizon_params = { h = nan }\n", "openpi.horizon_params.h"),
+            (
+                "[openpi]\nhorizon_params = { h = nan }\n",
+                "openpi.horizon_params.h",
+            ),
         ] {
-            let err = Config::parse(bad, Path::new("k.toml")).unwrap_err().to_string();
+            let err = Config::parse(bad, Path::new("k.toml"))
+                .unwrap_err()
+                .to_string();
             assert!(err.contains(key), "{bad}: {err}");
         }
         let err = Config::parse("[openpi]\nlisten_on = 1\n", Path::new("k.toml")).unwrap_err();

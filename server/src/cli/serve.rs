@@ -153,8 +153,9 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         }
     }))?;
     println!(
-        "stopped: {} connections, {} rounds answered ({} from the reply cache), {} failed, {} tasks ended",
-        report.transport.admitted,
+        "stopped: {} connections ({} openpi), {} rounds answered ({} from the reply cache), {} failed, {} tasks ended",
+        report.transport.admitted + report.openpi.connections,
+        report.openpi.connections,
         report.driver.replies,
         report.driver.cached_replies,
         report.driver.failed,
@@ -310,7 +311,10 @@ mod tests {
             ..ServeArgs::default()
         })
         .unwrap();
-        assert_eq!(openpi.openpi.listen, Some("127.0.0.1:8000".parse().unwrap()));
+        assert_eq!(
+            openpi.openpi.listen,
+            Some("127.0.0.1:8000".parse().unwrap())
+        );
         assert_eq!(config(&ServeArgs::default()).unwrap(), Config::default());
         let missing = config(&ServeArgs {
             config: Some(dir.path().join("nope.toml")),

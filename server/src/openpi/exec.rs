@@ -97,7 +97,11 @@ mod tests {
     #[test]
     fn the_interval_between_reply_and_request_is_the_execution() {
         let mut exec = ExecEstimate::new(None);
-        assert_eq!(exec.on_request(at_ms(0)), None, "nothing before the first reply");
+        assert_eq!(
+            exec.on_request(at_ms(0)),
+            None,
+            "nothing before the first reply"
+        );
         assert_eq!(exec.on_close(), None);
         exec.on_reply(at_ms(100), 10);
         // Ten actions, the next call 200 ms after the reply: 50 Hz.

@@ -173,6 +173,8 @@ async fn connection(
         .max_message_size(Some(max))
         .max_frame_size(Some(max));
     let mut robot = None;
+    // The signature is tungstenite's `Callback`; its error is the HTTP response to send.
+    #[allow(clippy::result_large_err)]
     let callback = |request: &Request, response: Response| -> Result<Response, ErrorResponse> {
         match authorize(request, &context) {
             Ok(id) => {
@@ -428,8 +430,7 @@ impl Session {
                     reason: e.to_string(),
                 })
             })?;
-            observation::observation(&dict, &self.config, at_us)
-                .map_err(|e| End::refused(&e))?
+            observation::observation(&dict, &self.config, at_us).map_err(|e| End::refused(&e))?
         };
         let round = self.next_round;
         let submit = Submit {

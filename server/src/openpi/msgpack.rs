@@ -589,7 +589,8 @@ mod tests {
     fn round_trips_what_the_writer_writes() {
         let mut w = Writer::new();
         w.map(3);
-        w.str("actions").ndarray_f32(&[2, 2], &[1.0, -2.0, 0.5, 3.0]);
+        w.str("actions")
+            .ndarray_f32(&[2, 2], &[1.0, -2.0, 0.5, 3.0]);
         w.str("name").str(&"x".repeat(40));
         w.str("n").uint(300);
         let frame = w.finish();
@@ -652,7 +653,10 @@ mod tests {
         ));
         assert_eq!(decode(b"\x92\x01", 10), Err(DecodeError::Truncated(2)));
         assert_eq!(decode(b"\x01\x02", 10), Err(DecodeError::Trailing(1)));
-        assert!(matches!(decode(b"\xa2\xff\xfe", 10), Err(DecodeError::NotUtf8(_))));
+        assert!(matches!(
+            decode(b"\xa2\xff\xfe", 10),
+            Err(DecodeError::NotUtf8(_))
+        ));
         // An array that claims four billion items in a five-byte frame allocates nothing.
         assert!(matches!(
             decode(b"\xdd\xff\xff\xff\xff", 10),

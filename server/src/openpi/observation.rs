@@ -134,7 +134,8 @@ mod tests {
     fn libero_like(state: &[f32], image: (&[usize], &[u8])) -> Vec<u8> {
         let mut w = Writer::new();
         w.map(4);
-        w.str("observation/state").ndarray_f32(&[state.len()], state);
+        w.str("observation/state")
+            .ndarray_f32(&[state.len()], state);
         w.str("observation/image")
             .ndarray_raw(image.0, "|u1", image.1);
         w.str("prompt").str("pick up the cup");
@@ -167,12 +168,7 @@ mod tests {
     fn channel_first_images_are_transposed() {
         // [C=3, H=1, W=2]: channel planes [0 1], [10 11], [20 21].
         let frame = libero_like(&[0.0], (&[3, 1, 2], &[0, 1, 10, 11, 20, 21]));
-        let obs = observation(
-            &decode(&frame, 1000).unwrap(),
-            &OpenpiConfig::default(),
-            0,
-        )
-        .unwrap();
+        let obs = observation(&decode(&frame, 1000).unwrap(), &OpenpiConfig::default(), 0).unwrap();
         let ImagePayload::Raw { tensor } = &obs.images[0].payload else {
             panic!("raw image expected")
         };
@@ -205,17 +201,16 @@ mod tests {
     #[test]
     fn wrong_shapes_and_types_are_refused_with_the_key() {
         let frame = libero_like(&[0.0], (&[4, 3], &[0; 12]));
-        let error = observation(
-            &decode(&frame, 100).unwrap(),
-            &OpenpiConfig::default(),
-            0,
-        )
-        .unwrap_err();
+        let error =
+            observation(&decode(&frame, 100).unwrap(), &OpenpiConfig::default(), 0).unwrap_err();
         assert!(
             error.to_string().contains("observation/image") && error.to_string().contains("[4, 3]"),
             "{error}"
         );
         let error = observation(&Value::UInt(3), &OpenpiConfig::default(), 0).unwrap_err();
-        assert!(error.to_string().contains("expected a msgpack map"), "{error}");
+        assert!(
+            error.to_string().contains("expected a msgpack map"),
+            "{error}"
+        );
     }
 }

@@ -162,11 +162,7 @@ async fn eight_concurrent_openpi_clients_are_batched_together() {
         entered: Mutex::new(Some(entered_tx)),
         release: Mutex::new(release_rx),
     });
-    let server = Arc::new(
-        TestServer::start_with_model(robots(), model)
-            .await
-            .unwrap(),
-    );
+    let server = Arc::new(TestServer::start_with_model(robots(), model).await.unwrap());
     let run = {
         let server = server.clone();
         tokio::spawn(async move {
@@ -202,7 +198,11 @@ async fn eight_concurrent_openpi_clients_are_batched_together() {
     assert_eq!(tasks.len(), CLIENTS, "one task per connection");
     let first_round: Vec<u64> = clients
         .iter()
-        .map(|c| c["replies"][0]["server_timing"]["batch_size"].as_u64().unwrap())
+        .map(|c| {
+            c["replies"][0]["server_timing"]["batch_size"]
+                .as_u64()
+                .unwrap()
+        })
         .collect();
     // One client's request was alone on the engine; the seven that queued behind it were
     // served together, not one after another.
@@ -239,7 +239,11 @@ async fn a_wrong_or_missing_key_is_refused_before_any_observation() {
     assert_eq!(out["wrong_key"], 401, "{out}");
     assert_eq!(out["no_key"], 401, "{out}");
     let stats = server.server().driver.stats().await.unwrap();
-    assert_eq!(stats.accepted + stats.refused, 0, "no round reached the driver");
+    assert_eq!(
+        stats.accepted + stats.refused,
+        0,
+        "no round reached the driver"
+    );
     // The right key still works.
     let ok = check(&server, "basic", &["token-two", "1"]).await;
     assert_eq!(ok["metadata"]["robot"], "arm-2");
@@ -275,6 +279,9 @@ async fn garbage_frames_get_an_error_and_a_close_while_another_client_keeps_work
     );
     assert_eq!(out["before"]["shape"], serde_json::json!([16, 4]));
     assert_eq!(out["after"]["shape"], serde_json::json!([16, 4]));
-    assert_eq!(out["after"]["kairos"]["round"], 1, "the good client's task went on");
+    assert_eq!(
+        out["after"]["kairos"]["round"], 1,
+        "the good client's task went on"
+    );
     server.shutdown().await;
 }
