@@ -66,6 +66,12 @@ impl BlockingClient {
         }
     }
 
+    /// The runtime the connection runs on, for callers that drive the async [`Client`] from
+    /// threads of their own (e.g. a bridge to another event loop) without blocking on it.
+    pub fn handle(&self) -> &tokio::runtime::Handle {
+        self.runtime.handle()
+    }
+
     /// The async client underneath.
     pub fn client(&self) -> &Client {
         &self.client
