@@ -23,7 +23,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     if args.len() != 4 || args.iter().any(|a| a == "--help" || a == "-h") {
         eprintln!("usage: round_latency SERVER DATA_DIR ROUNDS IMAGE_SIDE");
-        std::process::exit(if args.iter().any(|a| a == "--help" || a == "-h") { 0 } else { 2 });
+        std::process::exit(if args.iter().any(|a| a == "--help" || a == "-h") {
+            0
+        } else {
+            2
+        });
     }
     let dir = Path::new(&args[1]);
     let rounds: usize = args[2].parse()?;

@@ -145,7 +145,10 @@ mod tests {
             Err(CredentialsError::UnknownRobot { robot, .. }) if robot == "arm-2"
         ));
         fs::write(dir.join(FINGERPRINT_FILE), "sha256:zz\n").unwrap();
-        assert!(matches!(read_pin(&dir), Err(CredentialsError::Invalid { .. })));
+        assert!(matches!(
+            read_pin(&dir),
+            Err(CredentialsError::Invalid { .. })
+        ));
         fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -12,7 +12,12 @@ use pyo3::create_exception;
 use pyo3::exceptions::PyException;
 use pyo3::prelude::*;
 
-create_exception!(kairos, KairosError, PyException, "Base class of the Kairos client's errors.");
+create_exception!(
+    kairos,
+    KairosError,
+    PyException,
+    "Base class of the Kairos client's errors."
+);
 create_exception!(
     kairos,
     ConnectionFailed,
@@ -25,7 +30,12 @@ create_exception!(
     ConnectionFailed,
     "Connecting or a round took longer than its limit."
 );
-create_exception!(kairos, Unauthorized, KairosError, "The server refused the robot token.");
+create_exception!(
+    kairos,
+    Unauthorized,
+    KairosError,
+    "The server refused the robot token."
+);
 create_exception!(
     kairos,
     PinMismatch,
@@ -50,7 +60,12 @@ create_exception!(
     KairosError,
     "The server is at capacity or shutting down; retry later."
 );
-create_exception!(kairos, ServerError, KairosError, "The server failed the request.");
+create_exception!(
+    kairos,
+    ServerError,
+    KairosError,
+    "The server failed the request."
+);
 create_exception!(
     kairos,
     ProtocolError,

@@ -72,12 +72,14 @@ impl ObservationSource for Refetch {
             let fresh = tokio::task::spawn_blocking(move || {
                 Python::attach(|py| {
                     let captured_at_us = clock.now_us();
-                    let result = source.call0(py).and_then(|value| {
-                        observation::from_python(value.bind(py), captured_at_us)
-                    });
+                    let result = source
+                        .call0(py)
+                        .and_then(|value| observation::from_python(value.bind(py), captured_at_us));
                     // A failing source must not fail the round: the submitted observation goes
                     // again, and Python reports the error as unraisable (to stderr).
-                    result.map_err(|error| error.write_unraisable(py, None)).ok()
+                    result
+                        .map_err(|error| error.write_unraisable(py, None))
+                        .ok()
                 })
             })
             .await

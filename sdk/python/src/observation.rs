@@ -10,10 +10,7 @@
 //! the message); anything else raises `InvalidObservation` naming the field.
 
 use kairos_sdk::protocol::{Image, ImagePayload, Observation, Tensor};
-use numpy::{
-    PyReadonlyArray1, PyReadonlyArray3, PyUntypedArray,
-    PyUntypedArrayMethods,
-};
+use numpy::{PyReadonlyArray1, PyReadonlyArray3, PyUntypedArray, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyDict, PyString};
 
@@ -64,7 +61,10 @@ fn state(field: &str, value: &Bound<'_, PyAny>) -> PyResult<Tensor> {
     } else {
         return Err(invalid(
             field,
-            format!("expected a 1-D float32 numpy array, got {}", describe(value)),
+            format!(
+                "expected a 1-D float32 numpy array, got {}",
+                describe(value)
+            ),
         ));
     };
     tensor.map_err(|e| invalid(field, e))
@@ -86,7 +86,10 @@ fn image(field: &str, camera: String, value: &Bound<'_, PyAny>) -> PyResult<Imag
                 data: data.to_vec(),
             }
         } else {
-            return Err(invalid(field, "bytes that are neither a JPEG nor a PNG file"));
+            return Err(invalid(
+                field,
+                "bytes that are neither a JPEG nor a PNG file",
+            ));
         }
     } else if let Ok(array) = value.extract::<PyReadonlyArray3<'_, u8>>() {
         let shape = shape(field, array.shape())?;
@@ -101,7 +104,9 @@ fn image(field: &str, camera: String, value: &Bound<'_, PyAny>) -> PyResult<Imag
         let shape = shape(field, array.shape())?;
         let tensor = match array.as_slice() {
             Ok(slice) => Tensor::from_f32(shape, slice),
-            Err(_) => Tensor::from_f32(shape, &array.as_array().iter().copied().collect::<Vec<_>>()),
+            Err(_) => {
+                Tensor::from_f32(shape, &array.as_array().iter().copied().collect::<Vec<_>>())
+            }
         };
         ImagePayload::Raw {
             tensor: tensor.map_err(|e| invalid(field, e))?,
@@ -156,7 +161,10 @@ pub fn from_python(value: &Bound<'_, PyAny>, captured_at_us: u64) -> PyResult<Ob
             })?;
             for (camera, image_value) in cameras.iter() {
                 let camera: String = camera.extract().map_err(|_| {
-                    invalid(&field, format!("camera names are str, got {}", describe(&camera)))
+                    invalid(
+                        &field,
+                        format!("camera names are str, got {}", describe(&camera)),
+                    )
                 })?;
                 let field = format!("{field}{}", path(&camera));
                 images.push(image(&field, camera, &image_value)?);
