@@ -8,8 +8,8 @@
 //!
 //! Arguments: server address, data directory, rounds, side of the square RGB camera image. One
 //! task, one round at a time, each with a fresh observation (the state, one raw `side × side × 3`
-//! u8 image, an instruction); prints the latency of each round, µs (from `submit` to its reply),
-//! one per line, after 10 warm-up rounds.
+//! u8 image, an instruction); prints, for each round after 10 warm-up rounds, its latency (from
+//! `submit` to its reply) and the server's `timing.total_us` (arrival to reply sent), µs.
 
 use std::path::Path;
 use std::time::Instant;
@@ -58,9 +58,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             instruction: "pick up the cube".into(),
         };
         let started = Instant::now();
-        task.submit(RoundRequest::new(observation), &mut NoRefetch)?;
+        let done = task.submit(RoundRequest::new(observation), &mut NoRefetch)?;
         if round >= WARM_UP {
-            println!("{}", started.elapsed().as_micros());
+            let latency = started.elapsed().as_micros();
+            println!("{latency} {}", done.reply.timing.total_us);
         }
     }
     task.end(TaskOutcome::Done, None)?;

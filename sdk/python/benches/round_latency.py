@@ -43,7 +43,7 @@ def python_rounds(server: Server, rounds: int, side: int) -> list:
             started = time.perf_counter()
             client.infer(observation)
             if step >= WARM_UP:
-                latencies.append((time.perf_counter() - started) * 1e6)
+                latencies.append(((time.perf_counter() - started) * 1e6, client.last_round["total_us"]))
         client.end_task()
     return latencies
 
@@ -51,7 +51,7 @@ def python_rounds(server: Server, rounds: int, side: int) -> list:
 def rust_rounds(server: Server, rounds: int, side: int, binary: pathlib.Path) -> list:
     run = subprocess.run([str(binary), server.address, str(server.data_dir), str(rounds), str(side)],
                          capture_output=True, text=True, check=True)
-    return [float(line) for line in run.stdout.split()]
+    return [tuple(map(float, line.split())) for line in run.stdout.splitlines()]
 
 
 def main() -> None:
@@ -74,12 +74,16 @@ def main() -> None:
         finally:
             server.stop()
     print(f"{args.blocks} blocks x {args.rounds} sequential rounds per client, {args.image}x{args.image} RGB image")
-    print("| client | rounds | p50 ms | p99 ms | max ms |")
-    print("|---|---|---|---|---|")
+    print("Round latency (call to chunk), and of it outside the server (latency - the server's total_us:")
+    print("client library, QUIC, loopback)")
+    print("| client | rounds | p50 ms | p99 ms | max ms | outside server p50 ms | p99 ms |")
+    print("|---|---|---|---|---|---|---|")
     for name, values in results.items():
         values = np.array(values) / 1e3
-        print(f"| {name} | {values.size} | {np.percentile(values, 50):.2f} | "
-              f"{np.percentile(values, 99):.2f} | {values.max():.2f} |")
+        latency, outside = values[:, 0], values[:, 0] - values[:, 1]
+        print(f"| {name} | {latency.size} | {np.percentile(latency, 50):.2f} | "
+              f"{np.percentile(latency, 99):.2f} | {latency.max():.2f} | "
+              f"{np.percentile(outside, 50):.2f} | {np.percentile(outside, 99):.2f} |")
 
 
 if __name__ == "__main__":

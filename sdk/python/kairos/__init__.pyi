@@ -120,6 +120,14 @@ class Client:
         """``connects`` (1 + reconnects), ``zero_rtt_accepted``, ``resent_rounds`` (rounds resumed
         after a lost connection), ``refetches``."""
 
+    @property
+    def last_round(self) -> Optional[Dict[str, Any]]:
+        """The last completed round: ``task``, ``round``, ``horizon`` (H), ``chunk_len`` (N),
+        ``policy`` (the horizon policy that chose H), the server's timing in µs (``queue_us``,
+        ``refetch_us``, ``inference_us``, ``total_us``) and ``batch_size``, ``attempts`` (more
+        than 1 after a resume), ``refetches``, and ``latency_us`` (client clock, from sending to
+        the reply). None before the first round."""
+
     def start_task(
         self,
         task_id: Optional[int] = None,

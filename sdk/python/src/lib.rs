@@ -21,7 +21,9 @@ use std::future::Future;
 use kairos_sdk::client::{
     ClientConfig, ClientError, Clock, ObservationSource, RoundReply, RoundRequest, Task,
 };
-use kairos_sdk::protocol::{FetchObservation, HorizonSelection, Observation, TaskOutcome, Tensor};
+use kairos_sdk::protocol::{
+    FetchObservation, HorizonSelection, Observation, TaskOutcome, Tensor, Timing,
+};
 use kairos_sdk::robot::ChunkExecutor;
 use kairos_sdk::{BlockingClient, Fingerprint, data_dir};
 use numpy::PyArray1;
@@ -105,13 +107,45 @@ async fn run_round(mut round: Round) -> (Task, u64, Result<RoundReply, ClientErr
     (round.handle, round.id, result)
 }
 
-/// Puts the task handle back and applies the reply's chunk to the action queue.
+/// What the last completed round reported, for `Client.last_round`.
+#[derive(Clone, Debug)]
+struct RoundSummary {
+    task: u64,
+    round: u64,
+    horizon: u32,
+    chunk_len: u32,
+    policy: String,
+    timing: Timing,
+    attempts: u32,
+    refetches: u32,
+    latency_us: u64,
+}
+
+type LastRound = Arc<Mutex<Option<RoundSummary>>>;
+
+/// Puts the task handle back, applies the reply's chunk to the action queue and records the
+/// round's summary.
 fn finish_round(
     shared: &Shared,
+    last: &LastRound,
     handle: Task,
     round: u64,
     result: Result<RoundReply, ClientError>,
 ) -> Result<RoundReply, ClientError> {
+    if let Ok(done) = &result {
+        let summary = RoundSummary {
+            task: done.reply.task,
+            round: done.reply.round,
+            horizon: done.reply.horizon,
+            chunk_len: done.reply.chunk_len,
+            policy: done.reply.policy.clone(),
+            timing: done.reply.timing,
+            attempts: done.attempts,
+            refetches: done.refetches,
+            latency_us: done.received_at_us.saturating_sub(done.sent_at_us),
+        };
+        *last.lock().unwrap_or_else(|poison| poison.into_inner()) = Some(summary);
+    }
     let mut slot = lock(shared);
     let Some(task) = slot.as_mut().filter(|task| task.id == handle.id()) else {
         // The task was abandoned while the round ran (`end_task` refuses that, but a new client
@@ -175,6 +209,7 @@ fn seconds(what: &str, value: f64) -> PyResult<Duration> {
 struct Client {
     inner: BlockingClient,
     task: Shared,
+    last_round: LastRound,
 }
 
 #[pymethods]
@@ -206,6 +241,7 @@ impl Client {
         Ok(Client {
             inner,
             task: Arc::new(Mutex::new(None)),
+            last_round: Arc::new(Mutex::new(None)),
         })
     }
 
@@ -265,6 +301,36 @@ impl Client {
         dict.set_item("resent_rounds", stats.resent_rounds)?;
         dict.set_item("refetches", stats.refetches)?;
         Ok(dict)
+    }
+
+    /// The last completed round: task, round, horizon, chunk_len, policy, the server's timing
+    /// (queue_us, refetch_us, inference_us, total_us, batch_size), attempts, refetches and
+    /// latency_us (client clock, from sending to the reply). None before the first.
+    #[getter]
+    fn last_round<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
+        let Some(last) = self
+            .last_round
+            .lock()
+            .unwrap_or_else(|poison| poison.into_inner())
+            .clone()
+        else {
+            return Ok(None);
+        };
+        let dict = PyDict::new(py);
+        dict.set_item("task", last.task)?;
+        dict.set_item("round", last.round)?;
+        dict.set_item("horizon", last.horizon)?;
+        dict.set_item("chunk_len", last.chunk_len)?;
+        dict.set_item("policy", last.policy)?;
+        dict.set_item("queue_us", last.timing.queue_us)?;
+        dict.set_item("refetch_us", last.timing.refetch_us)?;
+        dict.set_item("inference_us", last.timing.inference_us)?;
+        dict.set_item("total_us", last.timing.total_us)?;
+        dict.set_item("batch_size", last.timing.batch_size)?;
+        dict.set_item("attempts", last.attempts)?;
+        dict.set_item("refetches", last.refetches)?;
+        dict.set_item("latency_us", last.latency_us)?;
+        Ok(Some(dict))
     }
 
     /// Starts a task; returns its id.
@@ -329,11 +395,10 @@ impl Client {
         observation: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyAny>> {
         let round = self.begin_round(observation)?;
-        let shared = self.task.clone();
         let handle = self.inner.handle();
         let result = py.detach(|| {
             let (task, id, result) = handle.block_on(run_round(round));
-            finish_round(&shared, task, id, result)
+            finish_round(&self.task, &self.last_round, task, id, result)
         });
         match result {
             Ok(reply) => actions_array(py, reply.reply.actions),
@@ -351,12 +416,13 @@ impl Client {
         let future = event_loop.call_method0("create_future")?;
         let round = self.begin_round(observation)?;
         let shared = self.task.clone();
+        let last = self.last_round.clone();
         let event_loop = event_loop.unbind();
         let target = future.clone().unbind();
         let handle = self.inner.handle().clone();
         self.inner.handle().spawn(async move {
             let (task, id, result) = run_round(round).await;
-            let result = finish_round(&shared, task, id, result);
+            let result = finish_round(&shared, &last, task, id, result);
             // Taking the GIL can wait for Python: not on the runtime's worker, which drives QUIC.
             handle.spawn_blocking(move || {
                 Python::attach(|py| {

@@ -38,6 +38,10 @@ def test_infer_returns_a_finite_chunk_of_the_model_shape(client):
     assert actions.shape[1] == model["action_dim"]
     assert np.isfinite(actions).all()
     assert np.abs(actions).sum() > 0, "a real forward pass, not zeros"
+    last = client.last_round
+    assert last["horizon"] == actions.shape[0] and last["chunk_len"] == model["chunk_len"]
+    assert last["round"] == 0 and last["attempts"] == 1 and last["batch_size"] >= 1
+    assert last["task"] == client.task_id
 
 
 def test_actions_taken_from_the_queue_are_reported_with_the_next_round(client):
@@ -128,5 +132,6 @@ def test_the_client_resumes_after_a_server_restart(server):
         actions = client.infer(observation(client, 1))
         assert np.isfinite(actions).all()
         assert client.stats["connects"] == 2, "a second connection, made by the client itself"
+        assert client.last_round["round"] == 1
     finally:
         client.close()
