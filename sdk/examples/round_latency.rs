@@ -7,7 +7,7 @@
 //! ```
 //!
 //! Arguments: server address, data directory, rounds, side of the square RGB camera image. One
-//! task, one round at a time, each with a fresh observation (the state, one raw `side × side × 3`
+//! task, one round at a time with Last Exec Info, each with a fresh observation (the state, one raw `side × side × 3`
 //! u8 image, an instruction); prints, for each round after 10 warm-up rounds, its latency (from
 //! `submit` to its reply) and the server's `timing.total_us` (arrival to reply sent), µs.
 
@@ -15,6 +15,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use kairos_sdk::protocol::{Image, ImagePayload, Observation, TaskOutcome, Tensor};
+use kairos_sdk::robot::ChunkExecutor;
 use kairos_sdk::{BlockingClient, ClientConfig, NoRefetch, RoundRequest, data_dir};
 
 const WARM_UP: usize = 10;
@@ -40,6 +41,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let client = BlockingClient::connect(config)?;
     let state_dim = client.welcome().map_or(0, |w| w.model.state_dim);
     let mut task = client.task(rand::random::<u64>() >> 12);
+    // Last Exec Info as a robot sends it (and as the Python package does, with the same rules): the
+    // server treats a round without it as a task's first, which it serves differently.
+    let mut executor = ChunkExecutor::new(30.0, 0.5);
     for round in 0..WARM_UP + rounds {
         // The same observation the Python side builds: a linspace state, a flat grey image.
         let state: Vec<f32> = (0..state_dim)
@@ -58,7 +62,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             instruction: "pick up the cube".into(),
         };
         let started = Instant::now();
-        let done = task.submit(RoundRequest::new(observation), &mut NoRefetch)?;
+        let id = task.next_round();
+        let mut request = RoundRequest::new(observation);
+        request.last_exec = executor.request_sent(id, client.now_us());
+        let done = task.submit(request, &mut NoRefetch)?;
+        let actions = done.reply.actions.to_f32()?;
+        let dim = done.reply.actions.shape.get(1).map_or(1, |&d| d.max(1) as usize);
+        executor.reply_arrived(id, actions.chunks(dim).map(<[f32]>::to_vec).collect());
         if round >= WARM_UP {
             let latency = started.elapsed().as_micros();
             println!("{latency} {}", done.reply.timing.total_us);

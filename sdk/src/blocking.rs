@@ -96,6 +96,11 @@ impl BlockingTask<'_> {
         self.task.id()
     }
 
+    /// The id the next round will get.
+    pub fn next_round(&self) -> u64 {
+        self.task.next_round()
+    }
+
     /// Runs one round (see [`Task::submit`]), blocking until its reply.
     pub fn submit(
         &mut self,
