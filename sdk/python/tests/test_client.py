@@ -38,6 +38,7 @@ def test_infer_returns_a_finite_chunk_of_the_model_shape(client):
     assert actions.shape[1] == model["action_dim"]
     assert np.isfinite(actions).all()
     assert np.abs(actions).sum() > 0, "a real forward pass, not zeros"
+    assert not actions.flags.owndata, "a view of the reply's buffer, not a copy"
     last = client.last_round
     assert last["horizon"] == actions.shape[0] and last["chunk_len"] == model["chunk_len"]
     assert last["round"] == 0 and last["attempts"] == 1 and last["batch_size"] >= 1
