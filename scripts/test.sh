@@ -42,3 +42,4 @@ step_done "plugins"
 # they exist, so it runs, and fails rather than skips.
 KAIROS_PYTHON="$PWD/.venv/bin/python" KAIROS_OPENPI_PYTHON="$PWD/.venv-openpi/bin/python" cargo test --workspace --locked -- --include-ignored
 step_done "tests"
+bash scripts/test-python.sh; step_done "Python package: pip install ./sdk/python, pytest against kairos serve"

@@ -66,6 +66,12 @@ impl BlockingClient {
         }
     }
 
+    /// The runtime the connection runs on, for callers that drive the async [`Client`] from
+    /// threads of their own (e.g. a bridge to another event loop) without blocking on it.
+    pub fn handle(&self) -> &tokio::runtime::Handle {
+        self.runtime.handle()
+    }
+
     /// The async client underneath.
     pub fn client(&self) -> &Client {
         &self.client
@@ -88,6 +94,11 @@ impl BlockingTask<'_> {
     /// The task id.
     pub fn id(&self) -> u64 {
         self.task.id()
+    }
+
+    /// The id the next round will get.
+    pub fn next_round(&self) -> u64 {
+        self.task.next_round()
     }
 
     /// Runs one round (see [`Task::submit`]), blocking until its reply.

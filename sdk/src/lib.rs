@@ -5,12 +5,14 @@
 //!   loss), [`blocking`] for synchronous robot loops;
 //! - [`robot`]: the paper's `get_obs`/`send_act` shim and the runner that executes chunks in real
 //!   time with asynchronous inference;
-//! - [`tls`], [`transport`]: TLS and QUIC settings shared with the server.
+//! - [`tls`], [`transport`]: TLS and QUIC settings shared with the server;
+//! - [`data_dir`]: the files a local server writes for robots (pin, tokens).
 //!
 //! The common entry points are re-exported here.
 
 pub mod blocking;
 pub mod client;
+pub mod data_dir;
 pub mod protocol;
 pub mod robot;
 pub mod tls;

@@ -33,7 +33,7 @@ pub const DEFAULT_LISTEN: &str = "127.0.0.1:4433";
 pub const DEFAULT_DATA_DIR: &str = "kairos-data";
 
 /// Name of the robot whose token is generated when no robot is configured.
-pub const DEFAULT_ROBOT: &str = "default";
+pub const DEFAULT_ROBOT: &str = kairos_sdk::data_dir::DEFAULT_ROBOT;
 
 /// Everything that can be wrong with a configuration.
 #[derive(Debug, thiserror::Error)]

@@ -14,7 +14,6 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use kairos_sdk::tls::Fingerprint;
-use serde::{Deserialize, Serialize};
 
 use crate::config::{ConfigError, DEFAULT_ROBOT, generate_token, write_private};
 
@@ -27,8 +26,8 @@ pub struct DataDir {
 impl DataDir {
     const CERTIFICATE: &'static str = "cert.der";
     const PRIVATE_KEY: &'static str = "key.der";
-    const FINGERPRINT: &'static str = "fingerprint.txt";
-    const TOKENS: &'static str = "tokens.toml";
+    const FINGERPRINT: &'static str = kairos_sdk::data_dir::FINGERPRINT_FILE;
+    const TOKENS: &'static str = kairos_sdk::data_dir::TOKENS_FILE;
     const PLUGIN_CACHE: &'static str = "plugin-cache";
 
     /// The data directory at `root`.
@@ -143,35 +142,8 @@ impl DataDir {
     }
 }
 
-/// `tokens.toml`: the plaintext tokens a local `kairos serve` generates for local robots.
-/// Unknown keys are errors, as in `kairos.toml`.
-#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct TokensFile {
-    /// One entry per robot.
-    #[serde(default, rename = "robot")]
-    pub robots: Vec<TokenEntry>,
-}
-
-/// One robot in [`TokensFile`].
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct TokenEntry {
-    /// Robot name.
-    pub name: String,
-    /// The token, as the robot sends it in `Hello`.
-    pub token: String,
-}
-
-impl TokensFile {
-    /// The token of the robot named `name`.
-    pub fn token(&self, name: &str) -> Option<&str> {
-        self.robots
-            .iter()
-            .find(|r| r.name == name)
-            .map(|r| r.token.as_str())
-    }
-}
+// Robots read these files too (the Python package, `kairos robot`): the SDK owns their format.
+pub use kairos_sdk::data_dir::{TokenEntry, TokensFile};
 
 #[cfg(test)]
 mod tests {
