@@ -58,6 +58,7 @@ fn config(policy: &str, setting: &str, load: Load, engines: Vec<EngineSpec>) -> 
         load,
         seed: 1,
         record: false,
+        policies: Default::default(),
     }
 }
 
