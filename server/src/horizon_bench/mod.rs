@@ -89,8 +89,8 @@ impl PolicyPoint {
 pub const STATIC_GRID: [f64; 7] = [1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 16.0];
 /// Thresholds `t` of the §3.1 rule in the full grid.
 pub const THRESHOLD_GRID: [f64; 5] = [0.05, 0.2, 0.4, 1.0, 3.0];
-/// Spread thresholds (4 samples) in the full grid.
-pub const SPREAD_GRID: [f64; 4] = [0.05, 0.1, 0.2, 0.4];
+/// Spread thresholds (4 samples, action units: commands are in [−1, 1]) in the full grid.
+pub const SPREAD_GRID: [f64; 4] = [0.1, 0.2, 0.3, 0.5];
 
 /// The built-in policies of a run: static H over a grid, the §3.1 threshold rule at several
 /// thresholds, and the multi-sample spread rule (`quick`: a few of each).
@@ -111,7 +111,7 @@ pub fn builtin_points(quick: bool) -> Vec<PolicyPoint> {
             .into_iter()
             .map(|t| PolicyPoint::new("threshold", &[("t", t)])),
     );
-    points.extend(pick(&SPREAD_GRID, &[1]).into_iter().map(|th| PolicyPoint {
+    points.extend(pick(&SPREAD_GRID, &[2]).into_iter().map(|th| PolicyPoint {
         samples: 4,
         ..PolicyPoint::new("spread", &[("threshold", th)])
     }));

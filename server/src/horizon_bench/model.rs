@@ -68,8 +68,8 @@ impl Default for ModelConfig {
     fn default() -> Self {
         ModelConfig {
             chunk_len: 16,
-            hidden: 256,
-            depth: 3,
+            hidden: 128,
+            depth: 2,
             steps: 10,
         }
     }
@@ -100,9 +100,9 @@ impl Default for TrainConfig {
             model: ModelConfig::default(),
             env: EnvConfig::default(),
             demos: 3000,
-            iterations: 6000,
-            batch: 256,
-            lr: 1e-3,
+            iterations: 30000,
+            batch: 128,
+            lr: 2e-3,
             seed: 1,
         }
     }
