@@ -12,8 +12,8 @@ use kairos_sdk::trace::TraceSet;
 
 use crate::plugin::cache::CodeCache;
 use crate::scheduler::PolicySpec;
-use crate::sim::plugins::load_user_plugins;
 use crate::sim::experiment::{self, Experiment, Job, JobResult, Plan, Report, Variant};
+use crate::sim::plugins::load_user_plugins;
 use crate::workload::generate::{self, DYNAMIC, STATIC};
 use crate::workload::{self, Workload};
 

@@ -91,7 +91,11 @@ pub fn run(a: HorizonArgs) -> anyhow::Result<()> {
     )?;
     let manager = action_manager(user.policies.horizon.clone())?;
     let mut points = builtin_points(a.quick);
-    for p in user.plugins.iter().filter(|p| p.role == PluginRole::Horizon) {
+    for p in user
+        .plugins
+        .iter()
+        .filter(|p| p.role == PluginRole::Horizon)
+    {
         points.push(PolicyPoint {
             family: p.label.clone(),
             name: p.name.clone(),

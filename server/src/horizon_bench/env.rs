@@ -107,7 +107,10 @@ impl Env {
     pub fn new(cfg: EnvConfig, seed: u64) -> Env {
         let mut rng = StdRng::seed_from_u64(seed);
         let point = |rng: &mut StdRng| {
-            [0.1 + 0.8 * rng.random::<f32>(), 0.1 + 0.8 * rng.random::<f32>()]
+            [
+                0.1 + 0.8 * rng.random::<f32>(),
+                0.1 + 0.8 * rng.random::<f32>(),
+            ]
         };
         let gripper = point(&mut rng);
         let mut object = point(&mut rng);
@@ -182,7 +185,11 @@ impl Env {
         let mut v = [0.0f32; 2];
         for (i, vi) in v.iter_mut().enumerate() {
             let noise: f32 = self.rng.sample(StandardNormal);
-            let command = if get(i).is_finite() { get(i).clamp(-1.0, 1.0) } else { 0.0 };
+            let command = if get(i).is_finite() {
+                get(i).clamp(-1.0, 1.0)
+            } else {
+                0.0
+            };
             *vi = (command + self.cfg.action_noise * noise) * self.cfg.speed;
         }
         self.gripper = clamp_unit([self.gripper[0] + v[0], self.gripper[1] + v[1]]);

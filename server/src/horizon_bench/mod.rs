@@ -161,11 +161,7 @@ pub fn run_episode(
         if exec.wants_request() {
             let id = u64::from(out.calls);
             exec.request_sent(id, now_us);
-            let chunk = model.sample(
-                &env.observe(),
-                point.samples,
-                noise_seed(seed, out.calls),
-            )?;
+            let chunk = model.sample(&env.observe(), point.samples, noise_seed(seed, out.calls))?;
             let choice = manager.choose(
                 &mut round,
                 &chunk,
@@ -290,13 +286,7 @@ pub fn run_bench(
                 loop {
                     let i = next.fetch_add(1, Ordering::Relaxed);
                     let Some(&(p, e)) = jobs.get(i) else { break };
-                    let r = run_episode(
-                        model,
-                        manager,
-                        &plan.points[p],
-                        &plan.env,
-                        plan.seed + e,
-                    );
+                    let r = run_episode(model, manager, &plan.points[p], &plan.env, plan.seed + e);
                     if let Ok(mut slots) = results.lock() {
                         slots[i] = Some(r);
                     }
@@ -396,7 +386,10 @@ mod tests {
     fn wilson_matches_the_textbook_values() {
         // 81/263 at 95%: (0.2553, 0.3662) (Wilson 1927 as tabulated by Newcombe 1998, case 3... )
         let (lo, hi) = wilson(81, 263, 1.96);
-        assert!((lo - 0.2553).abs() < 5e-4 && (hi - 0.3662).abs() < 5e-4, "{lo} {hi}");
+        assert!(
+            (lo - 0.2553).abs() < 5e-4 && (hi - 0.3662).abs() < 5e-4,
+            "{lo} {hi}"
+        );
         let (lo, hi) = wilson(0, 10, 1.96);
         assert_eq!(lo, 0.0);
         assert!((hi - 0.2775).abs() < 5e-4, "{hi}");

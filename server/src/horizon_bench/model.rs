@@ -134,7 +134,9 @@ pub struct FlowPolicy {
 
 impl std::fmt::Debug for FlowPolicy {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("FlowPolicy").field("cfg", &self.cfg).finish()
+        f.debug_struct("FlowPolicy")
+            .field("cfg", &self.cfg)
+            .finish()
     }
 }
 
@@ -243,16 +245,25 @@ impl FlowPolicy {
         let noise = x.clone();
         let mut updates = vec![0.0f32; rows * k * len];
         let obs_rows = Tensor::from_vec(
-            (0..rows).flat_map(|_| obs.iter().copied()).collect::<Vec<f32>>(),
+            (0..rows)
+                .flat_map(|_| obs.iter().copied())
+                .collect::<Vec<f32>>(),
             (rows, OBS_DIM),
             &self.device,
         )?;
-        integrate(Schedule { steps: k }, rows, len, &mut x, &mut updates, |_, t, x, v| {
-            let xt = Tensor::from_slice(x, (rows, len), &self.device)?;
-            let out = self.velocity(&obs_rows, &xt, &vec![t; rows])?;
-            v.copy_from_slice(&out.flatten_all()?.to_vec1::<f32>()?);
-            Ok(())
-        })?;
+        integrate(
+            Schedule { steps: k },
+            rows,
+            len,
+            &mut x,
+            &mut updates,
+            |_, t, x, v| {
+                let xt = Tensor::from_slice(x, (rows, len), &self.device)?;
+                let out = self.velocity(&obs_rows, &xt, &vec![t; rows])?;
+                v.copy_from_slice(&out.flatten_all()?.to_vec1::<f32>()?);
+                Ok(())
+            },
+        )?;
         let layout = RowLayout {
             samples: vec![rows],
             steps: k,
@@ -260,14 +271,11 @@ impl FlowPolicy {
             full_dim: ACTION_DIM,
             action_dim: ACTION_DIM,
         };
-        layout
-            .chunks(&noise, &x, &updates)
-            .pop()
-            .ok_or_else(|| {
-                ModelError::Sampler(kairos_engine::EngineError::InvalidInput(
-                    "the sampler returned no chunk".into(),
-                ))
-            })
+        layout.chunks(&noise, &x, &updates).pop().ok_or_else(|| {
+            ModelError::Sampler(kairos_engine::EngineError::InvalidInput(
+                "the sampler returned no chunk".into(),
+            ))
+        })
     }
 }
 
@@ -414,6 +422,9 @@ mod tests {
             assert_eq!(x, a.actions[i]);
         }
         // Other noise, other chunk.
-        assert_ne!(policy.sample(&obs, 1, 10).unwrap().actions[..48], a.actions[..48]);
+        assert_ne!(
+            policy.sample(&obs, 1, 10).unwrap().actions[..48],
+            a.actions[..48]
+        );
     }
 }

@@ -40,11 +40,11 @@ use std::time::Duration;
 use kairos_sdk::trace::{RoundEvent, RoundTrace, TaskMeta, TaskRecording, TaskTrace, TraceSet};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
+use crate::registry::{HorizonRegistry, Policies};
 use crate::scheduler::{
     AdmitError, BatchId, Dispatch, EngineSpec, ExecReport, PolicySpec, RemainingWork, RequestId,
     RobotId, RoundOutcome, RoundSubmit, Scheduler, SchedulerConfig, TaskEnd, TaskId, Tier,
 };
-use crate::registry::{HorizonRegistry, Policies};
 use crate::time::Timestamp;
 use horizon::{ReplayHorizon, ReplayHorizonError};
 use robot::{Accepted, Execution};

@@ -58,12 +58,21 @@ fn the_quick_run_writes_one_pareto_row_per_policy() {
         // A static horizon executes h actions per chunk, except where an episode ends inside
         // one.
         let mean: f64 = row[2].parse().unwrap();
-        assert!(mean <= h && mean > h * 0.6, "static h={h}: mean executed {mean}");
+        assert!(
+            mean <= h && mean > h * 0.6,
+            "static h={h}: mean executed {mean}"
+        );
     }
     for row in &rows {
-        let (p, lo, hi): (f64, f64, f64) =
-            (row[3].parse().unwrap(), row[4].parse().unwrap(), row[5].parse().unwrap());
-        assert!(lo <= p && p <= hi && (0.0..=1.0).contains(&lo) && hi <= 1.0, "{row:?}");
+        let (p, lo, hi): (f64, f64, f64) = (
+            row[3].parse().unwrap(),
+            row[4].parse().unwrap(),
+            row[5].parse().unwrap(),
+        );
+        assert!(
+            lo <= p && p <= hi && (0.0..=1.0).contains(&lo) && hi <= 1.0,
+            "{row:?}"
+        );
         assert_eq!(row[6], "12");
     }
     assert!(out.path().join("pareto.png").exists());
@@ -77,14 +86,7 @@ fn training_runs_a_few_steps_and_writes_a_loadable_model() {
     let dir = tempfile::tempdir().unwrap();
     let model = dir.path().join("model");
     let stdout = kairos(
-        &[
-            "--train",
-            "--iterations",
-            "3",
-            "--demos",
-            "4",
-            "--model",
-        ],
+        &["--train", "--iterations", "3", "--demos", "4", "--model"],
         &model,
     );
     assert!(stdout.contains("3 steps"), "{stdout}");

@@ -103,7 +103,10 @@ fn assert_same_numbers(
             .get(&(plugin.to_string(), x.clone()))
             .unwrap_or_else(|| panic!("no row of {plugin} at {x}"));
         for column in measured {
-            assert_eq!(a[column], b[column], "{native} vs {plugin} at {x}: {column}");
+            assert_eq!(
+                a[column], b[column],
+                "{native} vs {plugin} at {x}: {column}"
+            );
         }
     }
 }
@@ -124,7 +127,9 @@ fn a_priority_plugin_twin_gives_the_numbers_of_its_native_policy() {
         .unwrap();
     assert_eq!(plugin_row["policy"], "fifo-wasm");
     let peak = rows.keys().map(|(_, x)| x.clone()).max_by(|a, b| {
-        a.parse::<f64>().unwrap().total_cmp(&b.parse::<f64>().unwrap())
+        a.parse::<f64>()
+            .unwrap()
+            .total_cmp(&b.parse::<f64>().unwrap())
     });
     let peak = peak.unwrap();
     assert_ne!(
