@@ -351,7 +351,7 @@ fn run_sim(a: SimArgs) -> anyhow::Result<()> {
         let available: Vec<String> = traces.iter().flat_map(|t| t.settings()).collect();
         let (keep, drop): (Vec<Job>, Vec<Job>) = jobs
             .into_iter()
-            .partition(|j| available.iter().any(|s| *s == j.variant.setting));
+            .partition(|j| available.contains(&j.variant.setting));
         if !drop.is_empty() {
             println!(
                 "skipping {} runs whose horizon setting is not in the trace file (it has: {})",

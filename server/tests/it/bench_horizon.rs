@@ -32,7 +32,30 @@ fn kairos(args: &[&str], out: &std::path::Path) -> String {
 fn the_quick_run_writes_one_pareto_row_per_policy() {
     let out = tempfile::tempdir().unwrap();
     // Fewer episodes than --quick's 40 keep the test short; the columns and rows are the same.
-    kairos(&["--quick", "--episodes", "12", "--out"], out.path());
+    // The shipped twin of the §3.1 rule rides along as a user's plugin (plugins/build.sh builds
+    // it; CI runs that first).
+    let twin = root().join("plugins/build/threshold.wasm");
+    assert!(
+        twin.exists(),
+        "{} is missing: run plugins/build.sh",
+        twin.display()
+    );
+    let cache = root().join("plugins/build/cache");
+    kairos(
+        &[
+            "--quick",
+            "--episodes",
+            "12",
+            "--horizon-plugin",
+            twin.to_str().unwrap(),
+            "--param",
+            "t=0.4",
+            "--plugin-cache",
+            cache.to_str().unwrap(),
+            "--out",
+        ],
+        out.path(),
+    );
     let csv = std::fs::read_to_string(out.path().join("pareto.csv")).unwrap();
     let mut lines = csv.lines();
     let header: Vec<&str> = lines.next().unwrap().split(',').collect();
@@ -49,8 +72,18 @@ fn the_quick_run_writes_one_pareto_row_per_policy() {
         ]
     );
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
-    // --quick: static H in {1, 4, 16}, the threshold rule at two thresholds, spread at one.
-    assert_eq!(rows.len(), 6, "{csv}");
+    // --quick: static H in {1, 4, 16}, the threshold rule at two thresholds, spread at one, and
+    // the plugin.
+    assert_eq!(rows.len(), 7, "{csv}");
+    // The plugin is a row of its own, and the twin of the native rule decides exactly as it
+    // does, episode for episode: every measured column is the same.
+    let native = rows
+        .iter()
+        .find(|r| r[0] == "threshold" && r[1] == "t=0.4")
+        .unwrap();
+    let plugin = rows.iter().find(|r| r[0] == "threshold.wasm").unwrap();
+    assert_eq!(plugin[1], "t=0.4");
+    assert_eq!(plugin[2..], native[2..], "{csv}");
     let statics: Vec<&Vec<&str>> = rows.iter().filter(|r| r[0] == "static").collect();
     assert_eq!(statics.len(), 3);
     for (row, h) in statics.iter().zip([1.0, 4.0, 16.0]) {
