@@ -10,10 +10,9 @@ use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use kairos_sdk::trace::TraceSet;
 
-use crate::plugin::cache::CodeCache;
 use crate::scheduler::PolicySpec;
 use crate::sim::experiment::{self, Experiment, Job, JobResult, Plan, Report, Variant};
-use crate::sim::plugins::load_user_plugins;
+use crate::sim::plugins::{load_user_plugins, plugin_cache_dir};
 use crate::workload::generate::{self, DYNAMIC, STATIC};
 use crate::workload::{self, Workload};
 
@@ -293,11 +292,7 @@ fn run_sim(a: SimArgs) -> anyhow::Result<()> {
         extra.push(v);
     }
 
-    let cache = a
-        .plugin_cache
-        .clone()
-        .or_else(CodeCache::default_dir)
-        .unwrap_or_else(|| std::env::temp_dir().join("kairos-plugin-cache"));
+    let cache = plugin_cache_dir(a.plugin_cache.clone());
     let user = load_user_plugins(
         &a.priority_plugins,
         &a.horizon_plugins,

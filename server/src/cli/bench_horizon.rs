@@ -13,8 +13,7 @@ use crate::horizon_bench::{
     BenchPlan, PolicyPoint, action_manager, builtin_points, markdown_table, pareto_csv, run_bench,
 };
 use crate::plot::{ParetoSeries, pareto};
-use crate::plugin::cache::CodeCache;
-use crate::sim::plugins::{PluginRole, load_user_plugins};
+use crate::sim::plugins::{PluginRole, load_user_plugins, plugin_cache_dir};
 
 /// `kairos bench horizon`
 #[derive(Args, Debug, Clone)]
@@ -78,11 +77,7 @@ pub fn run(a: HorizonArgs) -> anyhow::Result<()> {
             a.model.display()
         )
     })?;
-    let cache = a
-        .plugin_cache
-        .clone()
-        .or_else(CodeCache::default_dir)
-        .unwrap_or_else(|| std::env::temp_dir().join("kairos-plugin-cache"));
+    let cache = plugin_cache_dir(a.plugin_cache.clone());
     let user = load_user_plugins(
         &[],
         &a.horizon_plugins,

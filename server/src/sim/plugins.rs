@@ -187,6 +187,15 @@ fn plugin_name(file: &Path) -> Result<(String, String), UserPluginError> {
     Ok((format!("{stem}-wasm"), label))
 }
 
+/// Where the benches cache compiled plugin code: `explicit` (`--plugin-cache`), else the user's
+/// cache directory ([`CodeCache::default_dir`](crate::plugin::cache::CodeCache::default_dir)),
+/// else a directory under the system's temporary directory.
+pub fn plugin_cache_dir(explicit: Option<PathBuf>) -> PathBuf {
+    explicit
+        .or_else(crate::plugin::cache::CodeCache::default_dir)
+        .unwrap_or_else(|| std::env::temp_dir().join("kairos-plugin-cache"))
+}
+
 /// Loads `priority` and `horizon` plugin files through the server's plugin factory, each with
 /// `params`, compiled code cached under `cache_dir`. Each file must implement the world of the
 /// flag it was given with.
