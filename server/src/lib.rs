@@ -10,6 +10,7 @@ pub mod demo;
 pub mod driver;
 pub mod fleet;
 pub mod horizon;
+pub mod horizon_bench;
 pub mod lifecycle;
 pub mod live_replay;
 pub mod openpi;

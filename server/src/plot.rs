@@ -436,7 +436,13 @@ pub fn comparison(
 /// Every plot the report has data for, into `out`.
 pub fn all(report: &Report<'_>, out: &Path) -> anyhow::Result<()> {
     register_font()?;
-    let main = ["fifo", "autellix", "kairos", "srw", "srw-hint"];
+    // The paper's systems and ours, plus whatever the user asked for (`--policy`, plugins).
+    let mut main = vec!["fifo", "autellix", "kairos", "srw", "srw-hint"];
+    for j in report.jobs.iter().filter(|j| j.variant.user) {
+        if !main.contains(&j.variant.key.as_str()) {
+            main.push(&j.variant.key);
+        }
+    }
     render(
         out,
         "online",
@@ -464,4 +470,52 @@ pub fn all(report: &Report<'_>, out: &Path) -> anyhow::Result<()> {
     )?;
     render(out, "cdf", &cdf_panels(report, &main))?;
     Ok(())
+}
+
+/// One policy family of a [`pareto`] plot: its points `(mean horizon, success, CI low, CI high)`.
+pub struct ParetoSeries<'a> {
+    /// Its name (`static`, `threshold`, a plugin's).
+    pub label: &'a str,
+    /// Its points, in the order to join them.
+    pub points: Vec<(f64, f64, f64, f64)>,
+}
+
+/// Success rate against mean executed horizon, one line per policy family with 95% CI bars,
+/// into `out/<name>.png` (and `.svg`). Returns the PNG's path.
+pub fn pareto(
+    out: &Path,
+    name: &str,
+    title: &str,
+    families: &[ParetoSeries<'_>],
+) -> anyhow::Result<std::path::PathBuf> {
+    register_font()?;
+    let keys = ["fifo", "kairos", "srw", "autellix"];
+    let panel = Panel {
+        title: title.to_string(),
+        x_desc: "mean executed horizon (actions)".into(),
+        y_desc: "success rate".into(),
+        x_labels: None,
+        series: families
+            .iter()
+            .enumerate()
+            .map(|(i, f)| {
+                let mut points: Vec<Point> = f
+                    .points
+                    .iter()
+                    .map(|&(x, mid, lo, hi)| Point { x, lo, mid, hi })
+                    .collect();
+                points.sort_by(|a, b| a.x.total_cmp(&b.x));
+                Series {
+                    label: f.label.to_string(),
+                    color: color(keys.get(i).copied().unwrap_or(""), i),
+                    points,
+                    bars: true,
+                }
+            })
+            .collect(),
+        y_range: Some((0.0, 1.0)),
+        legend: SeriesLabelPosition::LowerLeft,
+    };
+    render(out, name, &[panel])?;
+    Ok(out.join(format!("{name}.png")))
 }

@@ -286,6 +286,28 @@ pub fn build_native<K: PolicyKind>(name: &str, params: &K::Params) -> Built<K> {
     }
 }
 
+/// Policies available beyond the native ones (plugins and policies registered in code), one
+/// registry per kind, layered over the natives by whoever builds policies: the server
+/// (`transport::launch::start`), the simulator ([`crate::sim::SimConfig::policies`]).
+#[derive(Clone, Debug, Default)]
+pub struct Policies {
+    /// Extra horizon policies; a name here shadows a native policy of the same name.
+    pub horizon: HorizonRegistry,
+    /// Extra priority policies.
+    pub priority: PriorityRegistry,
+}
+
+impl Policies {
+    /// The natives with these policies over them, one registry per kind.
+    pub fn with_natives(&self) -> (HorizonRegistry, PriorityRegistry) {
+        let mut horizon = HorizonRegistry::natives();
+        horizon.extend(self.horizon.clone());
+        let mut priority = PriorityRegistry::natives();
+        priority.extend(self.priority.clone());
+        (horizon, priority)
+    }
+}
+
 /// Horizon policies by name, built per request from the request's parameters.
 pub type HorizonRegistry = Registry<HorizonKind>;
 

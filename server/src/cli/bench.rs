@@ -12,6 +12,7 @@ use kairos_sdk::trace::TraceSet;
 
 use crate::scheduler::PolicySpec;
 use crate::sim::experiment::{self, Experiment, Job, JobResult, Plan, Report, Variant};
+use crate::sim::plugins::{load_user_plugins, plugin_cache_dir};
 use crate::workload::generate::{self, DYNAMIC, STATIC};
 use crate::workload::{self, Workload};
 
@@ -36,6 +37,9 @@ pub enum BenchCommand {
     /// Replay the same traces live: simulated robots over QUIC against a real server with the
     /// trace-replay engine, side by side with the simulation.
     Live(Box<super::bench_live::LiveArgs>),
+    /// Judge horizon policies in closed loop: task success against mean executed horizon on a
+    /// seeded control task with a trained flow-matching policy (pareto.csv, summary.md, plot).
+    Horizon(Box<super::bench_horizon::HorizonArgs>),
 }
 
 /// `kairos bench calibrate`
@@ -83,6 +87,26 @@ pub struct SimArgs {
     /// Robots send the remaining-work hint in the runs of the --policy policies.
     #[arg(long)]
     pub hints: bool,
+    /// A priority-policy plugin (`.wasm` component) to compare with the built-in schedulers in
+    /// the online experiment: rows `F.wasm` (static-horizon traces) and `F.wasm + dyn. horizon`.
+    /// Repeatable.
+    #[arg(long = "priority-plugin", value_name = "F.wasm")]
+    pub priority_plugins: Vec<PathBuf>,
+    /// A horizon-policy plugin (`.wasm` component): every task is also recorded with it choosing
+    /// the horizon, and Algorithm 1 replays that (row `Kairos + F.wasm`, beside `Kairos` with the
+    /// native threshold rule). Repeatable.
+    #[arg(long = "horizon-plugin", value_name = "F.wasm")]
+    pub horizon_plugins: Vec<PathBuf>,
+    /// A parameter handed to every plugin, `name=value` (repeatable).
+    #[arg(long = "param", value_parser = super::parse_param)]
+    pub params: Vec<(String, f64)>,
+    /// The priority plugins' runs re-fetch stale observations (as Algorithm 1 does; off by
+    /// default, as for the baseline schedulers, so a plugin's row shows its ordering alone).
+    #[arg(long)]
+    pub plugin_refetch: bool,
+    /// Precompiled plugin code cache (default: the user's cache directory).
+    #[arg(long, value_name = "DIR")]
+    pub plugin_cache: Option<PathBuf>,
     /// Seed of arrivals and task picks.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -123,6 +147,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
         BenchCommand::Traces(a) => run_traces(a),
         BenchCommand::Calibrate(a) => run_calibrate(a),
         BenchCommand::Live(a) => super::bench_live::run(*a),
+        BenchCommand::Horizon(a) => super::bench_horizon::run(*a),
     }
 }
 
@@ -263,8 +288,23 @@ fn run_sim(a: SimArgs) -> anyhow::Result<()> {
         crate::scheduler::build_policy(&spec)?;
         let mut v = Variant::new(&format!("extra:{spec}"), &spec.to_string(), spec, DYNAMIC);
         v.hints = a.hints;
+        v.user = true;
         extra.push(v);
     }
+
+    let cache = plugin_cache_dir(a.plugin_cache.clone());
+    let user = load_user_plugins(
+        &a.priority_plugins,
+        &a.horizon_plugins,
+        &a.params.iter().cloned().collect(),
+        &cache,
+    )?;
+    if a.traces.is_some() && !a.horizon_plugins.is_empty() {
+        bail!(
+            "--horizon-plugin needs generated traces (a recorded trace file has no rounds chosen by the plugin)"
+        );
+    }
+    extra.extend(user.variants(a.plugin_refetch));
 
     let mut workloads = Vec::new();
     let mut traces = Vec::new();
@@ -277,8 +317,13 @@ fn run_sim(a: SimArgs) -> anyhow::Result<()> {
                 TraceSet::read(std::io::BufReader::new(file))
                     .with_context(|| format!("reading {}", path.display()))?
             }
-            None => generate::generate(&w, a.trace_seed)
-                .with_context(|| format!("generating traces for `{}`", w.name))?,
+            None => {
+                let mut settings = generate::settings(&w).to_vec();
+                settings.extend(user.horizon_settings());
+                let (horizons, _) = user.policies.with_natives();
+                generate::generate_settings(&w, a.trace_seed, &settings, &horizons)
+                    .with_context(|| format!("generating traces for `{}`", w.name))?
+            }
         };
         println!("{}", describe(&w, &set));
         workloads.push(w);
@@ -292,6 +337,7 @@ fn run_sim(a: SimArgs) -> anyhow::Result<()> {
             seed: a.seed,
             extra,
             task_scale: a.task_scale,
+            policies: user.policies.clone(),
         },
     );
     // A recorded trace set may hold only some settings (a robot records the one it ran); drop the
@@ -300,7 +346,7 @@ fn run_sim(a: SimArgs) -> anyhow::Result<()> {
         let available: Vec<String> = traces.iter().flat_map(|t| t.settings()).collect();
         let (keep, drop): (Vec<Job>, Vec<Job>) = jobs
             .into_iter()
-            .partition(|j| available.iter().any(|s| s == j.variant.setting));
+            .partition(|j| available.contains(&j.variant.setting));
         if !drop.is_empty() {
             println!(
                 "skipping {} runs whose horizon setting is not in the trace file (it has: {})",
@@ -390,6 +436,28 @@ fn summary_markdown(report: &Report<'_>, a: &SimArgs) -> String {
         a.task_scale,
         report.jobs.len(),
     ));
+    let users: Vec<&Variant> = {
+        let mut seen: Vec<&Variant> = Vec::new();
+        for j in report.jobs.iter().filter(|j| j.variant.user) {
+            if !seen.iter().any(|v| v.key == j.variant.key) {
+                seen.push(&j.variant);
+            }
+        }
+        seen
+    };
+    if !users.is_empty() {
+        s.push_str("\nUser policies in the online experiment (rows of their own below):\n\n");
+        for v in users {
+            s.push_str(&format!(
+                "- {} (`{}`): priority `{}`, horizon setting `{}`, re-fetch {}\n",
+                v.label,
+                v.key,
+                v.policy,
+                v.setting,
+                if v.refetch { "on" } else { "off" }
+            ));
+        }
+    }
     if has(Experiment::Online) {
         s.push_str("\n## Latency reduction at the highest arrival rate vs FIFO\n\n");
         s.push_str(&report.reduction_table("fifo"));

@@ -3,6 +3,7 @@
 //! Nothing here is reused by other code: tests and other subcommands import the library modules.
 //! `main.rs` only parses and dispatches.
 pub mod bench;
+pub mod bench_horizon;
 pub mod bench_live;
 pub mod demo;
 pub mod plugin;

@@ -14,6 +14,7 @@ use kairos_sdk::trace::TraceSet;
 
 use super::stats::{Summary, reduction, summarize};
 use super::{Load, SimConfig, SimError, SimNetwork, simulate};
+use crate::registry::Policies;
 use crate::scheduler::{EngineSpec, PolicySpec, SchedulerConfig, Tier, refetch_by_default};
 use crate::workload::Workload;
 use crate::workload::generate::{DYNAMIC, STATIC};
@@ -86,28 +87,32 @@ pub struct Variant {
     pub label: String,
     /// The priority policy.
     pub policy: PolicySpec,
-    /// The trace setting replayed (`static` or `dynamic`).
-    pub setting: &'static str,
+    /// The trace setting replayed (`static`, `dynamic`, or a horizon plugin's).
+    pub setting: String,
     /// Whether robots send the remaining-work hint.
     pub hints: bool,
     /// Whether the scheduler re-fetches stale observations (`SchedulerConfig::refetch`).
     pub refetch: bool,
     /// Engines.
     pub placement: Placement,
+    /// Asked for by the user (`--policy`, a plugin): drawn in the online plots beside the
+    /// paper's systems.
+    pub user: bool,
 }
 
 impl Variant {
     /// `policy` on one edge engine replaying `setting`, without hints, with the policy's own
     /// re-fetch setting ([`refetch_by_default`]).
-    pub fn new(key: &str, label: &str, policy: PolicySpec, setting: &'static str) -> Self {
+    pub fn new(key: &str, label: &str, policy: PolicySpec, setting: &str) -> Self {
         Variant {
             key: key.to_string(),
             label: label.to_string(),
             refetch: refetch_by_default(&policy.name),
             policy,
-            setting,
+            setting: setting.to_string(),
             hints: false,
             placement: Placement::Edge,
+            user: false,
         }
     }
 
@@ -134,7 +139,7 @@ impl Variant {
     }
 }
 
-fn variant(key: &str, label: &str, policy: &str, setting: &'static str) -> Variant {
+fn variant(key: &str, label: &str, policy: &str, setting: &str) -> Variant {
     Variant::new(
         key,
         label,
@@ -260,6 +265,9 @@ pub struct Plan {
     pub extra: Vec<Variant>,
     /// Scale every run's task count by this (1 = the workload's counts).
     pub task_scale: f64,
+    /// Policies beyond the natives that variants may name (users' plugins,
+    /// [`plugin_policies`]).
+    pub policies: Policies,
 }
 
 fn engine(w: &Workload, tier: Tier) -> EngineSpec {
@@ -293,7 +301,7 @@ pub fn config(w: &Workload, variant: &Variant, load: Load, seed: u64) -> SimConf
             ..SchedulerConfig::default()
         },
         policy: variant.policy.clone(),
-        setting: variant.setting.to_string(),
+        setting: variant.setting.clone(),
         network: SimNetwork {
             robot_rtt: w.robot_rtt(),
             robot_uplink_mbps: w.network.robot_uplink_mbps,
@@ -303,6 +311,7 @@ pub fn config(w: &Workload, variant: &Variant, load: Load, seed: u64) -> SimConf
         load,
         seed,
         record: false,
+        policies: Policies::default(),
     }
 }
 
@@ -323,7 +332,10 @@ pub fn plan(workloads: &[Workload], plan: &Plan) -> Vec<Job> {
                 experiment,
                 x: xval,
                 variant: v.clone(),
-                config: config(w, v, load, plan.seed),
+                config: SimConfig {
+                    policies: plan.policies.clone(),
+                    ..config(w, v, load, plan.seed)
+                },
             });
         };
         for &e in &plan.experiments {

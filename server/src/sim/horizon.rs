@@ -10,6 +10,7 @@
 use kairos_sdk::trace::{HorizonSetting, RoundTrace};
 
 use crate::horizon::{ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
+use crate::registry::{HorizonRegistry, Origin};
 
 /// Why a horizon setting cannot be replayed.
 #[derive(Debug, thiserror::Error)]
@@ -23,7 +24,9 @@ pub enum ReplayHorizonError {
 pub struct ReplayHorizon {
     policy: Box<dyn HorizonPolicy>,
     fallback: Box<dyn HorizonPolicy>,
-    no_params: PolicyParams,
+    /// What `policy` is handed as the request's parameters: empty for a native policy (built
+    /// with the setting's), the setting's for a plugin.
+    call_params: PolicyParams,
     recent: Vec<u32>,
     updates: Vec<f32>,
     actions: Vec<f32>,
@@ -37,12 +40,35 @@ impl ReplayHorizon {
     /// The policy of `setting`, built from the native registry.
     pub fn new(setting: &HorizonSetting) -> Result<Self, ReplayHorizonError> {
         let policy = crate::horizon::builtin(&setting.policy, &setting.params)?;
+        Self::with_policy(policy, PolicyParams::new())
+    }
+
+    /// The policy of `setting`, built from `registry` (natives and loaded plugins: what
+    /// `kairos bench sim --horizon-plugin` replays). A native policy is built with the
+    /// setting's parameters; anything else (a plugin checks its parameters on every call, as
+    /// in a served request) is handed them with every chunk.
+    pub fn with_registry(
+        setting: &HorizonSetting,
+        registry: &HorizonRegistry,
+    ) -> Result<Self, ReplayHorizonError> {
+        let policy = registry.resolve(&setting.policy, &setting.params)?;
+        let per_call = match registry.origin(&setting.policy) {
+            Some(Origin::Native) => PolicyParams::new(),
+            _ => setting.params.clone(),
+        };
+        Self::with_policy(policy, per_call)
+    }
+
+    fn with_policy(
+        policy: Box<dyn HorizonPolicy>,
+        per_call: PolicyParams,
+    ) -> Result<Self, ReplayHorizonError> {
         let fallback =
             crate::horizon::builtin("static", &PolicyParams::from([("h".to_string(), 1.0)]))?;
         Ok(ReplayHorizon {
             policy,
             fallback,
-            no_params: PolicyParams::new(),
+            call_params: per_call,
             recent: Vec::with_capacity(RECENT),
             updates: Vec::new(),
             actions: Vec::new(),
@@ -76,8 +102,9 @@ impl ReplayHorizon {
             actions: &self.actions,
         };
         let (policy, params) = if round.confidence.is_some() {
-            // The policy was built with the setting's parameters; empty means "use them".
-            (&mut self.policy, &self.no_params)
+            // A native policy was built with the setting's parameters (empty means "use them");
+            // a plugin gets them here.
+            (&mut self.policy, &self.call_params)
         } else {
             // Without the updates the only faithful replay is the recorded decision.
             self.fallback_params

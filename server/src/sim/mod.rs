@@ -27,6 +27,7 @@
 
 pub mod experiment;
 pub mod horizon;
+pub mod plugins;
 pub mod robot;
 pub mod stats;
 #[cfg(test)]
@@ -39,6 +40,7 @@ use std::time::Duration;
 use kairos_sdk::trace::{RoundEvent, RoundTrace, TaskMeta, TaskRecording, TaskTrace, TraceSet};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
+use crate::registry::{HorizonRegistry, Policies};
 use crate::scheduler::{
     AdmitError, BatchId, Dispatch, EngineSpec, ExecReport, PolicySpec, RemainingWork, RequestId,
     RobotId, RoundOutcome, RoundSubmit, Scheduler, SchedulerConfig, TaskEnd, TaskId, Tier,
@@ -103,6 +105,9 @@ pub struct SimConfig {
     /// Record what every replayed robot experienced as traces (`SimResult::recorded`), with the
     /// same recorder a live robot uses.
     pub record: bool,
+    /// Policies beyond the natives (users' plugins), resolved by name like the natives:
+    /// `policy` and each trace's horizon setting may name one.
+    pub policies: Policies,
 }
 
 /// Why a run failed.
@@ -262,6 +267,8 @@ struct InFlight {
 /// The simulation state: the real scheduler plus modelled robots, network and engines.
 struct Sim<'a> {
     cfg: &'a SimConfig,
+    /// Natives and `cfg.policies`: what each task's horizon setting is resolved in.
+    horizons: HorizonRegistry,
     sched: Scheduler,
     queue: BinaryHeap<Reverse<(Timestamp, u64, Event)>>,
     seq: u64,
@@ -311,7 +318,7 @@ impl<'a> Sim<'a> {
             robot,
             task: TaskId(inst as u64),
             exec: Execution::new(trace.control_hz),
-            horizon: ReplayHorizon::new(&trace.horizon)?,
+            horizon: ReplayHorizon::with_registry(&trace.horizon, &self.horizons)?,
             sent: 0,
             outstanding: None,
             started_at: at,
@@ -755,11 +762,13 @@ pub fn simulate(traces: &TraceSet, cfg: &SimConfig) -> Result<SimResult, SimErro
     if cfg.engines.is_empty() {
         return Err(SimError::Config("no engines".into()));
     }
-    let policy =
-        crate::scheduler::build_policy(&cfg.policy).map_err(|e| SimError::Policy(e.to_string()))?;
+    let (horizons, priorities) = cfg.policies.with_natives();
+    let policy = crate::registry::build_priority(&priorities, &cfg.policy)
+        .map_err(|e| SimError::Policy(e.to_string()))?;
     let sched = Scheduler::new(cfg.scheduler.clone(), cfg.engines.clone(), policy);
     let mut sim = Sim {
         cfg,
+        horizons,
         sched,
         queue: BinaryHeap::new(),
         seq: 0,

@@ -58,6 +58,7 @@ fn config(policy: &str, setting: &str, load: Load, engines: Vec<EngineSpec>) -> 
         load,
         seed: 1,
         record: false,
+        policies: Default::default(),
     }
 }
 
@@ -178,6 +179,7 @@ fn thread_count_never_changes_a_number() {
             seed: 4,
             extra: Vec::new(),
             task_scale: 1.0,
+            policies: Default::default(),
         },
     );
     let one = experiment::run_jobs(&jobs, &traces, 1, &|_| {});
@@ -414,7 +416,7 @@ fn every_system_issues_exactly_the_recorded_rounds_of_each_task() {
             cfg.record = true;
             let r = simulate(&traces, &cfg).unwrap();
             assert_eq!(r.tasks.len(), 60, "{} {}", w.name, v.key);
-            let recorded = |id: u64| traces.variant(v.setting).find(|t| t.task == id).unwrap();
+            let recorded = |id: u64| traces.variant(&v.setting).find(|t| t.task == id).unwrap();
             let mut expected = 0;
             for t in &r.tasks {
                 let original = recorded(t.trace_task);

@@ -17,10 +17,7 @@ use crate::action::{ActionConfigError, ActionManager};
 use crate::config::{Config, ConfigError, resolve_robots};
 use crate::driver::{DriverConfig, DriverHandle, DriverStats};
 use crate::pool::EnginePool;
-use crate::registry::{
-    HorizonRegistry, PriorityRegistry, build_priority, native_horizon_policies,
-    native_priority_policies,
-};
+use crate::registry::{build_priority, native_horizon_policies, native_priority_policies};
 use crate::scheduler::Scheduler;
 use crate::scheduler::registry::PolicySpecError;
 use crate::validation::Validator;
@@ -71,14 +68,7 @@ pub enum LaunchError {
     },
 }
 
-/// Policies available beyond the native ones (plugins register here).
-#[derive(Default)]
-pub struct Policies {
-    /// Extra horizon policies; a name here shadows a native policy of the same name.
-    pub horizon: HorizonRegistry,
-    /// Extra priority policies.
-    pub priority: PriorityRegistry,
-}
+pub use crate::registry::Policies;
 
 /// A running server.
 pub struct RunningServer {

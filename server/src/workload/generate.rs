@@ -21,6 +21,7 @@ use rand::{Rng, SeedableRng, rngs::StdRng};
 use rand_distr::StandardNormal;
 
 use super::{Workload, inverse_cdf};
+use crate::registry::HorizonRegistry;
 use crate::sim::horizon::{ReplayHorizon, ReplayHorizonError, confidence_for_target};
 use crate::sim::robot::{Accepted, Execution};
 use crate::time::{Timestamp, duration_micros};
@@ -165,12 +166,13 @@ fn record(
     traj: &Trajectory,
     label: &str,
     setting: &HorizonSetting,
+    horizons: &HorizonRegistry,
 ) -> Result<TaskTrace, GenerateError> {
     let n = w.robot.chunk_len;
     let hz = w.robot.control_hz;
     let generation = w.edge_profile().latency(1);
-    let mut horizon =
-        ReplayHorizon::new(setting).map_err(|source| GenerateError::Horizon { task, source })?;
+    let mut horizon = ReplayHorizon::with_registry(setting, horizons)
+        .map_err(|source| GenerateError::Horizon { task, source })?;
     let dynamic = setting.policy != "static";
     let mut exec = Execution::new(hz);
     let mut rounds: Vec<RoundTrace> = Vec::new();
@@ -248,17 +250,30 @@ fn record(
 /// Generates `w.tasks.pool` tasks, each recorded under both settings (static first), with
 /// `seed`. Same workload and seed, same trace set.
 pub fn generate(w: &Workload, seed: u64) -> Result<TraceSet, GenerateError> {
+    generate_settings(w, seed, &settings(w), &HorizonRegistry::natives())
+}
+
+/// Generates `w.tasks.pool` tasks, each recorded under every one of `settings` (in order), whose
+/// horizon policies are resolved in `horizons`: [`generate`] with other settings, e.g. a user's
+/// horizon plugin beside the workload's two (`kairos bench sim --horizon-plugin`). A task's
+/// ground truth depends on the seed only, so its recording under a setting is the same whatever
+/// other settings are generated beside it.
+pub fn generate_settings(
+    w: &Workload,
+    seed: u64,
+    settings: &[(String, HorizonSetting)],
+    horizons: &HorizonRegistry,
+) -> Result<TraceSet, GenerateError> {
     let mut header = TraceHeader::new(TraceSource::Generated);
     header.workload = Some(w.name.clone());
     header.seed = Some(seed);
-    let settings = settings(w);
     let mut tasks = Vec::with_capacity(w.tasks.pool * settings.len());
     for task in 0..w.tasks.pool as u64 {
         let mut rng = StdRng::seed_from_u64(task_seed(seed, task));
         let traj = trajectory(w, &mut rng);
         let label = format!("{}/{task}", w.name);
-        for (name, setting) in &settings {
-            let mut t = record(w, task, &traj, &label, setting)?;
+        for (name, setting) in settings {
+            let mut t = record(w, task, &traj, &label, setting, horizons)?;
             t.setting = name.clone();
             t.validate()?;
             tasks.push(t);

@@ -5,6 +5,8 @@
 //! time" in docs/BENCHMARKS.md). A new integration test is a new module here, not a new file in
 //! `tests/`.
 
+mod bench_horizon;
+mod bench_plugins;
 mod plugin_common;
 mod plugin_containment;
 mod plugin_reload;

@@ -158,6 +158,7 @@ async fn agree(latency_ms: u64, horizon: u32, trigger: f32, rounds: u64) {
             load: Load::Explicit(vec![(Timestamp::ZERO, TASK)]),
             seed: 1,
             record: true,
+            policies: Default::default(),
         },
     )
     .unwrap();

@@ -1,0 +1,206 @@
+//! `kairos bench horizon`: parses its arguments, runs [`crate::horizon_bench`] with a progress
+//! bar, and writes `pareto.csv`, `summary.md` and the plot; `--train` trains the policy instead.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::horizon_bench::model::{FlowPolicy, TrainConfig, train};
+use crate::horizon_bench::{
+    BenchPlan, PolicyPoint, action_manager, builtin_points, markdown_table, pareto_csv, run_bench,
+};
+use crate::plot::{ParetoSeries, pareto};
+use crate::sim::plugins::{PluginRole, load_user_plugins, plugin_cache_dir};
+
+/// `kairos bench horizon`
+#[derive(Args, Debug, Clone)]
+pub struct HorizonArgs {
+    /// A smaller run for CI and first looks (fewer policies and episodes).
+    #[arg(long)]
+    pub quick: bool,
+    /// Output directory for pareto.csv, summary.md and pareto.png/.svg.
+    #[arg(long, short = 'o', default_value = "kairos-horizon")]
+    pub out: PathBuf,
+    /// The trained policy (config.json + model.safetensors).
+    #[arg(long, default_value = "workloads/horizon/model")]
+    pub model: PathBuf,
+    /// Episodes per policy (default 200, or 40 with --quick). The same seeds for every policy.
+    #[arg(long)]
+    pub episodes: Option<usize>,
+    /// Seed of the first episode.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Worker threads (default: available cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// A horizon-policy plugin (`.wasm` component) to evaluate beside the built-ins. Repeatable.
+    #[arg(long = "horizon-plugin", value_name = "F.wasm")]
+    pub horizon_plugins: Vec<PathBuf>,
+    /// A parameter handed to every plugin, `name=value` (repeatable).
+    #[arg(long = "param", value_parser = super::parse_param)]
+    pub params: Vec<(String, f64)>,
+    /// Samples per request for the plugins (a multi-sample plugin needs 2 or more).
+    #[arg(long, default_value_t = 1)]
+    pub plugin_samples: usize,
+    /// Precompiled plugin code cache (default: the user's cache directory).
+    #[arg(long, value_name = "DIR")]
+    pub plugin_cache: Option<PathBuf>,
+    /// Skip the plot.
+    #[arg(long)]
+    pub no_plots: bool,
+    /// Train the policy on fresh demonstrations and write it to --model, instead of running.
+    #[arg(long)]
+    pub train: bool,
+    /// With --train: optimiser steps (default: the committed model's).
+    #[arg(long, requires = "train")]
+    pub iterations: Option<usize>,
+    /// With --train: demonstration episodes.
+    #[arg(long, requires = "train")]
+    pub demos: Option<usize>,
+    /// With --train: seed of demonstrations, initialisation and batches.
+    #[arg(long, requires = "train")]
+    pub train_seed: Option<u64>,
+}
+
+/// Runs `kairos bench horizon`.
+pub fn run(a: HorizonArgs) -> anyhow::Result<()> {
+    if a.train {
+        return run_train(&a);
+    }
+    let started = Instant::now();
+    let (model, saved) = FlowPolicy::load(&a.model).with_context(|| {
+        format!(
+            "loading the policy from {} (train one with --train)",
+            a.model.display()
+        )
+    })?;
+    let cache = plugin_cache_dir(a.plugin_cache.clone());
+    let user = load_user_plugins(
+        &[],
+        &a.horizon_plugins,
+        &a.params.iter().cloned().collect(),
+        &cache,
+    )?;
+    let manager = action_manager(user.policies.horizon.clone())?;
+    let mut points = builtin_points(a.quick);
+    for p in user
+        .plugins
+        .iter()
+        .filter(|p| p.role == PluginRole::Horizon)
+    {
+        points.push(PolicyPoint {
+            family: p.label.clone(),
+            name: p.name.clone(),
+            params: p.params.clone(),
+            samples: a.plugin_samples.max(1),
+        });
+    }
+    let episodes = a.episodes.unwrap_or(if a.quick { 40 } else { 200 });
+    if episodes == 0 {
+        bail!("--episodes must be at least 1");
+    }
+    let threads = a
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+        .max(1);
+    let plan = BenchPlan {
+        points,
+        episodes,
+        seed: a.seed,
+        env: saved.train.env.clone(),
+        threads,
+    };
+    let bar = ProgressBar::new((plan.points.len() * episodes) as u64);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:40}] {pos}/{len} episodes, eta {eta}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> "),
+    );
+    let results = run_bench(&model, &manager, &plan, &|| bar.inc(1))?;
+    bar.finish_and_clear();
+
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let csv = pareto_csv(&results);
+    std::fs::write(a.out.join("pareto.csv"), &csv).context("writing pareto.csv")?;
+    let mut summary = format!(
+        "# Horizon policies in closed loop\n\nGenerated by `kairos bench horizon{}` ({} episodes per policy, seeds {}..{}, model `{}`: {} demonstration pairs, final training loss {:.4}, {} fallback decisions). Success with a 95% Wilson interval; mean executed H = actions executed per chunk.\n\n",
+        if a.quick { " --quick" } else { "" },
+        episodes,
+        a.seed,
+        a.seed + episodes as u64 - 1,
+        a.model.display(),
+        saved.pairs,
+        saved.final_loss,
+        manager.fallback_count(),
+    );
+    summary.push_str(&markdown_table(&results));
+    std::fs::write(a.out.join("summary.md"), &summary).context("writing summary.md")?;
+    if !a.no_plots {
+        let mut families: Vec<ParetoSeries<'_>> = Vec::new();
+        for r in &results {
+            let (lo, hi) = r.ci();
+            let point = (r.mean_horizon, r.success_rate(), lo, hi);
+            match families.iter_mut().find(|f| f.label == r.point.family) {
+                Some(f) => f.points.push(point),
+                None => families.push(ParetoSeries {
+                    label: &r.point.family,
+                    points: vec![point],
+                }),
+            }
+        }
+        pareto(
+            &a.out,
+            "pareto",
+            "closed-loop success vs mean executed horizon",
+            &families,
+        )?;
+    }
+    println!("{summary}");
+    println!(
+        "{} policies x {episodes} episodes on {threads} thread(s) in {:.1} s. Outputs in {}",
+        plan.points.len(),
+        started.elapsed().as_secs_f64(),
+        a.out.display()
+    );
+    Ok(())
+}
+
+fn run_train(a: &HorizonArgs) -> anyhow::Result<()> {
+    let defaults = TrainConfig::default();
+    let cfg = TrainConfig {
+        iterations: a.iterations.unwrap_or(defaults.iterations),
+        demos: a.demos.unwrap_or(defaults.demos),
+        seed: a.train_seed.unwrap_or(defaults.seed),
+        ..defaults
+    };
+    let started = Instant::now();
+    let bar = ProgressBar::new(cfg.iterations as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} steps, {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    let (policy, saved) = train(&cfg, &mut |it, loss| {
+        if it % 20 == 0 {
+            bar.set_message(format!("loss {loss:.4}"));
+        }
+        bar.inc(1);
+    })?;
+    bar.finish_and_clear();
+    policy.save(&a.model, &saved)?;
+    println!(
+        "trained on {} demonstration pairs ({} episodes), {} steps in {:.1} s, final loss {:.4}; wrote {}",
+        saved.pairs,
+        cfg.demos,
+        cfg.iterations,
+        started.elapsed().as_secs_f64(),
+        saved.final_loss,
+        a.model.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,407 @@
+//! `kairos bench horizon`: horizon policies judged in closed loop, by task success.
+//!
+//! A latency replay cannot say what a longer execution horizon costs in accuracy. This bench
+//! runs a small seeded control task ([`env`]: reach → grasp → carry with pushes, a moving goal
+//! and actuation noise) with a flow-matching policy trained on a scripted expert ([`model`]),
+//! and for each horizon policy measures the success rate (with a 95% Wilson interval), the mean
+//! executed horizon, inference calls per episode and episode length, over the same episode
+//! seeds for every policy.
+//!
+//! Each episode runs the robot side's real chunk executor (`kairos_sdk::robot::ChunkExecutor`,
+//! with its alignment and discard rules; synchronous inference: the next request goes out when
+//! the chunk runs out, `trigger = 1`) and the server's real horizon code: the
+//! [`ActionManager`] with the server's horizon registry (natives plus any plugin loaded by the
+//! server's plugin factory), which validates every answer and falls back as it does in `serve`.
+//! Inference is in-process and takes no virtual time; control runs at
+//! [`env::EnvConfig::control_hz`].
+
+pub mod env;
+pub mod model;
+
+use std::fmt::Write as _;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use kairos_sdk::robot::ChunkExecutor;
+
+use crate::action::{ActionManager, NoHorizon, PolicyLookupError, RoundContext};
+use crate::horizon::PolicyParams;
+use crate::registry::{HorizonRegistry, native_horizon_policies};
+use env::{ACTION_DIM, Env, EnvConfig};
+use model::{FlowPolicy, ModelError};
+
+/// Why the bench could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    /// The model failed.
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    /// A policy name or its parameters were refused.
+    #[error(transparent)]
+    Lookup(#[from] PolicyLookupError),
+    /// Neither the policy nor the native fallback chose a horizon.
+    #[error(transparent)]
+    NoHorizon(#[from] NoHorizon),
+    /// The action manager could not be set up.
+    #[error("{0}")]
+    Setup(String),
+    /// The executor had no action to run (a bug: every reply carries at least one).
+    #[error("episode {0}: no action to execute")]
+    NoAction(u64),
+}
+
+/// One horizon policy under test: a name in the horizon registry and its parameters.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PolicyPoint {
+    /// The family shown in `pareto.csv`'s `policy` column (`static`, `threshold`, `spread`, a
+    /// plugin's name).
+    pub family: String,
+    /// The registry name it is built from.
+    pub name: String,
+    /// Its parameters.
+    pub params: PolicyParams,
+    /// Samples drawn per request (the spread policy needs several, drawn in one batch).
+    pub samples: usize,
+}
+
+impl PolicyPoint {
+    /// `name` with `params`, one sample per request, shown as `name`.
+    pub fn new(name: &str, params: &[(&str, f64)]) -> PolicyPoint {
+        PolicyPoint {
+            family: name.to_string(),
+            name: name.to_string(),
+            params: params.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
+            samples: 1,
+        }
+    }
+
+    /// The parameters as `k=v;k=v` (a CSV cell without commas).
+    pub fn params_text(&self) -> String {
+        self.params
+            .iter()
+            .map(|(k, v)| format!("{k}={v}"))
+            .collect::<Vec<_>>()
+            .join(";")
+    }
+}
+
+/// Static horizons of the full grid.
+pub const STATIC_GRID: [f64; 7] = [1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 16.0];
+/// Thresholds `t` of the §3.1 rule in the full grid.
+pub const THRESHOLD_GRID: [f64; 5] = [0.05, 0.2, 0.4, 1.0, 3.0];
+/// Spread thresholds (4 samples, action units: commands are in [−1, 1]) in the full grid.
+pub const SPREAD_GRID: [f64; 4] = [0.1, 0.2, 0.3, 0.5];
+
+/// The built-in policies of a run: static H over a grid, the §3.1 threshold rule at several
+/// thresholds, and the multi-sample spread rule (`quick`: a few of each).
+pub fn builtin_points(quick: bool) -> Vec<PolicyPoint> {
+    let pick = |grid: &[f64], quick_idx: &[usize]| -> Vec<f64> {
+        if quick {
+            quick_idx.iter().map(|&i| grid[i]).collect()
+        } else {
+            grid.to_vec()
+        }
+    };
+    let mut points: Vec<PolicyPoint> = pick(&STATIC_GRID, &[0, 3, 6])
+        .into_iter()
+        .map(|h| PolicyPoint::new("static", &[("h", h)]))
+        .collect();
+    points.extend(
+        pick(&THRESHOLD_GRID, &[2, 4])
+            .into_iter()
+            .map(|t| PolicyPoint::new("threshold", &[("t", t)])),
+    );
+    points.extend(pick(&SPREAD_GRID, &[2]).into_iter().map(|th| PolicyPoint {
+        samples: 4,
+        ..PolicyPoint::new("spread", &[("threshold", th)])
+    }));
+    points
+}
+
+/// One episode's outcome.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Episode {
+    /// Whether the object reached the goal in time.
+    pub success: bool,
+    /// Control steps taken.
+    pub steps: u32,
+    /// Inference calls (chunks requested).
+    pub calls: u32,
+    /// Sum of the horizons chosen.
+    pub horizon_sum: u64,
+}
+
+/// Noise seed of request `call` of episode `episode`.
+fn noise_seed(episode: u64, call: u32) -> u64 {
+    episode
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        .wrapping_add(u64::from(call))
+}
+
+/// Horizons remembered per episode for `HorizonInput::recent_horizons` (as the server does).
+const RECENT: usize = 8;
+
+/// Runs episode `seed` with `policy` choosing horizons through `manager`.
+pub fn run_episode(
+    model: &FlowPolicy,
+    manager: &ActionManager,
+    point: &PolicyPoint,
+    env_cfg: &EnvConfig,
+    seed: u64,
+) -> Result<Episode, BenchError> {
+    let mut round = manager.build(Some(point.name.as_str()), Some(&point.params))?;
+    let mut env = Env::new(env_cfg.clone(), seed);
+    let hz = env_cfg.control_hz;
+    let period_us = (1e6 / f64::from(hz)).round() as u64;
+    let mut exec = ChunkExecutor::new(hz, 1.0);
+    let mut out = Episode::default();
+    let mut recent: Vec<u32> = Vec::with_capacity(RECENT);
+    let mut now_us = 0u64;
+    while !env.done() {
+        if exec.wants_request() {
+            let id = u64::from(out.calls);
+            exec.request_sent(id, now_us);
+            let chunk = model.sample(&env.observe(), point.samples, noise_seed(seed, out.calls))?;
+            let choice = manager.choose(
+                &mut round,
+                &chunk,
+                RoundContext {
+                    control_hz: hz,
+                    round_index: id,
+                    recent_horizons: &recent,
+                },
+            )?;
+            let h = choice.horizon;
+            let actions: Vec<Vec<f32>> = chunk
+                .sample_actions(0)
+                .chunks_exact(ACTION_DIM)
+                .take(h)
+                .map(<[f32]>::to_vec)
+                .collect();
+            exec.reply_arrived(id, actions);
+            out.calls += 1;
+            out.horizon_sum += h as u64;
+            if recent.len() == RECENT {
+                recent.remove(0);
+            }
+            recent.push(u32::try_from(h).unwrap_or(u32::MAX));
+        }
+        let step = exec.next_action(now_us).ok_or(BenchError::NoAction(seed))?;
+        env.step(step.action);
+        now_us += period_us;
+    }
+    out.success = env.success();
+    out.steps = env.steps();
+    Ok(out)
+}
+
+/// One policy's results.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PointResult {
+    /// The policy.
+    pub point: PolicyPoint,
+    /// Episodes run.
+    pub episodes: usize,
+    /// Episodes that succeeded.
+    pub successes: usize,
+    /// Actions executed per chunk: steps / calls over all episodes.
+    pub mean_horizon: f64,
+    /// Mean horizon the policy chose (the last chunk of an episode may be cut short).
+    pub mean_chosen: f64,
+    /// Inference calls per episode.
+    pub calls_per_episode: f64,
+    /// Control steps per episode.
+    pub mean_steps: f64,
+}
+
+impl PointResult {
+    /// Successes / episodes.
+    pub fn success_rate(&self) -> f64 {
+        self.successes as f64 / self.episodes.max(1) as f64
+    }
+
+    /// 95% Wilson score interval of the success rate.
+    pub fn ci(&self) -> (f64, f64) {
+        wilson(self.successes, self.episodes, 1.96)
+    }
+}
+
+/// The Wilson score interval of `k` successes in `n` trials at normal quantile `z`.
+pub fn wilson(k: usize, n: usize, z: f64) -> (f64, f64) {
+    if n == 0 {
+        return (0.0, 1.0);
+    }
+    let (k, n) = (k as f64, n as f64);
+    let p = k / n;
+    let z2 = z * z;
+    let centre = (p + z2 / (2.0 * n)) / (1.0 + z2 / n);
+    let half = z * (p * (1.0 - p) / n + z2 / (4.0 * n * n)).sqrt() / (1.0 + z2 / n);
+    ((centre - half).max(0.0), (centre + half).min(1.0))
+}
+
+/// What to run.
+#[derive(Clone, Debug)]
+pub struct BenchPlan {
+    /// The policies.
+    pub points: Vec<PolicyPoint>,
+    /// Episodes per policy; episode `i` has seed `seed + i` for every policy.
+    pub episodes: usize,
+    /// First episode seed.
+    pub seed: u64,
+    /// The task.
+    pub env: EnvConfig,
+    /// Worker threads.
+    pub threads: usize,
+}
+
+/// An action manager over the natives and `extra` (plugins), falling back to the native
+/// `threshold` rule as `serve` does by default.
+pub fn action_manager(extra: HorizonRegistry) -> Result<ActionManager, BenchError> {
+    ActionManager::new(
+        extra,
+        &native_horizon_policies(),
+        "threshold",
+        PolicyParams::new(),
+    )
+    .map_err(|e| BenchError::Setup(e.to_string()))
+}
+
+/// Runs every policy of `plan` on the same episodes, `on_episode` after each. Results come in
+/// plan order, the same whatever the thread count.
+pub fn run_bench(
+    model: &FlowPolicy,
+    manager: &ActionManager,
+    plan: &BenchPlan,
+    on_episode: &(dyn Fn() + Sync),
+) -> Result<Vec<PointResult>, BenchError> {
+    let jobs: Vec<(usize, u64)> = (0..plan.points.len())
+        .flat_map(|p| (0..plan.episodes as u64).map(move |e| (p, e)))
+        .collect();
+    let next = AtomicUsize::new(0);
+    let results: Mutex<Vec<Option<Result<Episode, BenchError>>>> =
+        Mutex::new((0..jobs.len()).map(|_| None).collect());
+    std::thread::scope(|scope| {
+        for _ in 0..plan.threads.max(1) {
+            scope.spawn(|| {
+                loop {
+                    let i = next.fetch_add(1, Ordering::Relaxed);
+                    let Some(&(p, e)) = jobs.get(i) else { break };
+                    let r = run_episode(model, manager, &plan.points[p], &plan.env, plan.seed + e);
+                    if let Ok(mut slots) = results.lock() {
+                        slots[i] = Some(r);
+                    }
+                    on_episode();
+                }
+            });
+        }
+    });
+    let slots = results
+        .into_inner()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
+    let mut out = Vec::with_capacity(plan.points.len());
+    for (p, point) in plan.points.iter().enumerate() {
+        let mut episodes = Vec::with_capacity(plan.episodes);
+        for slot in &slots[p * plan.episodes..(p + 1) * plan.episodes] {
+            match slot {
+                Some(Ok(e)) => episodes.push(*e),
+                Some(Err(e)) => return Err(BenchError::Setup(e.to_string())),
+                None => return Err(BenchError::Setup("an episode did not run".into())),
+            }
+        }
+        out.push(summarize(point, &episodes));
+    }
+    Ok(out)
+}
+
+fn summarize(point: &PolicyPoint, episodes: &[Episode]) -> PointResult {
+    let n = episodes.len().max(1) as f64;
+    let calls: u64 = episodes.iter().map(|e| u64::from(e.calls)).sum();
+    let steps: u64 = episodes.iter().map(|e| u64::from(e.steps)).sum();
+    let chosen: u64 = episodes.iter().map(|e| e.horizon_sum).sum();
+    PointResult {
+        point: point.clone(),
+        episodes: episodes.len(),
+        successes: episodes.iter().filter(|e| e.success).count(),
+        mean_horizon: steps as f64 / calls.max(1) as f64,
+        mean_chosen: chosen as f64 / calls.max(1) as f64,
+        calls_per_episode: calls as f64 / n,
+        mean_steps: steps as f64 / n,
+    }
+}
+
+/// `pareto.csv`: one row per policy.
+pub fn pareto_csv(results: &[PointResult]) -> String {
+    let mut s = String::from(
+        "policy,params,mean_horizon,success_rate,ci_low,ci_high,episodes,successes,mean_chosen_horizon,calls_per_episode,mean_episode_steps\n",
+    );
+    for r in results {
+        let (lo, hi) = r.ci();
+        let _ = writeln!(
+            s,
+            "{},{},{:.3},{:.4},{:.4},{:.4},{},{},{:.3},{:.2},{:.2}",
+            r.point.family,
+            r.point.params_text(),
+            r.mean_horizon,
+            r.success_rate(),
+            lo,
+            hi,
+            r.episodes,
+            r.successes,
+            r.mean_chosen,
+            r.calls_per_episode,
+            r.mean_steps
+        );
+    }
+    s
+}
+
+/// The markdown table of `summary.md`.
+pub fn markdown_table(results: &[PointResult]) -> String {
+    let mut s = String::from(
+        "| policy | params | success | 95% CI | mean executed H | calls / episode | steps / episode |\n|---|---|---|---|---|---|---|\n",
+    );
+    for r in results {
+        let (lo, hi) = r.ci();
+        let _ = writeln!(
+            s,
+            "| {} | {} | {:.1}% | {:.1}–{:.1}% | {:.2} | {:.1} | {:.1} |",
+            r.point.family,
+            r.point.params_text(),
+            100.0 * r.success_rate(),
+            100.0 * lo,
+            100.0 * hi,
+            r.mean_horizon,
+            r.calls_per_episode,
+            r.mean_steps
+        );
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn wilson_matches_the_textbook_values() {
+        // 81/263 at 95%: (0.2553, 0.3662) (Wilson 1927 as tabulated by Newcombe 1998, case 3... )
+        let (lo, hi) = wilson(81, 263, 1.96);
+        assert!(
+            (lo - 0.2553).abs() < 5e-4 && (hi - 0.3662).abs() < 5e-4,
+            "{lo} {hi}"
+        );
+        let (lo, hi) = wilson(0, 10, 1.96);
+        assert_eq!(lo, 0.0);
+        assert!((hi - 0.2775).abs() < 5e-4, "{hi}");
+        assert_eq!(wilson(0, 0, 1.96), (0.0, 1.0));
+    }
+
+    #[test]
+    fn the_quick_plan_has_every_family() {
+        let points = builtin_points(true);
+        for family in ["static", "threshold", "spread"] {
+            assert!(points.iter().any(|p| p.family == family), "{family}");
+        }
+        assert!(builtin_points(false).len() > points.len());
+    }
+}

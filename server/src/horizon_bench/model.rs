@@ -1,0 +1,430 @@
+//! The policy: a small flow-matching model in Candle that maps an observation to a chunk of
+//! `N` actions, sampled with the engine's own flow-matching sampler
+//! ([`kairos_engine::sampler`]: seeded noise, LeRobot's Euler schedule from `t = 1` to `t = 0`,
+//! per-step updates `U`), so its chunks carry the same `[S][K][N][D]` updates the served models'
+//! do and every horizon policy reads them as it would in `serve`.
+//!
+//! The velocity field is an MLP on `[observation, x_t, time features]` (SiLU). Training is
+//! conditional flow matching on demonstrations of the scripted [`Expert`]: `x_t = t·ε + (1−t)·a`,
+//! target `ε − a`, mean squared error, AdamW ([`train`]).
+
+use std::path::Path;
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{Linear, Module, Optimizer, VarBuilder, VarMap, linear};
+use kairos_engine::ActionChunk;
+use kairos_engine::sampler::{RowLayout, Schedule, gaussian_noise, integrate};
+use rand::{Rng, SeedableRng, rngs::StdRng};
+use rand_distr::StandardNormal;
+
+use super::env::{ACTION_DIM, Env, EnvConfig, Expert, OBS_DIM};
+
+/// Weights file name inside a model directory.
+pub const WEIGHTS: &str = "model.safetensors";
+/// Configuration file name inside a model directory.
+pub const CONFIG: &str = "config.json";
+
+/// Why a model could not be built, trained, saved or loaded.
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    /// Candle failed.
+    #[error("candle: {0}")]
+    Candle(#[from] candle_core::Error),
+    /// The engine's sampler failed.
+    #[error("sampler: {0}")]
+    Sampler(#[from] kairos_engine::EngineError),
+    /// Reading or writing a file failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The configuration file is not valid.
+    #[error("{path}: {source}")]
+    Config {
+        /// The file.
+        path: String,
+        /// Why.
+        source: serde_json::Error,
+    },
+}
+
+/// The network's shape and sampling.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ModelConfig {
+    /// Actions per chunk `N`.
+    pub chunk_len: usize,
+    /// Hidden width.
+    pub hidden: usize,
+    /// Hidden layers.
+    pub depth: usize,
+    /// Euler steps `K`.
+    pub steps: usize,
+}
+
+impl Default for ModelConfig {
+    fn default() -> Self {
+        ModelConfig {
+            chunk_len: 16,
+            hidden: 128,
+            depth: 2,
+            steps: 10,
+        }
+    }
+}
+
+/// How a model was (or is to be) trained: everything needed to reproduce it.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TrainConfig {
+    /// The network.
+    pub model: ModelConfig,
+    /// The task the demonstrations come from.
+    pub env: EnvConfig,
+    /// Demonstration episodes.
+    pub demos: usize,
+    /// Optimiser steps.
+    pub iterations: usize,
+    /// Batch size.
+    pub batch: usize,
+    /// AdamW learning rate.
+    pub lr: f64,
+    /// Seed of demonstrations, initialisation order, batches and noise.
+    pub seed: u64,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        TrainConfig {
+            model: ModelConfig::default(),
+            env: EnvConfig::default(),
+            demos: 3000,
+            iterations: 30000,
+            batch: 128,
+            lr: 2e-3,
+            seed: 1,
+        }
+    }
+}
+
+/// What a model directory's `config.json` holds.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SavedConfig {
+    /// How it was trained.
+    pub train: TrainConfig,
+    /// Demonstration pairs trained on.
+    pub pairs: usize,
+    /// Mean loss over the last 100 iterations.
+    pub final_loss: f64,
+    /// Kairos version that trained it.
+    pub kairos_version: String,
+}
+
+const TIME_FREQS: [f32; 4] = [1.0, 2.0, 4.0, 8.0];
+const TIME_DIM: usize = 1 + 2 * TIME_FREQS.len();
+
+/// The flow-matching policy.
+pub struct FlowPolicy {
+    varmap: VarMap,
+    layers: Vec<Linear>,
+    cfg: ModelConfig,
+    device: Device,
+}
+
+impl std::fmt::Debug for FlowPolicy {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FlowPolicy")
+            .field("cfg", &self.cfg)
+            .finish()
+    }
+}
+
+impl FlowPolicy {
+    /// A freshly initialised network (Candle's default initialisation).
+    pub fn new(cfg: ModelConfig) -> Result<FlowPolicy, ModelError> {
+        let device = Device::Cpu;
+        let varmap = VarMap::new();
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
+        let len = cfg.chunk_len * ACTION_DIM;
+        let mut layers = Vec::with_capacity(cfg.depth + 1);
+        let mut width = OBS_DIM + len + TIME_DIM;
+        for i in 0..cfg.depth {
+            layers.push(linear(width, cfg.hidden, vb.pp(format!("l{i}")))?);
+            width = cfg.hidden;
+        }
+        layers.push(linear(width, len, vb.pp("out"))?);
+        Ok(FlowPolicy {
+            varmap,
+            layers,
+            cfg,
+            device,
+        })
+    }
+
+    /// Loads `dir/config.json` and `dir/model.safetensors`.
+    pub fn load(dir: &Path) -> Result<(FlowPolicy, SavedConfig), ModelError> {
+        let path = dir.join(CONFIG);
+        let text = std::fs::read_to_string(&path).map_err(|source| ModelError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        let saved: SavedConfig =
+            serde_json::from_str(&text).map_err(|source| ModelError::Config {
+                path: path.display().to_string(),
+                source,
+            })?;
+        let mut policy = FlowPolicy::new(saved.train.model.clone())?;
+        policy.varmap.load(dir.join(WEIGHTS))?;
+        Ok((policy, saved))
+    }
+
+    /// Writes `dir/config.json` and `dir/model.safetensors`.
+    pub fn save(&self, dir: &Path, saved: &SavedConfig) -> Result<(), ModelError> {
+        let io = |path: &Path| {
+            let path = path.display().to_string();
+            move |source| ModelError::Io { path, source }
+        };
+        std::fs::create_dir_all(dir).map_err(io(dir))?;
+        self.varmap.save(dir.join(WEIGHTS))?;
+        let path = dir.join(CONFIG);
+        let text = serde_json::to_string_pretty(saved).map_err(|source| ModelError::Config {
+            path: path.display().to_string(),
+            source,
+        })?;
+        std::fs::write(&path, text + "\n").map_err(io(&path))?;
+        Ok(())
+    }
+
+    /// The network's shape.
+    pub fn config(&self) -> &ModelConfig {
+        &self.cfg
+    }
+
+    fn time_features(&self, t: &[f32]) -> candle_core::Result<Tensor> {
+        let mut f = Vec::with_capacity(t.len() * TIME_DIM);
+        for &ti in t {
+            f.push(ti);
+            for w in TIME_FREQS {
+                let a = std::f32::consts::TAU * w * ti;
+                f.push(a.sin());
+                f.push(a.cos());
+            }
+        }
+        Tensor::from_vec(f, (t.len(), TIME_DIM), &self.device)
+    }
+
+    /// The velocity field at `x` (`[B][N·D]`) and times `t` (`[B]`) for observations `obs`
+    /// (`[B][OBS_DIM]`).
+    fn velocity(&self, obs: &Tensor, x: &Tensor, t: &[f32]) -> candle_core::Result<Tensor> {
+        let mut h = Tensor::cat(&[obs, x, &self.time_features(t)?], 1)?;
+        let last = self.layers.len() - 1;
+        for (i, layer) in self.layers.iter().enumerate() {
+            h = layer.forward(&h)?;
+            if i < last {
+                h = h.silu()?;
+            }
+        }
+        Ok(h)
+    }
+
+    /// `samples` chunks for `obs`, drawn in one batch with the engine's sampler from the noise
+    /// of `seed` (sample `s` gets `gaussian_noise(seed, s, ..)`, as in the engine).
+    pub fn sample(
+        &self,
+        obs: &[f32; OBS_DIM],
+        samples: usize,
+        seed: u64,
+    ) -> Result<ActionChunk, ModelError> {
+        let (n, k) = (self.cfg.chunk_len, self.cfg.steps);
+        let len = n * ACTION_DIM;
+        let rows = samples.max(1);
+        let mut x: Vec<f32> = (0..rows)
+            .flat_map(|s| gaussian_noise(seed, s, len))
+            .collect();
+        let noise = x.clone();
+        let mut updates = vec![0.0f32; rows * k * len];
+        let obs_rows = Tensor::from_vec(
+            (0..rows)
+                .flat_map(|_| obs.iter().copied())
+                .collect::<Vec<f32>>(),
+            (rows, OBS_DIM),
+            &self.device,
+        )?;
+        integrate(
+            Schedule { steps: k },
+            rows,
+            len,
+            &mut x,
+            &mut updates,
+            |_, t, x, v| {
+                let xt = Tensor::from_slice(x, (rows, len), &self.device)?;
+                let out = self.velocity(&obs_rows, &xt, &vec![t; rows])?;
+                v.copy_from_slice(&out.flatten_all()?.to_vec1::<f32>()?);
+                Ok(())
+            },
+        )?;
+        let layout = RowLayout {
+            samples: vec![rows],
+            steps: k,
+            chunk_len: n,
+            full_dim: ACTION_DIM,
+            action_dim: ACTION_DIM,
+        };
+        layout.chunks(&noise, &x, &updates).pop().ok_or_else(|| {
+            ModelError::Sampler(kairos_engine::EngineError::InvalidInput(
+                "the sampler returned no chunk".into(),
+            ))
+        })
+    }
+}
+
+/// Demonstrations: `(observation, the next N expert actions)` pairs from `cfg.demos` episodes
+/// of the expert, the chunk padded past the episode's end with its last action.
+pub fn demonstrations(cfg: &TrainConfig) -> (Vec<f32>, Vec<f32>) {
+    let n = cfg.model.chunk_len;
+    let (mut obs, mut chunks) = (Vec::new(), Vec::new());
+    for episode in 0..cfg.demos as u64 {
+        let seed = demo_seed(cfg.seed, episode);
+        let mut env = Env::new(cfg.env.clone(), seed);
+        let mut expert = Expert::new(seed ^ 0xE);
+        let (mut seen, mut acts) = (Vec::new(), Vec::new());
+        while !env.done() {
+            let o = env.observe();
+            let a = expert.act(&o, env.config());
+            env.step(&a);
+            seen.push(o);
+            acts.push(a);
+        }
+        for (t, o) in seen.iter().enumerate() {
+            obs.extend_from_slice(o);
+            for i in 0..n {
+                chunks.extend_from_slice(&acts[(t + i).min(acts.len() - 1)]);
+            }
+        }
+    }
+    (obs, chunks)
+}
+
+/// Seeds of demonstration episodes: far from the evaluation seeds (`0..episodes`).
+fn demo_seed(seed: u64, episode: u64) -> u64 {
+    (seed << 40) ^ (1 << 39) ^ episode
+}
+
+/// Trains a fresh model on demonstrations, calling `progress(iteration, loss)` after each
+/// optimiser step. Deterministic for a given configuration (one thread of Candle's CPU
+/// backend per process is not required: the matmuls are reproducible on one machine).
+pub fn train(
+    cfg: &TrainConfig,
+    progress: &mut dyn FnMut(usize, f64),
+) -> Result<(FlowPolicy, SavedConfig), ModelError> {
+    let policy = FlowPolicy::new(cfg.model.clone())?;
+    let (obs, chunks) = demonstrations(cfg);
+    let len = cfg.model.chunk_len * ACTION_DIM;
+    let pairs = obs.len() / OBS_DIM;
+    let mut opt = candle_nn::AdamW::new(
+        policy.varmap.all_vars(),
+        candle_nn::ParamsAdamW {
+            lr: cfg.lr,
+            weight_decay: 0.0,
+            ..Default::default()
+        },
+    )?;
+    let mut rng = StdRng::seed_from_u64(cfg.seed);
+    let b = cfg.batch.max(1);
+    let mut recent = std::collections::VecDeque::with_capacity(100);
+    for it in 0..cfg.iterations {
+        let (mut o, mut xt, mut target, mut t) = (
+            Vec::with_capacity(b * OBS_DIM),
+            Vec::with_capacity(b * len),
+            Vec::with_capacity(b * len),
+            Vec::with_capacity(b),
+        );
+        for _ in 0..b {
+            let i = rng.random_range(0..pairs.max(1));
+            o.extend_from_slice(&obs[i * OBS_DIM..(i + 1) * OBS_DIM]);
+            let ti: f32 = rng.random();
+            t.push(ti);
+            for &a in &chunks[i * len..(i + 1) * len] {
+                let eps: f32 = rng.sample(StandardNormal);
+                xt.push(ti * eps + (1.0 - ti) * a);
+                target.push(eps - a);
+            }
+        }
+        let o = Tensor::from_vec(o, (b, OBS_DIM), &policy.device)?;
+        let xt = Tensor::from_vec(xt, (b, len), &policy.device)?;
+        let target = Tensor::from_vec(target, (b, len), &policy.device)?;
+        let v = policy.velocity(&o, &xt, &t)?;
+        let loss = (v - target)?.sqr()?.mean_all()?;
+        opt.backward_step(&loss)?;
+        let loss = f64::from(loss.to_scalar::<f32>()?);
+        if recent.len() == 100 {
+            recent.pop_front();
+        }
+        recent.push_back(loss);
+        progress(it, loss);
+    }
+    let final_loss = recent.iter().sum::<f64>() / recent.len().max(1) as f64;
+    let saved = SavedConfig {
+        train: cfg.clone(),
+        pairs,
+        final_loss,
+        kairos_version: env!("CARGO_PKG_VERSION").to_string(),
+    };
+    Ok((policy, saved))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tiny() -> TrainConfig {
+        TrainConfig {
+            model: ModelConfig {
+                chunk_len: 16,
+                hidden: 32,
+                depth: 2,
+                steps: 4,
+            },
+            demos: 20,
+            iterations: 30,
+            batch: 32,
+            ..TrainConfig::default()
+        }
+    }
+
+    #[test]
+    fn training_lowers_the_loss_and_a_saved_model_samples_the_same_chunks() {
+        let mut losses = Vec::new();
+        let (policy, saved) = train(&tiny(), &mut |_, l| losses.push(l)).unwrap();
+        assert_eq!(losses.len(), 30);
+        let first = losses[..5].iter().sum::<f64>() / 5.0;
+        let last = losses[25..].iter().sum::<f64>() / 5.0;
+        assert!(last < first, "loss {first} -> {last}");
+        let dir = tempfile::tempdir().unwrap();
+        policy.save(dir.path(), &saved).unwrap();
+        let (loaded, again) = FlowPolicy::load(dir.path()).unwrap();
+        assert_eq!(again, saved);
+        let obs = Env::new(EnvConfig::default(), 5).observe();
+        let a = policy.sample(&obs, 2, 9).unwrap();
+        let b = loaded.sample(&obs, 2, 9).unwrap();
+        assert_eq!(a.actions, b.actions);
+        assert_eq!(
+            (a.samples, a.steps, a.chunk_len, a.action_dim),
+            (2, 4, 16, ACTION_DIM)
+        );
+        // The updates sum to the chunk from the noise, as the engine's sampler promises.
+        for i in 0..16 * ACTION_DIM {
+            let mut x = a.noise[i];
+            for k in 0..4 {
+                x += a.updates[k * 16 * ACTION_DIM + i];
+            }
+            assert_eq!(x, a.actions[i]);
+        }
+        // Other noise, other chunk.
+        assert_ne!(
+            policy.sample(&obs, 1, 10).unwrap().actions[..48],
+            a.actions[..48]
+        );
+    }
+}

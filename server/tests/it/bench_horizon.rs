@@ -1,0 +1,144 @@
+//! `kairos bench horizon`: the quick run with the committed policy writes pareto.csv with the
+//! documented columns and one row per policy, and `--train` still trains (a few steps) and
+//! writes a model the bench loads.
+
+#![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
+
+use std::path::PathBuf;
+use std::process::Command;
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn kairos(args: &[&str], out: &std::path::Path) -> String {
+    let output = Command::new(env!("CARGO_BIN_EXE_kairos"))
+        .current_dir(root())
+        .args(["bench", "horizon"])
+        .args(args)
+        .arg(out)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "kairos bench horizon {args:?} failed:\n{}\n{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+#[test]
+fn the_quick_run_writes_one_pareto_row_per_policy() {
+    let out = tempfile::tempdir().unwrap();
+    // Fewer episodes than --quick's 40 keep the test short; the columns and rows are the same.
+    // The shipped twin of the §3.1 rule rides along as a user's plugin (plugins/build.sh builds
+    // it; CI runs that first).
+    let twin = root().join("plugins/build/threshold.wasm");
+    assert!(
+        twin.exists(),
+        "{} is missing: run plugins/build.sh",
+        twin.display()
+    );
+    let cache = root().join("plugins/build/cache");
+    kairos(
+        &[
+            "--quick",
+            "--episodes",
+            "12",
+            "--horizon-plugin",
+            twin.to_str().unwrap(),
+            "--param",
+            "t=0.4",
+            "--plugin-cache",
+            cache.to_str().unwrap(),
+            "--out",
+        ],
+        out.path(),
+    );
+    let csv = std::fs::read_to_string(out.path().join("pareto.csv")).unwrap();
+    let mut lines = csv.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    assert_eq!(
+        header[..7],
+        [
+            "policy",
+            "params",
+            "mean_horizon",
+            "success_rate",
+            "ci_low",
+            "ci_high",
+            "episodes"
+        ]
+    );
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    // --quick: static H in {1, 4, 16}, the threshold rule at two thresholds, spread at one, and
+    // the plugin.
+    assert_eq!(rows.len(), 7, "{csv}");
+    // The plugin is a row of its own, and the twin of the native rule decides exactly as it
+    // does, episode for episode: every measured column is the same.
+    let native = rows
+        .iter()
+        .find(|r| r[0] == "threshold" && r[1] == "t=0.4")
+        .unwrap();
+    let plugin = rows.iter().find(|r| r[0] == "threshold.wasm").unwrap();
+    assert_eq!(plugin[1], "t=0.4");
+    assert_eq!(plugin[2..], native[2..], "{csv}");
+    let statics: Vec<&Vec<&str>> = rows.iter().filter(|r| r[0] == "static").collect();
+    assert_eq!(statics.len(), 3);
+    for (row, h) in statics.iter().zip([1.0, 4.0, 16.0]) {
+        assert_eq!(row[1], format!("h={h}"));
+        // A static horizon executes h actions per chunk, except where an episode ends inside
+        // one.
+        let mean: f64 = row[2].parse().unwrap();
+        assert!(
+            mean <= h && mean > h * 0.6,
+            "static h={h}: mean executed {mean}"
+        );
+    }
+    for row in &rows {
+        let (p, lo, hi): (f64, f64, f64) = (
+            row[3].parse().unwrap(),
+            row[4].parse().unwrap(),
+            row[5].parse().unwrap(),
+        );
+        assert!(
+            lo <= p && p <= hi && (0.0..=1.0).contains(&lo) && hi <= 1.0,
+            "{row:?}"
+        );
+        assert_eq!(row[6], "12");
+    }
+    assert!(out.path().join("pareto.png").exists());
+    assert!(out.path().join("pareto.svg").exists());
+    let summary = std::fs::read_to_string(out.path().join("summary.md")).unwrap();
+    assert!(summary.contains("| threshold | t=0.4 |"), "{summary}");
+}
+
+#[test]
+fn training_runs_a_few_steps_and_writes_a_loadable_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("model");
+    let stdout = kairos(
+        &["--train", "--iterations", "3", "--demos", "4", "--model"],
+        &model,
+    );
+    assert!(stdout.contains("3 steps"), "{stdout}");
+    assert!(model.join("model.safetensors").exists());
+    let config = std::fs::read_to_string(model.join("config.json")).unwrap();
+    assert!(config.contains("\"iterations\": 3"), "{config}");
+    // The bench runs with it.
+    let out = dir.path().join("out");
+    kairos(
+        &[
+            "--quick",
+            "--episodes",
+            "2",
+            "--no-plots",
+            "--model",
+            model.to_str().unwrap(),
+            "--out",
+        ],
+        &out,
+    );
+    assert!(out.join("pareto.csv").exists());
+}
