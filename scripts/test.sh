@@ -37,9 +37,9 @@ step_done "build (cargo test --no-run)"
 KAIROS_BIN=target/debug/kairos bash plugins/build.sh
 step_done "plugins"
 
-# --include-ignored: the one ignored test (the Python client against the Rust responder) is
-# ignored in a plain `cargo test` because it needs the Python packages installed above; here
-# they exist, so it runs, and fails rather than skips.
+# --include-ignored: the ignored tests (the Python client against the Rust responder, the real
+# openpi-client against the openpi endpoint) are ignored in a plain `cargo test` because they
+# need the Python packages installed above; here they exist, so they run, and fail rather than skip.
 KAIROS_PYTHON="$PWD/.venv/bin/python" KAIROS_OPENPI_PYTHON="$PWD/.venv-openpi/bin/python" cargo test --workspace --locked -- --include-ignored
 step_done "tests"
 bash scripts/test-python.sh; step_done "Python package: pip install ./sdk/python, pytest against kairos serve"

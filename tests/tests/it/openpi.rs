@@ -60,15 +60,20 @@ async fn check(server: &TestServer, mode: &str, args: &[&str]) -> Value {
 }
 
 /// Waits until the server has ended `count` tasks (the websocket closes reach it after the
-/// client process exits).
+/// client process exits). The bound only turns a hang into a failure; it is not a timing margin.
 async fn wait_tasks_ended(server: &TestServer, count: u64) {
-    loop {
-        let stats = server.server().driver.stats().await.unwrap();
-        if stats.tasks_ended >= count {
-            return;
+    let ended = async {
+        loop {
+            let stats = server.server().driver.stats().await.unwrap();
+            if stats.tasks_ended >= count {
+                return;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
         }
-        tokio::time::sleep(std::time::Duration::from_millis(10)).await;
-    }
+    };
+    tokio::time::timeout(std::time::Duration::from_secs(120), ended)
+        .await
+        .unwrap_or_else(|_| panic!("the server never ended {count} tasks"));
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -175,14 +180,20 @@ async fn eight_concurrent_openpi_clients_are_batched_together() {
         })
     };
     // The first request is on the engine; wait until every client's first round is queued.
-    entered.await.unwrap();
-    loop {
-        let stats = server.server().driver.stats().await.unwrap();
-        if stats.accepted >= CLIENTS as u64 {
-            break;
+    let queued = async {
+        entered.await.unwrap();
+        loop {
+            let stats = server.server().driver.stats().await.unwrap();
+            if stats.accepted >= CLIENTS as u64 {
+                break;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(5)).await;
         }
-        tokio::time::sleep(std::time::Duration::from_millis(5)).await;
-    }
+    };
+    // A bound against a hang (say, a client that failed to connect), not a timing margin.
+    tokio::time::timeout(std::time::Duration::from_secs(120), queued)
+        .await
+        .unwrap_or_else(|_| panic!("the {CLIENTS} first rounds never queued"));
     release.send(()).unwrap();
     let out = run.await.unwrap();
 
