@@ -2,8 +2,9 @@
 //!
 //! Encoding is `rmp_serde::to_vec_named`: every struct is a MessagePack map keyed by field name.
 //! Decoding is strict about the envelope and lenient about content: the body must be exactly one
-//! MessagePack map (no trailing bytes, nesting at most [`MAX_DEPTH`]), unknown keys are ignored so a
-//! newer peer can add optional fields, and numbers decode into the field's type when they fit (an
+//! MessagePack map (no trailing bytes, nesting at most [`MAX_DEPTH`], every map key a `str`),
+//! unknown keys are ignored so a newer peer can add optional fields, enumerations are names only
+//! (`strict::name`), and numbers decode into the field's type when they fit (an
 //! integer where a float is expected, a float64 where a float32 is expected), so clients in
 //! languages without a float32 type work unchanged.
 
