@@ -73,7 +73,9 @@ impl Peer {
 }
 
 /// Serves one connection until the client closes it or the server shuts down. `unauthenticated`
-/// is its place in the handshake budget, given back once `Hello` is answered either way.
+/// is its place in the handshake budget, given back once `Hello` is answered either way. A
+/// connection still in its handshake or `Hello` when the server shuts down is dropped at once:
+/// it has no round to drain.
 pub(super) async fn serve(
     incoming: quinn::Incoming,
     unauthenticated: OwnedSemaphorePermit,
@@ -81,49 +83,13 @@ pub(super) async fn serve(
     gate: Arc<Gate>,
     mut stop: watch::Receiver<bool>,
 ) {
-    let deadline = Instant::now() + context.connections.hello_timeout();
     let remote = incoming.remote_address();
-    let connecting = match incoming.accept() {
-        Ok(connecting) => connecting,
-        Err(error) => {
-            tracing::debug!(%remote, %error, "handshake refused");
-            return;
-        }
+    let admitted = tokio::select! {
+        admitted = admit(incoming, &context, &gate) => admitted,
+        _ = stop.wait_for(|stopping| *stopping) => None,
     };
-    // 0.5-RTT: the server may answer streams the client sent as 0-RTT data right away. Safe
-    // because tickets are single-use (see `tls`).
-    let handshake = async {
-        match connecting.into_0rtt() {
-            Ok((connection, _accepted)) => Ok(connection),
-            Err(connecting) => connecting.await,
-        }
-    };
-    // Dropping an unfinished handshake abandons it.
-    let connection = match tokio::time::timeout_at(deadline, handshake).await {
-        Ok(Ok(connection)) => connection,
-        Ok(Err(error)) => {
-            tracing::debug!(%remote, %error, "handshake failed");
-            return;
-        }
-        Err(_) => {
-            tracing::debug!(%remote, "handshake not done in time");
-            return;
-        }
-    };
-    let authenticated = tokio::time::timeout_at(deadline, hello(&connection, &context, &gate));
-    let (robot, _place) = match authenticated.await {
-        Ok(Ok(robot)) => robot,
-        Ok(Err((code, reason))) => {
-            connection.close(VarInt::from_u32(code), reason.as_bytes());
-            return;
-        }
-        Err(_) => {
-            connection.close(
-                VarInt::from_u32(close_code::PROTOCOL_ERROR),
-                b"no Hello in time",
-            );
-            return;
-        }
+    let Some((connection, robot, _place)) = admitted else {
+        return;
     };
     drop(unauthenticated);
     tracing::debug!(%remote, robot = context.robots.name(robot), "robot connected");
@@ -164,6 +130,58 @@ pub(super) async fn serve(
             VarInt::from_u32(close_code::SHUTTING_DOWN),
             b"server shutting down",
         );
+    }
+}
+
+/// The handshake and `Hello`, both within `hello_timeout_ms` of the first packet: the connection,
+/// its robot and its place among the authenticated connections, or `None` after closing it.
+async fn admit(
+    incoming: quinn::Incoming,
+    context: &ServerContext,
+    gate: &Gate,
+) -> Option<(Connection, RobotId, OwnedSemaphorePermit)> {
+    let deadline = Instant::now() + context.connections.hello_timeout();
+    let remote = incoming.remote_address();
+    let connecting = match incoming.accept() {
+        Ok(connecting) => connecting,
+        Err(error) => {
+            tracing::debug!(%remote, %error, "handshake refused");
+            return None;
+        }
+    };
+    // 0.5-RTT: the server may answer streams the client sent as 0-RTT data right away. Safe
+    // because tickets are single-use (see `tls`).
+    let handshake = async {
+        match connecting.into_0rtt() {
+            Ok((connection, _accepted)) => Ok(connection),
+            Err(connecting) => connecting.await,
+        }
+    };
+    // Dropping an unfinished handshake abandons it.
+    let connection = match tokio::time::timeout_at(deadline, handshake).await {
+        Ok(Ok(connection)) => connection,
+        Ok(Err(error)) => {
+            tracing::debug!(%remote, %error, "handshake failed");
+            return None;
+        }
+        Err(_) => {
+            tracing::debug!(%remote, "handshake not done in time");
+            return None;
+        }
+    };
+    match tokio::time::timeout_at(deadline, hello(&connection, context, gate)).await {
+        Ok(Ok((robot, place))) => Some((connection, robot, place)),
+        Ok(Err((code, reason))) => {
+            connection.close(VarInt::from_u32(code), reason.as_bytes());
+            None
+        }
+        Err(_) => {
+            connection.close(
+                VarInt::from_u32(close_code::PROTOCOL_ERROR),
+                b"no Hello in time",
+            );
+            None
+        }
     }
 }
 

@@ -13,6 +13,8 @@ use kairos_sdk::tls::ServerTrust;
 use kairos_sdk::transport::{TransportTuning, client_config};
 use kairos_tests::harness::{RawConnection, ServerOptions, TestServer, one_round};
 
+use super::auth::application_close_code;
+
 /// Guards against a hang only; every wait below is for an event.
 const HANG_GUARD: Duration = Duration::from_secs(60);
 
@@ -48,16 +50,6 @@ fn half_open_flood(server: &TestServer, count: usize) -> std::io::Result<std::ne
         // The connection state is dropped: nothing will ever answer the server.
     }
     Ok(socket)
-}
-
-fn application_close(error: quinn::ConnectionError) -> (u64, String) {
-    match error {
-        quinn::ConnectionError::ApplicationClosed(close) => (
-            close.error_code.into_inner(),
-            String::from_utf8_lossy(&close.reason).into_owned(),
-        ),
-        other => panic!("expected an application close, got {other}"),
-    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -159,13 +151,13 @@ async fn max_connections_counts_authenticated_robots_only() {
         client: "third".into(),
     });
     let _ = third.exchange(&hello.encode(u32::MAX).unwrap(), true).await;
-    let (code, reason) = application_close(third.connection.closed().await);
+    let (code, reason) = application_close_code(third.connection.closed().await);
     assert_eq!(code, u64::from(close_code::AT_CAPACITY));
     assert!(reason.contains("capacity"), "{reason}");
 
     // A connection that never says Hello needs no place, and is closed when its time is up.
     let silent = RawConnection::open(&server).await.unwrap();
-    let (code, reason) = application_close(silent.connection.closed().await);
+    let (code, reason) = application_close_code(silent.connection.closed().await);
     assert_eq!(code, u64::from(close_code::PROTOCOL_ERROR));
     assert!(reason.contains("Hello"), "{reason}");
 

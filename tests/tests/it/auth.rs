@@ -24,7 +24,8 @@ fn server_code(error: ClientError) -> ErrorCode {
     }
 }
 
-fn application_close_code(error: quinn::ConnectionError) -> (u64, String) {
+/// The code and reason of an application close; panics on any other way of ending.
+pub(crate) fn application_close_code(error: quinn::ConnectionError) -> (u64, String) {
     match error {
         quinn::ConnectionError::ApplicationClosed(close) => (
             close.error_code.into_inner(),

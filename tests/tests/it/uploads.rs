@@ -48,15 +48,35 @@ struct StreamOutcome {
     error: Option<ErrorCode>,
 }
 
+/// Bytes every attacking stream has written so far, and their sum when the first stop was seen.
+#[derive(Default)]
+struct Tally {
+    written: Vec<u64>,
+    at_first_stop: Option<u64>,
+}
+
 /// After the frame header (already written), writes all but the last byte of a `MAX_FRAME` body
 /// as fast as the server lets it; never finishes. Returns when the server stops the stream.
-async fn stall(mut send: quinn::SendStream, mut recv: quinn::RecvStream) -> StreamOutcome {
+async fn stall(
+    index: usize,
+    tally: Arc<std::sync::Mutex<Tally>>,
+    mut send: quinn::SendStream,
+    mut recv: quinn::RecvStream,
+) -> StreamOutcome {
     let frame = vec![0u8; MAX_FRAME as usize - 1];
     let mut written = HEADER_LEN as u64;
     let mut stopped = None;
+    let first_stop = || {
+        let mut tally = tally.lock().unwrap();
+        let sum = tally.written.iter().sum();
+        tally.at_first_stop.get_or_insert(sum);
+    };
     while (written as usize - HEADER_LEN) < frame.len() {
         match send.write(&frame[written as usize - HEADER_LEN..]).await {
-            Ok(n) => written += n as u64,
+            Ok(n) => {
+                written += n as u64;
+                tally.lock().unwrap().written[index] = written;
+            }
             Err(quinn::WriteError::Stopped(code)) => {
                 stopped = Some(code.into_inner());
                 break;
@@ -72,6 +92,7 @@ async fn stall(mut send: quinn::SendStream, mut recv: quinn::RecvStream) -> Stre
             .and_then(|stop| stop.ok().flatten())
             .map(VarInt::into_inner);
     }
+    first_stop();
     let error = match read_message(&mut recv, &Limits::default()).await {
         Ok(Some(Message::Error(error))) => Some(error.code),
         _ => None,
@@ -142,9 +163,13 @@ async fn stalled_uploads_are_bounded_by_the_connection_budget_and_stopped() {
             .unwrap();
         streams.push((send, recv));
     }
+    let tally = Arc::new(std::sync::Mutex::new(Tally {
+        written: vec![HEADER_LEN as u64; STREAMS],
+        at_first_stop: None,
+    }));
     let mut stalls = tokio::task::JoinSet::new();
-    for (send, recv) in streams {
-        stalls.spawn(stall(send, recv));
+    for (index, (send, recv)) in streams.into_iter().enumerate() {
+        stalls.spawn(stall(index, tally.clone(), send, recv));
     }
 
     // Another robot is served while the attack holds its streams.
@@ -163,19 +188,29 @@ async fn stalled_uploads_are_bounded_by_the_connection_budget_and_stopped() {
     let rss_after = rss_kib();
 
     let written: u64 = outcomes.iter().map(|o| o.written).sum();
+    let in_at_first_stop = tally
+        .lock()
+        .unwrap()
+        .at_first_stop
+        .expect("a stream was stopped");
     let budget = u64::from(BUFFER_FRAMES) * u64::from(MAX_FRAME);
-    // Partly read frames (the budget) + the QUIC receive window (as large) + what the client
-    // itself buffers + the headers.
-    let bound = 2 * budget + SEND_WINDOW + (STREAMS * HEADER_LEN) as u64;
+    // Until the server stops a stream, flow control lets in at most the partly read frames (the
+    // budget), the QUIC receive window (as large) and what the client itself buffers, plus the
+    // headers. A stop returns its stream's bytes to the window, and the client may spend that
+    // credit on other streams before its task for the stopped stream runs: one more stream
+    // window (`MAX_FRAME`) of slack. (After the stops the total keeps growing with the credit
+    // they free, which is why the snapshot is taken at the first one; what the server *holds*
+    // stays bounded, see the process measurement below.)
+    let bound = 2 * budget + SEND_WINDOW + (STREAMS * HEADER_LEN) as u64 + u64::from(MAX_FRAME);
     println!(
-        "stalled upload: {STREAMS} streams announcing {MAX_FRAME} B each wrote {written} B in \
-         all (bound {bound} B, unbounded would be {} B); process RSS {rss_before:?} -> \
-         {rss_after:?} KiB",
+        "stalled upload: {STREAMS} streams announcing {MAX_FRAME} B each had written \
+         {in_at_first_stop} B when the first was stopped (bound {bound} B, unbounded {} B), \
+         {written} B in all; process RSS {rss_before:?} -> {rss_after:?} KiB",
         STREAMS as u64 * (u64::from(MAX_FRAME) + HEADER_LEN as u64 - 1)
     );
     assert!(
-        written <= bound,
-        "the server let {written} bytes of stalled uploads in, over {bound}"
+        in_at_first_stop <= bound,
+        "the server let {in_at_first_stop} bytes of stalled uploads in, over {bound}"
     );
     for outcome in &outcomes {
         assert_eq!(
