@@ -34,6 +34,7 @@ fn submit() -> Submit {
         horizon: None,
         remaining: None,
         attempt: 0,
+        control_hz: None,
     }
 }
 

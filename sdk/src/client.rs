@@ -372,6 +372,9 @@ pub struct RoundRequest {
     pub horizon: Option<HorizonSelection>,
     /// Remaining-work hint.
     pub remaining: Option<RemainingHint>,
+    /// The robot's control rate, Hz, if known: lets the server account the execution of the
+    /// chunk it answers on a task's first round, before any `last_exec` reports the rate.
+    pub control_hz: Option<f32>,
 }
 
 impl RoundRequest {
@@ -382,6 +385,7 @@ impl RoundRequest {
             last_exec: None,
             horizon: None,
             remaining: None,
+            control_hz: None,
         }
     }
 }
@@ -440,7 +444,7 @@ fn from_read(error: ReadFrameError) -> AttemptError {
         ReadFrameError::Read(error) => {
             AttemptError::Fatal(ClientError::Protocol(format!("reading a reply: {error}")))
         }
-        ReadFrameError::Frame(error) => {
+        error @ (ReadFrameError::Frame(_) | ReadFrameError::TooSlow { .. }) => {
             AttemptError::Fatal(ClientError::Protocol(error.to_string()))
         }
     }
@@ -956,6 +960,7 @@ impl Task {
             horizon: request.horizon,
             remaining: request.remaining,
             attempt: 0,
+            control_hz: request.control_hz,
         };
         let sent_at_us = submit.sent_at_us;
         let mut refetches = 0;

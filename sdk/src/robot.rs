@@ -699,6 +699,7 @@ impl<R: Robot, T: RoundTransport, E: FnMut(&RunnerEvent) + Send> Run<'_, R, T, E
                 rounds: u32::try_from(self.config.rounds.saturating_sub(self.replies)).ok(),
                 seconds: None,
             }),
+            control_hz: Some(self.config.control_hz),
         };
         let refetch = self.config.refetch;
         let requests = self.fetch_tx.clone();

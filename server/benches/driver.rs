@@ -253,6 +253,7 @@ fn driver(c: &mut Criterion) {
                         horizon: None,
                         remaining: None,
                         attempt: 0,
+                        control_hz: None,
                     };
                     let valid = validator
                         .submit(submit, RobotId(0), &actions, clock)

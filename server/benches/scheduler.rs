@@ -136,6 +136,7 @@ impl Fixture {
             obs_captured_at: now,
             last_exec: exec,
             remaining: None,
+            control_hz: None,
         };
         self.sched.handle_submit(now, submit).expect("admitted");
         self.tasks.insert(task, (round + 1, answered));

@@ -341,16 +341,39 @@ impl Default for HorizonSection {
     }
 }
 
-/// `[connections]`: what one client may hold on the server.
+/// `[connections]`: what one client may hold on the server, and what an unauthenticated one may.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ConnectionsConfig {
-    /// Most concurrent connections; more are closed with a reason.
+    /// Most concurrent authenticated connections; a robot over it is closed with a reason after
+    /// its `Hello`. Connections still in the handshake count against `max_unauthenticated`
+    /// instead, so clients that never authenticate cannot take robots' slots.
     pub max_connections: usize,
+    /// Most concurrent connections between the first packet and an authenticated `Hello`. Over
+    /// it new connection attempts are refused without a handshake; over half of it, attempts
+    /// from an address QUIC has not validated are answered with a Retry first.
+    pub max_unauthenticated: usize,
     /// Most concurrent round streams per connection (QUIC stream credit).
     pub max_streams_per_connection: u32,
-    /// Time a client has to send `Hello` after connecting, in ms.
+    /// Time a client has, from its first packet, to finish the handshake and send an accepted
+    /// `Hello`, in ms.
     pub hello_timeout_ms: u64,
+    /// Wrong tokens a source address (an IPv4 address or an IPv6 /64) may send in a burst;
+    /// after that its connections are refused before their token is looked at.
+    pub failed_token_burst: u32,
+    /// Wrong tokens a source regains per minute after its burst.
+    pub failed_tokens_per_minute: u32,
+    /// Sources the failed-token limiter remembers at most (bounded memory).
+    pub failed_token_sources: usize,
+    /// Slowest upload the server waits for, bytes per second: a stream whose frame arrives
+    /// slower (after `upload_grace_ms`) is stopped with `STOP_SENDING` and a `too_slow` error.
+    pub min_upload_bytes_per_s: u64,
+    /// Time a stream has before `min_upload_bytes_per_s` applies, in ms.
+    pub upload_grace_ms: u64,
+    /// Frames of `[limits] max_frame` bytes one connection may have partly received at once;
+    /// the connection's QUIC receive window is the same size, so a robot can hold at most twice
+    /// this many frames' bytes in the server.
+    pub upload_buffer_frames: u32,
     /// Receive and send buffer of the server's UDP socket, bytes (the kernel caps it at
     /// `net.core.rmem_max`/`wmem_max`). The default 4 MiB absorbs a burst of a thousand robots'
     /// packets (e.g. everyone reconnecting at once) where the usual 208 KiB would drop them.
@@ -361,17 +384,35 @@ impl Default for ConnectionsConfig {
     fn default() -> Self {
         ConnectionsConfig {
             max_connections: 4096,
+            max_unauthenticated: 256,
             max_streams_per_connection: 64,
             hello_timeout_ms: 5_000,
+            failed_token_burst: 10,
+            failed_tokens_per_minute: 10,
+            failed_token_sources: 65_536,
+            min_upload_bytes_per_s: 8 << 10,
+            upload_grace_ms: 5_000,
+            upload_buffer_frames: 2,
             socket_buffer_bytes: 4 << 20,
         }
     }
 }
 
 impl ConnectionsConfig {
-    /// The `Hello` deadline.
+    /// The deadline for the handshake and `Hello`.
     pub fn hello_timeout(&self) -> Duration {
         Duration::from_millis(self.hello_timeout_ms)
+    }
+
+    /// The grace period before the minimum upload rate applies.
+    pub fn upload_grace(&self) -> Duration {
+        Duration::from_millis(self.upload_grace_ms)
+    }
+
+    /// Bytes of partly received frames one connection may hold: `upload_buffer_frames` frames of
+    /// `max_frame` (at least one).
+    pub fn upload_buffer_bytes(&self, max_frame: u32) -> u64 {
+        u64::from(self.upload_buffer_frames.max(1)) * u64::from(max_frame)
     }
 }
 
@@ -630,6 +671,18 @@ impl Config {
             (
                 "connections.max_streams_per_connection",
                 u64::from(c.max_streams_per_connection),
+            ),
+            (
+                "connections.max_unauthenticated",
+                c.max_unauthenticated as u64,
+            ),
+            (
+                "connections.failed_token_sources",
+                c.failed_token_sources as u64,
+            ),
+            (
+                "connections.upload_buffer_frames",
+                u64::from(c.upload_buffer_frames),
             ),
         ] {
             if value == 0 {

@@ -707,8 +707,13 @@ impl TaskTable {
         if let Some(exec) = plan.exec {
             record.apply_exec_report(exec);
         }
-        if let Some(report) = &submit.last_exec {
-            record.control_hz = Some(report.control_hz);
+        if let Some(hz) = submit
+            .last_exec
+            .as_ref()
+            .map(|report| report.control_hz)
+            .or(submit.control_hz)
+        {
+            record.control_hz = Some(hz);
         }
         record.last_round = submit.round;
         record.retry_allowed = false;
@@ -950,6 +955,7 @@ mod tests {
             obs_captured_at: t(sent_ms),
             last_exec: exec,
             remaining: None,
+            control_hz: None,
         }
     }
 
@@ -985,6 +991,30 @@ mod tests {
         fn record(&self) -> &TaskRecord {
             self.table.get(TaskId(7)).unwrap()
         }
+    }
+
+    #[test]
+    fn a_first_round_that_reports_its_control_rate_is_not_idle_while_its_chunk_executes() {
+        // A 0.4 Hz robot: H = 5 actions take 12.5 s; with a 10 s idle timeout the first chunk
+        // alone outlasts it. `Submit.control_hz` tells the server the rate before any Last
+        // Exec Info exists.
+        let mut table = TaskTable::new(8, Duration::from_secs(10), 1024);
+        let first = RoundSubmit {
+            control_hz: Some(0.4),
+            ..submit(7, 0, 0, None)
+        };
+        let plan = table.plan_submit(&first).unwrap();
+        table.apply_submit(t(0), &first, &plan, RequestId(0));
+        table.generation_started(t(0), TaskId(7), RequestId(0));
+        assert!(table.answered(t(100), TaskId(7), RequestId(0), 5));
+        // Idle only from the end of the chunk's execution: 0.1 s + 12.5 s, then 10 s.
+        assert_eq!(table.next_expiry(), Some(t(100 + 12_500 + 10_000)));
+        assert!(
+            table.expired(t(10_100)).is_empty(),
+            "10 s after the answer the robot is still executing its first chunk"
+        );
+        assert!(table.expired(t(22_599)).is_empty());
+        assert_eq!(table.expired(t(22_600)), vec![TaskId(7)]);
     }
 
     #[test]

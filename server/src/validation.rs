@@ -220,6 +220,10 @@ pub enum RequestError {
     /// The server is draining.
     #[error("the server is shutting down")]
     ShuttingDown,
+    /// The request's frame arrived slower than `[connections] min_upload_bytes_per_s`
+    /// (the reason says how slow).
+    #[error("{0}")]
+    TooSlow(String),
 }
 
 impl RequestError {
@@ -255,6 +259,7 @@ impl RequestError {
             }) => ErrorCode::InvalidObservation,
             RequestError::Engine(_) | RequestError::Internal(_) => ErrorCode::Internal,
             RequestError::ShuttingDown => ErrorCode::ShuttingDown,
+            RequestError::TooSlow(_) => ErrorCode::TooSlow,
         }
     }
 }
@@ -368,11 +373,12 @@ impl Validator {
                     rounds: r.rounds,
                     seconds: r.seconds,
                 }),
+                control_hz: submit.control_hz,
             },
             observation,
             policy,
             samples,
-            control_hz: submit.last_exec.map(|e| e.control_hz),
+            control_hz: submit.last_exec.map(|e| e.control_hz).or(submit.control_hz),
             clock,
         })
     }
@@ -637,6 +643,7 @@ mod tests {
             horizon: None,
             remaining: None,
             attempt: 0,
+            control_hz: None,
         }
     }
 
@@ -718,6 +725,25 @@ mod tests {
         assert_eq!(v.samples, 1);
         assert_eq!(v.policy.policy.name(), "threshold");
         assert_eq!(v.control_hz, Some(50.0));
+    }
+
+    #[test]
+    fn a_first_round_carries_its_control_rate_to_the_scheduler() {
+        let mut s = submit();
+        s.last_exec = None;
+        s.control_hz = Some(0.4);
+        let v = check(s).unwrap();
+        assert_eq!(v.round.control_hz, Some(0.4));
+        assert_eq!(v.control_hz, Some(0.4));
+        // The execution report's rate wins when both are present.
+        let mut s = submit();
+        s.control_hz = Some(7.0);
+        assert_eq!(check(s).unwrap().control_hz, Some(50.0));
+        for bad in [0.0, -1.0, f32::NAN, f32::INFINITY] {
+            let mut s = submit();
+            s.control_hz = Some(bad);
+            assert_eq!(code(s), ErrorCode::InvalidRequest, "control_hz {bad}");
+        }
     }
 
     fn code(s: Submit) -> ErrorCode {

@@ -330,6 +330,7 @@ pub async fn run_task(
         let mut request = RoundRequest::new(observation(client, plan.state1));
         request.last_exec = last_exec;
         request.horizon = plan.horizon.clone();
+        request.control_hz = Some(plan.control_hz);
         let reply = task
             .submit(request, &mut NoRefetch)
             .await

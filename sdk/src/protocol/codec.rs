@@ -2,8 +2,9 @@
 //!
 //! Encoding is `rmp_serde::to_vec_named`: every struct is a MessagePack map keyed by field name.
 //! Decoding is strict about the envelope and lenient about content: the body must be exactly one
-//! MessagePack map (no trailing bytes, nesting at most [`MAX_DEPTH`]), unknown keys are ignored so a
-//! newer peer can add optional fields, and numbers decode into the field's type when they fit (an
+//! MessagePack map (no trailing bytes, nesting at most [`MAX_DEPTH`], every map key a `str`),
+//! unknown keys are ignored so a newer peer can add optional fields, enumerations are names only
+//! (`strict::name`), and numbers decode into the field's type when they fit (an
 //! integer where a float is expected, a float64 where a float32 is expected), so clients in
 //! languages without a float32 type work unchanged.
 
@@ -210,19 +211,40 @@ pub fn decode_body<T: DeserializeOwned>(kind: MessageKind, body: &[u8]) -> Resul
     T::deserialize(&mut deserializer).map_err(|error| malformed(error.to_string()))
 }
 
-/// Length in bytes of the MessagePack value at the start of `buf`.
+/// Length in bytes of the MessagePack value at the start of `buf`, checking on the way that every
+/// map key is a MessagePack `str` (docs/PROTOCOL.md §4: bodies are maps with string keys; serde
+/// would otherwise read an integer key as a field's index and a `bin` key as its name) and that
+/// containers nest at most [`MAX_DEPTH`] deep.
 ///
 /// Iterative (no recursion, whatever the nesting) and linear in the bytes it walks; string, binary
 /// and extension payloads are skipped by their announced length, never copied.
 pub fn msgpack_value_len(buf: &[u8]) -> Result<usize, &'static str> {
     const ENDS_INSIDE: &str = "the body ends inside a MessagePack value";
+    /// A container being walked: values left in it, and whether it is a map (whose values at
+    /// even counts left are keys).
+    struct Open {
+        left: u64,
+        map: bool,
+    }
     let mut pos = 0usize;
+    let mut stack: Vec<Open> = Vec::new();
     // Values still to walk. Every value takes at least one byte, so more pending values than
     // bytes left can only be a lie about a container's size.
     let mut pending: u64 = 1;
-    while pending > 0 {
+    loop {
+        let is_key = match stack.last_mut() {
+            Some(open) => {
+                let key = open.map && open.left % 2 == 0;
+                open.left -= 1;
+                key
+            }
+            None => false,
+        };
         pending -= 1;
         let marker = *buf.get(pos).ok_or(ENDS_INSIDE)?;
+        if is_key && !matches!(marker, 0xa0..=0xbf | 0xd9 | 0xda | 0xdb) {
+            return Err("a map key is not a str: expected a MessagePack str");
+        }
         pos += 1;
         let read_len = |at: usize, width: usize| -> Result<u64, &'static str> {
             let bytes = buf.get(at..at + width).ok_or(ENDS_INSIDE)?;
@@ -269,6 +291,20 @@ pub fn msgpack_value_len(buf: &[u8]) -> Result<usize, &'static str> {
         if pending > (buf.len() - pos) as u64 {
             return Err(ENDS_INSIDE);
         }
+        if items > 0 {
+            if stack.len() == MAX_DEPTH {
+                return Err("MessagePack nesting deeper than 32 levels");
+            }
+            stack.push(Open {
+                left: items,
+                map: matches!(marker, 0x80..=0x8f | 0xde | 0xdf),
+            });
+        }
+        while stack.last().is_some_and(|open| open.left == 0) {
+            stack.pop();
+        }
+        if stack.is_empty() {
+            return Ok(pos);
+        }
     }
-    Ok(pos)
 }

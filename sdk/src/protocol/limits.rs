@@ -386,6 +386,14 @@ impl Validate for Submit {
         if let Some(last_exec) = &self.last_exec {
             last_exec.validate(limits)?;
         }
+        if let Some(hz) = self.control_hz
+            && !(hz.is_finite() && hz > 0.0)
+        {
+            return Err(invalid_request(
+                "control_hz",
+                format!("must be a positive finite number, got {hz}"),
+            ));
+        }
         if let Some(horizon) = &self.horizon {
             horizon.validate(limits)?;
         }

@@ -107,6 +107,7 @@ impl DType {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Tensor {
     /// Element type.
+    #[serde(deserialize_with = "strict::name")]
     pub dtype: DType,
     /// Dimensions, outermost first.
     pub shape: Vec<u32>,
@@ -116,7 +117,7 @@ pub struct Tensor {
 }
 
 /// How a camera image travels.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
 #[serde(tag = "encoding", rename_all = "lowercase")]
 pub enum ImagePayload {
     /// JPEG file bytes.
@@ -136,6 +137,48 @@ pub enum ImagePayload {
         /// The pixels.
         tensor: Tensor,
     },
+}
+
+/// The wire form of [`ImagePayload`], read field by field: serde's internally tagged enums
+/// would accept the `encoding` tag as a variant index or as `bin`, and buffer the image bytes
+/// once more before decoding them.
+#[derive(Deserialize)]
+struct PayloadWire {
+    #[serde(deserialize_with = "strict::name")]
+    encoding: PayloadEncoding,
+    #[serde(default, deserialize_with = "strict::opt_bin")]
+    data: Option<Vec<u8>>,
+    #[serde(default)]
+    tensor: Option<Tensor>,
+}
+
+#[derive(Deserialize)]
+#[serde(rename_all = "lowercase")]
+enum PayloadEncoding {
+    Jpeg,
+    Png,
+    Raw,
+}
+
+impl<'de> Deserialize<'de> for ImagePayload {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        use serde::de::Error;
+        let wire = PayloadWire::deserialize(deserializer)?;
+        let data = |data: Option<Vec<u8>>| data.ok_or_else(|| D::Error::missing_field("data"));
+        Ok(match wire.encoding {
+            PayloadEncoding::Jpeg => ImagePayload::Jpeg {
+                data: data(wire.data)?,
+            },
+            PayloadEncoding::Png => ImagePayload::Png {
+                data: data(wire.data)?,
+            },
+            PayloadEncoding::Raw => ImagePayload::Raw {
+                tensor: wire
+                    .tensor
+                    .ok_or_else(|| D::Error::missing_field("tensor"))?,
+            },
+        })
+    }
 }
 
 /// One named camera image.
@@ -275,6 +318,11 @@ pub struct Submit {
     /// first send). Informational: the server dedups by `round`, never by `attempt`.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub attempt: u32,
+    /// The robot's control rate, Hz, when the client knows it. The server's idle clock waits
+    /// for the chunk it answers to execute (`H / control_hz`), and on a task's first round there
+    /// is no `last_exec` to take the rate from. `last_exec.control_hz` wins when both are sent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub control_hz: Option<f32>,
 }
 
 fn is_zero(value: &u32) -> bool {
@@ -343,6 +391,7 @@ pub struct EndTask {
     /// The task.
     pub task: u64,
     /// `done` or `failed`.
+    #[serde(deserialize_with = "strict::name")]
     pub outcome: TaskOutcome,
     /// Client clock, µs, when this message was sent.
     pub sent_at_us: u64,
@@ -432,12 +481,16 @@ pub enum ErrorCode {
     Internal,
     /// The server is shutting down.
     ShuttingDown,
+    /// The request's frame arrived slower than the server's minimum upload rate; the server
+    /// stopped reading the stream. Retryable: a faster link may succeed.
+    TooSlow,
 }
 
 /// S→C: the request on this stream failed.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ErrorReply {
     /// Machine-readable code.
+    #[serde(deserialize_with = "strict::name")]
     pub code: ErrorCode,
     /// Human-readable explanation.
     #[serde(deserialize_with = "strict::text")]
@@ -463,12 +516,16 @@ impl ErrorReply {
 
 impl ErrorCode {
     /// Whether the same request may succeed if sent again later: `overloaded`, `shutting_down`
-    /// (another server or a restarted one may answer) and `internal` (a failed generation).
+    /// (another server or a restarted one may answer), `internal` (a failed generation) and
+    /// `too_slow` (a faster link may deliver it).
     /// Every other code describes the request itself, which will fail the same way again.
     pub fn is_retryable(self) -> bool {
         matches!(
             self,
-            ErrorCode::Overloaded | ErrorCode::ShuttingDown | ErrorCode::Internal
+            ErrorCode::Overloaded
+                | ErrorCode::ShuttingDown
+                | ErrorCode::Internal
+                | ErrorCode::TooSlow
         )
     }
 
@@ -488,6 +545,7 @@ impl ErrorCode {
             ErrorCode::Overloaded => "overloaded",
             ErrorCode::Internal => "internal",
             ErrorCode::ShuttingDown => "shutting_down",
+            ErrorCode::TooSlow => "too_slow",
         }
     }
 }

@@ -24,8 +24,8 @@ mod tensor;
 pub use codec::{EncodeError, MAX_DEPTH, Message, WireBody, encode_body};
 pub use frame::{Frame, FrameError, HEADER_LEN};
 pub use io::{
-    ReadFrameError, WriteFrameError, read_frame, read_message, write_body, write_frame,
-    write_message,
+    MinRate, ReadBounds, ReadFrameError, WriteFrameError, read_frame, read_frame_bounded,
+    read_message, read_message_bounded, write_body, write_frame, write_message,
 };
 pub use limits::{Limits, MAX_ROUND, Validate, ValidationError};
 pub use messages::*;

@@ -95,9 +95,34 @@ pub mod bin {
     }
 }
 
+/// An enumeration field (`dtype`, `outcome`, `code`, an image's `encoding`): a MessagePack `str`
+/// naming a variant, nothing else. serde's derived enum visitor would also take a variant's
+/// index as an integer (`"dtype": 0` as `f32`), and rmp-serde a one-entry map or array around
+/// the name; an unknown name is refused either way (`bad_frame`, listing the names).
+pub fn name<'de, D: Deserializer<'de>, T: serde::de::DeserializeOwned>(
+    deserializer: D,
+) -> Result<T, D::Error> {
+    use serde::de::IntoDeserializer;
+    let name = text(deserializer)?;
+    T::deserialize(name.into_deserializer())
+}
+
+/// An optional byte field: absent, `nil` or MessagePack `bin`.
+pub fn opt_bin<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Option<Vec<u8>>, D::Error> {
+    struct Bin(Vec<u8>);
+    impl<'de> Deserialize<'de> for Bin {
+        fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Bin, D::Error> {
+            bin::deserialize(deserializer).map(Bin)
+        }
+    }
+    Ok(Option::<Bin>::deserialize(deserializer)?.map(|Bin(bytes)| bytes))
+}
+
 #[cfg(test)]
 mod tests {
     use rmpv::Value;
+
+    use serde::Deserialize;
 
     use super::super::codec::decode_body;
     use super::super::messages::{Hello, MessageKind, Submit};
@@ -183,6 +208,99 @@ mod tests {
                 .to_string();
             assert!(error.contains("expected a MessagePack bin"), "{error}");
         }
+    }
+
+    #[test]
+    fn enumerations_are_names_not_indices_or_wrappers() {
+        let state = |dtype: Value| {
+            let mut body = submit(Value::Binary(vec![1, 2]), Value::Map(Vec::new()));
+            let mut value = rmpv::decode::read_value(&mut &body[..]).unwrap();
+            if let Value::Map(fields) = &mut value
+                && let Some((_, Value::Map(observation))) = fields
+                    .iter_mut()
+                    .find(|(k, _)| k.as_str() == Some("observation"))
+                && let Some((_, Value::Map(tensor))) = observation
+                    .iter_mut()
+                    .find(|(k, _)| k.as_str() == Some("state"))
+                && let Some((_, slot)) =
+                    tensor.iter_mut().find(|(k, _)| k.as_str() == Some("dtype"))
+            {
+                *slot = dtype;
+            }
+            body.clear();
+            rmpv::encode::write_value(&mut body, &value).unwrap();
+            decode_body::<Submit>(MessageKind::Submit, &body).map_err(|e| e.to_string())
+        };
+        assert!(state(Value::from("u8")).is_ok());
+        for lenient in [
+            Value::from(3),
+            Value::Array(vec![Value::from("u8")]),
+            Value::Map(vec![(Value::from("u8"), Value::Nil)]),
+            Value::Binary(b"u8".to_vec()),
+        ] {
+            let error = state(lenient.clone()).unwrap_err();
+            assert!(
+                error.contains("expected a MessagePack str"),
+                "{lenient}: {error}"
+            );
+        }
+        let error = state(Value::from("u9")).unwrap_err();
+        assert!(error.contains("unknown variant `u9`"), "{error}");
+    }
+
+    #[test]
+    fn image_encodings_are_names() {
+        use super::super::messages::ImagePayload;
+        let payload = |encoding: Value, data: Value| {
+            let body = encode(&map(vec![("encoding", encoding), ("data", data)]));
+            let mut de = rmp_serde::Deserializer::from_read_ref(&body[..]);
+            ImagePayload::deserialize(&mut de).map_err(|e| e.to_string())
+        };
+        assert_eq!(
+            payload(Value::from("png"), Value::Binary(vec![7])).unwrap(),
+            ImagePayload::Png { data: vec![7] }
+        );
+        for lenient in [Value::from(1), Value::Binary(b"png".to_vec())] {
+            let error = payload(lenient.clone(), Value::Binary(vec![7])).unwrap_err();
+            assert!(
+                error.contains("expected a MessagePack str"),
+                "{lenient}: {error}"
+            );
+        }
+        let error = payload(Value::from("gif"), Value::Binary(vec![7])).unwrap_err();
+        assert!(error.contains("unknown variant `gif`"), "{error}");
+        let error = payload(Value::from("jpeg"), Value::from("not bytes")).unwrap_err();
+        assert!(error.contains("expected a MessagePack bin"), "{error}");
+        let error = payload(Value::from("raw"), Value::Binary(vec![7])).unwrap_err();
+        assert!(error.contains("missing field `tensor`"), "{error}");
+    }
+
+    #[test]
+    fn map_keys_are_strs_everywhere() {
+        // An integer key would otherwise be read as the field's index (0 = `protocol`).
+        let body = encode(&Value::Map(vec![
+            (Value::from(0), Value::from(1)),
+            (Value::from("token"), Value::from("t")),
+            (Value::from("client"), Value::from("c")),
+        ]));
+        let error = decode_body::<Hello>(MessageKind::Hello, &body)
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("map key"), "{error}");
+        let body = encode(&Value::Map(vec![
+            (Value::Binary(b"protocol".to_vec()), Value::from(1)),
+            (Value::from("token"), Value::from("t")),
+            (Value::from("client"), Value::from("c")),
+        ]));
+        assert!(decode_body::<Hello>(MessageKind::Hello, &body).is_err());
+        // Unknown keys with str names are ignored, as the specification says.
+        let body = encode(&map(vec![
+            ("protocol", Value::from(1)),
+            ("token", Value::from("t")),
+            ("client", Value::from("c")),
+            ("future_field", Value::Array(vec![Value::from(1)])),
+        ]));
+        assert!(decode_body::<Hello>(MessageKind::Hello, &body).is_ok());
     }
 
     #[test]

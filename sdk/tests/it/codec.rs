@@ -177,6 +177,7 @@ fn message() -> impl Strategy<Value = Message> {
                     horizon,
                     remaining,
                     attempt,
+                    control_hz: None,
                 })
             },
         );
@@ -341,6 +342,7 @@ fn small_submit() -> Submit {
         horizon: None,
         remaining: None,
         attempt: 0,
+        control_hz: None,
     }
 }
 

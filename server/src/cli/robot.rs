@@ -187,6 +187,7 @@ async fn observation_frame_bytes(
         horizon: None,
         remaining: None,
         attempt: 0,
+        control_hz: None,
     };
     let bytes = encode_body(&submit, u32::MAX)?.len();
     Ok(u32::try_from(bytes).unwrap_or(u32::MAX))

@@ -161,6 +161,12 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         report.driver.failed,
         report.driver.tasks_ended
     );
+    let t = report.transport;
+    println!(
+        "  connections refused: {} at capacity, {} before the handshake (unauthenticated budget), \
+         {} rate-limited (wrong tokens); {} Retry answers",
+        t.refused, t.refused_unauthenticated, t.rate_limited, t.retried
+    );
     let latency = |name: &str, s: crate::driver::LatencySummary| {
         println!(
             "  {name:<34} p50 {:>7.3} ms  p99 {:>7.3} ms  max {:>7.3} ms  ({} replies)",

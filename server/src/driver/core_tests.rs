@@ -90,6 +90,7 @@ impl Bench {
             horizon: None,
             remaining: None,
             attempt: 0,
+            control_hz: None,
         };
         self.validator
             .submit(submit, RobotId(robot), &self.actions, self.clock)

@@ -197,6 +197,7 @@ fn wire_submit(
         horizon: None,
         remaining: None,
         attempt: 0,
+        control_hz: None,
     }
 }
 

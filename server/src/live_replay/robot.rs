@@ -152,6 +152,7 @@ impl Requests {
                 rounds: u32::try_from(left).ok(),
                 seconds: None,
             }),
+            control_hz: Some(self.trace.control_hz),
         }
     }
 }

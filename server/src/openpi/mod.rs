@@ -442,6 +442,9 @@ impl Session {
             horizon: Some(self.horizon()),
             remaining: None,
             attempt: 0,
+            // The configured or estimated rate: the task's idle clock then covers the chunk the
+            // client executes before its next call, from the first round on.
+            control_hz: self.exec.control_hz(),
         };
         // The server clock is the "robot" clock here: the identity mapping.
         let identity = ClockMap::new(received, at_us, Duration::ZERO);

@@ -136,6 +136,10 @@ pub struct RoundSubmit {
     pub last_exec: Option<ExecReport>,
     /// The client's remaining-work hint.
     pub remaining: Option<RemainingWork>,
+    /// The robot's control rate when the request reported one without an execution report
+    /// (`Submit.control_hz` on a task's first round): the idle clock needs it to know how long
+    /// the answered chunk executes. `last_exec`'s rate wins when both are present.
+    pub control_hz: Option<f32>,
 }
 
 /// Why a submit or task end was refused. Each maps to one wire error code.

@@ -56,6 +56,7 @@ fn submit_at(task: u64, round: u64, at: Timestamp, exec: Option<ExecReport>) -> 
         obs_captured_at: at,
         last_exec: exec,
         remaining: None,
+        control_hz: None,
     }
 }
 

@@ -426,6 +426,7 @@ impl<'a> Sim<'a> {
             obs_captured_at: o.sent_at,
             last_exec: if o.round == 0 { None } else { last_exec },
             remaining,
+            control_hz: None,
         };
         let id = self
             .sched

@@ -5,14 +5,15 @@ use std::time::Duration;
 
 use kairos_sdk::client::{STREAM_REFUSED, close_code};
 use kairos_sdk::protocol::{
-    ErrorReply, FetchObservation, Message, PROTOCOL_VERSION, ReadFrameError, Welcome, read_message,
-    write_message,
+    ErrorReply, FetchObservation, HEADER_LEN, Limits, Message, MinRate, PROTOCOL_VERSION,
+    ReadBounds, ReadFrameError, Welcome, read_message_bounded, write_message,
 };
 use quinn::{Connection, RecvStream, SendStream, VarInt};
-use tokio::sync::{mpsc, watch};
+use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, watch};
 use tokio::task::JoinSet;
+use tokio::time::Instant;
 
-use super::ServerContext;
+use super::{Gate, ServerContext};
 use crate::driver::RefetchAsk;
 use crate::scheduler::RobotId;
 use crate::time::Timestamp;
@@ -22,11 +23,38 @@ use crate::validation::{ClockEstimator, ClockMap, RequestError};
 /// finish its own side.
 const LINGER: Duration = Duration::from_secs(1);
 
+/// Bytes a connection may have in flight before `Hello` is accepted (QUIC connection receive
+/// window): room for the largest `Hello` and then some.
+pub(super) const HELLO_WINDOW: u32 = 16 << 10;
+
+/// The largest `Hello` frame body the server reads: a token, a client name and MessagePack
+/// framing around them.
+fn hello_limits(limits: &Limits) -> Limits {
+    Limits {
+        max_frame: limits
+            .max_token_bytes
+            .saturating_add(limits.max_name_bytes)
+            .saturating_add(256),
+        ..limits.clone()
+    }
+}
+
+/// The minimum upload rate of `[connections]`, if any.
+fn min_rate(context: &ServerContext) -> Option<MinRate> {
+    let connections = &context.connections;
+    (connections.min_upload_bytes_per_s > 0).then(|| MinRate {
+        bytes_per_s: connections.min_upload_bytes_per_s,
+        grace: connections.upload_grace(),
+    })
+}
+
 /// The per-connection state shared by its stream tasks.
 struct Peer {
     connection: Connection,
     robot: RobotId,
     clock: Mutex<ClockEstimator>,
+    /// How its frames are read: the minimum rate and the connection's upload budget.
+    bounds: ReadBounds,
 }
 
 impl Peer {
@@ -44,63 +72,40 @@ impl Peer {
     }
 }
 
-/// Accepts `incoming` only to close it with a reason: the server is at `limit` connections.
-pub(super) async fn refuse_at_capacity(incoming: quinn::Incoming, limit: usize) {
-    let Ok(connecting) = incoming.accept() else {
-        return;
-    };
-    if let Ok(connection) = connecting.await {
-        let reason = format!("server at capacity ({limit} connections); retry later");
-        connection.close(VarInt::from_u32(close_code::AT_CAPACITY), reason.as_bytes());
-    }
-}
-
-/// Serves one connection until the client closes it or the server shuts down.
+/// Serves one connection until the client closes it or the server shuts down. `unauthenticated`
+/// is its place in the handshake budget, given back once `Hello` is answered either way. A
+/// connection still in its handshake or `Hello` when the server shuts down is dropped at once:
+/// it has no round to drain.
 pub(super) async fn serve(
     incoming: quinn::Incoming,
+    unauthenticated: OwnedSemaphorePermit,
     context: Arc<ServerContext>,
+    gate: Arc<Gate>,
     mut stop: watch::Receiver<bool>,
 ) {
     let remote = incoming.remote_address();
-    let connecting = match incoming.accept() {
-        Ok(connecting) => connecting,
-        Err(error) => {
-            tracing::debug!(%remote, %error, "handshake refused");
-            return;
-        }
+    let admitted = tokio::select! {
+        admitted = admit(incoming, &context, &gate) => admitted,
+        _ = stop.wait_for(|stopping| *stopping) => None,
     };
-    // 0.5-RTT: the server may answer streams the client sent as 0-RTT data right away. Safe
-    // because tickets are single-use (see `tls`).
-    let connection = match connecting.into_0rtt() {
-        Ok((connection, _accepted)) => connection,
-        Err(connecting) => match connecting.await {
-            Ok(connection) => connection,
-            Err(error) => {
-                tracing::debug!(%remote, %error, "handshake failed");
-                return;
-            }
-        },
+    let Some((connection, robot, _place)) = admitted else {
+        return;
     };
-    let hello_timeout = context.connections.hello_timeout();
-    let robot = match tokio::time::timeout(hello_timeout, hello(&connection, &context)).await {
-        Ok(Ok(robot)) => robot,
-        Ok(Err((code, reason))) => {
-            connection.close(VarInt::from_u32(code), reason.as_bytes());
-            return;
-        }
-        Err(_) => {
-            connection.close(
-                VarInt::from_u32(close_code::PROTOCOL_ERROR),
-                b"no Hello in time",
-            );
-            return;
-        }
-    };
+    drop(unauthenticated);
     tracing::debug!(%remote, robot = context.robots.name(robot), "robot connected");
+    let budget = context
+        .connections
+        .upload_buffer_bytes(context.limits().max_frame);
     let peer = Arc::new(Peer {
         connection: connection.clone(),
         robot,
         clock: Mutex::new(ClockEstimator::default()),
+        bounds: ReadBounds {
+            min_rate: min_rate(&context),
+            budget: Some(Arc::new(Semaphore::new(
+                usize::try_from(budget).unwrap_or(Semaphore::MAX_PERMITS),
+            ))),
+        },
     });
     let mut streams = JoinSet::new();
     loop {
@@ -128,18 +133,99 @@ pub(super) async fn serve(
     }
 }
 
-/// The `Hello`/`Welcome` exchange on the connection's first stream. On refusal returns the close
-/// code and reason, after the error frame has been delivered (or `LINGER` has passed).
-async fn hello(connection: &Connection, context: &ServerContext) -> Result<RobotId, (u32, String)> {
+/// The handshake and `Hello`, both within `hello_timeout_ms` of the first packet: the connection,
+/// its robot and its place among the authenticated connections, or `None` after closing it.
+async fn admit(
+    incoming: quinn::Incoming,
+    context: &ServerContext,
+    gate: &Gate,
+) -> Option<(Connection, RobotId, OwnedSemaphorePermit)> {
+    let deadline = Instant::now() + context.connections.hello_timeout();
+    let remote = incoming.remote_address();
+    let connecting = match incoming.accept() {
+        Ok(connecting) => connecting,
+        Err(error) => {
+            tracing::debug!(%remote, %error, "handshake refused");
+            return None;
+        }
+    };
+    // 0.5-RTT: the server may answer streams the client sent as 0-RTT data right away. Safe
+    // because tickets are single-use (see `tls`).
+    let handshake = async {
+        match connecting.into_0rtt() {
+            Ok((connection, _accepted)) => Ok(connection),
+            Err(connecting) => connecting.await,
+        }
+    };
+    // Dropping an unfinished handshake abandons it.
+    let connection = match tokio::time::timeout_at(deadline, handshake).await {
+        Ok(Ok(connection)) => connection,
+        Ok(Err(error)) => {
+            tracing::debug!(%remote, %error, "handshake failed");
+            return None;
+        }
+        Err(_) => {
+            tracing::debug!(%remote, "handshake not done in time");
+            return None;
+        }
+    };
+    match tokio::time::timeout_at(deadline, hello(&connection, context, gate)).await {
+        Ok(Ok((robot, place))) => Some((connection, robot, place)),
+        Ok(Err((code, reason))) => {
+            connection.close(VarInt::from_u32(code), reason.as_bytes());
+            None
+        }
+        Err(_) => {
+            connection.close(
+                VarInt::from_u32(close_code::PROTOCOL_ERROR),
+                b"no Hello in time",
+            );
+            None
+        }
+    }
+}
+
+/// The `Hello`/`Welcome` exchange on the connection's first stream. A source over its budget
+/// of wrong tokens is refused before its token is looked at; a robot over `max_connections` is
+/// refused after it. On success returns the robot and its place among the authenticated
+/// connections, after opening the connection's windows to the robot's (see the module docs).
+/// On refusal returns the close code and reason, after the error frame has been delivered (or
+/// `LINGER` has passed).
+async fn hello(
+    connection: &Connection,
+    context: &ServerContext,
+    gate: &Gate,
+) -> Result<(RobotId, OwnedSemaphorePermit), (u32, String)> {
     let protocol_error = |reason: String| (close_code::PROTOCOL_ERROR, reason);
     let (mut send, mut recv) = connection
         .accept_bi()
         .await
         .map_err(|e| protocol_error(e.to_string()))?;
-    let refused = match read_message(&mut recv, context.limits()).await {
+    let ip = connection.remote_address().ip();
+    let bounds = ReadBounds {
+        min_rate: min_rate(context),
+        budget: None,
+    };
+    let limits = hello_limits(context.limits());
+    let refused = match read_message_bounded(&mut recv, &limits, &bounds).await {
         Ok(Some(Message::Hello(hello))) => match context.validator.hello(&hello) {
+            Ok(_) if !gate.source_allowed(ip) => {
+                // Not even hashed: this source has used up its wrong tokens.
+                return Err((
+                    close_code::UNAUTHORIZED,
+                    "too many wrong tokens from this address; retry later".into(),
+                ));
+            }
             Ok(_) => match context.robots.authenticate(&hello.token) {
                 Some(robot) => {
+                    let Some(place) = gate.authenticated() else {
+                        let limit = context.connections.max_connections;
+                        return Err((
+                            close_code::AT_CAPACITY,
+                            format!("server at capacity ({limit} connections); retry later"),
+                        ));
+                    };
+                    open_windows(connection, context);
                     let welcome = Message::Welcome(Welcome {
                         protocol: PROTOCOL_VERSION,
                         server: format!("kairos/{}", env!("CARGO_PKG_VERSION")),
@@ -151,9 +237,12 @@ async fn hello(connection: &Connection, context: &ServerContext) -> Result<Robot
                         .await
                         .map_err(|e| protocol_error(e.to_string()))?;
                     let _ = send.finish();
-                    return Ok(robot);
+                    return Ok((robot, place));
                 }
-                None => (close_code::UNAUTHORIZED, RequestError::Unauthorized),
+                None => {
+                    gate.token_failed(ip);
+                    (close_code::UNAUTHORIZED, RequestError::Unauthorized)
+                }
             },
             Err(error) => (close_code::PROTOCOL_ERROR, error),
         },
@@ -166,6 +255,10 @@ async fn hello(connection: &Connection, context: &ServerContext) -> Result<Robot
         ),
         Ok(None) => return Err(protocol_error("stream closed before Hello".into())),
         Err(ReadFrameError::Frame(error)) => (close_code::PROTOCOL_ERROR, error.into()),
+        Err(error @ ReadFrameError::TooSlow { .. }) => (
+            close_code::PROTOCOL_ERROR,
+            RequestError::TooSlow(error.to_string()),
+        ),
         Err(ReadFrameError::Read(error)) => return Err(protocol_error(error.to_string())),
     };
     let (code, error) = refused;
@@ -174,6 +267,23 @@ async fn hello(connection: &Connection, context: &ServerContext) -> Result<Robot
     send_error(&mut send, &error, context).await;
     let _ = tokio::time::timeout(LINGER, send.stopped()).await;
     Err((code, error.to_string()))
+}
+
+/// Gives an authenticated robot its streams and its receive window: `upload_buffer_frames`
+/// frames for the connection (the server's own transport config starts every connection at
+/// one stream and [`HELLO_WINDOW`]).
+fn open_windows(connection: &Connection, context: &ServerContext) {
+    let connections = &context.connections;
+    let window = connections.upload_buffer_bytes(context.limits().max_frame);
+    connection.set_receive_window(VarInt::from_u64(window).unwrap_or(VarInt::MAX));
+    connection
+        .set_max_concurrent_bi_streams(VarInt::from_u32(connections.max_streams_per_connection));
+}
+
+/// The per-stream QUIC receive window: one whole frame (a stream carries one request frame, and
+/// later at most one `FreshObservation`), never more than the connection's.
+pub(super) fn stream_window(context_limits: &Limits, connection_window: u64) -> u64 {
+    (u64::from(context_limits.max_frame) + HEADER_LEN as u64).min(connection_window)
 }
 
 /// Writes `error` as the stream's final frame and finishes the stream.
@@ -198,7 +308,7 @@ async fn stream(
     mut send: SendStream,
     mut recv: RecvStream,
 ) {
-    let message = read_message(&mut recv, context.limits()).await;
+    let message = read_message_bounded(&mut recv, context.limits(), &peer.bounds).await;
     let received = context.driver.clock().now();
     let outcome = match message {
         Ok(Some(Message::Submit(submit))) => {
@@ -211,6 +321,9 @@ async fn stream(
         }),
         Ok(None) => Ok(()),
         Err(ReadFrameError::Frame(error)) => Err(error.into()),
+        Err(error @ ReadFrameError::TooSlow { .. }) => {
+            Err(RequestError::TooSlow(error.to_string()))
+        }
         // The stream or the connection is gone; nobody to answer.
         Err(ReadFrameError::Read(_)) => Ok(()),
     };
@@ -317,7 +430,7 @@ async fn refetch(
         return;
     }
     let fresh = tokio::select! {
-        message = read_message(recv, context.limits()) => message,
+        message = read_message_bounded(recv, context.limits(), &peer.bounds) => message,
         // The driver gave up waiting.
         () = ask.reply.closed() => return,
     };

@@ -277,8 +277,13 @@ fn bind_udp(addr: SocketAddr, buffer: usize) -> std::io::Result<std::net::UdpSoc
     Ok(socket.into())
 }
 
-/// The quinn server config: the identity's TLS (see `tls`), the SDK's tuned transport, the
-/// stream cap, migration on.
+/// The quinn server config: the identity's TLS (see `tls`), the SDK's tuned transport, migration
+/// on, and the windows of an unauthenticated connection: one stream and
+/// [`connection::HELLO_WINDOW`] bytes in flight, until `Hello` opens them to the robot's
+/// (`max_streams_per_connection`, `upload_buffer_frames` frames). The stream window is one
+/// frame, capped by the connection's.
+///
+/// [`connection::HELLO_WINDOW`]: super::connection::HELLO_WINDOW
 fn quinn_server_config(
     identity: &ServerIdentity,
     config: &Config,
@@ -286,11 +291,15 @@ fn quinn_server_config(
     let sessions = config.connections.max_connections.saturating_mul(2);
     let crypto = identity.quic_crypto(sessions)?;
     let mut transport = TransportTuning::default().build();
+    let robot_window = config
+        .connections
+        .upload_buffer_bytes(config.limits.max_frame);
+    let stream_window = super::connection::stream_window(&config.limits, robot_window);
     transport
-        .max_concurrent_bidi_streams(VarInt::from_u32(
-            config.connections.max_streams_per_connection,
-        ))
-        .max_concurrent_uni_streams(VarInt::from_u32(0));
+        .max_concurrent_bidi_streams(VarInt::from_u32(1))
+        .max_concurrent_uni_streams(VarInt::from_u32(0))
+        .receive_window(VarInt::from_u32(super::connection::HELLO_WINDOW))
+        .stream_receive_window(VarInt::from_u64(stream_window).unwrap_or(VarInt::MAX));
     let mut server = quinn::ServerConfig::with_crypto(Arc::new(crypto));
     server.transport_config(Arc::new(transport)).migration(true);
     Ok(server)

@@ -1,13 +1,27 @@
 //! The QUIC server: admission, authentication and the per-stream protocol.
 //!
 //! [`run`] takes a bound quinn endpoint and a shutdown future (mini-redis's `run(listener,
-//! shutdown)`). Each incoming connection is admitted against a semaphore of
-//! `connections.max_connections` permits; over the cap it is accepted only to be closed at once
-//! with `close_code::AT_CAPACITY` and a reason the client can show. An admitted connection has
-//! `connections.hello_timeout_ms` to open its first stream and send `Hello`; a wrong token gets an
-//! `unauthorized` error frame and the connection is closed with `UNAUTHORIZED`. After that every
-//! bidirectional stream the robot opens is served by its own task (`Submit` or `EndTask`), so a
-//! malformed frame fails only its own stream, with a typed error frame.
+//! shutdown)`). Admission has two budgets, so that clients that never authenticate cannot take
+//! robots' places:
+//! - A connection attempt takes one of `connections.max_unauthenticated` places for its
+//!   handshake and `Hello`, which must both be done within `connections.hello_timeout_ms` of its
+//!   first packet. Over that budget the attempt is refused without a handshake (a QUIC
+//!   `CONNECTION_REFUSED`); over half of it, an attempt from an address QUIC has not validated
+//!   gets a Retry first, so spoofed or half-open handshakes take no place at all.
+//! - A `Hello` with a valid token moves the connection to one of `connections.max_connections`
+//!   places; over that the connection is closed with `close_code::AT_CAPACITY` and a reason.
+//! - Wrong tokens are rate-limited per source address ([`admission::FailedAuthLimiter`]): a
+//!   source over its budget is refused before its token is looked at, at the first packet.
+//!
+//! Before `Hello`, a connection may open one stream and have a few KiB in flight; after it, the
+//! robot gets `max_streams_per_connection` streams and a receive window of
+//! `connections.upload_buffer_frames` frames. Every frame the server reads is bounded by a
+//! minimum upload rate and by the connection's budget of partly received bytes
+//! ([`kairos_sdk::protocol::ReadBounds`]), so stalled uploads neither pin memory nor last.
+//! A wrong token gets an `unauthorized` error frame and the connection is closed with
+//! `UNAUTHORIZED`. After that every bidirectional stream the robot opens is served by its own
+//! task (`Submit` or `EndTask`), so a malformed frame fails only its own stream, with a typed
+//! error frame.
 //!
 //! Connections are accepted with 0-RTT (see [`tls`] for why that is replay-safe) and connection
 //! migration stays on, so a robot that roams to another address keeps its connection. The QUIC
@@ -20,13 +34,15 @@
 //! the connections are closed with `SHUTTING_DOWN`.
 
 mod admit;
+pub mod admission;
 mod connection;
 pub mod launch;
 pub mod tls;
 
 use std::collections::HashMap;
 use std::future::Future;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use kairos_sdk::client::close_code;
@@ -114,10 +130,111 @@ impl ServerContext {
 /// What [`run`] saw.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct TransportStats {
-    /// Connections admitted.
+    /// Connections authenticated and admitted.
     pub admitted: u64,
-    /// Connections closed at once because the server was at capacity.
+    /// Authenticated connections closed at once because `max_connections` were open.
     pub refused: u64,
+    /// Connection attempts refused without a handshake: `max_unauthenticated` were in progress.
+    pub refused_unauthenticated: u64,
+    /// Connection attempts answered with a Retry (address validation under load).
+    pub retried: u64,
+    /// Connection attempts refused because their source sent too many wrong tokens.
+    pub rate_limited: u64,
+}
+
+/// What to do with a connection attempt.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Admission {
+    /// Take a place in the unauthenticated budget and start the handshake.
+    Handshake,
+    /// Answer with a Retry: the client must prove it receives at its address first.
+    Retry,
+    /// Refuse without a handshake: the unauthenticated budget is full.
+    Refuse,
+    /// Refuse without a handshake: the source sent too many wrong tokens.
+    RateLimited,
+}
+
+/// The admission rule (see the module docs): `in_progress` of `max_unauthenticated` places are
+/// taken; `validated` says whether QUIC has validated the attempt's address, `may_retry` whether
+/// a Retry is still allowed for it; `source_allowed` is the failed-token limiter's verdict.
+pub fn admission(
+    source_allowed: bool,
+    validated: bool,
+    may_retry: bool,
+    in_progress: usize,
+    max_unauthenticated: usize,
+) -> Admission {
+    if !source_allowed {
+        Admission::RateLimited
+    } else if in_progress >= max_unauthenticated {
+        Admission::Refuse
+    } else if !validated && may_retry && in_progress * 2 >= max_unauthenticated {
+        Admission::Retry
+    } else {
+        Admission::Handshake
+    }
+}
+
+/// Admission state shared by [`run`] and the connection tasks.
+pub(crate) struct Gate {
+    /// Places for authenticated connections (`max_connections`).
+    authenticated: Arc<Semaphore>,
+    /// Failed tokens per source.
+    failed_tokens: Mutex<admission::FailedAuthLimiter>,
+    admitted: AtomicU64,
+    refused: AtomicU64,
+}
+
+impl Gate {
+    fn new(config: &ConnectionsConfig) -> Gate {
+        Gate {
+            authenticated: Arc::new(Semaphore::new(config.max_connections)),
+            failed_tokens: Mutex::new(admission::FailedAuthLimiter::new(
+                config.failed_token_burst,
+                config.failed_tokens_per_minute,
+                config.failed_token_sources,
+            )),
+            admitted: AtomicU64::new(0),
+            refused: AtomicU64::new(0),
+        }
+    }
+
+    fn limiter(&self) -> std::sync::MutexGuard<'_, admission::FailedAuthLimiter> {
+        // A panic while holding this lock leaves at worst one bucket stale.
+        self.failed_tokens
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Whether `ip` may try a token now.
+    pub(crate) fn source_allowed(&self, ip: std::net::IpAddr) -> bool {
+        self.limiter().allows(ip, now())
+    }
+
+    /// Counts a wrong token from `ip`.
+    pub(crate) fn token_failed(&self, ip: std::net::IpAddr) {
+        self.limiter().record_failure(ip, now());
+    }
+
+    /// A place for an authenticated connection, if one is free.
+    pub(crate) fn authenticated(&self) -> Option<tokio::sync::OwnedSemaphorePermit> {
+        match self.authenticated.clone().try_acquire_owned() {
+            Ok(permit) => {
+                self.admitted.fetch_add(1, Ordering::Relaxed);
+                Some(permit)
+            }
+            Err(_) => {
+                self.refused.fetch_add(1, Ordering::Relaxed);
+                None
+            }
+        }
+    }
+}
+
+/// The limiter's clock: tokio's, so tests with a paused clock control it.
+fn now() -> std::time::Instant {
+    tokio::time::Instant::now().into_std()
 }
 
 /// Serves `endpoint` until `shutdown` resolves, then drains (see the module docs).
@@ -126,7 +243,9 @@ pub async fn run(
     context: Arc<ServerContext>,
     shutdown: impl Future<Output = ()>,
 ) -> TransportStats {
-    let permits = Arc::new(Semaphore::new(context.connections.max_connections));
+    let gate = Arc::new(Gate::new(&context.connections));
+    let max_unauthenticated = context.connections.max_unauthenticated;
+    let unauthenticated = Arc::new(Semaphore::new(max_unauthenticated));
     let (stop_tx, stop_rx) = watch::channel(false);
     let mut connections = JoinSet::new();
     let mut stats = TransportStats::default();
@@ -135,20 +254,39 @@ pub async fn run(
         tokio::select! {
             incoming = endpoint.accept() => {
                 let Some(incoming) = incoming else { break };
-                match permits.clone().try_acquire_owned() {
-                    Ok(permit) => {
-                        stats.admitted += 1;
+                let decision = admission(
+                    gate.source_allowed(incoming.remote_address().ip()),
+                    incoming.remote_address_validated(),
+                    incoming.may_retry(),
+                    max_unauthenticated - unauthenticated.available_permits(),
+                    max_unauthenticated,
+                );
+                let permit = match decision {
+                    Admission::Handshake => unauthenticated.clone().try_acquire_owned().ok(),
+                    _ => None,
+                };
+                match (decision, permit) {
+                    (Admission::Handshake, Some(permit)) => {
                         let context = context.clone();
+                        let gate = gate.clone();
                         let stop = stop_rx.clone();
                         connections.spawn(async move {
-                            connection::serve(incoming, context, stop).await;
-                            drop(permit);
+                            connection::serve(incoming, permit, context, gate, stop).await;
                         });
                     }
-                    Err(_) => {
-                        stats.refused += 1;
-                        let limit = context.connections.max_connections;
-                        connections.spawn(connection::refuse_at_capacity(incoming, limit));
+                    (Admission::Retry, _) => {
+                        stats.retried += 1;
+                        if let Err(error) = incoming.retry() {
+                            error.into_incoming().refuse();
+                        }
+                    }
+                    (Admission::RateLimited, _) => {
+                        stats.rate_limited += 1;
+                        incoming.refuse();
+                    }
+                    (Admission::Refuse | Admission::Handshake, _) => {
+                        stats.refused_unauthenticated += 1;
+                        incoming.refuse();
                     }
                 }
             }
@@ -178,6 +316,8 @@ pub async fn run(
         b"server shutting down",
     );
     let _ = tokio::time::timeout(Duration::from_secs(1), endpoint.wait_idle()).await;
+    stats.admitted = gate.admitted.load(Ordering::Relaxed);
+    stats.refused = gate.refused.load(Ordering::Relaxed);
     stats
 }
 
@@ -185,6 +325,22 @@ pub async fn run(
 mod tests {
     use super::*;
     use crate::config::hash_token;
+
+    #[test]
+    fn admission_retries_unvalidated_attempts_over_half_and_refuses_when_full() {
+        // Under half: everyone gets a handshake.
+        assert_eq!(admission(true, false, true, 0, 8), Admission::Handshake);
+        assert_eq!(admission(true, false, true, 3, 8), Admission::Handshake);
+        // From half on: unvalidated attempts must come back with a Retry token.
+        assert_eq!(admission(true, false, true, 4, 8), Admission::Retry);
+        assert_eq!(admission(true, true, false, 4, 8), Admission::Handshake);
+        assert_eq!(admission(true, true, false, 7, 8), Admission::Handshake);
+        // Full: refused without a handshake, validated or not.
+        assert_eq!(admission(true, true, false, 8, 8), Admission::Refuse);
+        assert_eq!(admission(true, false, true, 8, 8), Admission::Refuse);
+        // A rate-limited source is refused whatever the load.
+        assert_eq!(admission(false, true, false, 0, 8), Admission::RateLimited);
+    }
 
     #[test]
     fn robot_table_authenticates_by_token_hash() {

@@ -6,6 +6,7 @@
 //! per module (see "CI time" in docs/BENCHMARKS.md). A new cross-crate test is a new module
 //! here, not a new file in `tests/`.
 
+mod admission;
 mod auth;
 mod binaries;
 mod demo;
@@ -17,3 +18,4 @@ mod openpi;
 mod plugins_served;
 mod sim_runner_agreement;
 mod sim_vs_live;
+mod uploads;

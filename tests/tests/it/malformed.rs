@@ -26,6 +26,7 @@ fn submit(task: u64, round: u64, state: Tensor, images: Vec<Image>) -> Submit {
         horizon: None,
         remaining: None,
         attempt: 0,
+        control_hz: None,
     }
 }
 
