@@ -67,7 +67,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         request.last_exec = executor.request_sent(id, client.now_us());
         let done = task.submit(request, &mut NoRefetch)?;
         let actions = done.reply.actions.to_f32()?;
-        let dim = done.reply.actions.shape.get(1).map_or(1, |&d| d.max(1) as usize);
+        let dim = done
+            .reply
+            .actions
+            .shape
+            .get(1)
+            .map_or(1, |&d| d.max(1) as usize);
         executor.reply_arrived(id, actions.chunks(dim).map(<[f32]>::to_vec).collect());
         if round >= WARM_UP {
             let latency = started.elapsed().as_micros();
