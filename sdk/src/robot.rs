@@ -191,6 +191,11 @@ impl ChunkExecutor {
         }
     }
 
+    /// The robot's control rate, actions per second.
+    pub fn control_hz(&self) -> f32 {
+        self.control_hz
+    }
+
     /// Actions executed since the task began.
     pub fn executed_total(&self) -> u64 {
         self.executed_total

@@ -48,7 +48,7 @@ class ConnectionFailed(KairosError):
     """The server could not be reached, or the connection was lost and reconnecting failed."""
 
 class Timeout(ConnectionFailed):
-    """Connecting or a round took longer than its limit."""
+    """Connecting or a round took longer than its limit, or an upload fell under the server's minimum rate (`too_slow`)."""
 
 class Unauthorized(KairosError):
     """The server refused the robot token."""

@@ -110,6 +110,8 @@ fn for_code(code: ErrorCode, message: String) -> PyErr {
         | ErrorCode::RoundOutOfOrder
         | ErrorCode::UnknownPolicy => InvalidRequest::new_err(message),
         ErrorCode::Internal => ServerError::new_err(message),
+        // The server stopped reading an upload that fell under its minimum rate: a slow link.
+        ErrorCode::TooSlow => Timeout::new_err(message),
     }
 }
 

@@ -569,6 +569,8 @@ impl Client {
                 last_exec,
                 horizon: task.horizon.clone(),
                 remaining: None,
+                // The server accounts the first chunk's execution at this rate (no last_exec yet).
+                control_hz: Some(task.executor.control_hz()),
             },
             id,
             source: Refetch {
