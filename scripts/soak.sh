@@ -17,14 +17,15 @@
 # and started again on the same address and data directory. Prints what each surviving robot
 # process reports (rounds lost, retried, tasks whose EndTask failed) and what the server did.
 #
-# Env: KAIROS_BIN (default: target/debug/kairos, built here), CONTROL_HZ (default 0.4; faults 2),
+# Env: KAIROS_BIN (default: target/debug/kairos, built here), CONTROL_HZ (default 0.5; faults 2),
 # ROUNDS (soak: rounds per task of each fleet, default 5), KEEP=1 keeps the temp directory.
 #
-# The rate: the built-in model answers about 16 rounds/s on a loaded 2-core machine (batch 1
-# in 60 ms, batch 2 in 110 ms). A robot with 50-action chunks at 0.4 Hz and trigger 0.5 asks for
-# a round every 25 actions = 62 s, so 1000 of them ask for about 16 rounds/s: the server is
-# kept busy without a queue that grows for the whole run. At 10 Hz the same fleet would ask for
-# 400 rounds/s and every round would wait about a minute in the queue.
+# The rate: the built-in model answers about 16-18 rounds/s on a loaded 2-core machine (batch 1
+# in 60 ms, batch 2 in 110 ms). A robot with 50-action chunks at 0.5 Hz and trigger 0.5 asks for
+# a round every 25 actions = 50 s, so 1000 of them ask for about 20 rounds/s: the server is
+# kept busy with a short queue. At 10 Hz the same fleet would ask for 400 rounds/s and every
+# round would wait about a minute in the queue. CONTROL_HZ=0.4 (a round every 62.5 s, past the
+# 60 s task idle timeout) shows the first-round idle-timeout defect in docs/RELIABILITY.md.
 set -euo pipefail
 
 mode=soak
@@ -36,7 +37,7 @@ if [ "$mode" = soak ]; then
     minutes=${1:-10}
     robots=${2:-1000}
     rounds=${ROUNDS:-5}
-    hz=${CONTROL_HZ:-0.4}
+    hz=${CONTROL_HZ:-0.5}
 else
     robots=${1:-100}
     rounds=${2:-8}
