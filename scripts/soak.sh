@@ -18,7 +18,9 @@
 # process reports (rounds lost, retried, tasks whose EndTask failed) and what the server did.
 #
 # Env: KAIROS_BIN (default: target/debug/kairos, built here), CONTROL_HZ (default 0.5; faults 2),
-# ROUNDS (soak: rounds per task of each fleet, default 5), KEEP=1 keeps the temp directory.
+# ROUNDS (soak: rounds per task of each fleet, default 5), STAGGER_MS (delay between robot
+# starts, default 10: 1000 robots connect over 10 s; all at once, 134 of 1000 missed the client's
+# 5 s connect timeout on a loaded 2-core machine), KEEP=1 keeps the temp directory.
 #
 # The rate: the built-in model answers about 16-18 rounds/s on a loaded 2-core machine (batch 1
 # in 60 ms, batch 2 in 110 ms). A robot with 50-action chunks at 0.5 Hz and trigger 0.5 asks for
@@ -43,6 +45,8 @@ else
     rounds=${2:-8}
     hz=${CONTROL_HZ:-2}
 fi
+
+stagger=${STAGGER_MS:-10}
 
 root=$(cd "$(dirname "$0")/.." && pwd)
 if [ -z "${KAIROS_BIN:-}" ]; then
@@ -116,7 +120,7 @@ rss_kib() {
 fleet() {
     local n=$1 log=$2
     exec "$bin" robot --server "$addr" --data-dir "$work/data" --robots "$n" --rounds "$rounds" \
-        --control-hz "$hz" --image 32x32 >"$log" 2>&1
+        --control-hz "$hz" --image 32x32 --stagger-ms "$stagger" >"$log" 2>&1
 }
 
 # The fleet report's `rounds: asked A, answered B, lost C, answered twice D, retried E, tasks
