@@ -18,6 +18,7 @@ use std::time::Duration;
 
 use kairos_sdk::client::{Client, ClientConfig, ClientError};
 use kairos_sdk::protocol::ModelInfo;
+use kairos_sdk::robot::TaskSummary;
 use kairos_sdk::tls::Fingerprint;
 use tokio::task::JoinError;
 use tokio::time::Instant;
@@ -176,6 +177,62 @@ where
     outcomes.into_iter().flatten().collect()
 }
 
+/// What a fleet asked for against what its robots got back, round by round: the soak and
+/// fault runs' verdict (`scripts/soak.sh`, docs/RELIABILITY.md).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct RoundAccount {
+    /// Rounds the fleet's tasks asked for: tasks × rounds per task.
+    pub asked: u64,
+    /// Distinct `(task, round)` pairs some task summary shows answered.
+    pub answered: u64,
+    /// Rounds asked for and never answered: `asked − answered`. A robot whose task failed for
+    /// good left no summary, so all its rounds count here.
+    pub lost: u64,
+    /// Replies beyond the first for the same `(task, round)`: a round answered twice.
+    pub duplicated: u64,
+    /// Round attempts that failed and were retried (the runner's `failed_rounds`).
+    pub retried: u64,
+    /// Tasks whose `EndTask` failed (`TaskSummary::end_error`): open on the server until its
+    /// idle timeout.
+    pub unended: u64,
+}
+
+impl RoundAccount {
+    /// Counts `summaries` against `tasks` tasks of `rounds_per_task` rounds each.
+    pub fn of(summaries: &[TaskSummary], tasks: u64, rounds_per_task: u64) -> RoundAccount {
+        let mut seen = std::collections::HashSet::new();
+        let mut records = 0u64;
+        for summary in summaries {
+            for round in &summary.rounds {
+                records += 1;
+                seen.insert((summary.task, round.round));
+            }
+        }
+        let asked = tasks.saturating_mul(rounds_per_task);
+        let answered = seen.len() as u64;
+        RoundAccount {
+            asked,
+            answered,
+            lost: asked.saturating_sub(answered),
+            duplicated: records - answered,
+            retried: summaries.iter().map(|s| u64::from(s.failed_rounds)).sum(),
+            unended: summaries.iter().filter(|s| s.end_error.is_some()).count() as u64,
+        }
+    }
+}
+
+impl std::fmt::Display for RoundAccount {
+    /// One line, stable for scripts: `rounds: asked A, answered B, lost C, answered twice D,
+    /// retried E, tasks not ended F`.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "rounds: asked {}, answered {}, lost {}, answered twice {}, retried {}, tasks not ended {}",
+            self.asked, self.answered, self.lost, self.duplicated, self.retried, self.unended
+        )
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -204,6 +261,60 @@ mod tests {
                 (1, Duration::ZERO),
                 (2, Duration::from_millis(10))
             ]
+        );
+    }
+
+    #[test]
+    fn round_account_counts_lost_and_twice_answered_rounds() {
+        use kairos_sdk::protocol::Timing;
+        use kairos_sdk::robot::RoundRecord;
+        let record = |round: u64| RoundRecord {
+            round,
+            sent_at_us: 0,
+            received_at_us: 1,
+            attempts: 1,
+            refetches: 0,
+            horizon: 4,
+            chunk_len: 8,
+            discarded: 0,
+            executed: 4,
+            policy: "threshold".into(),
+            timing: Timing::default(),
+        };
+        let summary = |task: u64, rounds: Vec<RoundRecord>| TaskSummary {
+            task,
+            rounds,
+            started_at_us: 0,
+            finished_at_us: 1,
+            actions_executed: 0,
+            idle_us: 0,
+            failed_rounds: 1,
+            server_record: None,
+            end_error: None,
+        };
+        // Three tasks of three rounds asked; task 2 got round 1 twice and never round 2;
+        // the third task failed and left no summary.
+        let mut unended = summary(1, vec![record(0), record(1), record(2)]);
+        unended.end_error = Some("unknown_task".into());
+        let account = RoundAccount::of(
+            &[unended, summary(2, vec![record(0), record(1), record(1)])],
+            3,
+            3,
+        );
+        assert_eq!(
+            account,
+            RoundAccount {
+                asked: 9,
+                answered: 5,
+                lost: 4,
+                duplicated: 1,
+                retried: 2,
+                unended: 1,
+            }
+        );
+        assert_eq!(
+            account.to_string(),
+            "rounds: asked 9, answered 5, lost 4, answered twice 1, retried 2, tasks not ended 1"
         );
     }
 

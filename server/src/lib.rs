@@ -9,6 +9,7 @@ pub mod data_dir;
 pub mod demo;
 pub mod driver;
 pub mod fleet;
+pub mod fuzz_targets;
 pub mod horizon;
 pub mod horizon_bench;
 pub mod lifecycle;

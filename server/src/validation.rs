@@ -488,19 +488,9 @@ impl Validator {
             .acquire()
             .await
             .map_err(|_| RequestError::ShuttingDown)?;
-        let decoded = tokio::task::spawn_blocking(move || {
-            images
-                .iter()
-                .enumerate()
-                .map(|(i, image)| {
-                    image_features::decode(image, &limits).map_err(|reason| {
-                        observation_error(format!("observation.images[{i}]"), reason)
-                    })
-                })
-                .collect::<Result<Vec<_>, _>>()
-        })
-        .await
-        .map_err(|e| RequestError::Internal(format!("image decoding failed: {e}")))??;
+        let decoded = tokio::task::spawn_blocking(move || decode_images(&images, &limits))
+            .await
+            .map_err(|e| RequestError::Internal(format!("image decoding failed: {e}")))??;
         observation.request.images = decoded;
         Ok(observation)
     }
@@ -513,6 +503,23 @@ impl Validator {
         submit.observation = self.decode(submit.observation).await?;
         Ok(submit)
     }
+}
+
+/// Decodes an observation's JPEG and PNG images to pixels (raw ones are checked and kept), each
+/// within `limits` from its header before any pixel is allocated. Blocking: the server calls it
+/// on the decode pool ([`Validator::decode`]); the fuzz targets call it directly.
+pub fn decode_images(
+    images: &[ImageInput],
+    limits: &ImageLimits,
+) -> Result<Vec<ImageInput>, RequestError> {
+    images
+        .iter()
+        .enumerate()
+        .map(|(i, image)| {
+            image_features::decode(image, limits)
+                .map_err(|reason| observation_error(format!("observation.images[{i}]"), reason))
+        })
+        .collect()
 }
 
 /// The decode pool's bound: how many observations are decoded at once, process-wide. Waiting

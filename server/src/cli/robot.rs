@@ -155,6 +155,10 @@ pub fn run(args: RobotArgs) -> anyhow::Result<()> {
         .context("cannot start the tokio runtime")?;
     let outcome = runtime.block_on(run_fleet(&args))?;
     print!("{}", report(&args, &outcome.summaries));
+    println!(
+        "{}",
+        fleet::RoundAccount::of(&outcome.summaries, u64::from(args.robots), args.rounds)
+    );
     if !outcome.errors.is_empty() {
         eprintln!("{} of {} robots failed:", outcome.errors.len(), args.robots);
         for error in &outcome.errors {

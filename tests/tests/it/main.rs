@@ -11,6 +11,7 @@ mod auth;
 mod binaries;
 mod demo;
 mod e2e;
+mod fuzz_replay;
 mod isolation;
 mod lossy;
 mod malformed;

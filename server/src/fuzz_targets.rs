@@ -1,0 +1,348 @@
+//! Fuzz targets: every parser that reads bytes a stranger controls, as a function of those bytes.
+//!
+//! Each target runs the real server code on `data` and panics only when an invariant breaks
+//! (a parser panics, or a round trip disagrees with itself); an input that is merely invalid
+//! returns `false`, one that passes every check returns `true` (the replay test uses that to
+//! show that the seeds reach the deep end of each parser). Two callers share these functions, so what the fuzzer explores is what CI
+//! replays:
+//! - the coverage-guided fuzzer, `tests/fuzz/` (a crate outside the workspace, built with
+//!   `cargo afl`; `scripts/fuzz.sh` runs it);
+//! - the corpus replay test (`tests/tests/it/fuzz_replay.rs`), which feeds every committed seed
+//!   and every input that once crashed (`tests/fuzz/corpus/`, `tests/fuzz/regressions/`) through
+//!   the same targets on every `cargo test`.
+//!
+//! Results and how to run them: `docs/RELIABILITY.md`, "6. Fuzzing".
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::OnceLock;
+use std::time::Duration;
+
+use kairos_engine::image_features::pooled_features;
+use kairos_engine::{ImageInput, ModelSpec};
+use kairos_sdk::protocol::{
+    Image, ImagePayload, Limits, Message, Observation, Submit, Tensor, Validate,
+};
+use kairos_sdk::trace::TraceSet;
+
+use crate::action::ActionManager;
+use crate::config::Config;
+use crate::horizon::{self, PolicyParams};
+use crate::plugin::factory::spec_params;
+use crate::registry::native_horizon_policies;
+use crate::scheduler::{PolicySpec, RobotId, build_policy};
+use crate::time::Timestamp;
+use crate::validation::{ClockMap, Validator, decode_images};
+
+/// A fuzz target: one input, panics only on a broken invariant; `true` if every check passed.
+pub type Target = fn(&[u8]) -> bool;
+
+/// Every target by name; the names are the directories of `tests/fuzz/corpus/` and the afl
+/// binaries of `tests/fuzz/`.
+pub const TARGETS: &[(&str, Target)] = &[
+    ("wire", wire),
+    ("trace", trace),
+    ("config", config),
+    ("plugin_params", plugin_params),
+    ("image", image),
+];
+
+/// The served model's shape the targets validate against: the built-in flow head's state and a
+/// camera budget of two, so that image and state checks are reachable.
+fn validator() -> &'static Validator {
+    static VALIDATOR: OnceLock<Validator> = OnceLock::new();
+    VALIDATOR.get_or_init(|| Validator {
+        spec: ModelSpec {
+            name: "fuzz".into(),
+            chunk_len: 16,
+            action_dim: 4,
+            state_dim: 4,
+            steps: 4,
+            max_images: 2,
+        },
+        limits: Limits::default(),
+    })
+}
+
+/// The native horizon policies with the server's default (`threshold`).
+fn actions() -> &'static ActionManager {
+    static ACTIONS: OnceLock<ActionManager> = OnceLock::new();
+    ACTIONS.get_or_init(|| {
+        let natives = native_horizon_policies();
+        match ActionManager::new(natives.clone(), &natives, "threshold", BTreeMap::new()) {
+            Ok(actions) => actions,
+            Err(e) => panic!("the native horizon policies do not build: {e}"),
+        }
+    })
+}
+
+/// A request read at server time 2^40 µs over a 100 µs round trip.
+fn clock(sent_at_us: u64) -> ClockMap {
+    ClockMap::new(
+        Timestamp::from_micros(1 << 40),
+        sent_at_us,
+        Duration::from_micros(100),
+    )
+}
+
+/// The wire decoder plus validation, every message kind: `data` is a frame stream as a robot
+/// sends it. The first frame is decoded with the server's limits; a decoded message must
+/// re-encode to bytes that decode to the same encoding; then it goes through the server's
+/// checks for its kind (`Hello`, `Submit` with its images decoded, `FreshObservation`,
+/// `EndTask`; the protocol's own checks for the server-to-robot kinds).
+pub fn wire(data: &[u8]) -> bool {
+    let validator = validator();
+    let limits = &validator.limits;
+    let Ok((message, used)) = Message::decode_from(data, limits.max_frame) else {
+        return false;
+    };
+    assert!(
+        used <= data.len(),
+        "the decoder used bytes it was not given"
+    );
+    let encoded = message
+        .encode(u32::MAX)
+        .unwrap_or_else(|e| panic!("a decoded {} does not encode: {e}", message.kind()));
+    let (again, again_used) = Message::decode_from(&encoded, u32::MAX)
+        .unwrap_or_else(|e| panic!("a re-encoded {} does not decode: {e}", message.kind()));
+    assert_eq!(
+        again_used,
+        encoded.len(),
+        "a re-encoded frame has trailing bytes"
+    );
+    let reencoded = again.encode(u32::MAX).unwrap_or_else(|e| panic!("{e}"));
+    assert!(
+        reencoded == encoded,
+        "encoding is not stable across a round trip"
+    );
+
+    let protocol_ok = message.validate(limits).is_ok();
+    match message {
+        Message::Hello(hello) => validator.hello(&hello).is_ok(),
+        Message::Submit(submit) => {
+            let sent_at = submit.sent_at_us;
+            let Ok(valid) = validator.submit(submit, RobotId(1), actions(), clock(sent_at)) else {
+                return false;
+            };
+            assert!(
+                protocol_ok,
+                "the server accepted a Submit the protocol refuses"
+            );
+            let request = &valid.observation.request;
+            assert!(
+                validator
+                    .spec
+                    .check_request(request, &validator.image_limits())
+                    .is_ok(),
+                "a validated Submit fails the engine's own check"
+            );
+            decode_images(&request.images, &validator.image_limits()).is_ok()
+        }
+        Message::FreshObservation(fresh) => {
+            let sent_at = fresh.sent_at_us;
+            let Ok(valid) = validator.fresh(fresh, clock(sent_at)) else {
+                return false;
+            };
+            assert!(
+                protocol_ok,
+                "the server accepted an observation the protocol refuses"
+            );
+            decode_images(&valid.request.images, &validator.image_limits()).is_ok()
+        }
+        Message::EndTask(end) => {
+            let sent_at = end.sent_at_us;
+            let accepted = validator.end_task(end, clock(sent_at)).is_ok();
+            assert!(
+                !accepted || protocol_ok,
+                "the server accepted an EndTask the protocol refuses"
+            );
+            accepted
+        }
+        Message::Welcome(_)
+        | Message::FetchObservation(_)
+        | Message::Reply(_)
+        | Message::TaskEnded(_)
+        | Message::Error(_) => protocol_ok,
+    }
+}
+
+/// The trace file parser: `data` is a trace file. A file that reads must write back to a file
+/// that reads to the same trace set, and the derived quantities the replay uses must be
+/// computable.
+pub fn trace(data: &[u8]) -> bool {
+    let Ok(set) = TraceSet::read(data) else {
+        return false;
+    };
+    for task in &set.tasks {
+        let _ = task.execution_seconds();
+        for round in &task.rounds {
+            let _ = round.aligned_at_action();
+        }
+    }
+    let written = set
+        .write(Vec::new())
+        .unwrap_or_else(|e| panic!("a trace set that was read does not write: {e}"));
+    let again = TraceSet::read(&written[..])
+        .unwrap_or_else(|e| panic!("a written trace set does not read back: {e}"));
+    let rewritten = again.write(Vec::new()).unwrap_or_else(|e| panic!("{e}"));
+    assert!(
+        written == rewritten,
+        "a trace set changes across a write and read"
+    );
+    true
+}
+
+/// `kairos.toml` parsing: `data` is the file. A config that parses must yield every derived
+/// setting the server computes at start-up, and must serialise to a file that parses to the
+/// same text again (`kairos init` writes configs).
+pub fn config(data: &[u8]) -> bool {
+    let Ok(text) = std::str::from_utf8(data) else {
+        return false;
+    };
+    let path = Path::new("fuzz/kairos.toml");
+    let Ok(config) = Config::parse(text, path) else {
+        return false;
+    };
+    for engine in &config.engines {
+        let _ = engine.rtt();
+        let _ = engine.options();
+    }
+    let _ = config.scheduler.core();
+    let _ = config.scheduler.refetch_timeout();
+    let _ = config.connections.hello_timeout();
+    let _ = build_policy(&config.scheduler.policy);
+    let written = toml::to_string(&config)
+        .unwrap_or_else(|e| panic!("a parsed config does not serialise: {e}"));
+    let again = Config::parse(&written, path)
+        .unwrap_or_else(|e| panic!("a serialised config does not parse: {e}\n{written}"));
+    let rewritten = toml::to_string(&again).unwrap_or_else(|e| panic!("{e}"));
+    assert!(
+        written == rewritten,
+        "a config changes across a write and parse"
+    );
+    true
+}
+
+/// Policy parameter parsing: each line of `data` is a policy spec as `kairos.toml`'s
+/// `[scheduler] policy` and `kairos serve --policy` take it (`name:key=value,...`). A spec that
+/// parses must print as text that parses to the same spec; its parameters go through the
+/// plugin host's conversion (numbers only), then the native priority and horizon policies'
+/// own parameter checks and the request path's policy lookup. `true` if some line's parameters
+/// built a native policy.
+pub fn plugin_params(data: &[u8]) -> bool {
+    let Ok(text) = std::str::from_utf8(data) else {
+        return false;
+    };
+    let mut built = false;
+    for line in text.lines() {
+        let Ok(spec) = line.parse::<PolicySpec>() else {
+            continue;
+        };
+        let printed = spec.to_string();
+        let again: PolicySpec = printed
+            .parse()
+            .unwrap_or_else(|e| panic!("a printed spec `{printed}` does not parse: {e}"));
+        assert!(
+            again == spec,
+            "spec `{line}` changes when printed as `{printed}`"
+        );
+        built |= build_policy(&spec).is_ok();
+        let Ok(params): Result<PolicyParams, _> = spec_params(&spec) else {
+            continue;
+        };
+        let native = horizon::builtin(&spec.name, &params).is_ok();
+        let requested = actions().build(Some(&spec.name), Some(&params)).is_ok();
+        assert_eq!(
+            native, requested,
+            "`{line}`: a request builds a native policy differently from the registry"
+        );
+        built |= native;
+    }
+    built
+}
+
+/// Image decoding, as the server does it: `data[0]` picks the format (even: JPEG, odd: PNG)
+/// and the rest is the file. The file travels in a `Submit`, is checked from its header by
+/// validation, decoded by the bounded decode path, and pooled to the model's features; a
+/// decoded image must have the size its header declared, and its features must be in
+/// `[-1, 1]`.
+pub fn image(data: &[u8]) -> bool {
+    let Some((&selector, file)) = data.split_first() else {
+        return false;
+    };
+    let payload = if selector % 2 == 0 {
+        ImagePayload::Jpeg {
+            data: file.to_vec(),
+        }
+    } else {
+        ImagePayload::Png {
+            data: file.to_vec(),
+        }
+    };
+    let Ok(state) = Tensor::from_f32(vec![4], &[0.0; 4]) else {
+        panic!("a 4-element state tensor does not build");
+    };
+    let submit = Submit {
+        task: 1,
+        round: 1,
+        sent_at_us: 1_000,
+        observation: Observation {
+            captured_at_us: 1_000,
+            state,
+            images: vec![Image {
+                camera: "front".into(),
+                payload,
+            }],
+            instruction: String::new(),
+        },
+        last_exec: None,
+        horizon: None,
+        remaining: None,
+        attempt: 0,
+    };
+    let validator = validator();
+    let Ok(valid) = validator.submit(submit, RobotId(1), actions(), clock(1_000)) else {
+        return false;
+    };
+    let Ok(decoded) = decode_images(&valid.observation.request.images, &validator.image_limits())
+    else {
+        return false;
+    };
+    for image in &decoded {
+        let ImageInput::RawU8 {
+            height,
+            width,
+            channels,
+            data,
+        } = image
+        else {
+            panic!("a decoded image is not raw u8 pixels");
+        };
+        assert_eq!(data.len(), height * width * channels, "pixel buffer size");
+        let limits = validator.image_limits();
+        assert!(
+            height * width <= limits.max_pixels,
+            "decoded past the pixel cap"
+        );
+        let features = pooled_features(image, 4)
+            .unwrap_or_else(|e| panic!("a decoded image does not pool: {e}"));
+        assert!(
+            features.iter().all(|v| (-1.0..=1.0).contains(v)),
+            "features outside [-1, 1]"
+        );
+    }
+    true
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_target_is_named_once() {
+        let mut names: Vec<&str> = TARGETS.iter().map(|(name, _)| *name).collect();
+        names.sort_unstable();
+        names.dedup();
+        assert_eq!(names.len(), TARGETS.len());
+    }
+}
