@@ -298,6 +298,7 @@ pub fn image(data: &[u8]) -> bool {
         last_exec: None,
         horizon: None,
         remaining: None,
+        control_hz: None,
         attempt: 0,
     };
     let validator = validator();

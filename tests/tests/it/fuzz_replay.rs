@@ -173,6 +173,7 @@ fn submit(images: Vec<ImagePayload>) -> Submit {
             seconds: Some(4.5),
         }),
         attempt: 0,
+        control_hz: Some(50.0),
     }
 }
 
