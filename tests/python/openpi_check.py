@@ -189,6 +189,9 @@ def latency(host, port, key, calls):
 
     return {
         "calls": calls,
+        # Per call: round ms and the server's part (arrival to answer), for callers that pool
+        # samples across runs (sdk/python/benches/round_latency.py).
+        "samples": [[r, r - c] for r, c in zip(rounds, client)],
         "round": summary(rounds),
         "server_added": summary(added),
         "network_client": summary(client),

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Round latency: the Python package (kairos.Client) vs the Rust SDK, same server, same model.
+"""Round latency: the Python package (kairos.Client) vs the Rust SDK vs openpi-client, same server, same model.
 
 Starts one `kairos serve` (target/debug/kairos, or KAIROS_BIN) in a temporary data directory,
 then alternates blocks of sequential rounds through the Rust SDK (the `round_latency` example of
@@ -9,10 +9,17 @@ client. Percentiles are NumPy's default (linear interpolation), the same definit
 server's `stats` module.
 
     python sdk/python/benches/round_latency.py --rounds 200 --blocks 2 --image 64
+
+With `--openpi-python PY` (a Python with `openpi-client` 0.1.2 installed, e.g. `.venv-openpi/bin/python`:
+it needs numpy<2, so it lives in a venv of its own), the server also serves openpi's websocket
+protocol and every block adds `--rounds` calls of the unmodified `WebsocketClientPolicy.infer`
+(`tests/python/openpi_check.py latency`; two 32×32 cameras, since its observation is LIBERO-shaped).
 """
 
 import argparse
+import json
 import pathlib
+import socket
 import subprocess
 import sys
 import tempfile
@@ -54,6 +61,20 @@ def rust_rounds(server: Server, rounds: int, side: int, binary: pathlib.Path) ->
     return [tuple(map(float, line.split())) for line in run.stdout.splitlines()]
 
 
+def openpi_rounds(server: Server, rounds: int, python: str, port: int) -> list:
+    script = ROOT / "tests" / "python" / "openpi_check.py"
+    run = subprocess.run([python, str(script), "latency", "127.0.0.1", str(port), server.token, str(rounds)],
+                         capture_output=True, text=True, check=True)
+    # (round µs, the server's part µs), as the other two clients report.
+    return [(r * 1e3, s * 1e3) for r, s in json.loads(run.stdout.splitlines()[-1])["samples"]]
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=int, default=200, help="rounds per client per block")
@@ -61,16 +82,24 @@ def main() -> None:
     parser.add_argument("--image", type=int, default=64, help="side of the square RGB camera image")
     parser.add_argument("--example", default=str(ROOT / "target" / "debug" / "examples" / "round_latency"),
                         help="the Rust example binary")
+    parser.add_argument("--openpi-python", help="a Python with openpi-client installed: adds openpi-client blocks")
     args = parser.parse_args()
     results = {"Rust SDK (BlockingClient)": [], "Python package (kairos.Client.infer)": []}
+    openpi_port = free_tcp_port() if args.openpi_python else None
+    if args.openpi_python:
+        results["openpi-client 0.1.2 (WebsocketClientPolicy.infer)"] = []
     with tempfile.TemporaryDirectory() as tmp:
-        server = Server(pathlib.Path(tmp) / "kairos-data")
+        extra = ["--openpi-listen", f"127.0.0.1:{openpi_port}"] if openpi_port else []
+        server = Server(pathlib.Path(tmp) / "kairos-data", extra)
         server.start()
         try:
             for _ in range(args.blocks):
                 results["Rust SDK (BlockingClient)"] += rust_rounds(server, args.rounds, args.image,
                                                                     pathlib.Path(args.example))
                 results["Python package (kairos.Client.infer)"] += python_rounds(server, args.rounds, args.image)
+                if openpi_port:
+                    results["openpi-client 0.1.2 (WebsocketClientPolicy.infer)"] += openpi_rounds(
+                        server, args.rounds, args.openpi_python, openpi_port)
         finally:
             server.stop()
     print(f"{args.blocks} blocks x {args.rounds} sequential rounds per client, {args.image}x{args.image} RGB image")

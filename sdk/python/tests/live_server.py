@@ -22,8 +22,9 @@ START_LIMIT_S = 120
 class Server:
     """A `kairos serve` process; `restart()` keeps its data directory and port."""
 
-    def __init__(self, data_dir: pathlib.Path):
+    def __init__(self, data_dir: pathlib.Path, extra_args=()):
         self.data_dir = data_dir
+        self.extra_args = list(extra_args)  # more `kairos serve` flags, e.g. --openpi-listen
         self.address = "127.0.0.1:0"
         self.process = None
         self.output = []
@@ -32,7 +33,7 @@ class Server:
         if not BIN.exists():
             raise RuntimeError(f"{BIN} is missing: build it with `cargo build -p kairos-server`")
         self.process = subprocess.Popen(
-            [str(BIN), "serve", "--listen", self.address, "--data-dir", str(self.data_dir)],
+            [str(BIN), "serve", "--listen", self.address, "--data-dir", str(self.data_dir), *self.extra_args],
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
