@@ -107,7 +107,7 @@ stop_server() {
 
 # The server's `stopped: ...` counts from run N: replies generated and sent, from the cache.
 server_counts() {
-    sed -n 's/^stopped: \([0-9]*\) connections, \([0-9]*\) rounds answered (\([0-9]*\) from the reply cache), \([0-9]*\) failed, \([0-9]*\) tasks ended.*/\1 \2 \3 \4 \5/p' \
+    sed -n 's/^stopped: \([0-9]*\) connections\( ([0-9]* openpi)\)\{0,1\}, \([0-9]*\) rounds answered (\([0-9]*\) from the reply cache), \([0-9]*\) failed, \([0-9]*\) tasks ended.*/\1 \3 \4 \5 \6/p' \
         "$work/server.$1.log"
 }
 
