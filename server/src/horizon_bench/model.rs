@@ -404,7 +404,13 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         policy.save(dir.path(), &saved).unwrap();
         let (loaded, again) = FlowPolicy::load(dir.path()).unwrap();
-        assert_eq!(again, saved);
+        // The loss is a JSON number: serde_json's default float parser may differ from the
+        // written value in the last bit, so it is compared within a bound.
+        assert_eq!(
+            (&again.train, again.pairs, &again.kairos_version),
+            (&saved.train, saved.pairs, &saved.kairos_version)
+        );
+        assert!((again.final_loss - saved.final_loss).abs() <= 1e-12 * saved.final_loss.abs());
         let obs = Env::new(EnvConfig::default(), 5).observe();
         let a = policy.sample(&obs, 2, 9).unwrap();
         let b = loaded.sample(&obs, 2, 9).unwrap();
