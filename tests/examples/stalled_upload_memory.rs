@@ -9,7 +9,9 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use kairos_sdk::protocol::frame::encode_header;
-use kairos_sdk::protocol::{Hello, Limits, Message, MessageKind, PROTOCOL_VERSION, read_message, write_message};
+use kairos_sdk::protocol::{
+    Hello, Limits, Message, MessageKind, PROTOCOL_VERSION, read_message, write_message,
+};
 use kairos_sdk::tls::ServerTrust;
 use kairos_sdk::transport::{TransportTuning, client_config};
 use quinn::VarInt;

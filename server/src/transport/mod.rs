@@ -33,8 +33,8 @@
 //! streams, the driver answers what it has accepted, the stream tasks write those answers, and
 //! the connections are closed with `SHUTTING_DOWN`.
 
-mod admit;
 pub mod admission;
+mod admit;
 mod connection;
 pub mod launch;
 pub mod tls;
