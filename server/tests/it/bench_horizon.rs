@@ -4,16 +4,13 @@
 
 #![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
 
-use std::path::PathBuf;
 use std::process::Command;
 
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
-}
+use crate::plugin_common::{repo_root, shipped_plugin};
 
 fn kairos(args: &[&str], out: &std::path::Path) -> String {
     let output = Command::new(env!("CARGO_BIN_EXE_kairos"))
-        .current_dir(root())
+        .current_dir(repo_root())
         .args(["bench", "horizon"])
         .args(args)
         .arg(out)
@@ -34,13 +31,8 @@ fn the_quick_run_writes_one_pareto_row_per_policy() {
     // Fewer episodes than --quick's 40 keep the test short; the columns and rows are the same.
     // The shipped twin of the §3.1 rule rides along as a user's plugin (plugins/build.sh builds
     // it; CI runs that first).
-    let twin = root().join("plugins/build/threshold.wasm");
-    assert!(
-        twin.exists(),
-        "{} is missing: run plugins/build.sh",
-        twin.display()
-    );
-    let cache = root().join("plugins/build/cache");
+    let twin = shipped_plugin("threshold");
+    let cache = repo_root().join("plugins/build/cache");
     kairos(
         &[
             "--quick",

@@ -7,29 +7,16 @@
 #![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
-}
-
-fn plugin(name: &str) -> PathBuf {
-    let path = root().join("plugins/build").join(format!("{name}.wasm"));
-    assert!(
-        path.exists(),
-        "{} is missing: build the shipped plugins first with \
-         `bash scripts/install-plugin-toolchains.sh && bash plugins/build.sh` (CI's .ci/run does)",
-        path.display()
-    );
-    path
-}
+use crate::plugin_common::{repo_root, shipped_plugin};
 
 /// Runs `kairos bench sim` on LIBERO at task scale 0.1 with `args`, returns results.csv's rows
 /// keyed by (variant, x), each the row's cells by column name.
 fn bench_sim(args: &[&str], out: &Path) -> BTreeMap<(String, String), BTreeMap<String, String>> {
     let output = Command::new(env!("CARGO_BIN_EXE_kairos"))
-        .current_dir(root())
+        .current_dir(repo_root())
         .args([
             "bench",
             "sim",
@@ -44,7 +31,7 @@ fn bench_sim(args: &[&str], out: &Path) -> BTreeMap<(String, String), BTreeMap<S
             "2",
             "--plugin-cache",
         ])
-        .arg(root().join("plugins/build/cache"))
+        .arg(repo_root().join("plugins/build/cache"))
         .arg("--out")
         .arg(out)
         .args(args)
@@ -114,7 +101,7 @@ fn assert_same_numbers(
 #[test]
 fn a_priority_plugin_twin_gives_the_numbers_of_its_native_policy() {
     let out = tempfile::tempdir().unwrap();
-    let fifo = plugin("fifo");
+    let fifo = shipped_plugin("fifo");
     let rows = bench_sim(&["--priority-plugin", fifo.to_str().unwrap()], out.path());
     assert_same_numbers(&rows, "fifo", "fifo-wasm");
     assert_same_numbers(&rows, "fifo-dynamic", "fifo-wasm-dynamic");
@@ -143,7 +130,7 @@ fn a_priority_plugin_twin_gives_the_numbers_of_its_native_policy() {
 #[test]
 fn a_horizon_plugin_twin_records_and_replays_the_native_rule() {
     let out = tempfile::tempdir().unwrap();
-    let threshold = plugin("threshold");
+    let threshold = shipped_plugin("threshold");
     // LIBERO's dynamic setting: threshold t = 0.4, h_min = 5 (workloads/libero-smolvla.toml).
     let rows = bench_sim(
         &[

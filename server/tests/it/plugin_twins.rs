@@ -6,7 +6,6 @@
 
 #![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
 
-use std::path::PathBuf;
 use std::time::Duration;
 
 use kairos_server::horizon::fixed::StaticHorizon;
@@ -25,21 +24,10 @@ use kairos_server::time::Timestamp;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-fn plugin_path(name: &str) -> PathBuf {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../plugins/build")
-        .join(format!("{name}.wasm"));
-    assert!(
-        path.exists(),
-        "{} is missing: build the shipped plugins first with \
-         `bash scripts/install-plugin-toolchains.sh && bash plugins/build.sh` (CI's .ci/run does)",
-        path.display()
-    );
-    path
-}
+use crate::plugin_common::{repo_root, shipped_plugin};
 
 fn options(base: PluginOptions) -> PluginOptions {
-    let cache = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../plugins/build/cache");
+    let cache = repo_root().join("plugins/build/cache");
     PluginOptions {
         // Equality, not speed, is under test: generous limits so a loaded machine cannot
         // turn a slow call into a fallback answer.
@@ -82,7 +70,7 @@ impl PriorityPolicy for Unreachable {
 
 fn horizon_plugin(name: &str) -> WasmHorizonPolicy {
     WasmHorizonPolicy::load(
-        &PluginSource::File(plugin_path(name)),
+        &PluginSource::File(shipped_plugin(name)),
         options(PluginOptions::horizon()),
         Box::new(Unreachable),
     )
@@ -371,7 +359,7 @@ fn priority_plugin(
 ) -> Result<WasmPriorityPolicy, kairos_server::plugin::LoadError> {
     let params: PolicyParams = params.iter().map(|(k, v)| (k.to_string(), *v)).collect();
     WasmPriorityPolicy::load(
-        &PluginSource::File(plugin_path(name)),
+        &PluginSource::File(shipped_plugin(name)),
         &params,
         options(PluginOptions::priority()),
         Box::new(Unreachable),
@@ -771,7 +759,7 @@ fn plugins_refuse_parameters_their_twins_refuse() {
 #[test]
 fn a_python_plugin_is_interrupted_at_its_deadline_and_recovers() {
     let mut plugin = WasmPriorityPolicy::load(
-        &PluginSource::File(plugin_path("kairos_py")),
+        &PluginSource::File(shipped_plugin("kairos_py")),
         &PolicyParams::new(),
         PluginOptions {
             deadline: Duration::from_millis(10),

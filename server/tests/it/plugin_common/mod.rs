@@ -7,8 +7,30 @@
 
 #![allow(dead_code)]
 
+use std::path::PathBuf;
+
 use kairos_server::plugin::PluginKind;
 use kairos_server::plugin::componentize::componentize;
+
+/// The repository root.
+pub fn repo_root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// A shipped plugin built by `plugins/build.sh` (`plugins/build/NAME.wasm`); a missing one fails
+/// the test with how to build it.
+pub fn shipped_plugin(name: &str) -> PathBuf {
+    let path = repo_root()
+        .join("plugins/build")
+        .join(format!("{name}.wasm"));
+    assert!(
+        path.exists(),
+        "{} is missing: build the shipped plugins first with \
+         `bash scripts/install-plugin-toolchains.sh && bash plugins/build.sh` (CI's .ci/run does)",
+        path.display()
+    );
+    path
+}
 
 /// A bump allocator for the canonical ABI; `post-return` resets it, so a reused instance
 /// does not grow. Addresses 0..64 are the return area.
