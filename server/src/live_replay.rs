@@ -215,6 +215,7 @@ impl LiveOutcome {
                 * k,
             events: 0,
             latencies,
+            scale: None,
         }
     }
 

@@ -202,6 +202,43 @@ fn cdf_panels(report: &Report<'_>, keys: &[&str]) -> Vec<Panel> {
     panels
 }
 
+/// The scale experiment, one panel per workload: a decision's CPU time against the fleet size
+/// (mean, bars from the median to P99).
+fn scale_panels(report: &Report<'_>) -> Vec<Panel> {
+    let mut panels = Vec::new();
+    for (wi, w) in report.workloads.iter().enumerate() {
+        let runs = report.scale_runs(wi);
+        let points: Vec<Point> = runs
+            .iter()
+            .filter(|r| r.decision_cpu_us.n > 0)
+            .map(|r| Point {
+                x: r.robots as f64,
+                lo: r.decision_cpu_us.p50,
+                mid: r.decision_cpu_us.mean,
+                hi: r.decision_cpu_us.p99,
+            })
+            .collect();
+        if points.is_empty() {
+            continue;
+        }
+        panels.push(Panel {
+            title: w.title.clone(),
+            x_desc: "robots".into(),
+            y_desc: "decision CPU time (µs)".into(),
+            x_labels: None,
+            series: vec![Series {
+                label: "mean (bars P50–P99)".into(),
+                color: color("kairos", 0),
+                points,
+                bars: true,
+            }],
+            y_range: None,
+            legend: SeriesLabelPosition::UpperLeft,
+        });
+    }
+    panels
+}
+
 fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
     anyhow!("plotting: {e}")
 }
@@ -469,6 +506,7 @@ pub fn all(report: &Report<'_>, out: &Path) -> anyhow::Result<()> {
         &category_panels(report, Experiment::Intra, "intra-bucket order"),
     )?;
     render(out, "cdf", &cdf_panels(report, &main))?;
+    render(out, "scale", &scale_panels(report))?;
     Ok(())
 }
 

@@ -1,7 +1,8 @@
 //! The paper's experiments (§5) as simulation jobs, and their tables.
 //!
 //! [`plan`] turns workloads into a list of independent [`Job`]s (online rate sweep, offline
-//! fleet sweep, hybrid edge+cloud, bucket-count and intra-bucket ablations); [`run_jobs`] runs
+//! fleet sweep, hybrid edge+cloud, bucket-count and intra-bucket ablations, and the scale
+//! experiment of [`super::scale`]); [`run_jobs`] runs
 //! them on a few threads (each job is a deterministic function of its configuration, so the
 //! thread count never changes a number); [`Report`] renders the paper-style tables and CSV.
 
@@ -12,8 +13,9 @@ use std::time::Duration;
 
 use kairos_sdk::trace::TraceSet;
 
+use super::scale::{self, ScalePlan, ScaleStats};
 use super::stats::{Summary, reduction, summarize};
-use super::{Load, SimConfig, SimError, SimNetwork, simulate};
+use super::{Load, SimConfig, SimError, SimNetwork, simulate, simulate_timed};
 use crate::registry::Policies;
 use crate::scheduler::{EngineSpec, PolicySpec, SchedulerConfig, Tier, refetch_by_default};
 use crate::workload::Workload;
@@ -36,17 +38,21 @@ pub enum Experiment {
     /// Each online system at the peak rate with its re-fetch setting and with it flipped: the
     /// "re-fetch for all" (and "re-fetch for none") ablation.
     Refetch,
+    /// Thousands of robots on many engine instances: what one scheduler's decisions cost, and
+    /// the throughput, as the fleet grows ([`super::scale`]; not in the paper).
+    Scale,
 }
 
 impl Experiment {
     /// Every experiment, in report order.
-    pub const ALL: [Experiment; 6] = [
+    pub const ALL: [Experiment; 7] = [
         Experiment::Online,
         Experiment::Fleet,
         Experiment::Hybrid,
         Experiment::Buckets,
         Experiment::Intra,
         Experiment::Refetch,
+        Experiment::Scale,
     ];
 
     /// Its name on the command line and in CSV.
@@ -58,6 +64,7 @@ impl Experiment {
             Experiment::Buckets => "buckets",
             Experiment::Intra => "intra",
             Experiment::Refetch => "refetch",
+            Experiment::Scale => "scale",
         }
     }
 
@@ -76,6 +83,8 @@ pub enum Placement {
     Cloud,
     /// One of each; Algorithm 1 phase 3 decides.
     Hybrid,
+    /// This many edge instances (workers) of the edge profile: the scale experiment.
+    Workers(usize),
 }
 
 /// A scheduler + horizon combination being compared.
@@ -227,6 +236,11 @@ fn bucket_variants() -> Vec<Variant> {
         .collect()
 }
 
+/// The system of the scale experiment: Algorithm 1 with the dynamic horizon (re-fetch on).
+fn scale_variant() -> Variant {
+    variant("kairos", "Kairos", "kairos", DYNAMIC)
+}
+
 fn intra_variants() -> Vec<Variant> {
     vec![
         variant("intra-fifo", "FIFO in bucket", "kairos:intra=fifo", DYNAMIC),
@@ -268,6 +282,8 @@ pub struct Plan {
     /// Policies beyond the natives that variants may name (users' plugins,
     /// [`plugin_policies`]).
     pub policies: Policies,
+    /// Fleet sizes and workers of the scale experiment.
+    pub scale: ScalePlan,
 }
 
 fn engine(w: &Workload, tier: Tier) -> EngineSpec {
@@ -293,6 +309,12 @@ pub fn config(w: &Workload, variant: &Variant, load: Load, seed: u64) -> SimConf
         Placement::Edge => vec![engine(w, Tier::Edge)],
         Placement::Cloud => vec![engine(w, Tier::Cloud)],
         Placement::Hybrid => vec![engine(w, Tier::Edge), engine(w, Tier::Cloud)],
+        Placement::Workers(n) => (0..n.max(1))
+            .map(|i| EngineSpec {
+                name: format!("worker-{i}"),
+                ..engine(w, Tier::Edge)
+            })
+            .collect(),
     };
     SimConfig {
         engines,
@@ -387,6 +409,22 @@ pub fn plan(workloads: &[Workload], plan: &Plan) -> Vec<Job> {
                         push(e, peak, v, Load::Poisson { rate: peak, tasks });
                     }
                 }
+                Experiment::Scale => {
+                    // Not scaled by `task_scale`: the fleet size is the experiment's x.
+                    for &robots in &plan.scale.robots {
+                        let mut v = scale_variant();
+                        v.placement = Placement::Workers(plan.scale.workers(robots));
+                        push(
+                            e,
+                            robots as f64,
+                            &v,
+                            Load::Fleet {
+                                robots,
+                                tasks: robots,
+                            },
+                        );
+                    }
+                }
             }
         }
     }
@@ -412,11 +450,24 @@ pub struct JobResult {
     pub mean_queue_s: f64,
     /// Events the simulation processed.
     pub events: u64,
+    /// The scale experiment's measurements (its jobs only).
+    pub scale: Option<ScaleStats>,
 }
 
-/// Runs one job against its workload's trace set.
+/// Runs one job against its workload's trace set. A scale job is timed
+/// ([`super::simulate_timed`]).
 pub fn run_job(job: &Job, traces: &TraceSet) -> Result<JobResult, SimError> {
-    let r = simulate(traces, &job.config)?;
+    let (r, scale) = if job.experiment == Experiment::Scale {
+        let (r, timing) = simulate_timed(traces, &job.config)?;
+        let robots = match job.config.load {
+            Load::Fleet { robots, .. } => robots,
+            _ => r.tasks.len(),
+        };
+        let stats = ScaleStats::new(robots, job.config.engines.len(), &r, &timing);
+        (r, Some(stats))
+    } else {
+        (simulate(traces, &job.config)?, None)
+    };
     let latencies = r.latencies();
     let requests = r.requests.max(1) as f64;
     Ok(JobResult {
@@ -428,6 +479,7 @@ pub fn run_job(job: &Job, traces: &TraceSet) -> Result<JobResult, SimError> {
         mean_queue_s: r.queue_s / requests,
         events: r.events,
         latencies,
+        scale,
     })
 }
 
@@ -779,6 +831,44 @@ impl Report<'_> {
                     }
                 }
                 let _ = writeln!(s, "{line}|");
+            }
+        }
+        s
+    }
+
+    /// The scale experiment, one table per workload (empty without scale runs).
+    pub fn scale_table(&self) -> String {
+        let mut s = String::new();
+        for (wi, w) in self.workloads.iter().enumerate() {
+            let runs = self.scale_runs(wi);
+            if runs.is_empty() {
+                continue;
+            }
+            let _ = writeln!(s, "\n**{}**\n", w.title);
+            s.push_str(&scale::table(&runs));
+        }
+        s
+    }
+
+    /// The scale runs of workload `w`, smallest fleet first.
+    pub fn scale_runs(&self, w: usize) -> Vec<&ScaleStats> {
+        let mut runs: Vec<&ScaleStats> = self
+            .jobs
+            .iter()
+            .zip(self.results)
+            .filter(|(j, _)| j.workload == w && j.experiment == Experiment::Scale)
+            .filter_map(|(_, r)| r.scale.as_ref())
+            .collect();
+        runs.sort_by_key(|r| r.robots);
+        runs
+    }
+
+    /// The scale runs as CSV (header only without any).
+    pub fn scale_csv(&self) -> String {
+        let mut s = format!("{}\n", scale::CSV_HEADER);
+        for (wi, w) in self.workloads.iter().enumerate() {
+            for r in self.scale_runs(wi) {
+                let _ = writeln!(s, "{}", scale::csv_row(&w.name, r));
             }
         }
         s

@@ -23,19 +23,22 @@
 //! - **Engines** take `profile.latency(batch)` per batch.
 //!
 //! Everything is a function of the trace set, the configuration and the seed: same inputs,
-//! same numbers. No I/O, no clock.
+//! same numbers. No I/O, and no clock except in [`simulate_timed`], which reads a real clock
+//! around each call into the scheduler to measure what its decisions cost (the scale
+//! experiment); the simulation itself is the same.
 
 pub mod experiment;
 pub mod horizon;
 pub mod plugins;
 pub mod robot;
+pub mod scale;
 pub mod stats;
 #[cfg(test)]
 mod tests;
 
 use std::cmp::Reverse;
 use std::collections::{BinaryHeap, HashMap};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use kairos_sdk::trace::{RoundEvent, RoundTrace, TaskMeta, TaskRecording, TaskTrace, TraceSet};
 use rand::{Rng, SeedableRng, rngs::StdRng};
@@ -43,7 +46,8 @@ use rand::{Rng, SeedableRng, rngs::StdRng};
 use crate::registry::{HorizonRegistry, Policies};
 use crate::scheduler::{
     AdmitError, BatchId, Dispatch, EngineSpec, ExecReport, PolicySpec, RemainingWork, RequestId,
-    RobotId, RoundOutcome, RoundSubmit, Scheduler, SchedulerConfig, TaskEnd, TaskId, Tier,
+    RobotId, RoundOutcome, RoundSubmit, Scheduler, SchedulerConfig, SchedulerCounters, TaskEnd,
+    TaskId, Tier,
 };
 use crate::time::Timestamp;
 use horizon::{ReplayHorizon, ReplayHorizonError};
@@ -184,6 +188,87 @@ pub struct SimResult {
     pub events: u64,
     /// With `SimConfig::record`: every task as its robot experienced it, in completion order.
     pub recorded: Vec<TaskTrace>,
+    /// The scheduler's running totals at the end of the run.
+    pub scheduler: SchedulerCounters,
+}
+
+/// What the scheduler's calls cost in wall-clock time during one run ([`simulate_timed`]).
+///
+/// Measured with a real clock around each call into the scheduler and nothing else, so it is
+/// the scheduler's own cost, whatever the simulator spends on robots, network and engines.
+/// Unlike everything else the simulator reports, these numbers depend on the machine and its
+/// load. Wall time also counts the time the thread waited for a core on a shared machine; the
+/// thread's CPU time does not, so the decisions and the whole run are measured both ways.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SchedulerTiming {
+    /// Wall time of each `poll_dispatch` call that made a decision, seconds, in order.
+    pub decisions: Vec<f64>,
+    /// The thread's CPU time in each of those calls, seconds, same order (empty where the
+    /// platform has no thread CPU clock).
+    pub decisions_cpu: Vec<f64>,
+    /// Σ over decisions of the requests pending when it was made.
+    pub decision_pending: u64,
+    /// Most requests pending at one decision.
+    pub max_pending: usize,
+    /// Batches the decisions formed.
+    pub decision_batches: u64,
+    /// `poll_dispatch` calls that made no decision (every engine busy, or nothing pending).
+    pub idle_polls: u64,
+    /// Their wall time, seconds.
+    pub idle_polls_s: f64,
+    /// Every other call into the scheduler (submit, batch started / generation ended / batch
+    /// finished, cancel, task end, timeouts).
+    pub events: u64,
+    /// Their wall time, seconds.
+    pub events_s: f64,
+    /// Wall time of the whole event loop (simulator and scheduler), seconds.
+    pub run_s: f64,
+    /// The thread's CPU time in the whole event loop, seconds (0 without a thread CPU clock).
+    pub run_cpu_s: f64,
+}
+
+/// CPU time the calling thread has used, if the platform has a per-thread CPU clock. Unlike wall
+/// time it does not grow while the thread waits for a core.
+#[cfg(unix)]
+fn thread_cpu_time() -> Option<Duration> {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `ts` is a valid, exclusively borrowed `timespec` for the whole call, which only
+    // writes into it; CLOCK_THREAD_CPUTIME_ID needs no other argument.
+    let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
+    if rc != 0 {
+        return None;
+    }
+    Some(Duration::new(
+        u64::try_from(ts.tv_sec).ok()?,
+        u32::try_from(ts.tv_nsec).ok()?,
+    ))
+}
+
+#[cfg(not(unix))]
+fn thread_cpu_time() -> Option<Duration> {
+    None
+}
+
+impl SchedulerTiming {
+    /// Wall time in all calls into the scheduler, seconds.
+    pub fn scheduler_s(&self) -> f64 {
+        self.decisions.iter().sum::<f64>() + self.idle_polls_s + self.events_s
+    }
+
+    /// Times one call that is not a decision; a no-op wrapper when not timing.
+    fn event<R>(timing: &mut Option<Self>, call: impl FnOnce() -> R) -> R {
+        let Some(t) = timing else {
+            return call();
+        };
+        let start = Instant::now();
+        let out = call();
+        t.events_s += start.elapsed().as_secs_f64();
+        t.events += 1;
+        out
+    }
 }
 
 impl SimResult {
@@ -280,6 +365,8 @@ struct Sim<'a> {
     next_backlog: usize,
     arrived_at_server: HashMap<RequestId, Timestamp>,
     out: SimResult,
+    /// With [`simulate_timed`]: the wall-clock cost of the scheduler calls.
+    timing: Option<SchedulerTiming>,
 }
 
 fn transfer(bytes: u32, mbps: f64) -> Duration {
@@ -428,9 +515,7 @@ impl<'a> Sim<'a> {
             remaining,
             control_hz: None,
         };
-        let id = self
-            .sched
-            .handle_submit(now, submit)
+        let id = SchedulerTiming::event(&mut self.timing, || self.sched.handle_submit(now, submit))
             .map_err(|source| SimError::Admit {
                 what: "submit",
                 at: now,
@@ -446,7 +531,33 @@ impl<'a> Sim<'a> {
     }
 
     fn dispatch(&mut self, now: Timestamp) {
-        for d in self.sched.poll_dispatch(now) {
+        let decisions = self.sched.counters().decisions;
+        // The CPU clock is a system call: read only when a decision is due (an idle engine and a
+        // pending request, as `poll_dispatch` decides), outside the wall-clock window.
+        let due = self.timing.is_some()
+            && self.sched.pending_len() > 0
+            && self.sched.engines().any(|e| e.batch.is_none());
+        let cpu = if due { thread_cpu_time() } else { None };
+        let start = self.timing.is_some().then(Instant::now);
+        let dispatches = self.sched.poll_dispatch(now);
+        if let (Some(t), Some(start)) = (&mut self.timing, start) {
+            let wall = start.elapsed().as_secs_f64();
+            let cpu = cpu
+                .zip(thread_cpu_time())
+                .map(|(a, b)| b.saturating_sub(a).as_secs_f64());
+            if self.sched.counters().decisions > decisions {
+                t.decisions.push(wall);
+                t.decisions_cpu.extend(cpu);
+                let pending = self.sched.last_decision().map_or(0, |d| d.pending);
+                t.decision_pending += pending as u64;
+                t.max_pending = t.max_pending.max(pending);
+                t.decision_batches += dispatches.len() as u64;
+            } else {
+                t.idle_polls += 1;
+                t.idle_polls_s += wall;
+            }
+        }
+        for d in dispatches {
             self.start_batch(d, now);
         }
     }
@@ -497,7 +608,9 @@ impl<'a> Sim<'a> {
         if ready > now {
             self.push(ready, Event::BatchStart { batch });
         } else {
-            self.sched.handle_batch_started(now, d.batch);
+            SchedulerTiming::event(&mut self.timing, || {
+                self.sched.handle_batch_started(now, d.batch)
+            });
         }
         self.push(ready + duration, Event::BatchDone { batch });
     }
@@ -508,7 +621,9 @@ impl<'a> Sim<'a> {
         };
         // Generation ends now; the horizon policies take no virtual time, so the outcomes follow
         // at the same instant (the live driver reports both, with the policies in between).
-        self.sched.handle_generation_ended(now, BatchId(batch));
+        SchedulerTiming::event(&mut self.timing, || {
+            self.sched.handle_generation_ended(now, BatchId(batch))
+        });
         let one_way = self.one_way();
         let mut outcomes = Vec::with_capacity(flight.requests.len());
         for &(request, inst) in &flight.requests {
@@ -527,8 +642,10 @@ impl<'a> Sim<'a> {
             self.requests.remove(&request);
             self.push(now + one_way, Event::Reply { inst, horizon });
         }
-        self.sched
-            .handle_batch_finished(now, BatchId(batch), &outcomes);
+        SchedulerTiming::event(&mut self.timing, || {
+            self.sched
+                .handle_batch_finished(now, BatchId(batch), &outcomes)
+        });
         self.dispatch(now);
         Ok(())
     }
@@ -640,7 +757,7 @@ impl<'a> Sim<'a> {
             request: Some(req), ..
         }) = i.outstanding.take()
         {
-            self.sched.handle_cancel(now, req);
+            SchedulerTiming::event(&mut self.timing, || self.sched.handle_cancel(now, req));
             self.requests.remove(&req);
         }
         let i = &self.insts[inst];
@@ -649,13 +766,16 @@ impl<'a> Sim<'a> {
             actions_remaining: 0,
             control_hz: i.trace.control_hz,
         });
-        self.sched
-            .handle_task_end(now, i.task, i.robot, TaskEnd::Done, report)
-            .map_err(|source| SimError::Admit {
-                what: "task end",
-                at: now,
-                source,
-            })?;
+        let (task, robot) = (i.task, i.robot);
+        SchedulerTiming::event(&mut self.timing, || {
+            self.sched
+                .handle_task_end(now, task, robot, TaskEnd::Done, report)
+        })
+        .map_err(|source| SimError::Admit {
+            what: "task end",
+            at: now,
+            source,
+        })?;
         self.out.tasks.push(TaskResult {
             trace_task: i.trace.task,
             started_at: i.started_at,
@@ -678,10 +798,11 @@ impl<'a> Sim<'a> {
     fn run(&mut self) -> Result<(), SimError> {
         loop {
             let next_event = self.queue.peek().map(|Reverse((t, _, _))| *t);
-            if let Some(t) = self.sched.poll_timeout()
+            let timeout = SchedulerTiming::event(&mut self.timing, || self.sched.poll_timeout());
+            if let Some(t) = timeout
                 && next_event.is_none_or(|e| t < e)
             {
-                self.sched.handle_timeout(t);
+                SchedulerTiming::event(&mut self.timing, || self.sched.handle_timeout(t));
                 self.dispatch(t);
                 continue;
             }
@@ -696,7 +817,9 @@ impl<'a> Sim<'a> {
                 }
                 Event::Wake { inst, timer } => self.wake(inst, timer, now)?,
                 Event::Submit { inst } => self.submit(inst, now)?,
-                Event::BatchStart { batch } => self.sched.handle_batch_started(now, BatchId(batch)),
+                Event::BatchStart { batch } => SchedulerTiming::event(&mut self.timing, || {
+                    self.sched.handle_batch_started(now, BatchId(batch))
+                }),
                 Event::BatchDone { batch } => self.batch_done(batch, now)?,
                 Event::Reply { inst, horizon } => self.reply(inst, horizon, now)?,
             }
@@ -756,6 +879,24 @@ pub fn online_schedule<'a>(
 
 /// Runs one simulation of `traces` under `cfg`.
 pub fn simulate(traces: &TraceSet, cfg: &SimConfig) -> Result<SimResult, SimError> {
+    simulate_with(traces, cfg, None).map(|(out, _)| out)
+}
+
+/// [`simulate`], measuring with a real clock what each call into the scheduler costs. The
+/// [`SimResult`] is the one [`simulate`] gives.
+pub fn simulate_timed(
+    traces: &TraceSet,
+    cfg: &SimConfig,
+) -> Result<(SimResult, SchedulerTiming), SimError> {
+    simulate_with(traces, cfg, Some(SchedulerTiming::default()))
+        .map(|(out, timing)| (out, timing.unwrap_or_default()))
+}
+
+fn simulate_with(
+    traces: &TraceSet,
+    cfg: &SimConfig,
+    timing: Option<SchedulerTiming>,
+) -> Result<(SimResult, Option<SchedulerTiming>), SimError> {
     let pool: Vec<&TaskTrace> = traces.variant(&cfg.setting).collect();
     if pool.is_empty() {
         return Err(SimError::NoTasks(cfg.setting.clone()));
@@ -780,6 +921,7 @@ pub fn simulate(traces: &TraceSet, cfg: &SimConfig) -> Result<SimResult, SimErro
         next_backlog: 0,
         arrived_at_server: HashMap::new(),
         out: SimResult::default(),
+        timing,
     };
     // Task picks and arrival times come from their own stream, before anything else runs, so
     // every policy and setting sees the same tasks arriving at the same times.
@@ -818,6 +960,17 @@ pub fn simulate(traces: &TraceSet, cfg: &SimConfig) -> Result<SimResult, SimErro
             }
         }
     }
+    let started = sim
+        .timing
+        .is_some()
+        .then(|| (Instant::now(), thread_cpu_time()));
     sim.run()?;
-    Ok(sim.out)
+    if let (Some(t), Some((wall, cpu))) = (&mut sim.timing, started) {
+        t.run_s = wall.elapsed().as_secs_f64();
+        t.run_cpu_s = cpu
+            .zip(thread_cpu_time())
+            .map_or(0.0, |(a, b)| b.saturating_sub(a).as_secs_f64());
+    }
+    sim.out.scheduler = *sim.sched.counters();
+    Ok((sim.out, sim.timing))
 }

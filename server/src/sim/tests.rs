@@ -180,6 +180,7 @@ fn thread_count_never_changes_a_number() {
             extra: Vec::new(),
             task_scale: 1.0,
             policies: Default::default(),
+            scale: Default::default(),
         },
     );
     let one = experiment::run_jobs(&jobs, &traces, 1, &|_| {});
@@ -494,4 +495,107 @@ fn a_recorded_refetch_keeps_its_alignment_on_replay() {
         .map(|r| (r.issued_at_action, r.aligned_at_action, r.executed))
         .collect();
     assert_eq!(rounds, vec![(0, None, 3), (2, Some(3), 4)]);
+}
+
+#[test]
+fn the_scale_experiment_serves_every_round_of_every_robot() {
+    // 200 robots on 10 workers, one task each: the scale experiment at a size a test can run.
+    let w = tiny();
+    let traces = vec![generate::generate(&w, 5).unwrap()];
+    let jobs = experiment::plan(
+        std::slice::from_ref(&w),
+        &Plan {
+            experiments: vec![Experiment::Scale],
+            seed: 2,
+            extra: Vec::new(),
+            task_scale: 1.0,
+            policies: Default::default(),
+            scale: scale::ScalePlan {
+                robots: vec![200],
+                robots_per_worker: 20,
+            },
+        },
+    );
+    assert_eq!(jobs.len(), 1);
+    let job = &jobs[0];
+    assert_eq!(job.x, 200.0);
+    assert_eq!(
+        job.config.load,
+        Load::Fleet {
+            robots: 200,
+            tasks: 200
+        }
+    );
+    assert_eq!(job.config.engines.len(), 10);
+    assert!(job.config.engines.iter().all(|e| e.tier == Tier::Edge));
+    let max_batch = u64::from(job.config.engines[0].profile.max_batch);
+
+    // Timing the scheduler leaves the simulation unchanged.
+    let plain = simulate(&traces[0], &job.config).unwrap();
+    let (timed, timing) = simulate_timed(&traces[0], &job.config).unwrap();
+    assert_eq!(plain, timed);
+
+    // Every robot finished its task, having asked for exactly its recording's rounds, and every
+    // round was answered once.
+    assert_eq!(timed.tasks.len(), 200);
+    let recorded: BTreeMap<u64, usize> = traces[0]
+        .variant(DYNAMIC)
+        .map(|t| (t.task, t.rounds.len()))
+        .collect();
+    for t in &timed.tasks {
+        assert_eq!(
+            t.rounds as usize, recorded[&t.trace_task],
+            "task {}",
+            t.trace_task
+        );
+    }
+    let rounds: u64 = timed.tasks.iter().map(|t| u64::from(t.rounds)).sum();
+    assert_eq!(timed.requests, rounds);
+    let c = &timed.scheduler;
+    assert_eq!(
+        (
+            c.submitted,
+            c.dispatched,
+            c.answered,
+            c.failed,
+            c.refused,
+            c.tasks_ended
+        ),
+        (rounds, rounds, rounds, 0, 0, 200)
+    );
+    assert!(timed.batches * max_batch >= rounds);
+
+    // Every decision was timed, and the run's report adds up.
+    assert_eq!(timing.decisions.len() as u64, c.decisions);
+    #[cfg(unix)]
+    assert_eq!(timing.decisions_cpu.len(), timing.decisions.len());
+    assert_eq!(timing.decision_batches, timed.batches);
+    assert!((1..=200).contains(&timing.max_pending));
+    let result = experiment::run_job(job, &traces[0]).unwrap();
+    let s = result
+        .scale
+        .as_ref()
+        .expect("a scale job reports its scale statistics");
+    assert_eq!((s.robots, s.workers, s.tasks), (200, 10, 200));
+    assert_eq!(
+        (s.rounds, s.answered, s.batches),
+        (rounds, rounds, timed.batches)
+    );
+    assert_eq!(s.decisions, c.decisions);
+    assert_eq!(s.makespan_s, timed.makespan_s);
+    assert!(s.rounds_per_virtual_s() > 0.0 && s.scheduler_share() <= 1.0);
+    let report = experiment::Report {
+        workloads: std::slice::from_ref(&w),
+        jobs: &jobs,
+        results: std::slice::from_ref(&result),
+    };
+    let csv = report.scale_csv();
+    assert_eq!(csv.lines().count(), 2);
+    assert!(
+        csv.lines()
+            .nth(1)
+            .unwrap()
+            .starts_with(&format!("{},200,10,200,{rounds},{rounds},", w.name))
+    );
+    assert!(report.scale_table().contains("| 200 | 10 |"));
 }
