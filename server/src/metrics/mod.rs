@@ -287,6 +287,15 @@ impl Metrics {
             .inc_by(rounds);
     }
 
+    /// Creates `kairos_redispatch_total{reason}` at zero for each of `reasons`, so that the
+    /// family is exported (and rate() queries and alerts resolve) before the first re-dispatch:
+    /// prometheus-client writes no family without a series.
+    pub fn declare_redispatch_reasons(&self, reasons: &[&str]) {
+        for reason in reasons {
+            self.record_redispatch(reason, 0);
+        }
+    }
+
     /// `kairos_worker_rtt_seconds{worker}`: the worker's current round-trip estimate.
     pub fn set_worker_rtt(&self, worker: &str, rtt: Duration) {
         self.0
@@ -437,6 +446,7 @@ mod tests {
         metrics.observe_round_latency(Duration::from_millis(3));
         metrics.observe_batch_size(4);
         metrics.record_deadline_miss();
+        metrics.declare_redispatch_reasons(&["connection_lost", "deadline"]);
         metrics.record_redispatch("connection_lost", 3);
         metrics.set_worker_rtt("gpu-0", Duration::from_millis(20));
         metrics.fallback_counter(PolicyKind::Priority, "plas").inc();
@@ -453,6 +463,7 @@ mod tests {
             (r#"kairos_batch_size_bucket{le="2.0"}"#, 0.0),
             ("kairos_deadline_misses_total", 1.0),
             (r#"kairos_redispatch_total{reason="connection_lost"}"#, 3.0),
+            (r#"kairos_redispatch_total{reason="deadline"}"#, 0.0),
             (r#"kairos_worker_rtt_seconds{worker="gpu-0"}"#, 0.02),
             (
                 r#"kairos_plugin_fallbacks_total{kind="priority",policy="plas"}"#,
