@@ -30,6 +30,10 @@ if ! .venv-openpi/bin/python -c "import openpi_client.websocket_client_policy" 2
 fi
 step_done "toolchains and Python packages"
 
+# The Kubernetes manifests, validated offline (installs kubernetes-validate into .venv-k8s once).
+bash scripts/validate-k8s.sh
+step_done "Kubernetes manifests (kubectl kustomize | kubernetes-validate --strict)"
+
 # One build of the whole workspace with the test feature set; the plugins are built with the
 # kairos binary it produced (the integration tests need it), so nothing compiles twice.
 cargo test --workspace --locked --no-run

@@ -98,6 +98,8 @@ pub struct Config {
     pub plugins: Vec<PluginConfig>,
     /// The openpi-compatible websocket endpoint (off unless `listen` is set).
     pub openpi: OpenpiConfig,
+    /// The Prometheus `/metrics` and `/ready` endpoint (off unless `listen` is set).
+    pub metrics: MetricsConfig,
 }
 
 impl Default for Config {
@@ -116,8 +118,19 @@ impl Default for Config {
             connections: ConnectionsConfig::default(),
             plugins: Vec::new(),
             openpi: OpenpiConfig::default(),
+            metrics: MetricsConfig::default(),
         }
     }
+}
+
+/// `[metrics]`: plain HTTP on a TCP port of its own serving `GET /metrics` (Prometheus,
+/// OpenMetrics text) and `GET /ready` (200 once the server serves, 503 while it starts or
+/// drains); docs/SERVER.md, "Metrics and readiness".
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MetricsConfig {
+    /// TCP address of the endpoint; absent = no endpoint.
+    pub listen: Option<SocketAddr>,
 }
 
 /// `[tls]`: PEM (or DER, by extension `.der`) certificate chain and private key.

@@ -18,6 +18,7 @@ use super::stats::{DriverStats, RecentLatencies};
 use super::{RoundAnswer, TaskSnapshot, WaiterId};
 use crate::action::{HorizonJob, RoundPolicy};
 use crate::lifecycle::exec_interval;
+use crate::metrics::Metrics;
 use crate::scheduler::{
     AdmitError, BatchId, CancelOutcome, Dispatch, EngineId, RequestId, RobotId, RoundOutcome,
     Scheduler, TaskId,
@@ -116,6 +117,8 @@ pub struct DriverCore {
     ended: VecDeque<TaskSnapshot>,
     stats: DriverStats,
     latencies: RecentLatencies,
+    /// Where the facts counted here are exported too (`/metrics`).
+    metrics: Metrics,
     draining: bool,
     /// The timer last asked of the shell.
     timer: Option<Timestamp>,
@@ -147,11 +150,22 @@ impl DriverCore {
             ended: VecDeque::new(),
             stats: DriverStats::default(),
             latencies: RecentLatencies::default(),
+            metrics: Metrics::new(),
             draining: false,
             timer: None,
             now: Timestamp::ZERO,
             effects: VecDeque::new(),
         }
+    }
+
+    /// Exports the core's facts to `metrics` (queue depth, batch sizes, round latency, deadline
+    /// misses, engine busy time) instead of a registry of its own.
+    pub fn with_metrics(mut self, metrics: Metrics) -> DriverCore {
+        for engine in self.scheduler.engines() {
+            metrics.add_engine(&engine.spec.name);
+        }
+        self.metrics = metrics;
+        self
     }
 
     /// The next effect to carry out, oldest first.
@@ -258,6 +272,10 @@ impl DriverCore {
         let now = self.advance(now);
         if let Some(state) = self.batches.get_mut(&batch) {
             state.inference = inference;
+            if let Some(engine) = self.scheduler.engines().nth(state.dispatch.engine.0) {
+                self.metrics
+                    .record_engine_busy(&engine.spec.name, inference);
+            }
             self.scheduler.handle_generation_ended(now, batch);
         }
         self.after_event(now);
@@ -505,6 +523,7 @@ impl DriverCore {
             self.tasks.remove(&summary.task);
         }
         self.dispatch(now);
+        self.metrics.set_queue_depth(self.scheduler.pending_len());
         let next = self.scheduler.poll_timeout();
         if next != self.timer {
             self.timer = next;
@@ -602,6 +621,7 @@ impl DriverCore {
             }
             return;
         }
+        self.metrics.observe_batch_size(inputs.len());
         self.effects.push_back(Effect::RunBatch(BatchJob {
             batch,
             engine,
@@ -633,6 +653,20 @@ impl DriverCore {
                 (*request, outcome)
             })
             .collect();
+        // A deadline miss: the round is answered after its robot ran out of actions, i.e. after
+        // `E.end` of the task's previous round (read before the scheduler records this one).
+        for (request, result) in &results {
+            let late = result.is_ok()
+                && self
+                    .requests
+                    .get(request)
+                    .and_then(|req| self.scheduler.task(req.task))
+                    .and_then(|task| task.last_execution_end())
+                    .is_some_and(|deadline| now > deadline);
+            if late {
+                self.metrics.record_deadline_miss();
+            }
+        }
         self.scheduler.handle_batch_finished(now, batch, &outcomes);
         let keep = self.scheduler.config().history_rounds.max(1);
         for (request, result) in results {
@@ -653,6 +687,8 @@ impl DriverCore {
             match &answer {
                 Ok(reply) => {
                     self.stats.replies += 1;
+                    self.metrics
+                        .observe_round_latency(now.saturating_since(req.received));
                     // The server's own work: reading to acceptance, and dispatch to reply, less
                     // the re-fetch wait and the forward pass.
                     let own = req.accepted.saturating_since(req.received)

@@ -112,6 +112,8 @@ pub struct DriverConfig {
     pub ended_snapshots: usize,
     /// Capacity of the command channel.
     pub queue: usize,
+    /// Where the core exports its facts (`/metrics`); the default is a registry nobody serves.
+    pub metrics: crate::metrics::Metrics,
 }
 
 impl Default for DriverConfig {
@@ -120,6 +122,7 @@ impl Default for DriverConfig {
             refetch_timeout: Duration::from_millis(50),
             ended_snapshots: 4096,
             queue: 8192,
+            metrics: crate::metrics::Metrics::new(),
         }
     }
 }

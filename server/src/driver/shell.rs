@@ -215,7 +215,7 @@ pub fn spawn(
     runtime.spawn(run_timer(deadlines, clock, commands_tx.downgrade()));
     runtime.spawn(watch_shutdown(shutdown.clone(), commands_tx.downgrade()));
     let shell = Shell {
-        core: DriverCore::new(scheduler, config.ended_snapshots),
+        core: DriverCore::new(scheduler, config.ended_snapshots).with_metrics(config.metrics),
         commands,
         reports: commands_tx.downgrade(),
         waiters: HashMap::new(),
