@@ -29,7 +29,7 @@ pub struct BenchArgs {
 #[derive(Subcommand, Debug)]
 pub enum BenchCommand {
     /// Simulate workloads against the real scheduler in virtual time (paper §5 experiments).
-    Sim(SimArgs),
+    Sim(Box<SimArgs>),
     /// Generate a trace file from a workload file.
     Traces(TracesArgs),
     /// Find the arrival rate at which a policy's average latency reaches a multiple of its
@@ -153,7 +153,7 @@ pub struct TracesArgs {
 /// Runs `kairos bench`.
 pub fn run(args: BenchArgs) -> anyhow::Result<()> {
     match args.command {
-        BenchCommand::Sim(a) => run_sim(a),
+        BenchCommand::Sim(a) => run_sim(*a),
         BenchCommand::Traces(a) => run_traces(a),
         BenchCommand::Calibrate(a) => run_calibrate(a),
         BenchCommand::Live(a) => super::bench_live::run(*a),

@@ -501,7 +501,7 @@ fn a_recorded_refetch_keeps_its_alignment_on_replay() {
 fn the_scale_experiment_serves_every_round_of_every_robot() {
     // 200 robots on 10 workers, one task each: the scale experiment at a size a test can run.
     let w = tiny();
-    let traces = vec![generate::generate(&w, 5).unwrap()];
+    let traces = generate::generate(&w, 5).unwrap();
     let jobs = experiment::plan(
         std::slice::from_ref(&w),
         &Plan {
@@ -531,14 +531,14 @@ fn the_scale_experiment_serves_every_round_of_every_robot() {
     let max_batch = u64::from(job.config.engines[0].profile.max_batch);
 
     // Timing the scheduler leaves the simulation unchanged.
-    let plain = simulate(&traces[0], &job.config).unwrap();
-    let (timed, timing) = simulate_timed(&traces[0], &job.config).unwrap();
+    let plain = simulate(&traces, &job.config).unwrap();
+    let (timed, timing) = simulate_timed(&traces, &job.config).unwrap();
     assert_eq!(plain, timed);
 
     // Every robot finished its task, having asked for exactly its recording's rounds, and every
     // round was answered once.
     assert_eq!(timed.tasks.len(), 200);
-    let recorded: BTreeMap<u64, usize> = traces[0]
+    let recorded: BTreeMap<u64, usize> = traces
         .variant(DYNAMIC)
         .map(|t| (t.task, t.rounds.len()))
         .collect();
@@ -571,7 +571,7 @@ fn the_scale_experiment_serves_every_round_of_every_robot() {
     assert_eq!(timing.decisions_cpu.len(), timing.decisions.len());
     assert_eq!(timing.decision_batches, timed.batches);
     assert!((1..=200).contains(&timing.max_pending));
-    let result = experiment::run_job(job, &traces[0]).unwrap();
+    let result = experiment::run_job(job, &traces).unwrap();
     let s = result
         .scale
         .as_ref()

@@ -52,7 +52,11 @@ fn scale_experiment_serves_every_round_and_writes_its_outputs() {
         assert_eq!(num(row, "workers"), workers);
         assert_eq!(num(row, "tasks"), robots, "every robot finished its task");
         assert!(num(row, "rounds") >= robots);
-        assert_eq!(num(row, "answered"), num(row, "rounds"), "every round answered");
+        assert_eq!(
+            num(row, "answered"),
+            num(row, "rounds"),
+            "every round answered"
+        );
         // LIBERO/SmolVLA's edge instances take batches of at most 16.
         assert!(num(row, "batches") * 16.0 >= num(row, "rounds"));
         assert!(num(row, "decisions") >= 1.0);
