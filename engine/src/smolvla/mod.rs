@@ -14,15 +14,22 @@
 pub mod config;
 pub mod prefix;
 pub mod serving;
+pub mod vision;
+pub mod vlm;
+pub mod vlm_weights;
 pub mod weights;
 
 mod candle_backend;
 mod cpu;
+mod vlm_text;
 
 use std::path::Path;
 
-pub use config::{ExpertDims, LayerKind, SmolVlaConfig, VlmTextConfig};
+pub use config::{ExpertDims, LayerKind, SmolVlaConfig, VlmConfig, VlmTextConfig, VlmVisionConfig};
 pub use prefix::PrefixKv;
+pub use vision::{PreparedImage, VisionOutput};
+pub use vlm::{PrefixEmbeddings, SmolVlaVlm, VlmObservation};
+pub use vlm_weights::VlmWeights;
 pub use weights::ExpertWeights;
 
 use crate::options::{EngineOptions, Target};
@@ -85,20 +92,7 @@ impl SmolVlaExpert {
     /// SmolVLM2-500M, the VLM's own `vlm_config.json`.
     pub fn load(dir: &Path, options: &EngineOptions) -> Result<Self, EngineError> {
         let cfg: SmolVlaConfig = config::read_json(&dir.join("config.json"))?;
-        let vlm_path = dir.join("vlm_config.json");
-        let text = if vlm_path.exists() {
-            VlmTextConfig::from_vlm_config_file(&vlm_path)?
-        } else if cfg.vlm_model_name == config::SMOLVLM2_500M {
-            VlmTextConfig::smolvlm2_500m()
-        } else {
-            return Err(EngineError::Load {
-                path: vlm_path.display().to_string(),
-                reason: format!(
-                    "VLM `{}` has no built-in config; provide its config.json here",
-                    cfg.vlm_model_name
-                ),
-            });
-        };
+        let text = VlmConfig::for_checkpoint(dir, &cfg)?.text_config;
         let dims = ExpertDims::resolve(&cfg, &text)?;
         let ckpt = Checkpoint::open(&dir.join("model.safetensors"))?;
         let weights = ExpertWeights::load(&ckpt, &dims)?;
