@@ -8,3 +8,4 @@ mod examples_help;
 mod loader_errors;
 mod models;
 mod smolvla_parity;
+mod smolvla_vlm;
