@@ -105,17 +105,19 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     run()?; // warm-up
     let mut runs = Vec::with_capacity(iters);
+    let cpu0 = kairos_engine::profile::process_cpu_ms();
     for _ in 0..iters {
         let t = Instant::now();
         run()?;
         runs.push(t.elapsed().as_secs_f64() * 1e3);
     }
+    let cpu_ms = (kairos_engine::profile::process_cpu_ms() - cpu0) / iters as f64;
     let mut sorted = runs.clone();
     sorted.sort_by(f64::total_cmp);
     let median = sorted[sorted.len() / 2];
     let gflop = cameras as f64 * vision_gflop(&config, side);
     println!(
-        "{{\"what\":\"{}\",\"cameras\":{cameras},\"side\":{side},\"median_ms\":{median:.1},\"min_ms\":{:.1},\"gflop\":{gflop:.1},\"gflops\":{:.1},\"runs\":[{}]}}",
+        "{{\"what\":\"{}\",\"cameras\":{cameras},\"side\":{side},\"median_ms\":{median:.1},\"min_ms\":{:.1},\"gflop\":{gflop:.1},\"gflops\":{:.1},\"cpu_ms_per_run\":{cpu_ms:.0},\"runs\":[{}]}}",
         if prefix { "prefix" } else { "vision" },
         sorted[0],
         gflop / (median / 1e3),

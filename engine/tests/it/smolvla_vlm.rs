@@ -14,10 +14,11 @@
 //! against its f64 recomputation (`e_lr`, meta.json `lerobot_f32_vs_f64`; ~1e-6 on values of
 //! magnitude ~4, 2e-5 on prefix embeddings of magnitude ~40). Our error against f64 is of the
 //! same nature, so `|ours - lerobot| <= |ours - f64| + e_lr` should be a few `e_lr`; the test
-//! asserts `|ours - lerobot| <= 8 e_lr` and `|ours - f64| <= 8 e_lr` (each with a floor of 64 f32
-//! ulps of the largest value). Errors compound through 2 vision + 4 text layers, so the factor
-//! is larger than the expert-only test's 5. A real mismatch (a wrong mask, position, scale,
-//! shuffle order or layer) shows up as errors of order 1e-2..1, four orders above.
+//! asserts `|ours - lerobot| <= 5 e_lr` and `|ours - f64| <= 5 e_lr`, each plus a floor of 16 f32
+//! ulps of the largest value (measured 2026-11-25: at most 2.3 e_lr, e.g. 4.8e-6 on layer 3's
+//! keys, 4.6e-5 on the prefix embeddings, 1.4e-6 on the actions). A real mismatch (a wrong mask,
+//! position, scale, shuffle order or layer) shows up as errors of order 1e-2..1, four orders
+//! above.
 
 #![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
 
@@ -107,7 +108,7 @@ fn check(g: &Goldens, key: &str, ours: &[f32], keep: &dyn Fn(usize) -> bool) {
         d64 = d64.max((ours[i] - want64[i]).abs());
         big = big.max(want[i].abs());
     }
-    let bound = 8.0 * g.e_lr(key) + 64.0 * f32::EPSILON * big;
+    let bound = 5.0 * g.e_lr(key) + 16.0 * f32::EPSILON * big;
     eprintln!("{key}: |ours-lerobot| {d32:.3e}, |ours-f64| {d64:.3e}, bound {bound:.3e}");
     assert!(d32 <= bound, "{key}: |ours - lerobot| = {d32:e} > {bound:e}");
     assert!(d64 <= bound, "{key}: |ours - f64| = {d64:e} > {bound:e}");
