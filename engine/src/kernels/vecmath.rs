@@ -279,7 +279,10 @@ mod tests {
     #[test]
     fn layer_norm_and_gelu_match_definitions() {
         let x = [-3.0f32, -0.5, 0.0, 0.7, 4.0, 1.5];
-        let (w, b) = ([0.5f32, 1.0, 2.0, -1.0, 1.5, 0.25], [0.1f32, 0.0, -0.2, 0.3, 0.0, 1.0]);
+        let (w, b) = (
+            [0.5f32, 1.0, 2.0, -1.0, 1.5, 0.25],
+            [0.1f32, 0.0, -0.2, 0.3, 0.0, 1.0],
+        );
         for isa in [Isa::Avx2Fma, Isa::Portable]
             .into_iter()
             .filter(|i| i.available())
@@ -288,19 +291,34 @@ mod tests {
             let xx: Vec<f32> = x.iter().chain(&x).copied().collect();
             layer_norm(isa, &xx, &w, &b, 1e-6, &mut out);
             let mean = x.iter().map(|&v| f64::from(v)).sum::<f64>() / 6.0;
-            let var = x.iter().map(|&v| (f64::from(v) - mean).powi(2)).sum::<f64>() / 6.0;
+            let var = x
+                .iter()
+                .map(|&v| (f64::from(v) - mean).powi(2))
+                .sum::<f64>()
+                / 6.0;
             for i in 0..12 {
                 let want = (f64::from(x[i % 6]) - mean) / (var + 1e-6).sqrt() * f64::from(w[i % 6])
                     + f64::from(b[i % 6]);
-                assert!((f64::from(out[i]) - want).abs() < 1e-5, "{i}: {} vs {want}", out[i]);
+                assert!(
+                    (f64::from(out[i]) - want).abs() < 1e-5,
+                    "{i}: {} vs {want}",
+                    out[i]
+                );
             }
             let mut g: Vec<f32> = (-80..80).map(|i| i as f32 / 8.0).collect();
             let src = g.clone();
             gelu_tanh_inplace(isa, &mut g);
             for (o, &v) in g.iter().zip(&src) {
                 let v = f64::from(v);
-                let want = 0.5 * v * (1.0 + ((2.0 / std::f64::consts::PI).sqrt() * (v + 0.044715 * v * v * v)).tanh());
-                assert!((f64::from(*o) - want).abs() < 2e-6 * (1.0 + want.abs()), "{v}: {o} vs {want}");
+                let want = 0.5
+                    * v
+                    * (1.0
+                        + ((2.0 / std::f64::consts::PI).sqrt() * (v + 0.044715 * v * v * v))
+                            .tanh());
+                assert!(
+                    (f64::from(*o) - want).abs() < 2e-6 * (1.0 + want.abs()),
+                    "{v}: {o} vs {want}"
+                );
             }
         }
     }

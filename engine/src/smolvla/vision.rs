@@ -107,7 +107,10 @@ impl CpuVision {
     pub(crate) fn grid(&self, index: usize, side: usize) -> Result<usize, EngineError> {
         let v = &self.config.vision_config;
         let s = self.config.scale_factor;
-        if side == 0 || side % v.patch_size != 0 || (side / v.patch_size) % s != 0 {
+        if side == 0
+            || !side.is_multiple_of(v.patch_size)
+            || !(side / v.patch_size).is_multiple_of(s)
+        {
             return Err(EngineError::InvalidInput(format!(
                 "images[{index}]: side {side} must be a multiple of patch_size {} x scale_factor {s}",
                 v.patch_size
@@ -173,8 +176,7 @@ impl CpuVision {
                     for ch in 0..c {
                         for ky in 0..p {
                             let src = (ch * im.side + py * p + ky) * im.side + px * p;
-                            row[(ch * p + ky) * p..][..p]
-                                .copy_from_slice(&im.pixels[src..src + p]);
+                            row[(ch * p + ky) * p..][..p].copy_from_slice(&im.pixels[src..src + p]);
                         }
                     }
                 }

@@ -230,7 +230,10 @@ impl SmolVlaVlm {
     ) -> Result<Vec<PrefixKv>, EngineError> {
         let t = &self.config.text_config;
         let kvw = t.num_key_value_heads * t.head_dim;
-        if dims.kv_width() != kvw || dims.layers.len() != self.text.layers() || dims.vlm_hidden != t.hidden_size {
+        if dims.kv_width() != kvw
+            || dims.layers.len() != self.text.layers()
+            || dims.vlm_hidden != t.hidden_size
+        {
             return Err(EngineError::InvalidInput(format!(
                 "the expert ({} layers, kv width {}) does not fit this VLM ({} layers, kv width {kvw})",
                 dims.layers.len(),

@@ -141,16 +141,7 @@ impl CpuText {
         let last = self.layers.len().saturating_sub(1);
         for (l, layer) in self.layers.iter().enumerate() {
             rms_norm_par(pool, &x, &layer.input_norm, eps, &mut hbuf);
-            gemm_par(
-                pool,
-                &hbuf,
-                h,
-                rows,
-                &layer.qkv,
-                &mut qkv,
-                ld,
-                Init::Zero,
-            );
+            gemm_par(pool, &hbuf, h, rows, &layer.qkv, &mut qkv, ld, Init::Zero);
             for (&n, &start) in counts.iter().zip(&starts) {
                 for t in 0..n {
                     let (cs, sn) = (&cos[t * half..][..half], &sin[t * half..][..half]);

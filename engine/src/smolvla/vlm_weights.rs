@@ -230,19 +230,21 @@ fn check_config(config: &VlmConfig, text_layers: usize) -> Result<(), EngineErro
             v.hidden_act
         )));
     }
-    if v.patch_size == 0 || v.image_size % v.patch_size != 0 {
+    if v.patch_size == 0 || !v.image_size.is_multiple_of(v.patch_size) {
         return Err(bad(format!(
             "vision_config.image_size {} is not a multiple of patch_size {}",
             v.image_size, v.patch_size
         )));
     }
-    if v.num_attention_heads == 0 || v.hidden_size % v.num_attention_heads != 0 {
+    if v.num_attention_heads == 0 || !v.hidden_size.is_multiple_of(v.num_attention_heads) {
         return Err(bad(format!(
             "vision_config.hidden_size {} is not a multiple of num_attention_heads {}",
             v.hidden_size, v.num_attention_heads
         )));
     }
-    if config.scale_factor == 0 || (v.image_size / v.patch_size) % config.scale_factor != 0 {
+    if config.scale_factor == 0
+        || !(v.image_size / v.patch_size).is_multiple_of(config.scale_factor)
+    {
         return Err(bad(format!(
             "scale_factor {} does not divide the {} patches per side",
             config.scale_factor,
@@ -250,8 +252,8 @@ fn check_config(config: &VlmConfig, text_layers: usize) -> Result<(), EngineErro
         )));
     }
     if t.num_key_value_heads == 0
-        || t.num_attention_heads % t.num_key_value_heads != 0
-        || t.head_dim % 2 != 0
+        || !t.num_attention_heads.is_multiple_of(t.num_key_value_heads)
+        || !t.head_dim.is_multiple_of(2)
     {
         return Err(bad(
             "text_config: heads must be a multiple of KV heads and head_dim even".into(),

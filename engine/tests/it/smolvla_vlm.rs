@@ -110,7 +110,10 @@ fn check(g: &Goldens, key: &str, ours: &[f32], keep: &dyn Fn(usize) -> bool) {
     }
     let bound = 5.0 * g.e_lr(key) + 16.0 * f32::EPSILON * big;
     eprintln!("{key}: |ours-lerobot| {d32:.3e}, |ours-f64| {d64:.3e}, bound {bound:.3e}");
-    assert!(d32 <= bound, "{key}: |ours - lerobot| = {d32:e} > {bound:e}");
+    assert!(
+        d32 <= bound,
+        "{key}: |ours - lerobot| = {d32:e} > {bound:e}"
+    );
     assert!(d64 <= bound, "{key}: |ours - f64| = {d64:e} > {bound:e}");
 }
 
@@ -199,7 +202,12 @@ fn parity(kernels: Kernels, name: &str) {
         let images: Vec<PreparedImage<'_>> = (0..c.batch).map(|b| c.image(s, b)).collect();
         let out = vlm.embed_images(&images).unwrap();
         let cat = |v: &[Vec<f32>]| -> Vec<f32> { v.concat() };
-        check(&g, &format!("{name}.vision.{s}"), &cat(&out.hidden), &|_| true);
+        check(
+            &g,
+            &format!("{name}.vision.{s}"),
+            &cat(&out.hidden),
+            &|_| true,
+        );
         check(
             &g,
             &format!("{name}.connector.{s}"),
@@ -215,20 +223,29 @@ fn parity(kernels: Kernels, name: &str) {
     let pad = g.u8(&format!("{name}.prefix_pad_mask"));
     let len = pad.len() / c.batch;
     for (b, e) in embedded.iter().enumerate() {
-        let want: Vec<bool> = pad[b * len..(b + 1) * len].iter().map(|&m| m != 0).collect();
+        let want: Vec<bool> = pad[b * len..(b + 1) * len]
+            .iter()
+            .map(|&m| m != 0)
+            .collect();
         assert_eq!(e.valid, want, "{name}: pad mask of observation {b}");
     }
     let h = vlm.config().text_config.hidden_size;
     let flat: Vec<f32> = embedded.iter().flat_map(|e| e.embeddings.clone()).collect();
-    check(&g, &format!("{name}.prefix_embs"), &flat, &|i| pad[i / h] != 0);
+    check(&g, &format!("{name}.prefix_embs"), &flat, &|i| {
+        pad[i / h] != 0
+    });
 
     let prefixes = vlm.prefix(&d, &obs).unwrap();
     let kvw = d.kv_width();
     for l in 0..d.layers.len() {
         let keys: Vec<f32> = prefixes.iter().flat_map(|p| p.keys(l).to_vec()).collect();
         let values: Vec<f32> = prefixes.iter().flat_map(|p| p.values(l).to_vec()).collect();
-        check(&g, &format!("{name}.layer.{l}.key"), &keys, &|i| pad[i / kvw] != 0);
-        check(&g, &format!("{name}.layer.{l}.value"), &values, &|i| pad[i / kvw] != 0);
+        check(&g, &format!("{name}.layer.{l}.key"), &keys, &|i| {
+            pad[i / kvw] != 0
+        });
+        check(&g, &format!("{name}.layer.{l}.value"), &values, &|i| {
+            pad[i / kvw] != 0
+        });
     }
 
     // The whole model: our prefix, LeRobot's noise, the existing expert.
