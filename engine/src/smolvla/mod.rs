@@ -7,9 +7,10 @@
 //! `action_time_mlp_out(silu(action_time_mlp_in([action_in_proj(x_t) ; sincos(t)])))`, and
 //! `action_out_proj` of the final norm is the velocity. The sampler is LeRobot's Euler loop.
 //!
-//! Input: the VLM's prefix KV cache ([`PrefixKv`]); the VLM itself is not part of this crate.
-//! `state_proj` is loaded and exposed ([`SmolVlaExpert::embed_state`]) because in SmolVLA the
-//! state is the last prefix token the VLM encodes.
+//! Input: the VLM's prefix KV cache ([`PrefixKv`]), which [`SmolVlaVlm`] computes from images,
+//! tokens and the state token (SigLIP tower + connector in [`vision`], SmolLM2 layers in
+//! `vlm_text`). `state_proj` is loaded and exposed ([`SmolVlaExpert::embed_state`]) because in
+//! SmolVLA the state is the last prefix token the VLM encodes.
 
 pub mod config;
 pub mod prefix;
