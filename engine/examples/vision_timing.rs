@@ -12,7 +12,7 @@
 use std::time::Instant;
 
 use kairos_engine::smolvla::{
-    ExpertDims, PreparedImage, SmolVlaConfig, SmolVlaVlm, VlmConfig, VlmObservation, VlmWeights,
+    ExpertDims, SmolVlaConfig, SmolVlaVlm, VisionImage, VlmConfig, VlmObservation, VlmWeights,
 };
 use kairos_engine::{EngineOptions, Kernels};
 
@@ -82,9 +82,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 .collect()
         })
         .collect();
-    let images: Vec<PreparedImage<'_>> = pixels
+    let images: Vec<VisionImage<'_>> = pixels
         .iter()
-        .map(|p| PreparedImage { side, pixels: p })
+        .map(|p| VisionImage { side, pixels: p })
         .collect();
     let dims = ExpertDims::smolvla_base();
     let tokens: Vec<u32> = (0..48).map(|i| 100 + 37 * i).collect();

@@ -28,7 +28,7 @@ use std::path::Path;
 
 pub use config::{ExpertDims, LayerKind, SmolVlaConfig, VlmConfig, VlmTextConfig, VlmVisionConfig};
 pub use prefix::PrefixKv;
-pub use vision::{PreparedImage, VisionOutput};
+pub use vision::{VisionImage, VisionOutput};
 pub use vlm::{PrefixEmbeddings, SmolVlaVlm, VlmObservation};
 pub use vlm_weights::VlmWeights;
 pub use weights::ExpertWeights;

@@ -18,10 +18,10 @@ use crate::kernels::attention::{KvSegment, QueryPositions, attend};
 use crate::kernels::gemm::gemm_par;
 use crate::kernels::{Init, PackedMatrix, Pool, SharedMut, vecmath};
 
-/// One prepared camera image: `channels x side x side` floats, row-major, in `[-1, 1]`
+/// A view of one prepared camera image: `channels x side x side` floats, row-major, in `[-1, 1]`
 /// (after LeRobot's `resize_with_pad` and `x * 2 - 1`).
 #[derive(Clone, Copy, Debug)]
-pub struct PreparedImage<'a> {
+pub struct VisionImage<'a> {
     /// Height and width in pixels (images are square, as SmolVLM's connector needs).
     pub side: usize,
     /// `[C][side][side]`.
@@ -129,7 +129,7 @@ impl CpuVision {
     pub(crate) fn forward(
         &self,
         pool: &Pool,
-        images: &[PreparedImage<'_>],
+        images: &[VisionImage<'_>],
     ) -> Result<VisionOutput, EngineError> {
         let v = &self.config.vision_config;
         let (vh, p, c) = (v.hidden_size, v.patch_size, v.num_channels);

@@ -14,7 +14,7 @@ use std::path::Path;
 
 use super::config::{ExpertDims, SmolVlaConfig, VlmConfig};
 use super::prefix::PrefixKv;
-use super::vision::{CpuVision, PreparedImage, VisionOutput};
+use super::vision::{CpuVision, VisionImage, VisionOutput};
 use super::vlm_text::{CpuText, ValidPrefix};
 use super::vlm_weights::VlmWeights;
 use crate::EngineError;
@@ -28,7 +28,7 @@ pub struct VlmObservation<'a> {
     /// Camera slots in LeRobot's order (present cameras in config order, then up to
     /// `empty_cameras` empty ones): a prepared image, or `None` for an empty camera, whose
     /// tokens are padding (as large as the last present image's).
-    pub images: Vec<Option<PreparedImage<'a>>>,
+    pub images: Vec<Option<VisionImage<'a>>>,
     /// Language token ids (`observation.language.tokens`).
     pub tokens: &'a [u32],
     /// The tokenizer's attention mask (`observation.language.attention_mask`).
@@ -134,7 +134,7 @@ impl SmolVlaVlm {
     }
 
     /// LeRobot's `embed_image` for each image: the vision tower and the connector, batched.
-    pub fn embed_images(&self, images: &[PreparedImage<'_>]) -> Result<VisionOutput, EngineError> {
+    pub fn embed_images(&self, images: &[VisionImage<'_>]) -> Result<VisionOutput, EngineError> {
         self.vision.forward(&self.pool, images)
     }
 

@@ -24,9 +24,7 @@
 
 use std::path::PathBuf;
 
-use kairos_engine::smolvla::{
-    ExpertInput, PreparedImage, SmolVlaExpert, SmolVlaVlm, VlmObservation,
-};
+use kairos_engine::smolvla::{ExpertInput, SmolVlaExpert, SmolVlaVlm, VisionImage, VlmObservation};
 use kairos_engine::weights::Checkpoint;
 use kairos_engine::{DeviceKind, EngineOptions, Kernels};
 
@@ -163,9 +161,9 @@ fn case(g: &Goldens, name: &str) -> Case {
 }
 
 impl Case {
-    fn image(&self, slot: usize, b: usize) -> PreparedImage<'_> {
+    fn image(&self, slot: usize, b: usize) -> VisionImage<'_> {
         let n = 3 * self.side * self.side;
-        PreparedImage {
+        VisionImage {
             side: self.side,
             pixels: &self.images[slot][b * n..(b + 1) * n],
         }
@@ -199,7 +197,7 @@ fn parity(kernels: Kernels, name: &str) {
 
     // Vision tower and connector on every slot's image (the empty camera's all -1 image too).
     for s in 0..c.slots {
-        let images: Vec<PreparedImage<'_>> = (0..c.batch).map(|b| c.image(s, b)).collect();
+        let images: Vec<VisionImage<'_>> = (0..c.batch).map(|b| c.image(s, b)).collect();
         let out = vlm.embed_images(&images).unwrap();
         let cat = |v: &[Vec<f32>]| -> Vec<f32> { v.concat() };
         check(
@@ -332,7 +330,7 @@ fn bad_observations_are_errors() {
 
     let short = vec![0.0f32; 5];
     let mut o = good.clone();
-    o.images = vec![Some(PreparedImage {
+    o.images = vec![Some(VisionImage {
         side: 2,
         pixels: &short,
     })];
