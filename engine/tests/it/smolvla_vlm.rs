@@ -381,3 +381,53 @@ fn missing_vlm_tensor_is_named() {
         .to_string();
     assert!(e.contains(dropped), "{e}");
 }
+
+/// A real LeRobot SmolVLA checkpoint (e.g. `lerobot/smolvla_base` downloaded by hand), at the path
+/// in `KAIROS_SMOLVLA_CHECKPOINT`: every VLM tensor loads under its LeRobot name and shape, and
+/// one observation (a mid-grey image for every camera the config names, 12 tokens, zero state)
+/// gives a prefix of the expected length with finite K/V. Opt-in: run with
+/// `KAIROS_SMOLVLA_CHECKPOINT=DIR cargo test -p kairos-engine --test it -- --ignored real_checkpoint`.
+#[test]
+#[ignore = "needs a real SmolVLA checkpoint in KAIROS_SMOLVLA_CHECKPOINT"]
+fn real_checkpoint_builds_a_prefix() {
+    let dir = PathBuf::from(
+        std::env::var("KAIROS_SMOLVLA_CHECKPOINT")
+            .expect("set KAIROS_SMOLVLA_CHECKPOINT to a SmolVLA checkpoint directory"),
+    );
+    let options = cpu(Kernels::Fast);
+    let vlm = SmolVlaVlm::load(&dir, &options).unwrap();
+    let expert = SmolVlaExpert::load(&dir, &options).unwrap();
+    let cfg: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("config.json")).unwrap()).unwrap();
+    let cameras = cfg["input_features"]
+        .as_object()
+        .unwrap()
+        .values()
+        .filter(|f| f["type"] == "VISUAL")
+        .count()
+        .max(1);
+    let side = cfg["resize_imgs_with_padding"][0].as_u64().unwrap_or(512) as usize;
+    let grey = vec![0.0f32; 3 * side * side];
+    let tokens: Vec<u32> = (1..=12).collect();
+    let mask = vec![true; tokens.len()];
+    let state = expert.embed_state(&[vec![0.0]]).unwrap();
+    let obs = VlmObservation {
+        images: (0..cameras)
+            .map(|_| {
+                Some(VisionImage {
+                    side,
+                    pixels: &grey,
+                })
+            })
+            .collect(),
+        tokens: &tokens,
+        token_mask: &mask,
+        state_token: &state[0],
+    };
+    let prefix = vlm.prefix(expert.dims(), &[obs]).unwrap().remove(0);
+    assert_eq!(
+        prefix.len(),
+        cameras * vlm.tokens_per_image(side) + tokens.len() + 1
+    );
+    assert_eq!(prefix.valid_len(), prefix.len());
+}
