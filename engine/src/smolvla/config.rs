@@ -123,12 +123,7 @@ impl VlmTextConfig {
 
     /// Read `text_config` from a SmolVLM `config.json` (as `SmolVLMConfig.save_pretrained` writes).
     pub fn from_vlm_config_file(path: &Path) -> Result<Self, EngineError> {
-        #[derive(serde::Deserialize)]
-        struct Outer {
-            text_config: VlmTextConfig,
-        }
-        let outer: Outer = read_json(path)?;
-        Ok(outer.text_config)
+        Ok(VlmConfig::from_file(path)?.text_config)
     }
 }
 
