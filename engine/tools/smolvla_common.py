@@ -37,6 +37,9 @@ SMOLVLM2_500M_VISION = dict(
     hidden_act="gelu_pytorch_tanh",
 )
 SMOLVLM2_500M_SCALE_FACTOR = 4
+# As in lerobot/smolvla_base's model.safetensors, the VLM's tensors are stored in bf16 and the
+# expert's in f32; LeRobot loads both into its float32 modules.
+BF16_PREFIX = "model.vlm_with_expert.vlm."
 
 
 def patch_hub(vlm_config, tokenizer=None):
@@ -107,3 +110,22 @@ class float64_casts:
             m.torch = t
         self.saved.clear()
         return False
+
+
+def store_vlm_in_bf16(path, exact=True):
+    """Rewrite a `save_pretrained` model.safetensors with the VLM's tensors (BF16_PREFIX) in bf16.
+
+    With `exact`, the values must already be bf16-representable, so the rewrite is lossless.
+    """
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    with safe_open(str(path), "pt") as f:
+        metadata = f.metadata()
+    tensors = load_file(str(path))
+    for k, v in tensors.items():
+        if k.startswith(BF16_PREFIX):
+            bf = v.to(torch.bfloat16)
+            assert not exact or torch.equal(bf.float(), v), k
+            tensors[k] = bf
+    save_file(tensors, str(path), metadata=metadata)

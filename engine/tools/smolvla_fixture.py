@@ -57,7 +57,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from safetensors.torch import save_file  # noqa: E402
 
-from smolvla_common import float64_casts, patch_hub, rescale_weights  # noqa: E402
+from smolvla_common import BF16_PREFIX, float64_casts, patch_hub, rescale_weights, store_vlm_in_bf16  # noqa: E402
 
 SEED = 20261125
 TEXT_CONFIG = dict(
@@ -95,9 +95,6 @@ TOKENIZER_MAX = 16
 VOCAB = 320
 SPECIAL_TOKENS = ["<|endoftext|>", "<|im_start|>", "<|im_end|>"]
 PAD_TOKEN = "<|im_end|>"
-# As in lerobot/smolvla_base's file, the VLM's tensors are stored in bf16 and the expert's in f32.
-# LeRobot loads them into its float32 modules (exactly: the values are bf16-representable).
-BF16_PREFIX = "model.vlm_with_expert.vlm."
 CAMERAS = ("observation.images.camera1", "observation.images.camera2")
 RENAME = {"observation.images.top": "observation.images.camera1"}
 CORPUS = [
@@ -415,21 +412,6 @@ def f64_pass(policy, pre, post, case, noise):
     pre64, post64 = copy.deepcopy(pre), copy.deepcopy(post)
     with float64_casts(swe, ms, vla_utils, llama):
         return infer(policy64, pre64, post64, case, noise, torch.float64)
-
-
-def store_vlm_in_bf16(path: Path):
-    """Rewrite LeRobot's float32 file with the VLM's tensors in bf16 (lossless, see BF16_PREFIX)."""
-    from safetensors import safe_open
-    from safetensors.torch import load_file
-
-    with safe_open(str(path), "pt") as f:
-        metadata = f.metadata()
-    tensors = load_file(str(path))
-    for k, v in tensors.items():
-        if k.startswith(BF16_PREFIX):
-            assert torch.equal(v.to(torch.bfloat16).float(), v), k
-            tensors[k] = v.to(torch.bfloat16)
-    save_file(tensors, str(path), metadata=metadata)
 
 
 def write_pngs(out_dir: Path, case_name, case):

@@ -7,5 +7,6 @@
 mod examples_help;
 mod loader_errors;
 mod models;
+mod smolvla_fixture;
 mod smolvla_parity;
 mod smolvla_vlm;
