@@ -348,21 +348,26 @@ impl CpuVision {
                     values: &vv,
                     causal: false,
                 };
-                attend(
-                    isa,
-                    &q,
-                    n,
-                    hd,
-                    &[segment],
-                    QueryPositions {
-                        offset: 0,
-                        period: n,
-                    },
-                    scale,
-                    &mut scores,
-                    &mut tmp,
-                    hd,
-                );
+                // Queries in blocks, so that a block's scores (`QUERY_BLOCK x n`) stay in L2;
+                // every query row is computed the same way whatever the block.
+                for r0 in (0..n).step_by(QUERY_BLOCK) {
+                    let rows = QUERY_BLOCK.min(n - r0);
+                    attend(
+                        isa,
+                        &q[r0 * hd..(r0 + rows) * hd],
+                        rows,
+                        hd,
+                        &[segment],
+                        QueryPositions {
+                            offset: 0,
+                            period: rows,
+                        },
+                        scale,
+                        &mut scores,
+                        &mut tmp[r0 * hd..(r0 + rows) * hd],
+                        hd,
+                    );
+                }
                 for (t, src) in tmp.chunks_exact(hd).enumerate() {
                     // SAFETY: (image, token, head) is written by this task only.
                     let dst = unsafe {
@@ -377,6 +382,9 @@ impl CpuVision {
         });
     }
 }
+
+/// Query rows per attention call: 96 x 1024 scores = 384 KiB.
+const QUERY_BLOCK: usize = 96;
 
 /// `x[r] += bias` for every row (before a GEMM that accumulates onto the residual).
 fn add_bias_rows(x: &mut [f32], bias: Option<&[f32]>) {
