@@ -150,14 +150,7 @@ impl CpuVision {
             })
             .collect::<Result<Vec<_>, EngineError>>()?;
         let counts: Vec<usize> = grids.iter().map(|g| g * g).collect();
-        let starts: Vec<usize> = counts
-            .iter()
-            .scan(0, |acc, &n| {
-                let s = *acc;
-                *acc += n;
-                Some(s)
-            })
-            .collect();
+        let starts = starts(&counts);
         let rows: usize = counts.iter().sum();
         if rows == 0 {
             return Ok(VisionOutput {
@@ -368,19 +361,23 @@ impl CpuVision {
                         hd,
                     );
                 }
-                for (t, src) in tmp.chunks_exact(hd).enumerate() {
-                    // SAFETY: (image, token, head) is written by this task only.
-                    let dst = unsafe {
-                        std::slice::from_raw_parts_mut(
-                            out.ptr().add((start + t) * vh + head * hd),
-                            hd,
-                        )
-                    };
-                    dst.copy_from_slice(src);
-                }
+                // SAFETY: this image's rows of this head's columns are written by this task only.
+                unsafe { out.write_rows(&tmp, hd, vh, start, head * hd) };
             }
         });
     }
+}
+
+/// Where each of several blocks of `counts[i]` rows starts when they are stacked.
+pub(crate) fn starts(counts: &[usize]) -> Vec<usize> {
+    counts
+        .iter()
+        .scan(0, |acc, &n| {
+            let s = *acc;
+            *acc += n;
+            Some(s)
+        })
+        .collect()
 }
 
 /// Query rows per attention call: 96 x 1024 scores = 384 KiB.

@@ -98,14 +98,7 @@ impl CpuText {
         let (qw, kvw) = (c.num_attention_heads * hd, c.num_key_value_heads * hd);
         let ld = qw + 2 * kvw;
         let counts: Vec<usize> = prefixes.iter().map(|p| p.embeddings.len() / h).collect();
-        let starts: Vec<usize> = counts
-            .iter()
-            .scan(0, |acc, &n| {
-                let s = *acc;
-                *acc += n;
-                Some(s)
-            })
-            .collect();
+        let starts = super::vision::starts(&counts);
         let rows: usize = counts.iter().sum();
         let mut out: Vec<ValidKv> = counts
             .iter()
@@ -283,16 +276,9 @@ impl CpuText {
                         &mut tmp[main * hd..],
                         hd,
                     );
-                    for (t, src) in tmp.chunks_exact(hd).enumerate() {
-                        // SAFETY: (observation, token, head) is written by this task only.
-                        let dst = unsafe {
-                            std::slice::from_raw_parts_mut(
-                                out.ptr().add((start + t) * qw + head * hd),
-                                hd,
-                            )
-                        };
-                        dst.copy_from_slice(src);
-                    }
+                    // SAFETY: this observation's rows of this head's columns are written by
+                    // this task only.
+                    unsafe { out.write_rows(&tmp, hd, qw, start, head * hd) };
                 }
             }
         });
