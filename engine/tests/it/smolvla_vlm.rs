@@ -431,3 +431,43 @@ fn real_checkpoint_builds_a_prefix() {
     );
     assert_eq!(prefix.valid_len(), prefix.len());
 }
+
+/// `prefix_length` pads the prefix at the end (LeRobot's `pad_tensor`): the valid tokens' K/V are
+/// unchanged, the extra positions are padding; `add_image_special_tokens` is refused by name.
+#[test]
+fn prefix_length_pads_at_the_end() {
+    use kairos_engine::smolvla::{SmolVlaConfig, VlmConfig, VlmWeights};
+    let g = Goldens::open();
+    let (vlm, expert) = models(Kernels::Fast);
+    let d = expert.dims().clone();
+    let c = case(&g, "pair");
+    let states = expert.embed_state(&c.state).unwrap();
+    let obs = c.observations(&states);
+    let plain = vlm.prefix(&d, &obs).unwrap();
+
+    let mut cfg: SmolVlaConfig =
+        serde_json::from_str(&std::fs::read_to_string(fixture().join("config.json")).unwrap())
+            .unwrap();
+    let vlm_cfg = VlmConfig::for_checkpoint(&fixture(), &cfg).unwrap();
+    let ckpt = Checkpoint::open(&fixture().join("model.safetensors")).unwrap();
+    let weights = VlmWeights::load(&ckpt, &vlm_cfg, cfg.num_vlm_layers).unwrap();
+    cfg.prefix_length = 60;
+    let padded_vlm = SmolVlaVlm::from_weights(&weights, &cfg, &cpu(Kernels::Fast)).unwrap();
+    let padded = padded_vlm.prefix(&d, &obs).unwrap();
+    for (p, q) in plain.iter().zip(&padded) {
+        assert_eq!(q.len(), 60);
+        assert_eq!(&q.valid()[..p.len()], p.valid());
+        assert!(q.valid()[p.len()..].iter().all(|v| !v));
+        let w = d.kv_width();
+        for l in 0..d.layers.len() {
+            assert_eq!(&q.keys(l)[..p.len() * w], p.keys(l));
+            assert_eq!(&q.values(l)[..p.len() * w], p.values(l));
+        }
+    }
+
+    cfg.add_image_special_tokens = true;
+    let e = SmolVlaVlm::from_weights(&weights, &cfg, &cpu(Kernels::Fast))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("add_image_special_tokens"), "{e}");
+}
