@@ -290,11 +290,7 @@ impl ExpertDims {
                 cfg.policy_type
             )));
         }
-        let vlm_layers = if cfg.num_vlm_layers > 0 {
-            cfg.num_vlm_layers
-        } else {
-            text.num_hidden_layers
-        };
+        let vlm_layers = kept_vlm_layers(cfg, text);
         if cfg.num_expert_layers > 0 && cfg.num_expert_layers as usize != vlm_layers {
             return Err(bad(format!(
                 "num_expert_layers = {} differs from num_vlm_layers = {vlm_layers}; only equal layer counts are supported",
@@ -387,6 +383,15 @@ impl ExpertDims {
     /// Width of the query vectors: `heads * head_dim`.
     pub fn q_width(&self) -> usize {
         self.heads * self.head_dim
+    }
+}
+
+/// The text layers LeRobot keeps: `num_vlm_layers`, or (`<= 0`) all of the text model's.
+pub fn kept_vlm_layers(cfg: &SmolVlaConfig, text: &VlmTextConfig) -> usize {
+    if cfg.num_vlm_layers > 0 {
+        cfg.num_vlm_layers
+    } else {
+        text.num_hidden_layers
     }
 }
 

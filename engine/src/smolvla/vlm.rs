@@ -12,7 +12,7 @@
 
 use std::path::Path;
 
-use super::config::{ExpertDims, SmolVlaConfig, VlmConfig};
+use super::config::{ExpertDims, SmolVlaConfig, VlmConfig, kept_vlm_layers};
 use super::prefix::PrefixKv;
 use super::vision::{CpuVision, VisionImage, VisionOutput};
 use super::vlm_text::{CpuText, ValidPrefix};
@@ -71,8 +71,13 @@ impl SmolVlaVlm {
     pub fn load(dir: &Path, options: &EngineOptions) -> Result<Self, EngineError> {
         let cfg: SmolVlaConfig = super::config::read_json(&dir.join("config.json"))?;
         let vlm = VlmConfig::for_checkpoint(dir, &cfg)?;
-        let ckpt = Checkpoint::open(&dir.join("model.safetensors"))?;
-        Self::load_from(&ckpt, &cfg, &vlm, options)
+        // The file's bytes are dropped before the weights are packed: a lower peak RSS.
+        let mut weights = {
+            let ckpt = Checkpoint::open(&dir.join("model.safetensors"))?;
+            VlmWeights::load(&ckpt, &vlm, kept_vlm_layers(&cfg, &vlm.text_config))?
+        };
+        let embed_tokens = std::mem::take(&mut weights.embed_tokens);
+        Self::build(&weights, embed_tokens, &cfg, options)
     }
 
     /// Load from an open checkpoint (shared with the expert's loader).
@@ -82,19 +87,26 @@ impl SmolVlaVlm {
         vlm: &VlmConfig,
         options: &EngineOptions,
     ) -> Result<Self, EngineError> {
-        let layers = if cfg.num_vlm_layers > 0 {
-            cfg.num_vlm_layers
-        } else {
-            vlm.text_config.num_hidden_layers
-        };
-        let weights = VlmWeights::load(ckpt, vlm, layers)?;
-        Self::from_weights(&weights, cfg, options)
+        let mut weights = VlmWeights::load(ckpt, vlm, kept_vlm_layers(cfg, &vlm.text_config))?;
+        let embed_tokens = std::mem::take(&mut weights.embed_tokens);
+        Self::build(&weights, embed_tokens, cfg, options)
     }
 
     /// Build from weights in memory. The VLM runs on the fast CPU kernels; `options` gives the
     /// threads and instruction set (CUDA is not supported).
     pub fn from_weights(
         weights: &VlmWeights,
+        cfg: &SmolVlaConfig,
+        options: &EngineOptions,
+    ) -> Result<Self, EngineError> {
+        Self::build(weights, weights.embed_tokens.clone(), cfg, options)
+    }
+
+    /// [`Self::from_weights`] with the token embeddings given separately, so that a loader can
+    /// move them instead of copying them.
+    fn build(
+        weights: &VlmWeights,
+        embed_tokens: Vec<f32>,
         cfg: &SmolVlaConfig,
         options: &EngineOptions,
     ) -> Result<Self, EngineError> {
@@ -118,7 +130,7 @@ impl SmolVlaVlm {
             prefix_length: usize::try_from(cfg.prefix_length).unwrap_or(0),
             vision: CpuVision::new(weights),
             text: CpuText::new(&weights.config.text_config, &weights.layers),
-            embed_tokens: weights.embed_tokens.clone(),
+            embed_tokens,
             pool,
         })
     }
