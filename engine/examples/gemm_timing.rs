@@ -106,18 +106,5 @@ fn fma_peak_gflops() -> f64 {
 
 /// CPU time of the calling thread in seconds (Linux /proc, 10 ms resolution).
 fn thread_cpu_s() -> f64 {
-    let Ok(stat) = std::fs::read_to_string("/proc/thread-self/stat") else {
-        return 0.0;
-    };
-    let Some(rest) = stat.rsplit(')').next() else {
-        return 0.0;
-    };
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    let ticks = |i: usize| {
-        fields
-            .get(i - 3)
-            .and_then(|v| v.parse::<f64>().ok())
-            .unwrap_or(0.0)
-    };
-    (ticks(14) + ticks(15)) / 100.0
+    kairos_engine::profile::thread_cpu_ms() / 1e3
 }

@@ -208,6 +208,27 @@ impl SharedMut {
     pub(crate) fn ptr(&self) -> *mut f32 {
         self.0
     }
+
+    /// Copy `src`, rows of `width` values, into rows `row0..` of the shared matrix (row stride
+    /// `ld`) at column `col`.
+    ///
+    /// # Safety
+    /// Those rows and columns are inside the matrix, and no other thread touches them meanwhile.
+    pub(crate) unsafe fn write_rows(
+        &self,
+        src: &[f32],
+        width: usize,
+        ld: usize,
+        row0: usize,
+        col: usize,
+    ) {
+        for (t, row) in src.chunks_exact(width).enumerate() {
+            // SAFETY: the caller guarantees bounds and exclusive access to this block.
+            let dst =
+                unsafe { std::slice::from_raw_parts_mut(self.0.add((row0 + t) * ld + col), width) };
+            dst.copy_from_slice(row);
+        }
+    }
 }
 
 /// An `f32` buffer whose first element is 64-byte aligned (one cache line), so packed panel rows

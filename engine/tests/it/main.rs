@@ -9,3 +9,4 @@ mod loader_errors;
 mod models;
 mod smolvla_fixture;
 mod smolvla_parity;
+mod smolvla_vlm;
