@@ -52,6 +52,13 @@ from lerobot_env import REPO, ensure_venv  # noqa: E402
 
 ensure_venv()
 
+# libgomp reads this when torch loads it. PASSIVE: a waiting OpenMP thread sleeps instead of
+# spinning. On a shared machine a spinning thread whose partner is descheduled burns CPU time
+# doing nothing (measured here: 37 s instead of 9.7 s of CPU per B=1 run), which makes the
+# CPU-time column meaningless; on an idle machine the two policies differ by little. Set
+# OMP_WAIT_POLICY yourself to override.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import torch  # noqa: E402
 
 from smolvla_common import (  # noqa: E402
@@ -202,7 +209,8 @@ def main():
     flags = next((ln.split(":", 1)[1].split() for ln in open("/proc/cpuinfo") if ln.startswith("flags")), [])
     want = ("avx2", "fma", "avx512f", "avx512_bf16", "avx512_vnni")
     print(f"# {cpu} [{' '.join(f for f in want if f in flags)}], {os.cpu_count()} cores; torch {torch.__version__} "
-          f"({torch.get_num_threads()} threads), python {platform.python_version()}")
+          f"({torch.get_num_threads()} threads, OMP_WAIT_POLICY={os.environ['OMP_WAIT_POLICY']}), "
+          f"python {platform.python_version()}")
     print(f"# model: {params / 1e6:.0f} M parameters (f32 in memory), RSS after build +{rss_model:.0f} MB")
     results = {}
     try:
