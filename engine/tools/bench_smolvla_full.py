@@ -21,7 +21,8 @@ The RSS of the model is the process's VmRSS after building it minus before, and 
 Kairos side: `--kairos 'CMD'` is a shell command template run once per batch size, alternating
 with PyTorch, with `{model}`, `{batch}`, `{threads}` and `{iters}` substituted; its last stdout
 line must be JSON with `median_ms` (and optionally `cpu_ms_per_run`, `rss_mb`), as
-`examples/expert_timing.rs` prints. The checkpoint it gets is the one `--write-checkpoint`
+`examples/expert_timing.rs` prints (the template is a Python format string: write literal braces
+as `{{` `}}`). The checkpoint it gets is the one `--write-checkpoint`
 wrote (default: a temporary directory). Until the Kairos full pipeline exists, leave `--kairos`
 out and only the PyTorch side runs.
 
