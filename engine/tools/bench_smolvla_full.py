@@ -21,7 +21,8 @@ The RSS of the model is the process's VmRSS after building it minus before, and 
 Kairos side: `--kairos 'CMD'` is a shell command template run once per batch size, alternating
 with PyTorch, with `{model}`, `{batch}`, `{threads}` and `{iters}` substituted; its last stdout
 line must be JSON with `median_ms` (and optionally `cpu_ms_per_run`, `rss_mb`), as
-`examples/expert_timing.rs` prints. The checkpoint it gets is the one `--write-checkpoint`
+`examples/expert_timing.rs` prints (the template is a Python format string: write literal braces
+as `{{` `}}`). The checkpoint it gets is the one `--write-checkpoint`
 wrote (default: a temporary directory). Until the Kairos full pipeline exists, leave `--kairos`
 out and only the PyTorch side runs.
 
@@ -51,6 +52,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from lerobot_env import REPO, ensure_venv  # noqa: E402
 
 ensure_venv()
+
+# libgomp reads this when torch loads it. PASSIVE: a waiting OpenMP thread sleeps instead of
+# spinning. On a shared machine a spinning thread whose partner is descheduled burns CPU time
+# doing nothing (measured here: 37 s instead of 9.7 s of CPU per B=1 run), which makes the
+# CPU-time column meaningless; on an idle machine the two policies differ by little. Set
+# OMP_WAIT_POLICY yourself to override.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import torch  # noqa: E402
 
@@ -202,7 +210,8 @@ def main():
     flags = next((ln.split(":", 1)[1].split() for ln in open("/proc/cpuinfo") if ln.startswith("flags")), [])
     want = ("avx2", "fma", "avx512f", "avx512_bf16", "avx512_vnni")
     print(f"# {cpu} [{' '.join(f for f in want if f in flags)}], {os.cpu_count()} cores; torch {torch.__version__} "
-          f"({torch.get_num_threads()} threads), python {platform.python_version()}")
+          f"({torch.get_num_threads()} threads, OMP_WAIT_POLICY={os.environ['OMP_WAIT_POLICY']}), "
+          f"python {platform.python_version()}")
     print(f"# model: {params / 1e6:.0f} M parameters (f32 in memory), RSS after build +{rss_model:.0f} MB")
     results = {}
     try:

@@ -14,12 +14,14 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use kairos_engine::smolvla::{ExpertInput, PrefixKv, SmolVlaConfig, SmolVlaExpert, VlmTextConfig};
+use kairos_engine::smolvla::{ExpertInput, SmolVlaConfig, SmolVlaExpert, VlmTextConfig};
 use kairos_engine::weights::Checkpoint;
 use kairos_engine::{DeviceKind, EngineOptions, Kernels};
 use safetensors::SafeTensors;
 use safetensors::tensor::Dtype;
 use serde_json::Value;
+
+use crate::smolvla_parity::{golden_prefixes, max_abs_diff};
 
 fn fixture() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/smolvla_tiny")
@@ -365,14 +367,6 @@ fn pngs_hold_the_raw_images() {
     }
 }
 
-fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max)
-}
-
 /// The engine's expert (unchanged) on LeRobot's prefix K/V of each case reproduces LeRobot's
 /// velocities and normalised actions. Bound as in `smolvla_parity.rs`: 5x LeRobot's own f32
 /// error against its f64 run (`meta.json` -> `lerobot_f32_vs_f64`), floor 64 ulps of the largest
@@ -393,38 +387,10 @@ fn expert_reproduces_lerobot_from_the_golden_prefix() {
     for (case, c) in m["cases"].as_object().unwrap() {
         let b = c["batch"].as_u64().unwrap() as usize;
         let len = c["prefix_len"].as_u64().unwrap() as usize;
-        let per = len * d.kv_width();
-        let kv = [b, len, d.kv_heads, d.head_dim];
         let mask = g.u8s(&format!("{case}.prefix_pad_mask"));
-        let layers: Vec<(Vec<f32>, Vec<f32>)> = (0..d.layers.len())
-            .map(|l| {
-                (
-                    ckpt.tensor(&format!("{case}.layer.{l}.key"), &kv).unwrap(),
-                    ckpt.tensor(&format!("{case}.layer.{l}.value"), &kv)
-                        .unwrap(),
-                )
-            })
-            .collect();
-        let prefixes: Vec<PrefixKv> = (0..b)
-            .map(|i| {
-                PrefixKv::new(
-                    &d,
-                    mask[i * len..(i + 1) * len]
-                        .iter()
-                        .map(|&v| v != 0)
-                        .collect(),
-                    layers
-                        .iter()
-                        .map(|(k, _)| k[i * per..(i + 1) * per].to_vec())
-                        .collect(),
-                    layers
-                        .iter()
-                        .map(|(_, v)| v[i * per..(i + 1) * per].to_vec())
-                        .collect(),
-                )
-                .unwrap()
-            })
-            .collect();
+        let prefixes = golden_prefixes(&d, &ckpt, &mask, b, len, |l, kv| {
+            format!("{case}.layer.{l}.{kv}")
+        });
         let (n, a) = (d.chunk, d.action_pad);
         let noise = ckpt.tensor(&format!("{case}.noise"), &[b, n, a]).unwrap();
         let noise: Vec<Vec<f32>> = noise.chunks_exact(n * a).map(<[f32]>::to_vec).collect();

@@ -20,7 +20,7 @@
 
 use std::path::PathBuf;
 
-use kairos_engine::smolvla::{ExpertInput, PrefixKv, SmolVlaExpert};
+use kairos_engine::smolvla::{ExpertDims, ExpertInput, PrefixKv, SmolVlaExpert};
 use kairos_engine::weights::Checkpoint;
 use kairos_engine::{DeviceKind, EngineOptions, Kernels};
 
@@ -52,36 +52,7 @@ fn load_golden(expert: &SmolVlaExpert) -> Golden {
     let (b, len) = (mask_shape[0], mask_shape[1]);
     let (n, a, k) = (d.chunk, d.action_pad, d.steps);
     let mask = io.tensor_u8("prefix_pad_mask", &[b, len]).unwrap();
-    let kv = [b, len, d.kv_heads, d.head_dim];
-    let per = len * d.kv_width();
-    let layers: Vec<(Vec<f32>, Vec<f32>)> = (0..d.layers.len())
-        .map(|l| {
-            (
-                io.tensor(&format!("prefix.{l}.key"), &kv).unwrap(),
-                io.tensor(&format!("prefix.{l}.value"), &kv).unwrap(),
-            )
-        })
-        .collect();
-    let prefixes = (0..b)
-        .map(|i| {
-            PrefixKv::new(
-                d,
-                mask[i * len..(i + 1) * len]
-                    .iter()
-                    .map(|&m| m != 0)
-                    .collect(),
-                layers
-                    .iter()
-                    .map(|(k, _)| k[i * per..(i + 1) * per].to_vec())
-                    .collect(),
-                layers
-                    .iter()
-                    .map(|(_, v)| v[i * per..(i + 1) * per].to_vec())
-                    .collect(),
-            )
-            .unwrap()
-        })
-        .collect();
+    let prefixes = golden_prefixes(d, &io, &mask, b, len, |l, kv| format!("prefix.{l}.{kv}"));
     let noise = io.tensor("noise", &[b, n, a]).unwrap();
     let state = io.tensor("state", &[b, d.state_pad]).unwrap();
     let meta: serde_json::Value =
@@ -106,7 +77,49 @@ fn load_golden(expert: &SmolVlaExpert) -> Golden {
     }
 }
 
-fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+/// One `PrefixKv` per batch row from golden K/V tensors `[b, len, kv_heads, head_dim]` (post-RoPE,
+/// LeRobot's layout) named `name(layer, "key" | "value")`, and the `[b, len]` pad mask.
+pub(crate) fn golden_prefixes(
+    d: &ExpertDims,
+    ckpt: &Checkpoint,
+    mask: &[u8],
+    b: usize,
+    len: usize,
+    name: impl Fn(usize, &str) -> String,
+) -> Vec<PrefixKv> {
+    let kv = [b, len, d.kv_heads, d.head_dim];
+    let per = len * d.kv_width();
+    let layers: Vec<(Vec<f32>, Vec<f32>)> = (0..d.layers.len())
+        .map(|l| {
+            (
+                ckpt.tensor(&name(l, "key"), &kv).unwrap(),
+                ckpt.tensor(&name(l, "value"), &kv).unwrap(),
+            )
+        })
+        .collect();
+    (0..b)
+        .map(|i| {
+            PrefixKv::new(
+                d,
+                mask[i * len..(i + 1) * len]
+                    .iter()
+                    .map(|&m| m != 0)
+                    .collect(),
+                layers
+                    .iter()
+                    .map(|(k, _)| k[i * per..(i + 1) * per].to_vec())
+                    .collect(),
+                layers
+                    .iter()
+                    .map(|(_, v)| v[i * per..(i + 1) * per].to_vec())
+                    .collect(),
+            )
+            .unwrap()
+        })
+        .collect()
+}
+
+pub(crate) fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
     a.iter()
         .zip(b)
