@@ -17,6 +17,7 @@
 
 pub mod env;
 pub mod model;
+pub mod signals;
 
 use std::fmt::Write as _;
 use std::sync::Mutex;
@@ -73,6 +74,35 @@ impl PolicyPoint {
             params: params.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
             samples: 1,
         }
+    }
+
+    /// Parses `name` or `name:k=v,k=v` (a native or loaded policy and its parameters). The
+    /// key `samples` is not a policy parameter: it sets the samples drawn per request (default 1).
+    pub fn parse(spec: &str) -> Result<PolicyPoint, String> {
+        let (name, rest) = spec.split_once(':').unwrap_or((spec, ""));
+        let name = name.trim();
+        if name.is_empty() {
+            return Err(format!("`{spec}`: empty policy name"));
+        }
+        let mut point = PolicyPoint::new(name, &[]);
+        for pair in rest.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+            let (k, v) = pair
+                .split_once('=')
+                .ok_or_else(|| format!("`{pair}` is not key=value"))?;
+            let v: f64 = v
+                .trim()
+                .parse()
+                .map_err(|_| format!("{k}: `{v}` is not a number"))?;
+            if k.trim() == "samples" {
+                if !(v >= 1.0 && v.fract() == 0.0 && v <= 1024.0) {
+                    return Err(format!("samples: {v} is not a whole number in 1..=1024"));
+                }
+                point.samples = v as usize;
+            } else {
+                point.params.insert(k.trim().to_string(), v);
+            }
+        }
+        Ok(point)
     }
 
     /// The parameters as `k=v;k=v` (a CSV cell without commas).
@@ -132,7 +162,7 @@ pub struct Episode {
 }
 
 /// Noise seed of request `call` of episode `episode`.
-fn noise_seed(episode: u64, call: u32) -> u64 {
+pub(crate) fn noise_seed(episode: u64, call: u32) -> u64 {
     episode
         .wrapping_mul(0x9E37_79B9_7F4A_7C15)
         .wrapping_add(u64::from(call))
@@ -313,7 +343,7 @@ pub fn run_bench(
     Ok(out)
 }
 
-fn summarize(point: &PolicyPoint, episodes: &[Episode]) -> PointResult {
+pub(crate) fn summarize(point: &PolicyPoint, episodes: &[Episode]) -> PointResult {
     let n = episodes.len().max(1) as f64;
     let calls: u64 = episodes.iter().map(|e| u64::from(e.calls)).sum();
     let steps: u64 = episodes.iter().map(|e| u64::from(e.steps)).sum();
