@@ -59,8 +59,9 @@ pub struct HorizonArgs {
     /// correlate with (`horizon_bench::signals`), into summary.md. 0: skip.
     #[arg(long, default_value_t = 0, value_name = "EPISODES")]
     pub signals: usize,
-    /// Also run the ground-truth oracle (`horizon_bench::signals::oracle_episode`, an upper
-    /// bound no serving-time policy can reach) at this error bound. Repeatable.
+    /// Also run the ground-truth oracles (`horizon_bench::signals::oracle_episode`, with and
+    /// without foresight of the episode's future: upper bounds no serving-time policy can
+    /// reach) at this error bound. Repeatable.
     #[arg(long = "oracle", value_name = "MAX_ERROR")]
     pub oracles: Vec<f64>,
     /// Skip the plot.
@@ -142,14 +143,16 @@ pub fn run(a: HorizonArgs) -> anyhow::Result<()> {
     );
     let mut results = run_bench(&model, &manager, &plan, &|| bar.inc(1))?;
     bar.finish_and_clear();
-    for &bound in &a.oracles {
-        let episodes = (0..episodes as u64)
-            .map(|e| signals::oracle_episode(&model, &plan.env, a.seed + e, bound))
-            .collect::<Result<Vec<_>, _>>()?;
-        results.push(crate::horizon_bench::summarize(
-            &PolicyPoint::new("oracle", &[("max_error", bound)]),
-            &episodes,
-        ));
+    for foresight in [true, false] {
+        for &bound in &a.oracles {
+            results.push(signals::oracle_point(
+                &model,
+                &plan.env,
+                (a.seed, episodes, threads),
+                bound,
+                foresight,
+            )?);
+        }
     }
 
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;

@@ -136,6 +136,16 @@ impl Env {
         }
     }
 
+    /// A copy of this episode's present with no future randomness: no actuation noise, no
+    /// pushes, no turns of the goal (what a plan made now could at best foresee).
+    pub fn without_randomness(&self) -> Env {
+        let mut env = self.clone();
+        env.cfg.action_noise = 0.0;
+        env.cfg.push_rate = 0.0;
+        env.cfg.goal_turn_rate = 0.0;
+        env
+    }
+
     /// The task's constants.
     pub fn config(&self) -> &EnvConfig {
         &self.cfg

@@ -121,6 +121,19 @@ pub const STATIC_GRID: [f64; 7] = [1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 16.0];
 pub const THRESHOLD_GRID: [f64; 5] = [0.05, 0.2, 0.4, 1.0, 3.0];
 /// Spread thresholds (4 samples, action units: commands are in [−1, 1]) in the full grid.
 pub const SPREAD_GRID: [f64; 4] = [0.1, 0.2, 0.3, 0.5];
+/// Which denoising step the §3.1 rule reads (0-based; the default reads the last, 9 of 10), at
+/// thresholds `t` 0.05 and 0.4, in the full grid.
+pub const THRESHOLD_STEP_GRID: [f64; 3] = [1.0, 3.0, 6.0];
+/// Spread thresholds with 8 samples and at least 2 actions in the full grid (the best
+/// serving-time trade-off on held-out seeds).
+pub const SPREAD8_GRID: [f64; 3] = [0.2, 0.25, 0.3];
+/// `steady` settings `(delta, margin, h_max)` in the full grid (0: no cap).
+pub const STEADY_GRID: [(f64, f64, f64); 4] = [
+    (0.3, 0.0, 4.0),
+    (0.5, 1.0, 4.0),
+    (0.5, 2.0, 6.0),
+    (0.5, 1.0, 0.0),
+];
 
 /// The built-in policies of a run: static H over a grid, the §3.1 threshold rule at several
 /// thresholds, and the multi-sample spread rule (`quick`: a few of each).
@@ -145,6 +158,29 @@ pub fn builtin_points(quick: bool) -> Vec<PolicyPoint> {
         samples: 4,
         ..PolicyPoint::new("spread", &[("threshold", th)])
     }));
+    let steady = |&(delta, margin, cap): &(f64, f64, f64)| {
+        let mut p = PolicyPoint::new("steady", &[("delta", delta), ("margin", margin)]);
+        if cap > 0.0 {
+            p.params.insert("h_max".into(), cap);
+        }
+        p
+    };
+    if quick {
+        points.push(steady(&STEADY_GRID[1]));
+        return points;
+    }
+    for step in THRESHOLD_STEP_GRID {
+        points.extend([0.05, 0.4].map(|t| PolicyPoint {
+            family: format!("threshold step={step}"),
+            ..PolicyPoint::new("threshold", &[("t", t), ("step", step)])
+        }));
+    }
+    points.extend(SPREAD8_GRID.iter().map(|&th| PolicyPoint {
+        family: "spread S=8".into(),
+        samples: 8,
+        ..PolicyPoint::new("spread", &[("threshold", th), ("h_min", 2.0)])
+    }));
+    points.extend(STEADY_GRID.iter().map(steady));
     points
 }
 
@@ -427,9 +463,22 @@ mod tests {
     }
 
     #[test]
+    fn policy_specs_parse_with_their_sample_count() {
+        let p = PolicyPoint::parse("steady:delta=0.5,margin=1").unwrap();
+        assert_eq!((p.name.as_str(), p.samples), ("steady", 1));
+        assert_eq!(p.params_text(), "delta=0.5;margin=1");
+        let p = PolicyPoint::parse("spread:threshold=0.25,samples=8").unwrap();
+        assert_eq!((p.samples, p.params_text().as_str()), (8, "threshold=0.25"));
+        assert!(PolicyPoint::parse("static").unwrap().params.is_empty());
+        assert!(PolicyPoint::parse("spread:samples=0").is_err());
+        assert!(PolicyPoint::parse("static:h").is_err());
+        assert!(PolicyPoint::parse(":h=1").is_err());
+    }
+
+    #[test]
     fn the_quick_plan_has_every_family() {
         let points = builtin_points(true);
-        for family in ["static", "threshold", "spread"] {
+        for family in ["static", "threshold", "spread", "steady"] {
             assert!(points.iter().any(|p| p.family == family), "{family}");
         }
         assert!(builtin_points(false).len() > points.len());

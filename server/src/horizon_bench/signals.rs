@@ -55,15 +55,20 @@ fn distance(a: &[f32], b: &[f32]) -> f64 {
     acc.sqrt()
 }
 
-/// The records of one chunk generated in `env` (sample 0), rolled out open loop on a copy.
-fn chunk_records(chunk: &ActionChunk, env: &Env) -> Vec<ActionRecord> {
+/// The records of one chunk generated in `env` (sample 0), rolled out open loop on a copy
+/// (`foresight`: with the episode's own future noise and pushes; otherwise with none).
+fn chunk_records(chunk: &ActionChunk, env: &Env, foresight: bool) -> Vec<ActionRecord> {
     let (k, n_len, d) = (chunk.steps, chunk.chunk_len, chunk.action_dim);
     let update = |step: usize, n: usize| {
         let start = (step * n_len + n) * d;
         l2(&chunk.updates[start..start + d])
     };
     let action = |n: usize| &chunk.actions[n * d..(n + 1) * d];
-    let mut rollout = env.clone();
+    let mut rollout = if foresight {
+        env.clone()
+    } else {
+        env.without_randomness()
+    };
     let held = env.observe()[8] > 0.5;
     let mut out = Vec::with_capacity(n_len);
     for n in 0..n_len {
@@ -119,7 +124,7 @@ pub fn collect(
         while !env.done() {
             let chunk = model.sample(&env.observe(), 1, noise_seed(seed + e, call))?;
             call += 1;
-            records.extend(chunk_records(&chunk, &env));
+            records.extend(chunk_records(&chunk, &env, true));
             for a in chunk.sample_actions(0).chunks_exact(ACTION_DIM).take(h.max(1)) {
                 if env.done() {
                     break;
@@ -197,23 +202,27 @@ pub fn correlation_table(records: &[ActionRecord]) -> String {
     s
 }
 
-/// The ground-truth oracle, an upper bound for any horizon policy: at each request it rolls the
-/// chunk out on a copy of the episode (the same random generator, so exactly what executing it
-/// would do, pushes included) and executes up to the first action whose error exceeds
-/// `max_error` (at least one). No serving-time policy can see this; it says how much horizon a
-/// perfect reader of this model's chunks could take.
+/// The ground-truth oracle, an upper bound for horizon policies: at each request it rolls the
+/// chunk out on a copy of the episode and executes up to the first action whose error exceeds
+/// `max_error` (at least one). With `foresight` the copy carries the episode's random
+/// generator, so the rollout is exactly what executing the chunk will do, future pushes and
+/// noise included; without, the copy has no future randomness
+/// ([`Env::without_randomness`]): the oracle then knows the true state and which of the
+/// chunk's actions are wrong, but not the future — the most a perfect reader of this model's
+/// chunks could know. No serving-time policy sees either.
 pub fn oracle_episode(
     model: &FlowPolicy,
     env_cfg: &EnvConfig,
     seed: u64,
     max_error: f64,
+    foresight: bool,
 ) -> Result<super::Episode, BenchError> {
     let mut env = Env::new(env_cfg.clone(), seed);
     let mut out = super::Episode::default();
     while !env.done() {
         let chunk = model.sample(&env.observe(), 1, noise_seed(seed, out.calls))?;
         out.calls += 1;
-        let records = chunk_records(&chunk, &env);
+        let records = chunk_records(&chunk, &env, foresight);
         let h = records
             .iter()
             .position(|r| !(r.error <= max_error))
@@ -230,4 +239,92 @@ pub fn oracle_episode(
     out.success = env.success();
     out.steps = env.steps();
     Ok(out)
+}
+
+/// [`oracle_episode`] over `episodes` episodes from `seed` on `threads` threads, summarised as
+/// the point `oracle` (with foresight) or `oracle-nominal` (without).
+pub fn oracle_point(
+    model: &FlowPolicy,
+    env_cfg: &EnvConfig,
+    (seed, episodes, threads): (u64, usize, usize),
+    max_error: f64,
+    foresight: bool,
+) -> Result<super::PointResult, BenchError> {
+    let threads = threads.clamp(1, episodes.max(1));
+    let chunks: Vec<Result<Vec<super::Episode>, BenchError>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = (0..threads)
+            .map(|t| {
+                scope.spawn(move || {
+                    (t..episodes)
+                        .step_by(threads)
+                        .map(|e| oracle_episode(model, env_cfg, seed + e as u64, max_error, foresight))
+                        .collect::<Result<Vec<_>, _>>()
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| {
+                h.join()
+                    .unwrap_or_else(|_| Err(BenchError::Setup("an oracle thread panicked".into())))
+            })
+            .collect()
+    });
+    let mut all = Vec::with_capacity(episodes);
+    for c in chunks {
+        all.extend(c?);
+    }
+    let family = if foresight { "oracle" } else { "oracle-nominal" };
+    Ok(super::summarize(
+        &super::PolicyPoint::new(family, &[("max_error", max_error)]),
+        &all,
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A chunk of the expert's own actions along the nominal (randomness-free) future of `env`.
+    fn expert_chunk(env: &Env, n: usize) -> ActionChunk {
+        let mut nominal = env.without_randomness();
+        let mut actions = Vec::with_capacity(n * ACTION_DIM);
+        for _ in 0..n {
+            let a = expert_action(&nominal.observe(), nominal.config(), 1.0);
+            actions.extend_from_slice(&a);
+            nominal.step(&a);
+        }
+        ActionChunk {
+            samples: 1,
+            steps: 2,
+            chunk_len: n,
+            action_dim: ACTION_DIM,
+            updates: vec![1.0; 2 * n * ACTION_DIM],
+            noise: vec![0.5; n * ACTION_DIM],
+            actions,
+        }
+    }
+
+    #[test]
+    fn the_experts_own_chunk_has_no_error_without_foresight_and_some_with_it() {
+        let env = Env::new(EnvConfig::default(), 4);
+        let chunk = expert_chunk(&env, 12);
+        let nominal = chunk_records(&chunk, &env, false);
+        assert_eq!(nominal.len(), 12);
+        assert!(nominal.iter().all(|r| r.error == 0.0), "{nominal:?}");
+        assert!(nominal.iter().all(|r| r.ratios == [1.0] && r.final_update > 0.0));
+        assert_eq!(nominal[0].jump, 0.0);
+        let jump3 = distance(&chunk.actions[6..9], &chunk.actions[9..12]);
+        assert_eq!(nominal[3].jump, jump3);
+        // The real future has actuation noise, so the plan drifts off what the expert would do.
+        let real = chunk_records(&chunk, &env, true);
+        assert_eq!(real[0].error, 0.0, "the first action sees the present");
+        assert!(real.iter().any(|r| r.error > 0.0));
+        let table = correlation_table(&real);
+        let row = table
+            .lines()
+            .find(|l| l.starts_with("| position n |"))
+            .unwrap_or_default();
+        assert!(row.contains("| +1.000 |"), "ρ(position, position) = 1: {table}");
+    }
 }
