@@ -119,7 +119,9 @@ impl HorizonPolicy for Steady {
         let prefix = first_change(&input.chunk, config.delta).saturating_sub(config.margin);
         let capped = HorizonInput {
             h_max: config.h_max.map_or(input.h_max, |cap| {
-                input.h_max.min(cap.max(input.h_min.max(config.h_min.unwrap_or(0))))
+                input
+                    .h_max
+                    .min(cap.max(input.h_min.max(config.h_min.unwrap_or(0))))
             }),
             ..*input
         };

@@ -262,7 +262,10 @@ fn threshold_reads_the_chosen_denoising_step() {
     assert_eq!(choose("threshold", &[("step", 2.0)], &two, 1, 2), Ok(1));
     assert_eq!(choose("threshold", &[], &two, 1, 2), Ok(2));
     let bad = |p: &[(&str, f64)]| builtin("threshold", &params(p)).is_err();
-    assert!(bad(&[("step", 0.0)]), "step 0 has no earlier steps to compare with");
+    assert!(
+        bad(&[("step", 0.0)]),
+        "step 0 has no earlier steps to compare with"
+    );
     assert!(bad(&[("step", 1.5)]));
 }
 
@@ -282,18 +285,38 @@ fn steady_cuts_margin_actions_before_the_chunk_changes_course() {
     assert_eq!(steady::first_change(&v, 0.25), 5);
     assert!((steady::action_jump(&v, 5) - 2f64.sqrt()).abs() < 1e-12);
     assert_eq!(steady::action_jump(&v, 3), 0.0);
-    assert_eq!(choose("steady", &[], &c, 1, 8), Ok(4), "margin defaults to 1");
+    assert_eq!(
+        choose("steady", &[], &c, 1, 8),
+        Ok(4),
+        "margin defaults to 1"
+    );
     assert_eq!(choose("steady", &[("margin", 0.0)], &c, 1, 8), Ok(5));
     assert_eq!(choose("steady", &[("margin", 3.0)], &c, 1, 8), Ok(2));
-    assert_eq!(choose("steady", &[("margin", 9.0)], &c, 1, 8), Ok(1), "never below h_min");
-    assert_eq!(choose("steady", &[("margin", 9.0), ("h_min", 3.0)], &c, 1, 8), Ok(3));
+    assert_eq!(
+        choose("steady", &[("margin", 9.0)], &c, 1, 8),
+        Ok(1),
+        "never below h_min"
+    );
+    assert_eq!(
+        choose("steady", &[("margin", 9.0), ("h_min", 3.0)], &c, 1, 8),
+        Ok(3)
+    );
     // A delta above the jump sees no change: the whole chunk, up to the caps.
     assert_eq!(choose("steady", &[("delta", 1.5)], &c, 1, 8), Ok(7));
-    assert_eq!(choose("steady", &[("delta", 1.5), ("margin", 0.0)], &c, 1, 8), Ok(8));
-    assert_eq!(choose("steady", &[("delta", 1.5), ("h_max", 3.0)], &c, 1, 8), Ok(3));
+    assert_eq!(
+        choose("steady", &[("delta", 1.5), ("margin", 0.0)], &c, 1, 8),
+        Ok(8)
+    );
+    assert_eq!(
+        choose("steady", &[("delta", 1.5), ("h_max", 3.0)], &c, 1, 8),
+        Ok(3)
+    );
     assert_eq!(choose("steady", &[("delta", 1.5)], &c, 1, 6), Ok(6));
     // An h_max below h_min is raised to it.
-    assert_eq!(choose("steady", &[("h_max", 1.0), ("h_min", 2.0)], &c, 1, 8), Ok(2));
+    assert_eq!(
+        choose("steady", &[("h_max", 1.0), ("h_min", 2.0)], &c, 1, 8),
+        Ok(2)
+    );
     // Exactly delta is still steady; a NaN is a change.
     let mut edge = Chunk::zeros(1, 1, 4, 1);
     for (i, x) in [0.0f32, 0.5, 1.0, 1.5].iter().enumerate() {
@@ -312,7 +335,12 @@ fn steady_cuts_margin_actions_before_the_chunk_changes_course() {
     assert!(bad(&[("margin", -1.0)]));
     assert!(bad(&[("h_max", 0.0)]));
     assert!(bad(&[("jump", 0.3)]));
-    assert!(!bad(&[("delta", 0.0), ("margin", 0.0), ("h_min", 1.0), ("h_max", 4.0)]));
+    assert!(!bad(&[
+        ("delta", 0.0),
+        ("margin", 0.0),
+        ("h_min", 1.0),
+        ("h_max", 4.0)
+    ]));
 }
 
 fn arb_chunk() -> impl Strategy<Value = Chunk> {

@@ -125,7 +125,11 @@ pub fn collect(
             let chunk = model.sample(&env.observe(), 1, noise_seed(seed + e, call))?;
             call += 1;
             records.extend(chunk_records(&chunk, &env, true));
-            for a in chunk.sample_actions(0).chunks_exact(ACTION_DIM).take(h.max(1)) {
+            for a in chunk
+                .sample_actions(0)
+                .chunks_exact(ACTION_DIM)
+                .take(h.max(1))
+            {
                 if env.done() {
                     break;
                 }
@@ -182,10 +186,10 @@ pub fn correlation_table(records: &[ActionRecord]) -> String {
     for _ in 0..=max_pos {
         s.push_str("---|");
     }
-    let phases: [(&str, &dyn Fn(&ActionRecord) -> bool); 3] = [
-        ("all", &|_| true),
-        ("reach", &|r| !r.held),
-        ("carry", &|r| r.held),
+    let phases: [(&str, fn(&ActionRecord) -> bool); 3] = [
+        ("all", |_| true),
+        ("reach", |r| !r.held),
+        ("carry", |r| r.held),
     ];
     for (label, keep) in phases {
         let _ = write!(s, "\n| error, {label} |");
@@ -195,7 +199,11 @@ pub fn correlation_table(records: &[ActionRecord]) -> String {
                 .filter(|r| r.position == n && keep(r))
                 .map(|r| r.error)
                 .collect();
-            let _ = write!(s, " {:.3} |", at.iter().sum::<f64>() / at.len().max(1) as f64);
+            let _ = write!(
+                s,
+                " {:.3} |",
+                at.iter().sum::<f64>() / at.len().max(1) as f64
+            );
         }
     }
     s.push('\n');
@@ -225,7 +233,7 @@ pub fn oracle_episode(
         let records = chunk_records(&chunk, &env, foresight);
         let h = records
             .iter()
-            .position(|r| !(r.error <= max_error))
+            .position(|r| r.error.is_nan() || r.error > max_error)
             .unwrap_or(records.len())
             .max(1);
         out.horizon_sum += h as u64;
@@ -257,7 +265,9 @@ pub fn oracle_point(
                 scope.spawn(move || {
                     (t..episodes)
                         .step_by(threads)
-                        .map(|e| oracle_episode(model, env_cfg, seed + e as u64, max_error, foresight))
+                        .map(|e| {
+                            oracle_episode(model, env_cfg, seed + e as u64, max_error, foresight)
+                        })
                         .collect::<Result<Vec<_>, _>>()
                 })
             })
@@ -274,7 +284,11 @@ pub fn oracle_point(
     for c in chunks {
         all.extend(c?);
     }
-    let family = if foresight { "oracle" } else { "oracle-nominal" };
+    let family = if foresight {
+        "oracle"
+    } else {
+        "oracle-nominal"
+    };
     Ok(super::summarize(
         &super::PolicyPoint::new(family, &[("max_error", max_error)]),
         &all,
@@ -312,7 +326,11 @@ mod tests {
         let nominal = chunk_records(&chunk, &env, false);
         assert_eq!(nominal.len(), 12);
         assert!(nominal.iter().all(|r| r.error == 0.0), "{nominal:?}");
-        assert!(nominal.iter().all(|r| r.ratios == [1.0] && r.final_update > 0.0));
+        assert!(
+            nominal
+                .iter()
+                .all(|r| r.ratios == [1.0] && r.final_update > 0.0)
+        );
         assert_eq!(nominal[0].jump, 0.0);
         let jump3 = distance(&chunk.actions[6..9], &chunk.actions[9..12]);
         assert_eq!(nominal[3].jump, jump3);
@@ -325,6 +343,9 @@ mod tests {
             .lines()
             .find(|l| l.starts_with("| position n |"))
             .unwrap_or_default();
-        assert!(row.contains("| +1.000 |"), "ρ(position, position) = 1: {table}");
+        assert!(
+            row.contains("| +1.000 |"),
+            "ρ(position, position) = 1: {table}"
+        );
     }
 }

@@ -318,7 +318,8 @@ fn steady_inputs(seed: u64, count: usize) -> Vec<(HorizonCase, PolicyParams)> {
         .into_iter()
         .map(|mut case| {
             let (_, _, n, d) = case.dims;
-            let delta: f64 = [0.0, 0.1, 0.25, 0.5, rng.random_range(0.0..2.0)][rng.random_range(0..5)];
+            let delta: f64 =
+                [0.0, 0.1, 0.25, 0.5, rng.random_range(0.0..2.0)][rng.random_range(0..5)];
             for action in 1..n {
                 let jump = match rng.random_range(0..10) {
                     0 => 4.0 * delta + 1.0,
@@ -392,7 +393,10 @@ fn steady_plugin_matches_its_native_twin() {
         }
     }
     assert!(decided > 300, "too few valid decisions: {decided}");
-    assert!(cut_inside > 50, "too few cuts inside the bounds: {cut_inside}");
+    assert!(
+        cut_inside > 50,
+        "too few cuts inside the bounds: {cut_inside}"
+    );
 }
 
 /// Pending lists with many ties: arrival times, waits and executions drawn from small sets, so
