@@ -186,17 +186,14 @@ pub fn correlation_table(records: &[ActionRecord]) -> String {
     for _ in 0..=max_pos {
         s.push_str("---|");
     }
-    let phases: [(&str, fn(&ActionRecord) -> bool); 3] = [
-        ("all", |_| true),
-        ("reach", |r| !r.held),
-        ("carry", |r| r.held),
-    ];
-    for (label, keep) in phases {
+    // Phase filter: every action, or only those generated while the object was (not) held.
+    let phases = [("all", None), ("reach", Some(false)), ("carry", Some(true))];
+    for (label, held) in phases {
         let _ = write!(s, "\n| error, {label} |");
         for n in 0..=max_pos {
             let at: Vec<f64> = records
                 .iter()
-                .filter(|r| r.position == n && keep(r))
+                .filter(|r| r.position == n && held.is_none_or(|h| r.held == h))
                 .map(|r| r.error)
                 .collect();
             let _ = write!(
