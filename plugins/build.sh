@@ -58,6 +58,7 @@ build_py() { # name world
 
 build_c threshold horizon
 build_c static horizon
+build_c steady horizon
 build_c fifo priority
 build_c plas priority
 build_c kairos priority
@@ -71,6 +72,7 @@ check() { "$KAIROS" plugin check --cache-dir "$CACHE" --cases 100 "$@" >/dev/nul
     "$KAIROS" plugin check --cache-dir "$CACHE" --cases 100 "$@"; exit 1; }; }
 check "$OUT/threshold.wasm"
 check "$OUT/static.wasm" --param h=8
+check "$OUT/steady.wasm"
 check "$OUT/fifo.wasm"
 check "$OUT/plas.wasm"
 check "$OUT/kairos.wasm"

@@ -5,13 +5,15 @@
  * the same answer bit for bit (checked by server/tests/plugin_twins.rs):
  *   1. Only sample 0 is used. ||U[0][k][n]|| is the L2 norm over the D values, accumulated in
  *      double in dimension order (no fused multiply-add), then sqrt.
- *   2. mean_n = (sum over k = 0..K-2 of ||U[0][k][n]||) / (K-1), summed in step order.
- *   3. Action n exceeds iff !(||U[0][K-1][n]|| <= (1+t) * mean_n): a NaN counts as unconverged.
+ *   2. The step read is r = min(step, K-1) (step defaults to K-1, the final step).
+ *      mean_n = (sum over k = 0..r-1 of ||U[0][k][n]||) / r, summed in step order.
+ *   3. Action n exceeds iff !(||U[0][r][n]|| <= (1+t) * mean_n): a NaN counts as unconverged.
  *      With K = 1 no action exceeds.
  *   4. H_thresh = index of the first exceeding action, or N if none exceeds.
  *   5. H = min(max(H_thresh, h_min), h_max), h_min = max(context h-min, param h_min),
  *      h_max = min(context h-max, N).
- * Parameters: t (real >= 0, default 0.4), h_min (whole number >= 1, optional).
+ * Parameters: t (real >= 0, default 0.4), h_min (whole number >= 1, optional), step (whole
+ * number >= 1, optional: the 0-based denoising step whose update is read).
  */
 #include "horizon_policy.h"
 #include "kairos_policy.h"
@@ -29,17 +31,19 @@ static double l2(const float *v, uint32_t d) {
     return sqrt(acc);
 }
 
-static uint32_t threshold_prefix(const exports_kairos_policy_horizon_chunk_t *c, double t) {
+/* step == 0: the final step. */
+static uint32_t threshold_prefix(const exports_kairos_policy_horizon_chunk_t *c, double t, uint32_t step) {
     uint32_t k = c->steps, n_len = c->chunk_len, d = c->action_dim;
     if (k < 2) return n_len;
+    uint32_t read = (step == 0 || step > k - 1) ? k - 1 : step;
     double bound = 1.0 + t;
     size_t step_stride = (size_t)n_len * d;
     for (uint32_t n = 0; n < n_len; n++) {
         const float *u = c->updates.ptr + (size_t)n * d; /* sample 0, step 0, action n */
         double sum = 0.0;
-        for (uint32_t s = 0; s + 1 < k; s++) sum += l2(u + s * step_stride, d);
-        double mean = sum / (double)(k - 1);
-        double last = l2(u + (size_t)(k - 1) * step_stride, d);
+        for (uint32_t s = 0; s < read; s++) sum += l2(u + s * step_stride, d);
+        double mean = sum / (double)read;
+        double last = l2(u + (size_t)read * step_stride, d);
         if (!(last <= bound * mean)) return n;
     }
     return n_len;
@@ -55,10 +59,10 @@ static bool decide(exports_kairos_policy_horizon_chunk_t *chunk,
                    exports_kairos_policy_horizon_horizon_context_t *ctx,
                    exports_kairos_policy_horizon_list_param_t *params, uint32_t *ret,
                    horizon_error_t *err) {
-    static const char *const known[] = {"t", "h_min", NULL};
+    static const char *const known[] = {"h_min", "step", "t", NULL};
     const kairos_policy_types_param_t *unknown = kairos_param_unknown(params->ptr, params->len, known);
     if (unknown) {
-        param_error(err, unknown, "unknown parameter (expected one of: t, h_min)");
+        param_error(err, unknown, "unknown parameter (expected one of: t, h_min, step)");
         return false;
     }
     double t = DEFAULT_T;
@@ -79,6 +83,15 @@ static bool decide(exports_kairos_policy_horizon_chunk_t *chunk,
         }
         extra_min = p->value > 4294967295.0 ? UINT32_MAX : (uint32_t)p->value;
     }
+    uint32_t step = 0;
+    p = kairos_param_find(params->ptr, params->len, "step");
+    if (p) {
+        if (!kairos_is_count(p->value)) {
+            param_error(err, p, "not a whole number of steps >= 1");
+            return false;
+        }
+        step = p->value > 4294967295.0 ? UINT32_MAX : (uint32_t)p->value;
+    }
     uint32_t h_max = ctx->h_max < chunk->chunk_len ? ctx->h_max : chunk->chunk_len;
     if (ctx->h_min == 0 || ctx->h_min > h_max) {
         err->tag = EXPORTS_KAIROS_POLICY_HORIZON_HORIZON_ERROR_UNSUPPORTED;
@@ -87,7 +100,7 @@ static bool decide(exports_kairos_policy_horizon_chunk_t *chunk,
     }
     uint32_t h_min = ctx->h_min > extra_min ? ctx->h_min : extra_min;
     if (h_min > h_max) h_min = h_max;
-    uint32_t h = threshold_prefix(chunk, t);
+    uint32_t h = threshold_prefix(chunk, t, step);
     if (h < h_min) h = h_min;
     if (h > h_max) h = h_max;
     *ret = h;

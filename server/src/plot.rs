@@ -59,12 +59,19 @@ fn color(key: &str, fallback: usize) -> RGBColor {
         "srw-hint" => RGBColor(148, 103, 189),
         "cloud" | "intra-fifo" => RGBColor(214, 39, 40),
         _ => {
-            const PALETTE: [RGBColor; 5] = [
+            // Series 0–3 of most plots take the named colours above, so from index 4 on the
+            // fallbacks differ from them and from each other.
+            const PALETTE: [RGBColor; 10] = [
                 RGBColor(23, 190, 207),
                 RGBColor(188, 189, 34),
                 RGBColor(227, 119, 194),
                 RGBColor(140, 86, 75),
-                RGBColor(127, 127, 127),
+                RGBColor(214, 39, 40),
+                RGBColor(148, 103, 189),
+                RGBColor(0, 0, 0),
+                RGBColor(227, 119, 194),
+                RGBColor(23, 190, 207),
+                RGBColor(188, 189, 34),
             ];
             PALETTE[fallback % PALETTE.len()]
         }

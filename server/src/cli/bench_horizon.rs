@@ -1,6 +1,7 @@
 //! `kairos bench horizon`: parses its arguments, runs [`crate::horizon_bench`] with a progress
 //! bar, and writes `pareto.csv`, `summary.md` and the plot; `--train` trains the policy instead.
 
+use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -9,6 +10,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::horizon_bench::model::{FlowPolicy, TrainConfig, train};
+use crate::horizon_bench::signals;
 use crate::horizon_bench::{
     BenchPlan, PolicyPoint, action_manager, builtin_points, markdown_table, pareto_csv, run_bench,
 };
@@ -36,6 +38,11 @@ pub struct HorizonArgs {
     /// Worker threads (default: available cores).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Run these policies instead of the built-in grid: `name` or `name:k=v,k=v` (a native
+    /// policy, e.g. `steady:delta=0.3,margin=1`; `samples=S` draws S samples per request).
+    /// Repeatable; plugins given with --horizon-plugin are still added.
+    #[arg(long = "policy", value_name = "SPEC", value_parser = PolicyPoint::parse)]
+    pub policies: Vec<PolicyPoint>,
     /// A horizon-policy plugin (`.wasm` component) to evaluate beside the built-ins. Repeatable.
     #[arg(long = "horizon-plugin", value_name = "F.wasm")]
     pub horizon_plugins: Vec<PathBuf>,
@@ -48,6 +55,15 @@ pub struct HorizonArgs {
     /// Precompiled plugin code cache (default: the user's cache directory).
     #[arg(long, value_name = "DIR")]
     pub plugin_cache: Option<PathBuf>,
+    /// Also record, over this many episodes at static H = 2, what the horizon signals
+    /// correlate with (`horizon_bench::signals`), into summary.md. 0: skip.
+    #[arg(long, default_value_t = 0, value_name = "EPISODES")]
+    pub signals: usize,
+    /// Also run the ground-truth oracles (`horizon_bench::signals::oracle_episode`, with and
+    /// without foresight of the episode's future: upper bounds no serving-time policy can
+    /// reach) at this error bound. Repeatable.
+    #[arg(long = "oracle", value_name = "MAX_ERROR")]
+    pub oracles: Vec<f64>,
     /// Skip the plot.
     #[arg(long)]
     pub no_plots: bool,
@@ -85,7 +101,11 @@ pub fn run(a: HorizonArgs) -> anyhow::Result<()> {
         &cache,
     )?;
     let manager = action_manager(user.policies.horizon.clone())?;
-    let mut points = builtin_points(a.quick);
+    let mut points = if a.policies.is_empty() {
+        builtin_points(a.quick)
+    } else {
+        a.policies.clone()
+    };
     for p in user
         .plugins
         .iter()
@@ -121,8 +141,19 @@ pub fn run(a: HorizonArgs) -> anyhow::Result<()> {
         .unwrap_or_else(|_| ProgressStyle::default_bar())
         .progress_chars("=> "),
     );
-    let results = run_bench(&model, &manager, &plan, &|| bar.inc(1))?;
+    let mut results = run_bench(&model, &manager, &plan, &|| bar.inc(1))?;
     bar.finish_and_clear();
+    for foresight in [true, false] {
+        for &bound in &a.oracles {
+            results.push(signals::oracle_point(
+                &model,
+                &plan.env,
+                (a.seed, episodes, threads),
+                bound,
+                foresight,
+            )?);
+        }
+    }
 
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let csv = pareto_csv(&results);
@@ -139,6 +170,17 @@ pub fn run(a: HorizonArgs) -> anyhow::Result<()> {
         manager.fallback_count(),
     );
     summary.push_str(&markdown_table(&results));
+    if a.signals > 0 {
+        let records = signals::collect(&model, &plan.env, a.seed, a.signals, 2)?;
+        let _ = write!(
+            summary,
+            "\n## What the signals correlate with\n\nEvery action of every chunk of {} episodes at static H = 2 (seeds {}..{}), rolled out open loop to the chunk's end; error = distance to the nearer of the expert's two modes at the state reached (`horizon_bench::signals`). ",
+            a.signals,
+            a.seed,
+            a.seed + a.signals as u64 - 1
+        );
+        summary.push_str(&signals::correlation_table(&records));
+    }
     std::fs::write(a.out.join("summary.md"), &summary).context("writing summary.md")?;
     if !a.no_plots {
         let mut families: Vec<ParetoSeries<'_>> = Vec::new();

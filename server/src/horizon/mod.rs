@@ -8,7 +8,9 @@
 //! Native policies (each module documents its exact arithmetic, for plugin twins):
 //! - [`threshold`]: the paper's §3.1 confidence threshold (default);
 //! - [`fixed`]: a static horizon `h`;
-//! - [`spread`]: agreement across `S ≥ 2` samples of the chunk.
+//! - [`spread`]: agreement across `S ≥ 2` samples of the chunk;
+//! - [`steady`]: execute while the chunk's actions stay steady, cut before the chunk changes
+//!   course (the closed-loop bench's best trade-off, `docs/eval/horizon/`).
 //!
 //! [`NATIVE_POLICIES`] is their table (what the horizon registry registers); [`builtin`] builds
 //! one by name with validated parameters. The parameters given there are the
@@ -18,6 +20,7 @@
 pub mod fixed;
 mod params;
 pub mod spread;
+pub mod steady;
 pub mod threshold;
 
 use std::collections::BTreeMap;
@@ -157,7 +160,7 @@ pub fn validate_horizon(horizon: usize, input: &HorizonInput<'_>) -> Result<usiz
 pub const NATIVE_POLICIES: &[Native<HorizonKind>] = &[
     Native {
         name: "threshold",
-        summary: "paper §3.1: cut at the first action whose final diffusion update exceeds (1+t)x its earlier mean; params t (0.4), h_min",
+        summary: "paper §3.1: cut at the first action whose final diffusion update exceeds (1+t)x its earlier mean; params t (0.4), h_min, step (the step read, default the last)",
         build: build_threshold,
     },
     Native {
@@ -169,6 +172,11 @@ pub const NATIVE_POLICIES: &[Native<HorizonKind>] = &[
         name: "spread",
         summary: "cut where S>=2 samples disagree by more than threshold (RMS std over dims); params threshold (0.1), h_min",
         build: build_spread,
+    },
+    Native {
+        name: "steady",
+        summary: "execute while consecutive actions differ by <= delta, cut margin actions before the first change; params delta (0.25), margin (1), h_min, h_max",
+        build: build_steady,
     },
 ];
 
@@ -182,6 +190,10 @@ fn build_static(params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, Horizon
 
 fn build_spread(params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, HorizonError> {
     Ok(Box::new(spread::Spread::from_params(params)?))
+}
+
+fn build_steady(params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, HorizonError> {
+    Ok(Box::new(steady::Steady::from_params(params)?))
 }
 
 /// Builds the native policy `name` with `params` (validated: unknown names, out-of-range or

@@ -243,6 +243,106 @@ fn spread_cuts_where_samples_disagree() {
     ));
 }
 
+#[test]
+fn threshold_reads_the_chosen_denoising_step() {
+    // K = 4, one action: updates of norm 1, 1, 5, 1. Reading the final step (mean of the three
+    // before = 7/3, final 1) converges; reading step 2 (mean 1, update 5) does not; step 1
+    // (mean 1, update 1) converges; a step past the last reads the last.
+    let mut c = Chunk::zeros(1, 4, 1, 1);
+    c.set_updates(0, &[&[1.0], &[1.0], &[5.0], &[1.0]]);
+    let v = c.view();
+    assert_eq!(threshold::threshold_prefix(&v, 0.4), 1);
+    assert_eq!(threshold::threshold_prefix_at(&v, 0.4, Some(2)), 0);
+    assert_eq!(threshold::threshold_prefix_at(&v, 0.4, Some(1)), 1);
+    assert_eq!(threshold::threshold_prefix_at(&v, 0.4, Some(99)), 1);
+    assert_eq!(threshold::threshold_prefix_at(&v, 0.4, Some(3)), 1);
+    let mut two = Chunk::zeros(1, 4, 2, 1);
+    two.set_updates(0, &[&[1.0], &[1.0], &[1.0], &[1.0]]);
+    two.set_updates(1, &[&[1.0], &[1.0], &[5.0], &[1.0]]);
+    assert_eq!(choose("threshold", &[("step", 2.0)], &two, 1, 2), Ok(1));
+    assert_eq!(choose("threshold", &[], &two, 1, 2), Ok(2));
+    let bad = |p: &[(&str, f64)]| builtin("threshold", &params(p)).is_err();
+    assert!(
+        bad(&[("step", 0.0)]),
+        "step 0 has no earlier steps to compare with"
+    );
+    assert!(bad(&[("step", 1.5)]));
+}
+
+/// One sample, D = 2: actions `[1, 0]` repeated, then a change at action `at` to `[0, 1]`.
+fn turning_chunk(n: usize, at: usize) -> Chunk {
+    let mut c = Chunk::zeros(1, 1, n, 2);
+    for i in 0..n {
+        c.set_action(0, i, if i < at { &[1.0, 0.0] } else { &[0.0, 1.0] });
+    }
+    c
+}
+
+#[test]
+fn steady_cuts_margin_actions_before_the_chunk_changes_course() {
+    let c = turning_chunk(8, 5); // jump_5 = sqrt(2)
+    let v = c.view();
+    assert_eq!(steady::first_change(&v, 0.25), 5);
+    assert!((steady::action_jump(&v, 5) - 2f64.sqrt()).abs() < 1e-12);
+    assert_eq!(steady::action_jump(&v, 3), 0.0);
+    assert_eq!(
+        choose("steady", &[], &c, 1, 8),
+        Ok(4),
+        "margin defaults to 1"
+    );
+    assert_eq!(choose("steady", &[("margin", 0.0)], &c, 1, 8), Ok(5));
+    assert_eq!(choose("steady", &[("margin", 3.0)], &c, 1, 8), Ok(2));
+    assert_eq!(
+        choose("steady", &[("margin", 9.0)], &c, 1, 8),
+        Ok(1),
+        "never below h_min"
+    );
+    assert_eq!(
+        choose("steady", &[("margin", 9.0), ("h_min", 3.0)], &c, 1, 8),
+        Ok(3)
+    );
+    // A delta above the jump sees no change: the whole chunk, up to the caps.
+    assert_eq!(choose("steady", &[("delta", 1.5)], &c, 1, 8), Ok(7));
+    assert_eq!(
+        choose("steady", &[("delta", 1.5), ("margin", 0.0)], &c, 1, 8),
+        Ok(8)
+    );
+    assert_eq!(
+        choose("steady", &[("delta", 1.5), ("h_max", 3.0)], &c, 1, 8),
+        Ok(3)
+    );
+    assert_eq!(choose("steady", &[("delta", 1.5)], &c, 1, 6), Ok(6));
+    // An h_max below h_min is raised to it.
+    assert_eq!(
+        choose("steady", &[("h_max", 1.0), ("h_min", 2.0)], &c, 1, 8),
+        Ok(2)
+    );
+    // Exactly delta is still steady; a NaN is a change.
+    let mut edge = Chunk::zeros(1, 1, 4, 1);
+    for (i, x) in [0.0f32, 0.5, 1.0, 1.5].iter().enumerate() {
+        edge.set_action(0, i, &[*x]);
+    }
+    assert_eq!(steady::first_change(&edge.view(), 0.5), 4);
+    edge.set_action(0, 2, &[f32::NAN]);
+    assert_eq!(steady::first_change(&edge.view(), 0.5), 2);
+    // Only sample 0 is read.
+    let mut two = Chunk::zeros(2, 1, 4, 1);
+    two.set_action(1, 2, &[9.0]);
+    assert_eq!(steady::first_change(&two.view(), 0.1), 4);
+    let bad = |p: &[(&str, f64)]| builtin("steady", &params(p)).is_err();
+    assert!(bad(&[("delta", -0.1)]));
+    assert!(bad(&[("margin", 0.5)]));
+    assert!(bad(&[("margin", -1.0)]));
+    assert!(bad(&[("h_max", 0.0)]));
+    assert!(bad(&[("jump", 0.3)]));
+    assert!(!bad(&[
+        ("delta", 0.0),
+        ("margin", 0.0),
+        ("h_min", 1.0),
+        ("h_max", 4.0)
+    ]));
+}
+
 fn arb_chunk() -> impl Strategy<Value = Chunk> {
     (1usize..4, 1usize..6, 1usize..12, 1usize..5).prop_flat_map(|(s, k, n, d)| {
         (
@@ -275,6 +375,8 @@ proptest! {
             ("threshold", params(&[("t", t)])),
             ("static", params(&[("h", h as f64)])),
             ("spread", params(&[("threshold", t)])),
+            ("steady", params(&[("delta", t), ("margin", (h % 4) as f64)])),
+            ("threshold", params(&[("t", t), ("step", (h % 5 + 1) as f64)])),
         ] {
             let mut policy = builtin(name, &p).unwrap();
             let none = PolicyParams::new();
@@ -292,6 +394,7 @@ proptest! {
         let v = c.view();
         prop_assert!(threshold::threshold_prefix(&v, t) <= threshold::threshold_prefix(&v, t + dt));
         prop_assert!(spread::spread_prefix(&v, t) <= spread::spread_prefix(&v, t + dt));
+        prop_assert!(steady::first_change(&v, t) <= steady::first_change(&v, t + dt));
     }
 
     #[test]

@@ -136,6 +136,16 @@ impl Env {
         }
     }
 
+    /// A copy of this episode's present with no future randomness: no actuation noise, no
+    /// pushes, no turns of the goal (what a plan made now could at best foresee).
+    pub fn without_randomness(&self) -> Env {
+        let mut env = self.clone();
+        env.cfg.action_noise = 0.0;
+        env.cfg.push_rate = 0.0;
+        env.cfg.goal_turn_rate = 0.0;
+        env
+    }
+
     /// The task's constants.
     pub fn config(&self) -> &EnvConfig {
         &self.cfg
@@ -255,25 +265,32 @@ impl Expert {
             self.carrying = held;
             self.side = if self.rng.random::<bool>() { 1.0 } else { -1.0 };
         }
-        let (dx, dy) = if held {
-            // Aim where the goal will be a few steps ahead.
-            (obs[4] + obs[6] * 0.05, obs[5] + obs[7] * 0.05)
-        } else {
-            (obs[2], obs[3])
-        };
-        let d = (dx * dx + dy * dy).sqrt().max(1e-6);
-        let (ux, uy) = (dx / d, dy / d);
-        // Bend the path to one side while far away; head straight in when close.
-        let bend = 0.8 * self.side * ((d - 0.08) / 0.3).clamp(0.0, 1.0);
-        let (mut vx, mut vy) = (ux - bend * uy, uy + bend * ux);
-        let norm = (vx * vx + vy * vy).sqrt().max(1e-6);
-        // Full speed, slowing down over the last step's worth of distance.
-        let gain = (d / cfg.speed).min(1.0) / norm;
-        vx *= gain;
-        vy *= gain;
-        let close = held || d <= cfg.grasp_radius * 1.5;
-        [vx, vy, if close { 1.0 } else { -1.0 }]
+        expert_action(obs, cfg, self.side)
     }
+}
+
+/// The expert's action for `obs` when its current leg bends to `side` (+1 or −1): its two
+/// modes, what [`Expert::act`] picks between at random per leg.
+pub fn expert_action(obs: &[f32; OBS_DIM], cfg: &EnvConfig, side: f32) -> [f32; ACTION_DIM] {
+    let held = obs[8] > 0.5;
+    let (dx, dy) = if held {
+        // Aim where the goal will be a few steps ahead.
+        (obs[4] + obs[6] * 0.05, obs[5] + obs[7] * 0.05)
+    } else {
+        (obs[2], obs[3])
+    };
+    let d = (dx * dx + dy * dy).sqrt().max(1e-6);
+    let (ux, uy) = (dx / d, dy / d);
+    // Bend the path to one side while far away; head straight in when close.
+    let bend = 0.8 * side * ((d - 0.08) / 0.3).clamp(0.0, 1.0);
+    let (mut vx, mut vy) = (ux - bend * uy, uy + bend * ux);
+    let norm = (vx * vx + vy * vy).sqrt().max(1e-6);
+    // Full speed, slowing down over the last step's worth of distance.
+    let gain = (d / cfg.speed).min(1.0) / norm;
+    vx *= gain;
+    vy *= gain;
+    let close = held || d <= cfg.grasp_radius * 1.5;
+    [vx, vy, if close { 1.0 } else { -1.0 }]
 }
 
 #[cfg(test)]

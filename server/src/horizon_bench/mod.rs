@@ -17,6 +17,7 @@
 
 pub mod env;
 pub mod model;
+pub mod signals;
 
 use std::fmt::Write as _;
 use std::sync::Mutex;
@@ -75,6 +76,35 @@ impl PolicyPoint {
         }
     }
 
+    /// Parses `name` or `name:k=v,k=v` (a native or loaded policy and its parameters). The
+    /// key `samples` is not a policy parameter: it sets the samples drawn per request (default 1).
+    pub fn parse(spec: &str) -> Result<PolicyPoint, String> {
+        let (name, rest) = spec.split_once(':').unwrap_or((spec, ""));
+        let name = name.trim();
+        if name.is_empty() {
+            return Err(format!("`{spec}`: empty policy name"));
+        }
+        let mut point = PolicyPoint::new(name, &[]);
+        for pair in rest.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+            let (k, v) = pair
+                .split_once('=')
+                .ok_or_else(|| format!("`{pair}` is not key=value"))?;
+            let v: f64 = v
+                .trim()
+                .parse()
+                .map_err(|_| format!("{k}: `{v}` is not a number"))?;
+            if k.trim() == "samples" {
+                if !(v >= 1.0 && v.fract() == 0.0 && v <= 1024.0) {
+                    return Err(format!("samples: {v} is not a whole number in 1..=1024"));
+                }
+                point.samples = v as usize;
+            } else {
+                point.params.insert(k.trim().to_string(), v);
+            }
+        }
+        Ok(point)
+    }
+
     /// The parameters as `k=v;k=v` (a CSV cell without commas).
     pub fn params_text(&self) -> String {
         self.params
@@ -91,6 +121,19 @@ pub const STATIC_GRID: [f64; 7] = [1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 16.0];
 pub const THRESHOLD_GRID: [f64; 5] = [0.05, 0.2, 0.4, 1.0, 3.0];
 /// Spread thresholds (4 samples, action units: commands are in [−1, 1]) in the full grid.
 pub const SPREAD_GRID: [f64; 4] = [0.1, 0.2, 0.3, 0.5];
+/// Which denoising step the §3.1 rule reads (0-based; the default reads the last, 9 of 10), at
+/// thresholds `t` 0.05 and 0.4, in the full grid.
+pub const THRESHOLD_STEP_GRID: [f64; 3] = [1.0, 3.0, 6.0];
+/// Spread thresholds with 8 samples and at least 2 actions in the full grid (the best
+/// serving-time trade-off on held-out seeds).
+pub const SPREAD8_GRID: [f64; 3] = [0.2, 0.25, 0.3];
+/// `steady` settings `(delta, margin, h_max)` in the full grid (0: no cap).
+pub const STEADY_GRID: [(f64, f64, f64); 4] = [
+    (0.3, 0.0, 4.0),
+    (0.5, 1.0, 4.0),
+    (0.5, 2.0, 6.0),
+    (0.5, 1.0, 0.0),
+];
 
 /// The built-in policies of a run: static H over a grid, the §3.1 threshold rule at several
 /// thresholds, and the multi-sample spread rule (`quick`: a few of each).
@@ -115,6 +158,29 @@ pub fn builtin_points(quick: bool) -> Vec<PolicyPoint> {
         samples: 4,
         ..PolicyPoint::new("spread", &[("threshold", th)])
     }));
+    let steady = |&(delta, margin, cap): &(f64, f64, f64)| {
+        let mut p = PolicyPoint::new("steady", &[("delta", delta), ("margin", margin)]);
+        if cap > 0.0 {
+            p.params.insert("h_max".into(), cap);
+        }
+        p
+    };
+    if quick {
+        points.push(steady(&STEADY_GRID[1]));
+        return points;
+    }
+    for step in THRESHOLD_STEP_GRID {
+        points.extend([0.05, 0.4].map(|t| PolicyPoint {
+            family: format!("threshold step={step}"),
+            ..PolicyPoint::new("threshold", &[("t", t), ("step", step)])
+        }));
+    }
+    points.extend(SPREAD8_GRID.iter().map(|&th| PolicyPoint {
+        family: "spread S=8".into(),
+        samples: 8,
+        ..PolicyPoint::new("spread", &[("threshold", th), ("h_min", 2.0)])
+    }));
+    points.extend(STEADY_GRID.iter().map(steady));
     points
 }
 
@@ -132,7 +198,7 @@ pub struct Episode {
 }
 
 /// Noise seed of request `call` of episode `episode`.
-fn noise_seed(episode: u64, call: u32) -> u64 {
+pub(crate) fn noise_seed(episode: u64, call: u32) -> u64 {
     episode
         .wrapping_mul(0x9E37_79B9_7F4A_7C15)
         .wrapping_add(u64::from(call))
@@ -313,7 +379,7 @@ pub fn run_bench(
     Ok(out)
 }
 
-fn summarize(point: &PolicyPoint, episodes: &[Episode]) -> PointResult {
+pub(crate) fn summarize(point: &PolicyPoint, episodes: &[Episode]) -> PointResult {
     let n = episodes.len().max(1) as f64;
     let calls: u64 = episodes.iter().map(|e| u64::from(e.calls)).sum();
     let steps: u64 = episodes.iter().map(|e| u64::from(e.steps)).sum();
@@ -397,9 +463,22 @@ mod tests {
     }
 
     #[test]
+    fn policy_specs_parse_with_their_sample_count() {
+        let p = PolicyPoint::parse("steady:delta=0.5,margin=1").unwrap();
+        assert_eq!((p.name.as_str(), p.samples), ("steady", 1));
+        assert_eq!(p.params_text(), "delta=0.5;margin=1");
+        let p = PolicyPoint::parse("spread:threshold=0.25,samples=8").unwrap();
+        assert_eq!((p.samples, p.params_text().as_str()), (8, "threshold=0.25"));
+        assert!(PolicyPoint::parse("static").unwrap().params.is_empty());
+        assert!(PolicyPoint::parse("spread:samples=0").is_err());
+        assert!(PolicyPoint::parse("static:h").is_err());
+        assert!(PolicyPoint::parse(":h=1").is_err());
+    }
+
+    #[test]
     fn the_quick_plan_has_every_family() {
         let points = builtin_points(true);
-        for family in ["static", "threshold", "spread"] {
+        for family in ["static", "threshold", "spread", "steady"] {
             assert!(points.iter().any(|p| p.family == family), "{family}");
         }
         assert!(builtin_points(false).len() > points.len());

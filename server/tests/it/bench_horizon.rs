@@ -64,9 +64,10 @@ fn the_quick_run_writes_one_pareto_row_per_policy() {
         ]
     );
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
-    // --quick: static H in {1, 4, 16}, the threshold rule at two thresholds, spread at one, and
-    // the plugin.
-    assert_eq!(rows.len(), 7, "{csv}");
+    // --quick: static H in {1, 4, 16}, the threshold rule at two thresholds, spread and steady
+    // at one setting each, and the plugin.
+    assert_eq!(rows.len(), 8, "{csv}");
+    assert!(rows.iter().any(|r| r[0] == "steady"), "{csv}");
     // The plugin is a row of its own, and the twin of the native rule decides exactly as it
     // does, episode for episode: every measured column is the same.
     let native = rows

@@ -1,5 +1,5 @@
 //! Every shipped plugin gives exactly the answer of its native twin, on the same randomized
-//! inputs: `threshold` and `static` (C), `fifo`, `plas`, `kairos` and `srw` (C), and `kairos`
+//! inputs: `threshold`, `static` and `steady` (C), `fifo`, `plas`, `kairos` and `srw` (C), and `kairos`
 //! again in Python. `srw` learns from finished tasks, so both twins are told the same ones
 //! between decisions and must keep agreeing as their Gittins indexes evolve. Run
 //! `plugins/build.sh` first (CI does); a missing plugin fails the test.
@@ -9,6 +9,7 @@
 use std::time::Duration;
 
 use kairos_server::horizon::fixed::StaticHorizon;
+use kairos_server::horizon::steady::Steady;
 use kairos_server::horizon::threshold::Threshold;
 use kairos_server::horizon::{HorizonError, HorizonPolicy, PolicyParams};
 use kairos_server::plugin::cache::CodeCache;
@@ -149,6 +150,9 @@ fn random_threshold_params(rng: &mut StdRng, n: usize) -> PolicyParams {
         4 => {
             params.insert("t".into(), f64::NAN);
         }
+        5 => {
+            params.insert("step".into(), 0.0);
+        }
         _ => {
             params.insert(
                 "t".into(),
@@ -156,6 +160,10 @@ fn random_threshold_params(rng: &mut StdRng, n: usize) -> PolicyParams {
             );
             if rng.random_bool(0.5) {
                 params.insert("h_min".into(), rng.random_range(1..=n + 3) as f64);
+            }
+            if rng.random_bool(0.4) {
+                // Which denoising step is read; past the last one it reads the last.
+                params.insert("step".into(), rng.random_range(1..=12) as f64);
             }
         }
     }
@@ -300,6 +308,95 @@ fn static_plugin_matches_its_native_twin() {
             case.name
         );
     }
+}
+
+/// Chunks whose sample-0 actions walk with steps around `delta`: some consecutive pairs a few
+/// ulps either side of it, some far above (a turn), some NaN, so the cut lands anywhere.
+fn steady_inputs(seed: u64, count: usize) -> Vec<(HorizonCase, PolicyParams)> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    horizon_cases(seed, count)
+        .into_iter()
+        .map(|mut case| {
+            let (_, _, n, d) = case.dims;
+            let delta: f64 =
+                [0.0, 0.1, 0.25, 0.5, rng.random_range(0.0..2.0)][rng.random_range(0..5)];
+            for action in 1..n {
+                let jump = match rng.random_range(0..10) {
+                    0 => 4.0 * delta + 1.0,
+                    1 => delta * (1.0 + f64::from(rng.random_range(-3i32..=3)) * f64::EPSILON),
+                    _ => rng.random_range(0.0..=1.0) * delta,
+                };
+                // One dimension carries the whole jump, so its norm is |jump| up to rounding.
+                let dim = rng.random_range(0..d);
+                for i in 0..d {
+                    let prev = case.actions[(action - 1) * d + i];
+                    case.actions[action * d + i] = if i == dim { prev + jump as f32 } else { prev };
+                }
+            }
+            if rng.random_bool(0.05) {
+                let at = rng.random_range(0..n * d);
+                case.actions[at] = f32::NAN;
+            }
+            let mut params = PolicyParams::new();
+            match rng.random_range(0..12) {
+                0 => {}
+                1 => {
+                    params.insert("margin".into(), 1.5);
+                }
+                2 => {
+                    params.insert("delta".into(), -0.1);
+                }
+                3 => {
+                    params.insert("h_max".into(), 0.0);
+                }
+                4 => {
+                    params.insert("jump".into(), 0.3);
+                }
+                _ => {
+                    params.insert("delta".into(), delta);
+                    params.insert("margin".into(), rng.random_range(0..=3) as f64);
+                    if rng.random_bool(0.4) {
+                        params.insert("h_min".into(), rng.random_range(1..=n + 2) as f64);
+                    }
+                    if rng.random_bool(0.5) {
+                        params.insert("h_max".into(), rng.random_range(1..=n + 2) as f64);
+                    }
+                }
+            }
+            if rng.random_bool(0.7) {
+                case.bounds = (1, n);
+            }
+            (case, params)
+        })
+        .collect()
+}
+
+#[test]
+fn steady_plugin_matches_its_native_twin() {
+    let mut plugin = horizon_plugin("steady");
+    let mut native = Steady::default();
+    let (mut decided, mut cut_inside) = (0, 0);
+    for (case, params) in steady_inputs(21, 600) {
+        let input = case.input(&params);
+        let want = native.choose(&input);
+        let (got, _) = plugin
+            .call_plugin(&input)
+            .unwrap_or_else(|f| panic!("{}: {f}", case.name));
+        assert!(
+            same_answer(&want, &got),
+            "{}: native {want:?}, plugin {got:?}, params {params:?}",
+            case.name
+        );
+        decided += usize::from(want.is_ok());
+        if let Ok(h) = want {
+            cut_inside += usize::from(h > input.h_min.max(1) && h < input.h_max.min(case.dims.2));
+        }
+    }
+    assert!(decided > 300, "too few valid decisions: {decided}");
+    assert!(
+        cut_inside > 50,
+        "too few cuts inside the bounds: {cut_inside}"
+    );
 }
 
 /// Pending lists with many ties: arrival times, waits and executions drawn from small sets, so
