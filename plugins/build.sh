@@ -58,6 +58,8 @@ build_py() { # name world
 
 build_c threshold horizon
 build_c static horizon
+# The load-aware horizon reads the server's load: kairos:policy@0.3.0.
+build_c load_aware horizon since_v0.3.0
 build_c fifo priority
 build_c plas priority
 build_c kairos priority
@@ -71,6 +73,7 @@ check() { "$KAIROS" plugin check --cache-dir "$CACHE" --cases 100 "$@" >/dev/nul
     "$KAIROS" plugin check --cache-dir "$CACHE" --cases 100 "$@"; exit 1; }; }
 check "$OUT/threshold.wasm"
 check "$OUT/static.wasm" --param h=8
+check "$OUT/load_aware.wasm"
 check "$OUT/fifo.wasm"
 check "$OUT/plas.wasm"
 check "$OUT/kairos.wasm"

@@ -72,7 +72,8 @@ pub struct SimArgs {
     /// supplies the engines, network and experiment list).
     #[arg(long)]
     pub traces: Option<PathBuf>,
-    /// Experiments to run, comma-separated: online, fleet, hybrid, buckets, intra, refetch.
+    /// Experiments to run, comma-separated: online, fleet, hybrid, buckets, intra, refetch; also
+    /// load-horizon (the load-aware horizon against static and threshold, not in the default).
     #[arg(
         long,
         short = 'e',
@@ -276,7 +277,7 @@ fn run_sim(a: SimArgs) -> anyhow::Result<()> {
     let mut experiments = Vec::new();
     for name in &a.experiments {
         let e = Experiment::parse(name.trim()).with_context(|| {
-            format!("unknown experiment `{name}` (expected online, fleet, hybrid, buckets, intra, refetch)")
+            format!("unknown experiment `{name}` (expected online, fleet, hybrid, buckets, intra, refetch, load-horizon)")
         })?;
         if !experiments.contains(&e) {
             experiments.push(e);
@@ -483,6 +484,10 @@ fn summary_markdown(report: &Report<'_>, a: &SimArgs) -> String {
     if has(Experiment::Intra) {
         s.push_str("\n## Ablation: intra-bucket order at the highest rate, average (P95) s\n");
         s.push_str(&report.sweep_table(Experiment::Intra, "tasks/s"));
+    }
+    if has(Experiment::LoadHorizon) {
+        s.push_str("\n## Load-aware horizon: Kairos by arrival rate, average (P95) latency in seconds · mean H · actions per task past the threshold's cut\n");
+        s.push_str(&report.load_horizon_table());
     }
     if has(Experiment::Refetch) {
         s.push_str("\n## Ablation: each system's re-fetch setting flipped, at the highest rate\n");

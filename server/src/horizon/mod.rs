@@ -8,7 +8,9 @@
 //! Native policies (each module documents its exact arithmetic, for plugin twins):
 //! - [`threshold`]: the paper's §3.1 confidence threshold (default);
 //! - [`fixed`]: a static horizon `h`;
-//! - [`spread`]: agreement across `S ≥ 2` samples of the chunk.
+//! - [`spread`]: agreement across `S ≥ 2` samples of the chunk;
+//! - [`load_aware`]: the threshold rule, lengthened by the server's backlog (reads
+//!   [`HorizonInput::load`]).
 //!
 //! [`NATIVE_POLICIES`] is their table (what the horizon registry registers); [`builtin`] builds
 //! one by name with validated parameters. The parameters given there are the
@@ -16,6 +18,7 @@
 //! the same way), so one instance can serve requests with different parameters.
 
 pub mod fixed;
+pub mod load_aware;
 mod params;
 pub mod spread;
 pub mod threshold;
@@ -23,6 +26,7 @@ pub mod threshold;
 use std::collections::BTreeMap;
 
 use crate::registry::{HorizonKind, Native, build_native};
+use crate::scheduler::ServerLoad;
 
 /// User parameters of a policy, e.g. `{"t": 0.4, "h_min": 8}`. Sorted, so hashing and
 /// wire encoding are deterministic.
@@ -93,6 +97,12 @@ pub struct HorizonInput<'a> {
     pub recent_horizons: &'a [u32],
     /// The request's policy parameters.
     pub params: &'a PolicyParams,
+    /// The server's load when the chunk's forward pass ended ([`Scheduler::load`]); `None`
+    /// where there is no server (trace generation, conformance cases without it). Plugins see it
+    /// from `kairos:policy@0.3.0` on.
+    ///
+    /// [`Scheduler::load`]: crate::scheduler::Scheduler::load
+    pub load: Option<ServerLoad>,
 }
 
 /// Why a policy could not decide.
@@ -170,7 +180,16 @@ pub const NATIVE_POLICIES: &[Native<HorizonKind>] = &[
         summary: "cut where S>=2 samples disagree by more than threshold (RMS std over dims); params threshold (0.1), h_min",
         build: build_spread,
     },
+    Native {
+        name: "load-aware",
+        summary: "threshold rule plus the actions the server's backlog lasts (longer H when busy); params t (0.4), h_min, gain (1)",
+        build: build_load_aware,
+    },
 ];
+
+fn build_load_aware(params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, HorizonError> {
+    Ok(Box::new(load_aware::LoadAware::from_params(params)?))
+}
 
 fn build_threshold(params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, HorizonError> {
     Ok(Box::new(threshold::Threshold::from_params(params)?))

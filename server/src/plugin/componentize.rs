@@ -23,6 +23,10 @@ pub const WIT_SOURCES: &[(WitVersion, &str)] = &[
         super::bindings::since_v0_2_0::VERSION,
         include_str!("../../../wit/since_v0.2.0/policy.wit"),
     ),
+    (
+        super::bindings::since_v0_3_0::VERSION,
+        include_str!("../../../wit/since_v0.3.0/policy.wit"),
+    ),
 ];
 
 /// The newest released WIT, embedded: what new plugins should target.

@@ -89,6 +89,7 @@ impl Chunk {
             round_index: round,
             recent_horizons: &[],
             params: &self.params,
+            load: None,
         }
     }
 }
