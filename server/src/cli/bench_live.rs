@@ -118,7 +118,12 @@ pub fn run(args: LiveArgs) -> anyhow::Result<()> {
         &args.params.iter().cloned().collect(),
         &plugin_cache_dir(args.plugin_cache.clone()),
     )?;
-    let (w, set) = load(&args.workload, args.traces.as_deref(), args.trace_seed, &user)?;
+    let (w, set) = load(
+        &args.workload,
+        args.traces.as_deref(),
+        args.trace_seed,
+        &user,
+    )?;
     let rate = match args.rate {
         Some(r) if r.is_finite() && r > 0.0 => r,
         Some(r) => bail!("--rate must be a positive number, got {r}"),

@@ -65,7 +65,7 @@ pub fn extra_actions(load: Option<ServerLoad>, gain: f64, control_hz: f32) -> us
     };
     let backlog_ns = crate::time::duration_nanos(load.backlog) as f64;
     let x = (gain * (backlog_ns / 1e9)) * f64::from(control_hz);
-    let extra = if !(x > 0.0) {
+    let extra = if x.is_nan() || x <= 0.0 {
         0
     } else if x >= 4_294_967_295.0 {
         u32::MAX
@@ -87,8 +87,11 @@ impl HorizonPolicy for LoadAware {
             LoadAware::from_params(input.params)?
         };
         let prefix = if input.chunk.is_consistent() {
-            threshold_prefix(&input.chunk, config.base.t)
-                .saturating_add(extra_actions(input.load, config.gain, input.control_hz))
+            threshold_prefix(&input.chunk, config.base.t).saturating_add(extra_actions(
+                input.load,
+                config.gain,
+                input.control_hz,
+            ))
         } else {
             0
         };

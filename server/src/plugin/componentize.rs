@@ -155,7 +155,9 @@ mod tests {
             "cabi_realloc",
         ]));
         assert!(v2.unwrap().contains("package kairos:policy@0.2.0;"));
-        assert!(WIT_SOURCE.contains("package kairos:policy@0.2.0;"));
+        let v3 = wit_for_exports(&named(&["kairos:policy/horizon@0.3.0#choose"]));
+        assert!(v3.unwrap().contains("package kairos:policy@0.3.0;"));
+        assert!(WIT_SOURCE.contains("package kairos:policy@0.3.0;"));
     }
 
     #[test]

@@ -21,7 +21,8 @@ use super::runtime::LoadError;
 use super::{PluginKind, PluginOptions, PluginSource, WasmHorizonPolicy, WasmPriorityPolicy};
 use crate::horizon::{ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
 use crate::scheduler::{
-    FinishedTask, PendingView, PolicyError, PriorityPolicy, RemainingWork, RequestId, TaskId, ServerLoad,
+    FinishedTask, PendingView, PolicyError, PriorityPolicy, RemainingWork, RequestId, ServerLoad,
+    TaskId,
 };
 use crate::time::Timestamp;
 

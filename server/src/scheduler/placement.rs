@@ -213,7 +213,11 @@ mod tests {
             rtt: Duration::ZERO,
         };
         let idle = [slot(None)];
-        assert_eq!(backlog(t(100), 0, &idle), Duration::ZERO, "idle, nothing queued");
+        assert_eq!(
+            backlog(t(100), 0, &idle),
+            Duration::ZERO,
+            "idle, nothing queued"
+        );
         assert_eq!(backlog(t(100), 1, &idle), Duration::from_millis(10));
         // 6 queued on one lane: a full batch of 4 (40 ms), then 2 (20 ms).
         assert_eq!(backlog(t(100), 6, &idle), Duration::from_millis(60));

@@ -612,9 +612,9 @@ impl<'a> Sim<'a> {
         let accepted = i.exec.accept(now, o.aligned, horizon);
         match accepted {
             Accepted::Used { from_step, .. } => {
-                if let Some((round, from, cut)) = i.running.replace((o.round, from_step, cut_end))
-                {
-                    self.out.beyond_cut_actions += u64::from(from_step.saturating_sub(from.max(cut)));
+                if let Some((round, from, cut)) = i.running.replace((o.round, from_step, cut_end)) {
+                    self.out.beyond_cut_actions +=
+                        u64::from(from_step.saturating_sub(from.max(cut)));
                     record(
                         &mut i.recording,
                         RoundEvent::ChunkDone {

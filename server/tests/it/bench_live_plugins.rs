@@ -76,7 +76,14 @@ fn bench_live_runs_a_priority_plugin_beside_its_native_twin() {
     // The plugin ran under its own name in the live server's scheduler.
     assert_eq!(live["fifo-wasm"]["policy"], "fifo-wasm");
     // Simulated through the same registry, the twin gives the native FIFO's numbers.
-    for column in ["p25_s", "mean_s", "p95_s", "rounds_per_task", "mean_batch", "events"] {
+    for column in [
+        "p25_s",
+        "mean_s",
+        "p95_s",
+        "rounds_per_task",
+        "mean_batch",
+        "events",
+    ] {
         assert_eq!(
             sim["fifo"][column], sim["fifo-wasm"][column],
             "simulated fifo vs fifo.wasm: {column}"
