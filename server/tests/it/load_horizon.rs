@@ -82,7 +82,8 @@ fn load_aware_plugin_matches_its_native_twin() {
         // Half the cases keep the suite's random load (none, idle, deep queues, seconds of
         // backlog); the others a backlog of a few actions, where the ceiling decides.
         if rng.random_bool(0.5) {
-            case.load = load_lasting(&mut rng, rng.random_range(0..=n.min(20)), case.control_hz);
+            let actions = rng.random_range(0..=n.min(20));
+            case.load = load_lasting(&mut rng, actions, case.control_hz);
         }
         let mut params = PolicyParams::new();
         match rng.random_range(0..10) {
@@ -157,7 +158,9 @@ fn plugins_of_older_versions_ignore_the_load_and_answer_as_before() {
         for load in [None, load_lasting(&mut rng, 40, case.control_hz)] {
             case.load = load;
             let input = case.input(&params);
-            let (got, _) = wasm.call_plugin(&input).unwrap();
+            let (got, _) = wasm
+                .call_plugin(&input)
+                .unwrap_or_else(|f| panic!("{}: {f}", case.name));
             assert!(same_answer(&native.choose(&input), &got), "{}", case.name);
             answers.push(got);
         }
