@@ -253,7 +253,7 @@ fn intra_variants() -> Vec<Variant> {
 }
 
 /// The gains of the load-aware horizon in [`Experiment::LoadHorizon`].
-pub const LOAD_AWARE_GAINS: [f64; 3] = [1.0, 2.0, 8.0];
+pub const LOAD_AWARE_GAINS: [f64; 2] = [1.0, 2.0];
 
 /// The systems of [`Experiment::LoadHorizon`]: Algorithm 1's scheduler with the static horizon
 /// (its own traces), the threshold rule (the dynamic traces, as recorded), the load-aware rule
