@@ -20,7 +20,7 @@ use crate::horizon::{
 };
 use crate::pool::BatchChunks;
 use crate::registry::{Factory, HorizonRegistry};
-use crate::scheduler::RequestId;
+use crate::scheduler::{RequestId, ServerLoad};
 use crate::validation::RequestError;
 
 /// The horizon policy a round asked for, already built (its parameters validated).
@@ -49,6 +49,8 @@ pub struct RoundContext<'a> {
     pub round_index: u64,
     /// Horizons of the task's most recent rounds, oldest first.
     pub recent_horizons: &'a [u32],
+    /// The server's load when the batch's forward pass ended (`None`: not known).
+    pub load: Option<ServerLoad>,
 }
 
 /// The horizon chosen for one chunk.
@@ -227,6 +229,7 @@ impl ActionManager {
             round_index: context.round_index,
             recent_horizons: context.recent_horizons,
             params,
+            load: context.load,
         };
         let requested_input = input(&round.params);
         let requested = round
@@ -295,13 +298,14 @@ pub struct HorizonJob {
 
 impl ActionManager {
     /// The answer to each round of a generated batch: its horizon policy (or the fallback) on its
-    /// chunk, then the trimmed reply. `jobs` and `chunks` pair up in order; a round without a
+    /// chunk, with the server's `load` when the batch's generation ended, then the trimmed reply. `jobs` and `chunks` pair up in order; a round without a
     /// chunk fails, and so does a round the engine failed alone (the batch's others go on).
     /// Blocking: runs every round's policy in turn on the calling thread.
     pub fn answer_batch(
         &self,
         jobs: Vec<HorizonJob>,
         chunks: BatchChunks,
+        load: Option<ServerLoad>,
     ) -> Vec<(RequestId, Result<Reply, ErrorReply>)> {
         let mut chunks = chunks.into_iter();
         jobs.into_iter()
@@ -323,6 +327,7 @@ impl ActionManager {
                     control_hz: job.control_hz,
                     round_index: job.round_index,
                     recent_horizons: &job.recent_horizons,
+                    load,
                 };
                 let answer = self
                     .choose(&mut job.policy, &chunk, context)
@@ -419,6 +424,7 @@ mod tests {
             control_hz: 30.0,
             round_index: 0,
             recent_horizons: &[],
+            load: None,
         }
     }
 

@@ -48,6 +48,7 @@ use crate::fleet::{self, LocalServer};
 use crate::pool::EnginePool;
 use crate::pool::replay::replay_engine;
 use crate::sim::experiment::{self, Experiment, Job, JobResult, Placement, Variant};
+use crate::sim::plugins::UserPlugins;
 use crate::sim::{Load, SimNetwork};
 use crate::stats::summarize;
 use crate::transport::launch::Policies;
@@ -214,6 +215,8 @@ impl LiveOutcome {
             mean_queue_s: rounds.iter().map(|r| r.queue_us as f64).sum::<f64>() / requests / 1e6
                 * k,
             events: 0,
+            mean_horizon: None,
+            beyond_cut_per_task: None,
             latencies,
             scale: None,
         }
@@ -299,7 +302,10 @@ pub async fn start_replay_server(
         u64::try_from(job.config.scheduler.stale_after.as_millis()).unwrap_or(u64::MAX);
     config.scheduler.max_pending = job.config.scheduler.max_pending;
     config.scheduler.history_rounds = job.config.scheduler.history_rounds;
-    LocalServer::start(&config, pool, Policies::default())
+    // The job's plugins, registered as `kairos bench sim` registers them: the server resolves
+    // the robots' horizon policy and its scheduler's priority policy in the same registries.
+    let policies: Policies = job.config.policies.clone();
+    LocalServer::start(&config, pool, policies)
         .await
         .context("starting the replay server")
 }
@@ -538,8 +544,14 @@ pub fn load(
     workload: &Path,
     traces: Option<&Path>,
     trace_seed: u64,
+    plugins: &UserPlugins,
 ) -> anyhow::Result<(Workload, TraceSet)> {
     let w = Workload::load(workload)?;
+    if traces.is_some() && !plugins.horizon_settings().is_empty() {
+        bail!(
+            "--horizon-plugin needs generated traces (a recorded trace file has no rounds chosen by the plugin)"
+        );
+    }
     let set = match traces {
         Some(path) => {
             let file =
@@ -547,8 +559,14 @@ pub fn load(
             TraceSet::read(std::io::BufReader::new(file))
                 .with_context(|| format!("reading {}", path.display()))?
         }
-        None => generate::generate(&w, trace_seed)
-            .with_context(|| format!("generating traces for `{}`", w.name))?,
+        None => {
+            // The workload's settings, plus one per horizon plugin (as `kairos bench sim`).
+            let mut settings = generate::settings(&w).to_vec();
+            settings.extend(plugins.horizon_settings());
+            let (horizons, _) = plugins.policies.with_natives();
+            generate::generate_settings(&w, trace_seed, &settings, &horizons)
+                .with_context(|| format!("generating traces for `{}`", w.name))?
+        }
     };
     Ok((w, set))
 }

@@ -89,6 +89,7 @@ mod tests {
             control_hz: 30.0,
             round_index: 0,
             recent_horizons: &[],
+            load: None,
         };
         Bound::choose(&chunk, &ctx, &Params(params))
     }

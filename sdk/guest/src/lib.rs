@@ -3,7 +3,7 @@
 //! A policy is a plain Rust type implementing [`HorizonPolicy`] or [`PriorityPolicy`] over
 //! plain Rust types ([`Chunk`], [`HorizonContext`], [`PendingColumns`], [`Params`]), so its
 //! logic is unit-tested natively with `cargo test`. One line exports it as a component of the
-//! `kairos:policy@0.2.0` world (`wit/since_v0.2.0/`) when built for `wasm32-wasip2`:
+//! `kairos:policy@0.3.0` world (`wit/since_v0.3.0/`) when built for `wasm32-wasip2`:
 //!
 //! ```
 //! use kairos_guest::{Chunk, HorizonContext, HorizonError, HorizonPolicy, Params};
@@ -62,7 +62,7 @@ pub mod __private {
     /// Generated bindings of the `horizon-policy` world.
     pub mod horizon {
         wit_bindgen::generate!({
-            path: "../../wit/since_v0.2.0",
+            path: "../../wit/since_v0.3.0",
             world: "horizon-policy",
             runtime_path: "crate::__private::wit_bindgen::rt",
             pub_export_macro: true,
@@ -74,7 +74,7 @@ pub mod __private {
     /// Generated bindings of the `priority-policy` world.
     pub mod priority {
         wit_bindgen::generate!({
-            path: "../../wit/since_v0.2.0",
+            path: "../../wit/since_v0.3.0",
             world: "priority-policy",
             runtime_path: "crate::__private::wit_bindgen::rt",
             pub_export_macro: true,
@@ -111,6 +111,12 @@ pub mod __private {
                 control_hz: context.control_hz,
                 round_index: context.round_index,
                 recent_horizons: &context.recent_horizons,
+                load: context.load.map(|l| crate::ServerLoad {
+                    queued: l.queued,
+                    running: l.running,
+                    open_tasks: l.open_tasks,
+                    backlog_ns: l.backlog_ns,
+                }),
             };
             P::choose(&chunk, &context, &crate::Params(&params)).map_err(|e| match e {
                 crate::HorizonError::InvalidParam { name, reason } => {
@@ -258,6 +264,23 @@ pub struct HorizonContext<'a> {
     pub round_index: u64,
     /// The task's recent horizons, oldest first.
     pub recent_horizons: &'a [u32],
+    /// The server's load at the decision (0.3.0); `None` where there is no server (trace
+    /// generation, some `kairos plugin check` cases).
+    pub load: Option<ServerLoad>,
+}
+
+/// The server's load when the chunk's forward pass ended (see the WIT `server-load` record).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ServerLoad {
+    /// Requests waiting for dispatch.
+    pub queued: u32,
+    /// Requests in batches still running.
+    pub running: u32,
+    /// Tasks open on the server.
+    pub open_tasks: u32,
+    /// How long until an engine is free again if no new request came (the work in hand): a
+    /// request sent now waits about this long.
+    pub backlog_ns: u64,
 }
 
 /// The policy's parameters, sorted by name.
@@ -784,6 +807,7 @@ mod tests {
             control_hz: 30.0,
             round_index: 0,
             recent_horizons: &[],
+            load: None,
         };
         assert_eq!(Half::choose(&chunk, &ctx, &Params(&[])), Ok(4));
         let bad = [("x".to_string(), 1.0)];

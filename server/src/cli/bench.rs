@@ -73,8 +73,9 @@ pub struct SimArgs {
     /// supplies the engines, network and experiment list).
     #[arg(long)]
     pub traces: Option<PathBuf>,
-    /// Experiments to run, comma-separated: online, fleet, hybrid, buckets, intra, refetch,
-    /// scale (not in the default list: thousands of robots, see --scale-robots).
+    /// Experiments to run, comma-separated: online, fleet, hybrid, buckets, intra, refetch; also
+    /// scale (thousands of robots, see --scale-robots) and load-horizon (the load-aware horizon
+    /// against static and threshold), which are not in the default list.
     #[arg(
         long,
         short = 'e',
@@ -289,7 +290,7 @@ fn run_sim(a: SimArgs) -> anyhow::Result<()> {
     let mut experiments = Vec::new();
     for name in &a.experiments {
         let e = Experiment::parse(name.trim()).with_context(|| {
-            format!("unknown experiment `{name}` (expected online, fleet, hybrid, buckets, intra, refetch, scale)")
+            format!("unknown experiment `{name}` (expected online, fleet, hybrid, buckets, intra, refetch, scale, load-horizon)")
         })?;
         if !experiments.contains(&e) {
             experiments.push(e);
@@ -510,6 +511,10 @@ fn summary_markdown(report: &Report<'_>, a: &SimArgs, threads: usize) -> String 
     if has(Experiment::Intra) {
         s.push_str("\n## Ablation: intra-bucket order at the highest rate, average (P95) s\n");
         s.push_str(&report.sweep_table(Experiment::Intra, "tasks/s"));
+    }
+    if has(Experiment::LoadHorizon) {
+        s.push_str("\n## Load-aware horizon: Kairos by arrival rate, average (P95) latency in seconds · mean H · actions per task past the threshold's cut\n");
+        s.push_str(&report.load_horizon_table());
     }
     if has(Experiment::Refetch) {
         s.push_str("\n## Ablation: each system's re-fetch setting flipped, at the highest rate\n");

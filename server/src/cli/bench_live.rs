@@ -16,6 +16,7 @@ use crate::live_replay::{
     relative_diff, run_live, scale_traces, simulate_scaled, start_replay_server, variant,
 };
 use crate::sim::experiment::{Job, JobResult, Report, Variant};
+use crate::sim::plugins::{load_user_plugins, plugin_cache_dir};
 use crate::workload::Workload;
 
 /// `kairos bench live`
@@ -81,6 +82,26 @@ pub struct LiveArgs {
     /// first of `--variants`, print how to connect, and wait for Ctrl-C.
     #[arg(long, conflicts_with = "server")]
     pub serve: Option<SocketAddr>,
+    /// A priority-policy plugin (`.wasm` component) to run beside the built-in systems: the
+    /// systems `F.wasm` (static-horizon traces) and `F.wasm + dyn. horizon`, as in
+    /// `kairos bench sim`. Repeatable.
+    #[arg(long = "priority-plugin", value_name = "F.wasm")]
+    pub priority_plugins: Vec<PathBuf>,
+    /// A horizon-policy plugin (`.wasm` component): tasks are also recorded with it choosing
+    /// the horizon, and the system `Kairos + F.wasm` replays them, as in `kairos bench sim`.
+    /// Repeatable.
+    #[arg(long = "horizon-plugin", value_name = "F.wasm")]
+    pub horizon_plugins: Vec<PathBuf>,
+    /// A parameter handed to every plugin, `name=value` (repeatable).
+    #[arg(long = "param", value_parser = super::parse_param)]
+    pub params: Vec<(String, f64)>,
+    /// The priority plugins' runs re-fetch stale observations (off by default, as in
+    /// `kairos bench sim`).
+    #[arg(long)]
+    pub plugin_refetch: bool,
+    /// Precompiled plugin code cache (default: the user's cache directory).
+    #[arg(long, value_name = "DIR")]
+    pub plugin_cache: Option<PathBuf>,
 }
 
 /// Runs `kairos bench live`.
@@ -89,17 +110,37 @@ pub fn run(args: LiveArgs) -> anyhow::Result<()> {
     if !(k.is_finite() && k > 0.0) {
         bail!("--time-scale must be a positive number");
     }
-    let (w, set) = load(&args.workload, args.traces.as_deref(), args.trace_seed)?;
+    // Users' plugins, loaded and registered exactly as `kairos bench sim` does it; the server
+    // of every live run and its simulation resolve policies in the same registries.
+    let user = load_user_plugins(
+        &args.priority_plugins,
+        &args.horizon_plugins,
+        &args.params.iter().cloned().collect(),
+        &plugin_cache_dir(args.plugin_cache.clone()),
+    )?;
+    let (w, set) = load(
+        &args.workload,
+        args.traces.as_deref(),
+        args.trace_seed,
+        &user,
+    )?;
     let rate = match args.rate {
         Some(r) if r.is_finite() && r > 0.0 => r,
         Some(r) => bail!("--rate must be a positive number, got {r}"),
         None => w.experiments.rates[w.experiments.rates.len() / 2],
     };
-    let variants = args
+    let mut variants = args
         .variants
         .iter()
         .map(|key| variant(key.trim()))
         .collect::<anyhow::Result<Vec<_>>>()?;
+    variants.extend(user.variants(args.plugin_refetch));
+    // A run's job, with the users' plugins registered.
+    let job_for = |v: &Variant, rate: f64, tasks: usize, seed: u64, k: f64| {
+        let mut job = live_job(&w, v, rate, tasks, seed, k);
+        job.config.policies = user.policies.clone();
+        job
+    };
     let first = variants.first().context("--variants is empty")?;
     let tasks = usize::try_from(args.tasks).context("--tasks")?;
     let scaled = scale_traces(&set, k);
@@ -109,7 +150,7 @@ pub fn run(args: LiveArgs) -> anyhow::Result<()> {
         .context("cannot start the tokio runtime")?;
 
     if let Some(listen) = args.serve {
-        let job = live_job(&w, first, rate, tasks, args.seed, k);
+        let job = job_for(first, rate, tasks, args.seed, k);
         let data_dir = args.out.join("server-data");
         return runtime.block_on(async {
             let server = start_replay_server(&job, &scaled, listen, &data_dir).await?;
@@ -154,7 +195,7 @@ pub fn run(args: LiveArgs) -> anyhow::Result<()> {
         .with_context(|| format!("creating {}", args.out.display()))?;
     let mut rows = Vec::new();
     for v in &runs {
-        let job = live_job(&w, v, rate, tasks, args.seed, k);
+        let job = job_for(v, rate, tasks, args.seed, k);
         if args.sim_only {
             let sim = simulate_scaled(&job, &scaled, k)?;
             println!(

@@ -21,7 +21,7 @@ use crate::lifecycle::exec_interval;
 use crate::metrics::Metrics;
 use crate::scheduler::{
     AdmitError, BatchId, CancelOutcome, Dispatch, EngineId, RequestId, RobotId, RoundOutcome,
-    Scheduler, TaskId,
+    Scheduler, ServerLoad, TaskId,
 };
 use crate::time::{Timestamp, duration_micros};
 use crate::validation::{ClockMap, RequestError, ValidEndTask, ValidObservation, ValidSubmit};
@@ -267,8 +267,14 @@ impl DriverCore {
     }
 
     /// The batch's forward pass ended (`G.end`) after `inference`: its engine instance may take
-    /// the next batch while the horizon policies run.
-    pub fn generation_ended(&mut self, now: Timestamp, batch: BatchId, inference: Duration) {
+    /// the next batch while the horizon policies run. Returns the server's load at that instant,
+    /// before the next dispatch decision: what the batch's horizon policies see.
+    pub fn generation_ended(
+        &mut self,
+        now: Timestamp,
+        batch: BatchId,
+        inference: Duration,
+    ) -> ServerLoad {
         let now = self.advance(now);
         if let Some(state) = self.batches.get_mut(&batch) {
             state.inference = inference;
@@ -278,7 +284,9 @@ impl DriverCore {
             }
             self.scheduler.handle_generation_ended(now, batch);
         }
+        let load = self.scheduler.load(now);
         self.after_event(now);
+        load
     }
 
     /// The batch's answers, one per round given in its [`BatchJob`]: each goes to every stream

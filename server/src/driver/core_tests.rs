@@ -118,7 +118,7 @@ impl Bench {
     fn answers(&self, job: BatchJob) -> Vec<(RequestId, RoundAnswer)> {
         let chunks = self.model.generate(&job.inputs).unwrap();
         self.actions
-            .answer_batch(job.rounds, chunks.into_iter().map(Ok).collect())
+            .answer_batch(job.rounds, chunks.into_iter().map(Ok).collect(), None)
     }
 }
 

@@ -18,7 +18,7 @@ use super::core::{BatchJob, DriverCore, Effect};
 use super::{DriverConfig, DriverStats, RefetchAsk, RoundAnswer, TaskSnapshot, WaiterId};
 use crate::action::ActionManager;
 use crate::pool::EnginePool;
-use crate::scheduler::{BatchId, RequestId, RobotId, Scheduler, TaskId};
+use crate::scheduler::{BatchId, RequestId, RobotId, Scheduler, ServerLoad, TaskId};
 use crate::time::{Clock, Timestamp};
 use crate::validation::{RequestError, ValidEndTask, ValidObservation, ValidSubmit};
 
@@ -57,6 +57,9 @@ enum Command {
     GenerationEnded {
         batch: BatchId,
         inference: Duration,
+        /// Gets the server's load right after the generation ended, for the batch's horizon
+        /// policies.
+        load: oneshot::Sender<ServerLoad>,
     },
     BatchDone {
         batch: BatchId,
@@ -313,8 +316,12 @@ impl Shell {
                 request,
                 observation,
             } => self.core.refetched(now, batch, request, observation),
-            Command::GenerationEnded { batch, inference } => {
-                self.core.generation_ended(now, batch, inference)
+            Command::GenerationEnded {
+                batch,
+                inference,
+                load,
+            } => {
+                let _ = load.send(self.core.generation_ended(now, batch, inference));
             }
             Command::BatchDone { batch, results } => self.core.batch_done(now, batch, results),
             Command::Timeout => self.core.timeout(now),
@@ -414,14 +421,22 @@ impl Shell {
             let started = clock.now();
             let outcome = engine.run(inputs).await;
             let inference = clock.now().saturating_since(started);
+            let (load_tx, load_rx) = oneshot::channel();
             let _ = reports
-                .send(Command::GenerationEnded { batch, inference })
+                .send(Command::GenerationEnded {
+                    batch,
+                    inference,
+                    load: load_tx,
+                })
                 .await;
+            // `None` only if the driver is shutting down.
+            let load = load_rx.await.ok();
             let results = match outcome {
                 Ok(chunks) => {
-                    let chosen =
-                        tokio::task::spawn_blocking(move || actions.answer_batch(rounds, chunks))
-                            .await;
+                    let chosen = tokio::task::spawn_blocking(move || {
+                        actions.answer_batch(rounds, chunks, load)
+                    })
+                    .await;
                     match chosen {
                         Ok(results) => results,
                         Err(error) => {

@@ -11,6 +11,8 @@
 //! - [`spread`]: agreement across `S ≥ 2` samples of the chunk;
 //! - [`steady`]: execute while the chunk's actions stay steady, cut before the chunk changes
 //!   course (the closed-loop bench's best trade-off, `docs/eval/horizon/`).
+//! - [`load_aware`]: the threshold rule, lengthened by the server's backlog (reads
+//!   [`HorizonInput::load`]).
 //!
 //! [`NATIVE_POLICIES`] is their table (what the horizon registry registers); [`builtin`] builds
 //! one by name with validated parameters. The parameters given there are the
@@ -18,6 +20,7 @@
 //! the same way), so one instance can serve requests with different parameters.
 
 pub mod fixed;
+pub mod load_aware;
 mod params;
 pub mod spread;
 pub mod steady;
@@ -26,6 +29,7 @@ pub mod threshold;
 use std::collections::BTreeMap;
 
 use crate::registry::{HorizonKind, Native, build_native};
+use crate::scheduler::ServerLoad;
 
 /// User parameters of a policy, e.g. `{"t": 0.4, "h_min": 8}`. Sorted, so hashing and
 /// wire encoding are deterministic.
@@ -96,6 +100,12 @@ pub struct HorizonInput<'a> {
     pub recent_horizons: &'a [u32],
     /// The request's policy parameters.
     pub params: &'a PolicyParams,
+    /// The server's load when the chunk's forward pass ended ([`Scheduler::load`]); `None`
+    /// where there is no server (trace generation, conformance cases without it). Plugins see it
+    /// from `kairos:policy@0.3.0` on.
+    ///
+    /// [`Scheduler::load`]: crate::scheduler::Scheduler::load
+    pub load: Option<ServerLoad>,
 }
 
 /// Why a policy could not decide.
@@ -178,7 +188,16 @@ pub const NATIVE_POLICIES: &[Native<HorizonKind>] = &[
         summary: "execute while consecutive actions differ by <= delta, cut margin actions before the first change; params delta (0.25), margin (1), h_min, h_max",
         build: build_steady,
     },
+    Native {
+        name: "load-aware",
+        summary: "threshold rule plus the actions the server's backlog lasts (longer H when busy); params t (0.4), h_min, gain (1)",
+        build: build_load_aware,
+    },
 ];
+
+fn build_load_aware(params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, HorizonError> {
+    Ok(Box::new(load_aware::LoadAware::from_params(params)?))
+}
 
 fn build_threshold(params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, HorizonError> {
     Ok(Box::new(threshold::Threshold::from_params(params)?))

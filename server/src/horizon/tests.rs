@@ -67,6 +67,7 @@ fn input<'a>(
         round_index: 3,
         recent_horizons: &[],
         params,
+        load: None,
     }
 }
 

@@ -235,6 +235,7 @@ pub fn run_episode(
                     control_hz: hz,
                     round_index: id,
                     recent_horizons: &recent,
+                    load: None,
                 },
             )?;
             let h = choice.horizon;

@@ -57,6 +57,31 @@ pub mod since_v0_2_0 {
     }
 }
 
+/// Bindings for `kairos:policy@0.3.0` (`wit/since_v0.3.0/`).
+pub mod since_v0_3_0 {
+    /// The WIT package version these bindings were generated from.
+    pub const VERSION: super::WitVersion = super::WitVersion::new(0, 3, 0);
+
+    /// The `horizon-policy` world: 0.2.0's, with the server's load in the context.
+    #[allow(missing_docs)]
+    pub mod horizon {
+        wasmtime::component::bindgen!({
+            path: "../wit/since_v0.3.0",
+            world: "horizon-policy",
+            ownership: Borrowing { duplicate_if_necessary: false },
+        });
+    }
+
+    /// The `priority-policy` world (unchanged since 0.2.0 but for the package version).
+    #[allow(missing_docs)]
+    pub mod priority {
+        wasmtime::component::bindgen!({
+            path: "../wit/since_v0.3.0",
+            world: "priority-policy",
+        });
+    }
+}
+
 /// A WIT package version, `major.minor.patch`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub struct WitVersion {

@@ -23,6 +23,10 @@ pub const WIT_SOURCES: &[(WitVersion, &str)] = &[
         super::bindings::since_v0_2_0::VERSION,
         include_str!("../../../wit/since_v0.2.0/policy.wit"),
     ),
+    (
+        super::bindings::since_v0_3_0::VERSION,
+        include_str!("../../../wit/since_v0.3.0/policy.wit"),
+    ),
 ];
 
 /// The newest released WIT, embedded: what new plugins should target.
@@ -151,7 +155,9 @@ mod tests {
             "cabi_realloc",
         ]));
         assert!(v2.unwrap().contains("package kairos:policy@0.2.0;"));
-        assert!(WIT_SOURCE.contains("package kairos:policy@0.2.0;"));
+        let v3 = wit_for_exports(&named(&["kairos:policy/horizon@0.3.0#choose"]));
+        assert!(v3.unwrap().contains("package kairos:policy@0.3.0;"));
+        assert!(WIT_SOURCE.contains("package kairos:policy@0.3.0;"));
     }
 
     #[test]

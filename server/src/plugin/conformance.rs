@@ -21,7 +21,8 @@ use super::runtime::LoadError;
 use super::{PluginKind, PluginOptions, PluginSource, WasmHorizonPolicy, WasmPriorityPolicy};
 use crate::horizon::{ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
 use crate::scheduler::{
-    FinishedTask, PendingView, PolicyError, PriorityPolicy, RemainingWork, RequestId, TaskId,
+    FinishedTask, PendingView, PolicyError, PriorityPolicy, RemainingWork, RequestId, ServerLoad,
+    TaskId,
 };
 use crate::time::Timestamp;
 
@@ -308,6 +309,8 @@ pub struct HorizonCase {
     pub round_index: u64,
     /// Recent horizons.
     pub recent: Vec<u32>,
+    /// The server's load (`None` in a third of the random cases: no server).
+    pub load: Option<ServerLoad>,
 }
 
 impl HorizonCase {
@@ -329,6 +332,7 @@ impl HorizonCase {
             round_index: self.round_index,
             recent_horizons: &self.recent,
             params,
+            load: self.load,
         }
     }
 }
@@ -392,7 +396,27 @@ pub fn horizon_case(
         recent: (0..rng.random_range(0..8))
             .map(|_| rng.random_range(1..=n as u32))
             .collect(),
+        load: random_load(rng),
     }
+}
+
+/// A random server load, or (one time in three) none: idle servers, deep queues and backlogs
+/// from microseconds to seconds.
+pub fn random_load(rng: &mut StdRng) -> Option<ServerLoad> {
+    if rng.random_range(0..3) == 0 {
+        return None;
+    }
+    let queued = [0, rng.random_range(1..64), rng.random_range(64..4096)][rng.random_range(0..3)];
+    Some(ServerLoad {
+        queued,
+        running: rng.random_range(0..128),
+        open_tasks: queued + rng.random_range(0..256),
+        backlog: if queued == 0 && rng.random_bool(0.5) {
+            Duration::ZERO
+        } else {
+            Duration::from_nanos(rng.random_range(1..5_000_000_000))
+        },
+    })
 }
 
 /// The horizon suite: edge cases first, then `random` random cases.

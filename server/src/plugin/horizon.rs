@@ -7,27 +7,31 @@ use std::sync::{Arc, Mutex};
 use wasmtime::Store;
 use wasmtime::component::{Component, Linker};
 
-use super::bindings::{WitVersion, since_v0_1_0, since_v0_2_0};
+use super::bindings::{WitVersion, since_v0_1_0, since_v0_2_0, since_v0_3_0};
 use super::health::{FailureKind, Health, PluginStats};
 use super::reload::Reloader;
 use super::runtime::{CallCost, CallFailure, Compiled, Exec, LoadError, PluginMeta, World, load};
 use super::sandbox::HostState;
 use super::{PluginKind, PluginOptions, PluginSource};
 use crate::horizon::{HorizonError, HorizonInput, HorizonPolicy, PolicyParams, validate_horizon};
+use crate::scheduler::ServerLoad;
 
 use since_v0_1_0::horizon as v0_1;
 use since_v0_2_0::horizon as v0_2;
+use since_v0_3_0::horizon as v0_3;
 
 pub(crate) struct HorizonWorld;
 
 pub(crate) enum HorizonPre {
     V0_1(v0_1::HorizonPolicyPre<HostState>),
     V0_2(v0_2::HorizonPolicyPre<HostState>),
+    V0_3(v0_3::HorizonPolicyPre<HostState>),
 }
 
 pub(crate) enum HorizonInstance {
     V0_1(v0_1::HorizonPolicy),
     V0_2(v0_2::HorizonPolicy),
+    V0_3(v0_3::HorizonPolicy),
 }
 
 impl World for HorizonWorld {
@@ -48,6 +52,9 @@ impl World for HorizonWorld {
             (0, 2) => Ok(HorizonPre::V0_2(v0_2::HorizonPolicyPre::new(
                 linker.instantiate_pre(component)?,
             )?)),
+            (0, 3) => Ok(HorizonPre::V0_3(v0_3::HorizonPolicyPre::new(
+                linker.instantiate_pre(component)?,
+            )?)),
             _ => Err(wasmtime::Error::msg(format!(
                 "no bindings for version {version}"
             ))),
@@ -61,14 +68,29 @@ impl World for HorizonWorld {
         match pre {
             HorizonPre::V0_1(pre) => pre.instantiate(store).map(HorizonInstance::V0_1),
             HorizonPre::V0_2(pre) => pre.instantiate(store).map(HorizonInstance::V0_2),
+            HorizonPre::V0_3(pre) => pre.instantiate(store).map(HorizonInstance::V0_3),
         }
     }
 }
 
 /// Calls `choose` through one version's bindings. The `horizon` interface is the same in
-/// every version so far; only the generated types' paths differ, hence a macro.
+/// 0.1.0 and 0.2.0 (only the generated types' paths differ, hence a macro); 0.3.0 adds the
+/// context's `load`, passed with `load`.
 macro_rules! call_choose_in {
-    ($version:ident, $bindings:expr, $store:expr, $input:expr, $params:expr) => {{
+    ($version:ident, $bindings:expr, $store:expr, $input:expr, $params:expr) => {
+        call_choose_in!($version, $bindings, $store, $input, $params, {})
+    };
+    ($version:ident, $bindings:expr, $store:expr, $input:expr, $params:expr, load) => {
+        call_choose_in!($version, $bindings, $store, $input, $params, {
+            load: $input.load.map(|l| wit::ServerLoad {
+                queued: l.queued,
+                running: l.running,
+                open_tasks: l.open_tasks,
+                backlog_ns: crate::time::duration_nanos(l.backlog),
+            }),
+        })
+    };
+    ($version:ident, $bindings:expr, $store:expr, $input:expr, $params:expr, { $($load:tt)* }) => {{
         use $version::exports::kairos::policy::horizon as wit;
         let chunk = &$input.chunk;
         let wit_chunk = wit::Chunk {
@@ -85,6 +107,7 @@ macro_rules! call_choose_in {
             control_hz: $input.control_hz,
             round_index: $input.round_index,
             recent_horizons: $input.recent_horizons,
+            $($load)*
         };
         let wit_params: Vec<$version::kairos::policy::types::Param<'_>> = $params
             .iter()
@@ -120,6 +143,9 @@ fn call_choose(
     match instance {
         HorizonInstance::V0_1(bindings) => call_choose_in!(v0_1, bindings, store, input, params),
         HorizonInstance::V0_2(bindings) => call_choose_in!(v0_2, bindings, store, input, params),
+        HorizonInstance::V0_3(bindings) => {
+            call_choose_in!(v0_3, bindings, store, input, params, load)
+        }
     }
 }
 
@@ -156,6 +182,8 @@ pub struct OwnedHorizonInput {
     pub recent_horizons: Vec<u32>,
     /// Parameters.
     pub params: PolicyParams,
+    /// The server's load.
+    pub load: Option<ServerLoad>,
 }
 
 impl OwnedHorizonInput {
@@ -174,6 +202,7 @@ impl OwnedHorizonInput {
             round_index: input.round_index,
             recent_horizons: input.recent_horizons.to_vec(),
             params: input.params.clone(),
+            load: input.load,
         }
     }
 
@@ -194,6 +223,7 @@ impl OwnedHorizonInput {
             round_index: self.round_index,
             recent_horizons: &self.recent_horizons,
             params: &self.params,
+            load: self.load,
         }
     }
 }
@@ -516,6 +546,7 @@ mod tests {
             round_index: 0,
             recent_horizons: &[],
             params: &params,
+            load: None,
         };
         assert_eq!(policy.choose(&input), Ok(3), "the fallback answers");
         assert_eq!(policy.answered_by(), Some("static"), "and is named as such");

@@ -19,6 +19,7 @@ pub const PACKAGE: &str = "kairos:policy";
 pub const SUPPORTED: &[WitVersion] = &[
     super::bindings::since_v0_1_0::VERSION,
     super::bindings::since_v0_2_0::VERSION,
+    super::bindings::since_v0_3_0::VERSION,
 ];
 
 /// What a component says about itself.

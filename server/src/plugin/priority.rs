@@ -6,7 +6,7 @@ use std::sync::Arc;
 use wasmtime::Store;
 use wasmtime::component::{Component, Linker};
 
-use super::bindings::{WitVersion, since_v0_1_0, since_v0_2_0};
+use super::bindings::{WitVersion, since_v0_1_0, since_v0_2_0, since_v0_3_0};
 use super::health::{FailureKind, Health, PluginStats};
 use super::reload::Reloader;
 use super::runtime::{CallCost, CallFailure, Compiled, Exec, LoadError, PluginMeta, World, load};
@@ -20,17 +20,20 @@ use crate::time::Timestamp;
 
 use since_v0_1_0::priority as v0_1;
 use since_v0_2_0::priority as v0_2;
+use since_v0_3_0::priority as v0_3;
 
 pub(crate) struct PriorityWorld;
 
 pub(crate) enum PriorityPre {
     V0_1(v0_1::PriorityPolicyPre<HostState>),
     V0_2(v0_2::PriorityPolicyPre<HostState>),
+    V0_3(v0_3::PriorityPolicyPre<HostState>),
 }
 
 pub(crate) enum PriorityInstance {
     V0_1(v0_1::PriorityPolicy),
     V0_2(v0_2::PriorityPolicy),
+    V0_3(v0_3::PriorityPolicy),
 }
 
 impl World for PriorityWorld {
@@ -50,6 +53,9 @@ impl World for PriorityWorld {
             (0, 2) => Ok(PriorityPre::V0_2(v0_2::PriorityPolicyPre::new(
                 linker.instantiate_pre(component)?,
             )?)),
+            (0, 3) => Ok(PriorityPre::V0_3(v0_3::PriorityPolicyPre::new(
+                linker.instantiate_pre(component)?,
+            )?)),
             _ => Err(wasmtime::Error::msg(format!(
                 "no bindings for version {version}"
             ))),
@@ -63,18 +69,12 @@ impl World for PriorityWorld {
         match pre {
             PriorityPre::V0_1(pre) => pre.instantiate(store).map(PriorityInstance::V0_1),
             PriorityPre::V0_2(pre) => pre.instantiate(store).map(PriorityInstance::V0_2),
+            PriorityPre::V0_3(pre) => pre.instantiate(store).map(PriorityInstance::V0_3),
         }
     }
 }
 
-/// Whole nanoseconds, saturating: `u64::try_from(d.as_nanos())` without the 128-bit
-/// arithmetic, which showed in profiles of the per-row column fill.
-fn nanos(d: std::time::Duration) -> u64 {
-    d.as_secs()
-        .checked_mul(1_000_000_000)
-        .and_then(|ns| ns.checked_add(u64::from(d.subsec_nanos())))
-        .unwrap_or(u64::MAX)
-}
+use crate::time::duration_nanos as nanos;
 
 /// The pending list in v0.1.0's types.
 fn pending_v0_1(pending: &[PendingView]) -> Vec<v0_1::exports::kairos::policy::priority::Pending> {
@@ -128,6 +128,52 @@ impl Default for PendingColumns {
             remaining_seconds: Vec::new(),
             present: Vec::new(),
         })
+    }
+}
+
+/// Moves every column between two structs with the same fields (`$a` emptied into `$b`).
+macro_rules! move_columns {
+    ($from:expr => $to:expr) => {
+        move_columns!($from => $to; request, task, round_index, arrived_at_us, task_started_at_us,
+            skipped, wait_ns, attained_service_ns, queued_ns, last_exec_ns, exec_ends_at_us,
+            last_gen_ns, rounds_completed, remaining_rounds, remaining_seconds, present)
+    };
+    ($from:expr => $to:expr; $($field:ident),*) => {
+        $( $to.$field = std::mem::take(&mut $from.$field); )*
+    };
+}
+
+impl PendingColumns {
+    /// The columns as 0.3.0's type, leaving these empty (no copy).
+    fn move_to_v0_3(&mut self) -> v0_3::exports::kairos::policy::priority::PendingColumns {
+        let mut out = v0_3::exports::kairos::policy::priority::PendingColumns {
+            request: Vec::new(),
+            task: Vec::new(),
+            round_index: Vec::new(),
+            arrived_at_us: Vec::new(),
+            task_started_at_us: Vec::new(),
+            skipped: Vec::new(),
+            wait_ns: Vec::new(),
+            attained_service_ns: Vec::new(),
+            queued_ns: Vec::new(),
+            last_exec_ns: Vec::new(),
+            exec_ends_at_us: Vec::new(),
+            last_gen_ns: Vec::new(),
+            rounds_completed: Vec::new(),
+            remaining_rounds: Vec::new(),
+            remaining_seconds: Vec::new(),
+            present: Vec::new(),
+        };
+        move_columns!(self.0 => out);
+        out
+    }
+
+    /// Takes the vectors back (keeping their capacity for the next call).
+    fn move_back_from_v0_3(
+        &mut self,
+        from: &mut v0_3::exports::kairos::policy::priority::PendingColumns,
+    ) {
+        move_columns!(from => self.0);
     }
 }
 
@@ -271,6 +317,34 @@ fn call_rank(
                 },
             }))
         }
+        PriorityInstance::V0_3(bindings) => {
+            // The `priority` interface of 0.3.0 is 0.2.0's: the same columns under another
+            // package version. They are moved into 0.3.0's type and back, never copied.
+            use v0_3::exports::kairos::policy::priority as wit;
+            columns.fill(pending);
+            let wit_params: Vec<v0_3::kairos::policy::types::Param> = params
+                .iter()
+                .map(|(name, value)| v0_3::kairos::policy::types::Param {
+                    name: name.clone(),
+                    value: *value,
+                })
+                .collect();
+            let mut moved = columns.move_to_v0_3();
+            let answer = bindings.kairos_policy_priority().call_rank(
+                store,
+                now.as_micros(),
+                &moved,
+                &wit_params,
+            );
+            columns.move_back_from_v0_3(&mut moved);
+            Ok(answer?.map(|ranking| match ranking {
+                wit::Ranking::Order(order) => Ranking::Order(order),
+                wit::Ranking::Keys(keys) => Ranking::Keys {
+                    major: keys.major,
+                    minor: keys.minor,
+                },
+            }))
+        }
     }
 }
 
@@ -334,6 +408,7 @@ fn call_task_finished(
     match instance {
         PriorityInstance::V0_1(bindings) => finished!(v0_1, bindings),
         PriorityInstance::V0_2(bindings) => finished!(v0_2, bindings),
+        PriorityInstance::V0_3(bindings) => finished!(v0_3, bindings),
     }
 }
 

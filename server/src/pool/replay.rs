@@ -220,6 +220,7 @@ mod tests {
                         control_hz: 20.0,
                         round_index: 0,
                         recent_horizons: &[],
+                        load: None,
                     },
                 )
                 .unwrap();

@@ -8,7 +8,7 @@ use super::placement::{self, EngineSlot};
 use super::policy::{PendingView, PriorityPolicy, RemainingWork, validate_order};
 use super::{
     AdmitError, BatchId, Dispatch, DispatchedRequest, EngineId, EngineSpec, ExecReport, RequestId,
-    RobotId, RoundOutcome, RoundSubmit, SchedulerConfig, TaskEnd, TaskId,
+    RobotId, RoundOutcome, RoundSubmit, SchedulerConfig, ServerLoad, TaskEnd, TaskId,
 };
 use crate::lifecycle::{TaskRecord, TaskSummary, TaskTable};
 use crate::time::Timestamp;
@@ -292,17 +292,7 @@ impl Scheduler {
         self.build_views(now);
         let policy_failed = self.order_pending(now);
 
-        let slots: Vec<EngineSlot<'_>> = self
-            .engines
-            .iter()
-            .map(|e| EngineSlot {
-                tier: e.spec.tier,
-                max_batch: e.max_batch,
-                busy_until: e.busy.map(|_| e.busy_until),
-                profile: &e.spec.profile,
-                rtt: e.spec.rtt,
-            })
-            .collect();
+        let slots = self.engine_slots();
         let placed = placement::place(now, &self.order, &slots);
         let costs: Vec<Duration> = slots
             .iter()
@@ -603,6 +593,40 @@ impl Scheduler {
     /// Open tasks.
     pub fn task_count(&self) -> usize {
         self.tasks.len()
+    }
+
+    /// Every engine instance as placement sees it, in `EngineId` order.
+    fn engine_slots(&self) -> Vec<EngineSlot<'_>> {
+        self.engines
+            .iter()
+            .map(|e| EngineSlot {
+                tier: e.spec.tier,
+                max_batch: e.max_batch,
+                busy_until: e.busy.map(|_| e.busy_until),
+                profile: &e.spec.profile,
+                rtt: e.spec.rtt,
+            })
+            .collect()
+    }
+
+    /// The load at `now` (see [`ServerLoad`]): what the action manager hands load-aware horizon
+    /// policies. Drivers take it right after `handle_generation_ended`, before the next dispatch
+    /// decision, so a batch's horizons see the queue that built up during its forward pass.
+    pub fn load(&self, now: Timestamp) -> ServerLoad {
+        let slots = self.engine_slots();
+        let running: usize = self
+            .batches
+            .values()
+            .filter(|b| b.generated_at.is_none())
+            .map(|b| b.entries.len())
+            .sum();
+        let count = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
+        ServerLoad {
+            queued: count(self.pending.len()),
+            running: count(running),
+            open_tasks: count(self.tasks.len()),
+            backlog: placement::backlog(now, self.pending.len(), &slots),
+        }
     }
 
     /// Requests waiting for dispatch.

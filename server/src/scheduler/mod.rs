@@ -62,6 +62,22 @@ pub use registry::{PolicySpec, PolicySpecError, build as build_policy, refetch_b
 
 use crate::time::Timestamp;
 
+/// The server's load as the scheduler knows it at one instant: what a load-aware horizon policy
+/// reads (`kairos:policy@0.3.0` `server-load`). Built by [`Scheduler::load`], its one owner.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ServerLoad {
+    /// Requests waiting for dispatch.
+    pub queued: u32,
+    /// Requests in batches whose forward pass has not ended.
+    pub running: u32,
+    /// Open tasks.
+    pub open_tasks: u32,
+    /// The work in hand, in time: how long until an engine instance is free again if no new
+    /// request came (running batches end at their estimated end, then the queued requests run
+    /// in full batches at their profiled latency). A request sent now waits about this long.
+    pub backlog: Duration,
+}
+
 /// A task: one robot working on one instruction, over many rounds. Chosen by the client,
 /// unique per server; the first robot to use an id owns it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]

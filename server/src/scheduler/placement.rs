@@ -94,6 +94,34 @@ pub(crate) fn place(now: Timestamp, order: &[usize], engines: &[EngineSlot<'_>])
     Placement { batches, offloaded }
 }
 
+/// The work in hand, in time: how long from `now` until the first engine instance is free
+/// again if no new request came. Every instance (edge and cloud) is a lane free at the end of
+/// its current batch (`busy_until`, or `now` when idle); `queued` requests then run in full
+/// batches, each taken by the lane that frees first and busy for `cost(batch)`. What
+/// [`crate::scheduler::ServerLoad::backlog`] reports to horizon policies.
+pub(crate) fn backlog(now: Timestamp, queued: usize, engines: &[EngineSlot<'_>]) -> Duration {
+    let mut lanes: BinaryHeap<Reverse<(Timestamp, usize)>> = engines
+        .iter()
+        .enumerate()
+        .map(|(i, e)| Reverse((e.busy_until.map_or(now, |until| until.max(now)), i)))
+        .collect();
+    let mut left = queued;
+    while left > 0 {
+        let Some(Reverse((free_at, lane))) = lanes.pop() else {
+            break;
+        };
+        let engine = &engines[lane];
+        let batch = engine.max_batch.max(1).min(left);
+        left -= batch;
+        lanes.push(Reverse((free_at + engine.cost(batch), lane)));
+    }
+    lanes
+        .peek()
+        .map_or(Duration::ZERO, |Reverse((free_at, _))| {
+            free_at.saturating_since(now)
+        })
+}
+
 /// The simulated edge queue of step 3.
 struct EdgeQueue<'a, 'b> {
     now: Timestamp,
@@ -172,6 +200,33 @@ mod tests {
 
     fn t(ms: u64) -> Timestamp {
         Timestamp::from_micros(ms * 1_000)
+    }
+
+    #[test]
+    fn backlog_is_the_time_until_an_engine_frees_after_the_queue() {
+        let p = profile(&[(1, 10.0), (2, 20.0), (4, 40.0)], 4);
+        let slot = |busy_until| EngineSlot {
+            tier: Tier::Edge,
+            max_batch: 4,
+            busy_until,
+            profile: &p,
+            rtt: Duration::ZERO,
+        };
+        let idle = [slot(None)];
+        assert_eq!(
+            backlog(t(100), 0, &idle),
+            Duration::ZERO,
+            "idle, nothing queued"
+        );
+        assert_eq!(backlog(t(100), 1, &idle), Duration::from_millis(10));
+        // 6 queued on one lane: a full batch of 4 (40 ms), then 2 (20 ms).
+        assert_eq!(backlog(t(100), 6, &idle), Duration::from_millis(60));
+        let busy = [slot(Some(t(130)))];
+        assert_eq!(backlog(t(100), 0, &busy), Duration::from_millis(30));
+        assert_eq!(backlog(t(100), 4, &busy), Duration::from_millis(70));
+        // Two lanes: the idle one takes the queue, the busy one frees first.
+        let two = [slot(Some(t(130))), slot(None)];
+        assert_eq!(backlog(t(100), 4, &two), Duration::from_millis(30));
     }
 
     #[test]

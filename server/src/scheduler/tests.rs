@@ -492,6 +492,34 @@ fn batches_never_exceed_max_batch_and_only_idle_engines_get_work() {
 }
 
 #[test]
+fn load_reports_the_queue_the_running_batches_and_the_backlog() {
+    // One 100 ms edge instance taking batches of 2.
+    let mut s = fifo_edge(SchedulerConfig::default(), 2);
+    assert_eq!(s.load(ms(0)), ServerLoad::default(), "idle and empty");
+    for t in 0..5 {
+        s.handle_submit(ms(0), submit_at(t, 1, ms(0), None))
+            .unwrap();
+    }
+    let d = s.poll_dispatch(ms(0));
+    s.handle_batch_started(ms(0), d[0].batch);
+    // At 40 ms: 2 running until 100 ms, 3 queued (batches of 2 then 1, 100 ms each).
+    assert_eq!(
+        s.load(ms(40)),
+        ServerLoad {
+            queued: 3,
+            running: 2,
+            open_tasks: 5,
+            backlog: Duration::from_millis(60 + 100 + 100),
+        }
+    );
+    // The generation ended: the batch no longer counts as running, the engine is free.
+    s.handle_generation_ended(ms(100), d[0].batch);
+    let load = s.load(ms(100));
+    assert_eq!((load.queued, load.running), (3, 0));
+    assert_eq!(load.backlog, Duration::from_millis(200));
+}
+
+#[test]
 fn stale_observations_are_flagged_for_refetch() {
     let mut s = fifo_edge(
         SchedulerConfig {

@@ -11,7 +11,7 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
 
-use kairos_sdk::trace::TraceSet;
+use kairos_sdk::trace::{HorizonSetting, TraceSet};
 
 use super::scale::{self, ScalePlan, ScaleStats};
 use super::stats::{Summary, reduction, summarize};
@@ -41,6 +41,11 @@ pub enum Experiment {
     /// Thousands of robots on many engine instances: what one scheduler's decisions cost, and
     /// the throughput, as the fleet grows ([`super::scale`]; not in the paper).
     Scale,
+    /// Kairos at every online rate with the load-aware horizon (`load-aware`, issue #14 §3)
+    /// against the threshold rule, the static horizon and the full chunk: latency against mean
+    /// horizon and actions run past the threshold's cut. Not part of [`Experiment::ALL`] (the
+    /// paper's set); asked for by name.
+    LoadHorizon,
 }
 
 impl Experiment {
@@ -65,12 +70,16 @@ impl Experiment {
             Experiment::Intra => "intra",
             Experiment::Refetch => "refetch",
             Experiment::Scale => "scale",
+            Experiment::LoadHorizon => "load-horizon",
         }
     }
 
-    /// Parses a name.
+    /// Parses a name (the paper's experiments and [`Experiment::LoadHorizon`]).
     pub fn parse(s: &str) -> Option<Self> {
-        Self::ALL.into_iter().find(|e| e.name() == s)
+        Self::ALL
+            .into_iter()
+            .chain([Experiment::LoadHorizon])
+            .find(|e| e.name() == s)
     }
 }
 
@@ -107,6 +116,9 @@ pub struct Variant {
     /// Asked for by the user (`--policy`, a plugin): drawn in the online plots beside the
     /// paper's systems.
     pub user: bool,
+    /// Replay the chunks with this horizon policy instead of the recording's
+    /// ([`SimConfig::replay_horizon`]).
+    pub replay_horizon: Option<HorizonSetting>,
 }
 
 impl Variant {
@@ -122,6 +134,7 @@ impl Variant {
             hints: false,
             placement: Placement::Edge,
             user: false,
+            replay_horizon: None,
         }
     }
 
@@ -253,6 +266,43 @@ fn intra_variants() -> Vec<Variant> {
     ]
 }
 
+/// The gains of the load-aware horizon in [`Experiment::LoadHorizon`].
+pub const LOAD_AWARE_GAINS: [f64; 2] = [1.0, 2.0];
+
+/// The systems of [`Experiment::LoadHorizon`]: Algorithm 1's scheduler with the static horizon
+/// (its own traces), the threshold rule (the dynamic traces, as recorded), the load-aware rule
+/// at each of [`LOAD_AWARE_GAINS`] and the whole chunk (`static` with `h` above any chunk,
+/// clamped to `N`), all three replaying the dynamic traces' rounds.
+pub fn load_horizon_variants() -> Vec<Variant> {
+    let replayed = |key: &str, label: &str, policy: &str, params: &[(&str, f64)]| {
+        let mut v = variant(key, label, "kairos", DYNAMIC);
+        v.replay_horizon = Some(HorizonSetting {
+            policy: policy.to_string(),
+            params: params.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
+        });
+        v
+    };
+    let mut out = vec![
+        variant("kairos-static", "static H", "kairos", STATIC),
+        variant("kairos", "threshold (recorded)", "kairos", DYNAMIC),
+    ];
+    for gain in LOAD_AWARE_GAINS {
+        out.push(replayed(
+            &format!("load-aware-{gain}"),
+            &format!("load-aware, gain {gain}"),
+            "load-aware",
+            &[("gain", gain)],
+        ));
+    }
+    out.push(replayed(
+        "full-chunk",
+        "whole chunk",
+        "static",
+        &[("h", 1e9)],
+    ));
+    out
+}
+
 /// One simulation to run.
 #[derive(Clone, Debug)]
 pub struct Job {
@@ -334,6 +384,7 @@ pub fn config(w: &Workload, variant: &Variant, load: Load, seed: u64) -> SimConf
         seed,
         record: false,
         policies: Policies::default(),
+        replay_horizon: variant.replay_horizon.clone(),
     }
 }
 
@@ -425,6 +476,13 @@ pub fn plan(workloads: &[Workload], plan: &Plan) -> Vec<Job> {
                         );
                     }
                 }
+                Experiment::LoadHorizon => {
+                    for &rate in &x.rates {
+                        for v in &load_horizon_variants() {
+                            push(e, rate, v, Load::Poisson { rate, tasks });
+                        }
+                    }
+                }
             }
         }
     }
@@ -452,6 +510,12 @@ pub struct JobResult {
     pub events: u64,
     /// The scale experiment's measurements (its jobs only).
     pub scale: Option<ScaleStats>,
+    /// Mean horizon over answered requests (`None` where the run does not report it: a live
+    /// replay).
+    pub mean_horizon: Option<f64>,
+    /// Actions per task run past their chunk's recorded horizon ([`SimResult::beyond_cut_actions`];
+    /// `None` as `mean_horizon`).
+    pub beyond_cut_per_task: Option<f64>,
 }
 
 /// Runs one job against its workload's trace set. A scale job is timed
@@ -478,6 +542,8 @@ pub fn run_job(job: &Job, traces: &TraceSet) -> Result<JobResult, SimError> {
         cloud_share: r.cloud_requests as f64 / requests,
         mean_queue_s: r.queue_s / requests,
         events: r.events,
+        mean_horizon: Some(r.mean_horizon()),
+        beyond_cut_per_task: Some(r.beyond_cut_actions as f64 / r.tasks.len().max(1) as f64),
         latencies,
         scale,
     })
@@ -869,6 +935,46 @@ impl Report<'_> {
         for (wi, w) in self.workloads.iter().enumerate() {
             for r in self.scale_runs(wi) {
                 let _ = writeln!(s, "{}", scale::csv_row(&w.name, r));
+            }
+        }
+        s
+    }
+
+    /// [`Experiment::LoadHorizon`]: per workload and arrival rate, each horizon's average (P95)
+    /// latency, mean horizon and actions per task run past the threshold rule's cut.
+    pub fn load_horizon_table(&self) -> String {
+        let e = Experiment::LoadHorizon;
+        let mut s = String::new();
+        for (wi, w) in self.workloads.iter().enumerate() {
+            let variants = self.variants(wi, e);
+            if variants.is_empty() {
+                continue;
+            }
+            let _ = writeln!(s, "\n**{}**\n", w.title);
+            let mut header = "| tasks/s ".to_string();
+            for v in &variants {
+                let _ = write!(header, "| {} avg (P95) s · H · past cut ", v.label);
+            }
+            let _ = writeln!(s, "{header}|");
+            let _ = writeln!(s, "|---{}|", "|---".repeat(variants.len()));
+            for x in self.xs(wi, e) {
+                let mut line = format!("| {x} ");
+                for v in &variants {
+                    match self.find(wi, e, x, &v.key) {
+                        Some(r) => {
+                            let _ = write!(
+                                line,
+                                "| {:.2} ({:.2}) · {:.1} · {:.1} ",
+                                r.summary.mean,
+                                r.summary.p95,
+                                r.mean_horizon.unwrap_or(f64::NAN),
+                                r.beyond_cut_per_task.unwrap_or(f64::NAN)
+                            );
+                        }
+                        None => line.push_str("| – "),
+                    }
+                }
+                let _ = writeln!(s, "{line}|");
             }
         }
         s

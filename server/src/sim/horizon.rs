@@ -11,6 +11,7 @@ use kairos_sdk::trace::{HorizonSetting, RoundTrace};
 
 use crate::horizon::{ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
 use crate::registry::{HorizonRegistry, Origin};
+use crate::scheduler::ServerLoad;
 
 /// Why a horizon setting cannot be replayed.
 #[derive(Debug, thiserror::Error)]
@@ -76,13 +77,27 @@ impl ReplayHorizon {
         })
     }
 
-    /// The horizon for `round` of a task with chunks of `chunk_len` actions.
+    /// The horizon for `round` of a task with chunks of `chunk_len` actions, with no server
+    /// load known (trace generation).
     pub fn choose(
         &mut self,
         round: &RoundTrace,
         round_index: u64,
         chunk_len: u32,
         control_hz: f32,
+    ) -> Result<u32, ReplayHorizonError> {
+        self.choose_under(round, round_index, chunk_len, control_hz, None)
+    }
+
+    /// [`ReplayHorizon::choose`] with the server's load at the decision, as the simulated
+    /// scheduler reports it ([`crate::scheduler::Scheduler::load`]).
+    pub fn choose_under(
+        &mut self,
+        round: &RoundTrace,
+        round_index: u64,
+        chunk_len: u32,
+        control_hz: f32,
+        load: Option<ServerLoad>,
     ) -> Result<u32, ReplayHorizonError> {
         let n = chunk_len as usize;
         self.updates.clear();
@@ -119,6 +134,7 @@ impl ReplayHorizon {
             round_index,
             recent_horizons: &self.recent,
             params,
+            load,
         };
         let h = policy.choose(&input)?;
         let h = crate::horizon::validate_horizon(h, &input)?;

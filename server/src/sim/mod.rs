@@ -40,7 +40,9 @@ use std::cmp::Reverse;
 use std::collections::{BinaryHeap, HashMap};
 use std::time::{Duration, Instant};
 
-use kairos_sdk::trace::{RoundEvent, RoundTrace, TaskMeta, TaskRecording, TaskTrace, TraceSet};
+use kairos_sdk::trace::{
+    HorizonSetting, RoundEvent, RoundTrace, TaskMeta, TaskRecording, TaskTrace, TraceSet,
+};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
 use crate::registry::{HorizonRegistry, Policies};
@@ -112,6 +114,11 @@ pub struct SimConfig {
     /// Policies beyond the natives (users' plugins), resolved by name like the natives:
     /// `policy` and each trace's horizon setting may name one.
     pub policies: Policies,
+    /// Replay every task's chunks with this horizon policy instead of the one its recording
+    /// names (`None`: the recording's). The rounds stay the recording's; only how much of each
+    /// chunk runs changes. How a policy that reads the server's load, which no recording can
+    /// know, is measured (`load-horizon` experiment).
+    pub replay_horizon: Option<HorizonSetting>,
 }
 
 /// Why a run failed.
@@ -190,6 +197,11 @@ pub struct SimResult {
     pub recorded: Vec<TaskTrace>,
     /// The scheduler's running totals at the end of the run.
     pub scheduler: SchedulerCounters,
+    /// Σ over answered requests of the horizon chosen.
+    pub horizon_sum: u64,
+    /// Actions executed past their chunk's recorded horizon (the recording's policy's cut, e.g.
+    /// the threshold rule's): open-loop actions a longer replayed horizon added.
+    pub beyond_cut_actions: u64,
 }
 
 /// What the scheduler's calls cost in wall-clock time during one run ([`simulate_timed`]).
@@ -272,6 +284,15 @@ impl SchedulerTiming {
 }
 
 impl SimResult {
+    /// Mean horizon over answered requests.
+    pub fn mean_horizon(&self) -> f64 {
+        if self.requests == 0 {
+            0.0
+        } else {
+            self.horizon_sum as f64 / self.requests as f64
+        }
+    }
+
     /// Mean requests per batch.
     pub fn mean_batch(&self) -> f64 {
         if self.batches == 0 {
@@ -327,8 +348,9 @@ struct Instance<'a> {
     started_at: Timestamp,
     timer: u64,
     done: bool,
-    /// The round whose chunk is executing, and the step it took over at.
-    running: Option<(usize, u32)>,
+    /// The round whose chunk is executing, the step it took over at, and the end of its
+    /// recorded horizon (`aligned + recorded H`).
+    running: Option<(usize, u32, u32)>,
     recording: Option<TaskRecording>,
 }
 
@@ -405,7 +427,10 @@ impl<'a> Sim<'a> {
             robot,
             task: TaskId(inst as u64),
             exec: Execution::new(trace.control_hz),
-            horizon: ReplayHorizon::with_registry(&trace.horizon, &self.horizons)?,
+            horizon: ReplayHorizon::with_registry(
+                self.cfg.replay_horizon.as_ref().unwrap_or(&trace.horizon),
+                &self.horizons,
+            )?,
             sent: 0,
             outstanding: None,
             started_at: at,
@@ -624,6 +649,9 @@ impl<'a> Sim<'a> {
         SchedulerTiming::event(&mut self.timing, || {
             self.sched.handle_generation_ended(now, BatchId(batch))
         });
+        // The load the batch's horizon policies see: taken as the live driver takes it, right
+        // after the generation ended and before the next dispatch decision.
+        let load = self.sched.load(now);
         let one_way = self.one_way();
         let mut outcomes = Vec::with_capacity(flight.requests.len());
         for &(request, inst) in &flight.requests {
@@ -635,9 +663,14 @@ impl<'a> Sim<'a> {
             let round_index = o.round;
             let rounds = &i.trace.rounds;
             let r = &rounds[round_index.min(rounds.len() - 1)];
-            let horizon =
-                i.horizon
-                    .choose(r, round_index as u64, i.trace.chunk_len, i.trace.control_hz)?;
+            let horizon = i.horizon.choose_under(
+                r,
+                round_index as u64,
+                i.trace.chunk_len,
+                i.trace.control_hz,
+                Some(load),
+            )?;
+            self.out.horizon_sum += u64::from(horizon);
             outcomes.push((request, RoundOutcome::Answered { horizon }));
             self.requests.remove(&request);
             self.push(now + one_way, Event::Reply { inst, horizon });
@@ -655,7 +688,9 @@ impl<'a> Sim<'a> {
         let Some(o) = i.outstanding.take() else {
             return Ok(());
         };
-        let confidence = i.round(o.round).0.confidence.clone();
+        let (recorded_round, _) = i.round(o.round);
+        let confidence = recorded_round.confidence.clone();
+        let cut_end = o.aligned.saturating_add(recorded_round.horizon);
         if o.aligned > o.obs_step {
             // The recording's chunk answered a fresher observation than the request's (the
             // server re-fetched it when the trace was recorded): say so, as the robot would.
@@ -694,7 +729,9 @@ impl<'a> Sim<'a> {
         let accepted = i.exec.accept(now, o.aligned, horizon);
         match accepted {
             Accepted::Used { from_step, .. } => {
-                if let Some((round, from)) = i.running.replace((o.round, from_step)) {
+                if let Some((round, from, cut)) = i.running.replace((o.round, from_step, cut_end)) {
+                    self.out.beyond_cut_actions +=
+                        u64::from(from_step.saturating_sub(from.max(cut)));
                     record(
                         &mut i.recording,
                         RoundEvent::ChunkDone {
@@ -741,7 +778,8 @@ impl<'a> Sim<'a> {
         let i = &mut self.insts[inst];
         i.done = true;
         let total = i.trace.total_actions;
-        if let Some((round, from)) = i.running.take() {
+        if let Some((round, from, cut)) = i.running.take() {
+            self.out.beyond_cut_actions += u64::from(total.saturating_sub(from.max(cut)));
             record(
                 &mut i.recording,
                 RoundEvent::ChunkDone {

@@ -59,6 +59,7 @@ fn config(policy: &str, setting: &str, load: Load, engines: Vec<EngineSpec>) -> 
         seed: 1,
         record: false,
         policies: Default::default(),
+        replay_horizon: None,
     }
 }
 

@@ -6,8 +6,10 @@
 //! `tests/`.
 
 mod bench_horizon;
+mod bench_live_plugins;
 mod bench_plugins;
 mod bench_scale;
+mod load_horizon;
 mod plugin_common;
 mod plugin_containment;
 mod plugin_reload;

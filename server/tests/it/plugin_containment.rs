@@ -89,6 +89,7 @@ impl Chunk {
             round_index: round,
             recent_horizons: &[],
             params: &self.params,
+            load: None,
         }
     }
 }
@@ -481,7 +482,8 @@ fn a_plugin_for_an_unsupported_version_is_refused_at_load() {
         InspectError::UnsupportedVersion { .. }
     ));
     assert!(
-        message.contains("kairos:policy@0.9.0") && message.contains("supported: 0.1.0, 0.2.0"),
+        message.contains("kairos:policy@0.9.0")
+            && message.contains("supported: 0.1.0, 0.2.0, 0.3.0"),
         "{message}"
     );
 }

@@ -142,6 +142,7 @@ impl Robot {
             round_index: 0,
             recent_horizons: &[],
             params: &self.params,
+            load: None,
         };
         policy.choose(&input).expect("always answered")
     }

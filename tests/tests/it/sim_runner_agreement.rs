@@ -159,6 +159,7 @@ async fn agree(latency_ms: u64, horizon: u32, trigger: f32, rounds: u64) {
             seed: 1,
             record: true,
             policies: Default::default(),
+            replay_horizon: None,
         },
     )
     .unwrap();

@@ -8,7 +8,7 @@ OUT="${1:-.}"
 KAIROS="${KAIROS:-kairos}"
 mkdir -p "$OUT"
 clang --target=wasm32-wasi -O2 -ffp-contract=off -mexec-model=reactor -Wall -Wextra -Werror \
-    -Wl,--strip-all -I "$SDK/since_v0.2.0" -I "$SDK" -o "$OUT/bound.core.wasm" "$HERE/bound.c" \
-    "$SDK/since_v0.2.0/horizon_policy.c" "$SDK/kairos_world_stub.c"
+    -Wl,--strip-all -I "$SDK/since_v0.3.0" -I "$SDK" -o "$OUT/bound.core.wasm" "$HERE/bound.c" \
+    "$SDK/since_v0.3.0/horizon_policy.c" "$SDK/kairos_world_stub.c"
 "$KAIROS" plugin componentize "$OUT/bound.core.wasm" --world horizon -o "$OUT/bound.wasm"
 "$KAIROS" plugin check "$OUT/bound.wasm" --param bound=0.05 --no-cache --cases 50
