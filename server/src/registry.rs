@@ -356,7 +356,7 @@ mod tests {
     fn every_native_name_resolves_through_its_registry() {
         let horizons = HorizonRegistry::natives();
         let names: Vec<&str> = horizons.names().collect();
-        assert_eq!(names, ["spread", "static", "steady", "threshold"]);
+        assert_eq!(names, ["load-aware", "spread", "static", "steady", "threshold"]);
         for native in HorizonKind::NATIVES {
             // `static` requires `h`; the others build with their defaults.
             let params = match native.name {
@@ -418,7 +418,7 @@ mod tests {
                 assert_eq!(name, "policy");
                 assert!(
                     reason.contains("`nope`")
-                        && reason.contains("bound, spread, static, steady, threshold"),
+                        && reason.contains("bound, load-aware, spread, static, steady, threshold"),
                     "{reason}"
                 );
             }
@@ -434,7 +434,7 @@ mod tests {
         assert!(
             error
                 .to_string()
-                .contains("spread, static, steady, threshold"),
+                .contains("load-aware, spread, static, steady, threshold"),
             "{error}"
         );
         match build_priority(&PriorityRegistry::natives(), &"lottery".parse().unwrap()) {
