@@ -334,29 +334,43 @@ fn metrics_follow_the_rounds_and_count_a_late_reply_as_a_deadline_miss() {
                 .ok()
         })
     };
-    assert_eq!(sample(r#"kairos_engine_busy_seconds_total{engine="e0"}"#), Some(0.0));
+    assert_eq!(
+        sample(r#"kairos_engine_busy_seconds_total{engine="e0"}"#),
+        Some(0.0)
+    );
 
     // Round 0 runs alone; round 1 of another task waits behind it (batches of one).
-    b.core.submit(ms(0), b.valid(0, 1, 0, ms(0), 1.0), ms(0), WaiterId(1));
-    b.core.submit(ms(1), b.valid(1, 2, 0, ms(1), 1.0), ms(1), WaiterId(2));
+    b.core
+        .submit(ms(0), b.valid(0, 1, 0, ms(0), 1.0), ms(0), WaiterId(1));
+    b.core
+        .submit(ms(1), b.valid(1, 2, 0, ms(1), 1.0), ms(1), WaiterId(2));
     let job = only_batch(b.effects());
     assert_eq!(sample("kairos_queue_depth"), Some(1.0));
     let batch = job.batch;
     let answers = b.answers(job);
-    b.core.generation_ended(ms(4), batch, Duration::from_millis(4));
+    b.core
+        .generation_ended(ms(4), batch, Duration::from_millis(4));
     b.core.batch_done(ms(5), batch, answers);
     let job = only_batch(b.effects());
     assert_eq!(sample("kairos_queue_depth"), Some(0.0));
     assert_eq!(sample("kairos_round_latency_seconds_count"), Some(1.0));
     assert_eq!(sample("kairos_round_latency_seconds_sum"), Some(0.005));
     assert_eq!(sample("kairos_batch_size_count"), Some(2.0));
-    assert_eq!(sample(r#"kairos_engine_busy_seconds_total{engine="e0"}"#), Some(0.004));
+    assert_eq!(
+        sample(r#"kairos_engine_busy_seconds_total{engine="e0"}"#),
+        Some(0.004)
+    );
     let batch = job.batch;
     let answers = b.answers(job);
-    b.core.generation_ended(ms(6), batch, Duration::from_millis(1));
+    b.core
+        .generation_ended(ms(6), batch, Duration::from_millis(1));
     b.core.batch_done(ms(6), batch, answers);
     let _ = b.effects();
-    assert_eq!(sample("kairos_deadline_misses_total"), Some(0.0), "no E yet");
+    assert_eq!(
+        sample("kairos_deadline_misses_total"),
+        Some(0.0),
+        "no E yet"
+    );
 
     // Task 1's next round: the robot reports it will run dry at 20 ms + 1 action at 100 Hz.
     let mut next = |round: u64, at: u64, answered: u64| {

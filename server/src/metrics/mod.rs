@@ -334,7 +334,7 @@ impl Metrics {
 
     /// Makes `engine` appear in `kairos_engine_busy_*` at zero before its first batch.
     pub fn add_engine(&self, engine: &str) {
-        let _ = self.with_engine(engine, |_| ());
+        self.with_engine(engine, |_| ());
     }
 
     /// `kairos_engine_busy_seconds_total{engine}`: `engine` ran a forward pass for `busy`.

@@ -264,7 +264,14 @@ mod tests {
 
     #[test]
     fn quarantine_starts_after_consecutive_failures_and_doubles_on_failed_probes() {
-        let mut h = Health::new("p", &options(2, 3));
+        let exported = prometheus_client::metrics::counter::Counter::default();
+        let mut h = Health::new(
+            "p",
+            &PluginOptions {
+                fallback_counter: Some(exported.clone()),
+                ..options(2, 3)
+            },
+        );
         assert!(h.admit());
         h.failed(FailureKind::Trap, "x");
         assert!(h.admit());
@@ -291,6 +298,7 @@ mod tests {
         assert_eq!(stats.failures_of(FailureKind::Trap), 3);
         assert_eq!(stats.failures_of(FailureKind::Timeout), 1);
         assert_eq!(stats.fallbacks, 13);
+        assert_eq!(exported.get(), 13, "every fallback is exported");
         assert_eq!(stats.answered, 2);
         assert_eq!(stats.decisions, 15);
     }

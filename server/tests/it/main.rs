@@ -9,6 +9,7 @@ mod bench_horizon;
 mod bench_live_plugins;
 mod bench_plugins;
 mod bench_scale;
+mod deploy;
 mod load_horizon;
 mod plugin_common;
 mod plugin_containment;

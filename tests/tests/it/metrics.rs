@@ -52,7 +52,10 @@ async fn server_with_metrics() -> TestServer {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn metrics_count_a_round_and_ready_flips_on_shutdown() {
     let server = server_with_metrics().await;
-    let addr = server.server().metrics_addr.expect("metrics endpoint bound");
+    let addr = server
+        .server()
+        .metrics_addr
+        .expect("metrics endpoint bound");
 
     let (status, before) = get(addr, "/metrics").await;
     assert_eq!(status, 200, "{before}");
@@ -69,26 +72,44 @@ async fn metrics_count_a_round_and_ready_flips_on_shutdown() {
         "kairos_engine_busy_seconds counter",
         "kairos_engine_busy_ratio gauge",
     ] {
-        assert!(before.contains(&format!("# TYPE {family}")), "{family}:\n{before}");
+        assert!(
+            before.contains(&format!("# TYPE {family}")),
+            "{family}:\n{before}"
+        );
     }
     // Labelled families appear with their first series (a re-dispatch, a worker, a configured
     // plugin); this server has none, and prometheus-client writes no empty family.
-    for family in ["kairos_redispatch", "kairos_worker_rtt_seconds", "kairos_plugin_fallbacks"] {
+    for family in [
+        "kairos_redispatch",
+        "kairos_worker_rtt_seconds",
+        "kairos_plugin_fallbacks",
+    ] {
         assert!(!before.contains(family), "{family}:\n{before}");
     }
     assert_eq!(
         sample(&before, r#"kairos_workers{tier="edge",state="ready"}"#),
         Some(1.0)
     );
-    assert_eq!(sample(&before, "kairos_round_latency_seconds_count"), Some(0.0));
+    assert_eq!(
+        sample(&before, "kairos_round_latency_seconds_count"),
+        Some(0.0)
+    );
     assert!(before.contains(r#"kairos_engine_busy_seconds_total{engine="edge-0"}"#));
 
     // One round: the reply is sent after the driver recorded it.
     let client = server.connect(&server.token).await.unwrap();
     one_round(&client, 7, 0).await.unwrap();
     let (_, after) = get(addr, "/metrics").await;
-    assert_eq!(sample(&after, "kairos_round_latency_seconds_count"), Some(1.0), "{after}");
-    assert_eq!(sample(&after, "kairos_batch_size_count"), Some(1.0), "{after}");
+    assert_eq!(
+        sample(&after, "kairos_round_latency_seconds_count"),
+        Some(1.0),
+        "{after}"
+    );
+    assert_eq!(
+        sample(&after, "kairos_batch_size_count"),
+        Some(1.0),
+        "{after}"
+    );
     assert_eq!(sample(&after, "kairos_queue_depth"), Some(0.0), "{after}");
     assert!(sample(&after, "kairos_round_latency_seconds_sum").unwrap() > 0.0);
 
@@ -118,7 +139,12 @@ async fn bad_requests_get_4xx_and_the_endpoint_keeps_serving() {
         (oversized.as_bytes(), 431),
     ] {
         let (status, text) = exchange(addr, request).await;
-        assert_eq!(status, expected, "{:?} -> {text}", String::from_utf8_lossy(request));
+        assert_eq!(
+            status,
+            expected,
+            "{:?} -> {text}",
+            String::from_utf8_lossy(request)
+        );
     }
     let (status, _) = get(addr, "/metrics").await;
     assert_eq!(status, 200, "still serving after bad requests");
