@@ -11,9 +11,14 @@
 //! `state_proj` is loaded and exposed ([`SmolVlaExpert::embed_state`]) because in SmolVLA the
 //! state is the last prefix token the VLM encodes.
 
+pub mod checkpoint;
 pub mod config;
+pub mod images;
+pub mod pipeline;
 pub mod prefix;
+pub mod processors;
 pub mod serving;
+pub mod tokenize;
 pub mod weights;
 
 mod candle_backend;
@@ -21,7 +26,9 @@ mod cpu;
 
 use std::path::Path;
 
+pub use checkpoint::{Observation, PreparedObservation, SmolVlaCheckpoint};
 pub use config::{ExpertDims, LayerKind, SmolVlaConfig, VlmTextConfig};
+pub use pipeline::{PrefixModel, SmolVlaPipeline};
 pub use prefix::PrefixKv;
 pub use weights::ExpertWeights;
 
