@@ -35,21 +35,10 @@ ensure_venv()
 
 import torch  # noqa: E402
 
+from smolvla_common import SMOLVLM2_500M_TEXT, patch_hub  # noqa: E402
+
 PREFIX = 177
-TEXT_CONFIG = dict(  # HuggingFaceTB/SmolVLM2-500M-Video-Instruct text_config
-    model_type="llama",
-    hidden_size=960,
-    intermediate_size=2560,
-    num_hidden_layers=32,
-    num_attention_heads=15,
-    num_key_value_heads=5,
-    head_dim=64,
-    rms_norm_eps=1e-5,
-    vocab_size=49280,
-    max_position_embeddings=8192,
-    rope_theta=100000.0,
-    tie_word_embeddings=False,
-)
+TEXT_CONFIG = SMOLVLM2_500M_TEXT
 # The vision tower is not used by the denoise loop; a tiny one keeps construction fast.
 VISION_CONFIG = dict(hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2,
                      image_size=32, patch_size=8)
@@ -58,21 +47,12 @@ VISION_CONFIG = dict(hidden_size=32, intermediate_size=64, num_hidden_layers=1, 
 def build_model():
     from transformers import SmolVLMConfig
 
-    import lerobot.policies.smolvla.smolvlm_with_expert as swe
     from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
     from lerobot.policies.smolvla.modeling_smolvla import VLAFlowMatching
 
     vlm_config = SmolVLMConfig(text_config=dict(TEXT_CONFIG), vision_config=dict(VISION_CONFIG), scale_factor=2)
 
-    class _Tokenizer:
-        fake_image_token_id = 1
-        global_image_token_id = 2
-
-    class _Processor:
-        tokenizer = _Tokenizer()
-
-    swe.AutoConfig.from_pretrained = staticmethod(lambda *_a, **_k: vlm_config)
-    swe.AutoProcessor.from_pretrained = staticmethod(lambda *_a, **_k: _Processor())
+    patch_hub(vlm_config)
     cfg = SmolVLAConfig(load_vlm_weights=False, device="cpu")  # all LeRobot defaults otherwise
     model = VLAFlowMatching(cfg).eval()
     return model, cfg

@@ -34,6 +34,8 @@ ensure_venv()
 import torch  # noqa: E402
 from safetensors.torch import save_file  # noqa: E402
 
+from smolvla_common import patch_hub, rescale_weights  # noqa: E402
+
 # Small configuration: every structural feature of the real expert at toy width.
 # The real SmolVLM2-500M text config is hidden 960, 15 query / 5 KV heads of 64 (GQA 3),
 # 16 kept layers (expert 720); here hidden 96 (expert 72), 6 / 2 heads of 16 (GQA 3), 4 layers
@@ -73,23 +75,12 @@ SEED = 20261121
 def build_policy():
     from transformers import SmolVLMConfig
 
-    import lerobot.policies.smolvla.smolvlm_with_expert as swe
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
     from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 
     vlm_config = SmolVLMConfig(text_config=dict(TEXT_CONFIG), vision_config=dict(VISION_CONFIG), scale_factor=2)
-
-    class _Tokenizer:  # only these two ids are read, and only with add_image_special_tokens
-        fake_image_token_id = 1
-        global_image_token_id = 2
-
-    class _Processor:
-        tokenizer = _Tokenizer()
-
-    # The hub is not reachable for this config: hand LeRobot the local config instead.
-    swe.AutoConfig.from_pretrained = staticmethod(lambda *_a, **_k: vlm_config)
-    swe.AutoProcessor.from_pretrained = staticmethod(lambda *_a, **_k: _Processor())
+    patch_hub(vlm_config)  # the hub is not reachable for this config: hand LeRobot the local one
 
     cfg = SmolVLAConfig(
         chunk_size=CHUNK,
@@ -114,20 +105,6 @@ def build_policy():
     )
     policy = SmolVLAPolicy(cfg)
     return policy, cfg, vlm_config
-
-
-@torch.no_grad()
-def rescale_weights(policy):
-    """HF init (std 0.02) makes every activation tiny; use unit-gain weights so attention and SiLU matter."""
-    gen = torch.Generator().manual_seed(SEED)
-    for name, p in policy.named_parameters():
-        if p.ndim >= 2:
-            fan_in = p.shape[1] if p.ndim == 2 else p[0].numel()
-            p.copy_(torch.randn(p.shape, generator=gen) / fan_in**0.5)
-        elif "norm" in name:
-            p.copy_(1.0 + 0.2 * torch.randn(p.shape, generator=gen))
-        else:
-            p.copy_(0.2 * torch.randn(p.shape, generator=gen))
 
 
 def make_batch(gen):
@@ -209,7 +186,7 @@ def main():
     torch.manual_seed(SEED)
     policy, cfg, vlm_config = build_policy()
     policy.eval()
-    rescale_weights(policy)
+    rescale_weights(policy, SEED)
 
     gen = torch.Generator().manual_seed(SEED + 1)
     batch = make_batch(gen)

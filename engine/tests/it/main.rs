@@ -7,4 +7,5 @@
 mod examples_help;
 mod loader_errors;
 mod models;
+mod smolvla_fixture;
 mod smolvla_parity;

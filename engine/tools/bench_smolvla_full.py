@@ -1,0 +1,238 @@
+#!/usr/bin/env python3
+"""Time LeRobot's full SmolVLA `predict_action_chunk` (vision tower + VLM prefix + expert) on
+`lerobot/smolvla_base` shapes, and the Kairos full pipeline on the same checkpoint, side by side.
+
+    python3 engine/tools/bench_smolvla_full.py [--batch 1,4] [--threads 2] [--iters 3] [--rounds 1]
+        [--write-checkpoint DIR] [--kairos 'CMD']
+
+Shapes: SmolVLM2-500M (SigLIP 12 layers of 768 on 512x512 images, patch 16, pixel shuffle 4 ->
+64 tokens per camera; 16 of the 32 SmolLM2 text layers, hidden 960, 15/5 heads of 64), expert
+hidden 720, two 512x512 cameras, a 48-token instruction (`tokenizer_max_length`, padded to it),
+state 6, action 6, chunk 50, 10 Euler steps. Random weights (unit-gain, seeded), f32 compute as
+LeRobot runs it on a CPU.
+
+PyTorch side: LeRobot 0.6.1's own `SmolVLAPolicy.predict_action_chunk` on an already
+preprocessed batch (float images in [0,1], tokens, normalised state), under
+`torch.set_num_threads(threads)`; the median of `iters` runs after one warm-up, plus the process
+CPU time per run (a shared machine's waiting for a core inflates the wall time, not that).
+The RSS of the model is the process's VmRSS after building it minus before, and the peak
+(VmHWM) over the timed runs.
+
+Kairos side: `--kairos 'CMD'` is a shell command template run once per batch size, alternating
+with PyTorch, with `{model}`, `{batch}`, `{threads}` and `{iters}` substituted; its last stdout
+line must be JSON with `median_ms` (and optionally `cpu_ms_per_run`, `rss_mb`), as
+`examples/expert_timing.rs` prints. The checkpoint it gets is the one `--write-checkpoint`
+wrote (default: a temporary directory). Until the Kairos full pipeline exists, leave `--kairos`
+out and only the PyTorch side runs.
+
+`--write-checkpoint DIR` writes the random model as a smolvla_base-shaped checkpoint directory:
+`SmolVLAPolicy.save_pretrained` (`config.json`, `model.safetensors` with the VLM's tensors in
+bf16 and the expert's in f32, as lerobot/smolvla_base stores them), both processors with random
+MEAN_STD stats (`policy_preprocessor.json`, `policy_postprocessor.json` and their stats files),
+`vlm_config.json`, and the fixture's small `tokenizer.json` (its ids fit SmolVLM2's vocabulary).
+It is about 1.2 GB: do not commit it. The PyTorch run then uses the weights as stored (the VLM
+rounded to bf16), so both sides compute on the same values.
+"""
+
+import argparse
+import json
+import os
+import platform
+import shlex
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from lerobot_env import REPO, ensure_venv  # noqa: E402
+
+ensure_venv()
+
+import torch  # noqa: E402
+
+from smolvla_common import (  # noqa: E402
+    BF16_PREFIX,
+    SMOLVLM2_500M_SCALE_FACTOR,
+    SMOLVLM2_500M_TEXT,
+    SMOLVLM2_500M_VISION,
+    patch_hub,
+    rescale_weights,
+    store_vlm_in_bf16,
+)
+
+SEED = 20261125
+STATE_DIM = 6
+ACTION_DIM = 6
+CAMERAS = ("observation.images.camera1", "observation.images.camera2")
+TOKENIZER = REPO / "engine/tests/fixtures/smolvla_tiny/tokenizer.json"
+
+
+def status_kb(field):
+    for line in open("/proc/self/status"):
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    return 0
+
+
+def build():
+    from transformers import SmolVLMConfig
+
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+
+    vlm_config = SmolVLMConfig(
+        text_config=dict(SMOLVLM2_500M_TEXT),
+        vision_config=dict(SMOLVLM2_500M_VISION),
+        scale_factor=SMOLVLM2_500M_SCALE_FACTOR,
+    )
+    patch_hub(vlm_config)
+    size = SMOLVLM2_500M_VISION["image_size"]
+    cfg = SmolVLAConfig(  # LeRobot's defaults are smolvla_base's: chunk 50, 16 VLM layers, 512x512, 48 tokens
+        load_vlm_weights=False,
+        device="cpu",
+        input_features={
+            "observation.state": PolicyFeature(type=FeatureType.STATE, shape=(STATE_DIM,)),
+            **{c: PolicyFeature(type=FeatureType.VISUAL, shape=(3, size, size)) for c in CAMERAS},
+        },
+        output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(ACTION_DIM,))},
+    )
+    torch.manual_seed(SEED)
+    policy = SmolVLAPolicy(cfg).eval()
+    rescale_weights(policy, SEED)
+    with torch.no_grad():  # the weights as the checkpoint stores them: the VLM in bf16
+        for name, p in policy.named_parameters():
+            if name.startswith(BF16_PREFIX):
+                p.copy_(p.to(torch.bfloat16).float())
+    return policy, cfg, vlm_config
+
+
+def write_checkpoint(policy, cfg, vlm_config, out: Path):
+    from lerobot.policies.smolvla.processor_smolvla import make_smolvla_pre_post_processors
+    from transformers import PreTrainedTokenizerFast
+
+    out.mkdir(parents=True, exist_ok=True)
+    policy.save_pretrained(out)
+    store_vlm_in_bf16(out / "model.safetensors")
+    gen = torch.Generator().manual_seed(SEED + 3)
+    stats = {
+        key: {"mean": torch.randn(d, generator=gen), "std": 0.5 + torch.rand(d, generator=gen)}
+        for key, d in (("observation.state", STATE_DIM), ("action", ACTION_DIM))
+    }
+    tok = PreTrainedTokenizerFast(tokenizer_file=str(TOKENIZER), pad_token="<|im_end|>")
+    patch_hub(vlm_config, tok)
+    pre, post = make_smolvla_pre_post_processors(cfg, dataset_stats=stats)
+    pre.save_pretrained(out)
+    post.save_pretrained(out)
+    (out / "vlm_config.json").write_text(vlm_config.to_json_string())
+    shutil.copy(TOKENIZER, out / "tokenizer.json")
+
+
+def make_batch(cfg, batch, gen):
+    size = cfg.resize_imgs_with_padding[0]
+    n = cfg.tokenizer_max_length
+    out = {c: torch.rand(batch, 3, size, size, generator=gen) for c in CAMERAS}
+    out["observation.state"] = torch.randn(batch, STATE_DIM, generator=gen)
+    out["observation.language.tokens"] = torch.randint(3, 300, (batch, n), generator=gen)
+    out["observation.language.attention_mask"] = torch.ones(batch, n, dtype=torch.bool)
+    return out
+
+
+@torch.no_grad()
+def time_torch(policy, cfg, batch, iters):
+    gen = torch.Generator().manual_seed(SEED + batch)
+    obs = make_batch(cfg, batch, gen)
+    noise = torch.randn(batch, cfg.chunk_size, cfg.max_action_dim, generator=gen)
+
+    def run():
+        policy.reset()
+        return policy.predict_action_chunk(dict(obs), noise=noise)
+
+    run()
+    runs = []
+    cpu0 = time.process_time()
+    for _ in range(iters):
+        t0 = time.perf_counter()
+        out = run()
+        runs.append((time.perf_counter() - t0) * 1e3)
+        assert out.shape == (batch, cfg.chunk_size, ACTION_DIM)
+    return statistics.median(runs), runs, (time.process_time() - cpu0) * 1e3 / iters
+
+
+def time_kairos(template, model, batch, threads, iters):
+    cmd = template.format(model=shlex.quote(str(model)), batch=batch, threads=threads, iters=iters)
+    out = subprocess.run(cmd, shell=True, cwd=REPO, check=True, capture_output=True, text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--batch", default="1,4")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--iters", type=int, default=3)
+    ap.add_argument("--rounds", type=int, default=1)
+    ap.add_argument("--write-checkpoint", type=Path, help="write the random model here (about 1.2 GB)")
+    ap.add_argument("--kairos", help="Kairos command template, e.g. 'target/release/kairos profile --model {model} ...'")
+    ap.add_argument("--no-bench", action="store_true", help="only write the checkpoint")
+    args = ap.parse_args()
+    batches = [int(b) for b in args.batch.split(",")]
+    torch.set_num_threads(args.threads)
+
+    rss0 = status_kb("VmRSS")
+    policy, cfg, vlm_config = build()
+    rss_model = (status_kb("VmRSS") - rss0) / 1024
+    params = sum(p.numel() for p in policy.parameters())
+    ckpt = args.write_checkpoint
+    tmp = None
+    if ckpt is None and args.kairos:
+        tmp = tempfile.mkdtemp(prefix="smolvla_base_random_")
+        ckpt = Path(tmp)
+    if ckpt is not None:
+        write_checkpoint(policy, cfg, vlm_config, ckpt)
+        size = sum(f.stat().st_size for f in ckpt.iterdir()) / 1e9
+        print(f"# wrote {ckpt} ({size:.2f} GB): {sorted(p.name for p in ckpt.iterdir())}", flush=True)
+    if args.no_bench:
+        return
+
+    cpu = next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")), "?")
+    flags = next((ln.split(":", 1)[1].split() for ln in open("/proc/cpuinfo") if ln.startswith("flags")), [])
+    want = ("avx2", "fma", "avx512f", "avx512_bf16", "avx512_vnni")
+    print(f"# {cpu} [{' '.join(f for f in want if f in flags)}], {os.cpu_count()} cores; torch {torch.__version__} "
+          f"({torch.get_num_threads()} threads), python {platform.python_version()}")
+    print(f"# model: {params / 1e6:.0f} M parameters (f32 in memory), RSS after build +{rss_model:.0f} MB")
+    results = {}
+    try:
+        for _ in range(args.rounds):
+            for b in batches:
+                load = open("/proc/loadavg").read().split()[0]
+                pt, pt_runs, pt_cpu = time_torch(policy, cfg, b, args.iters)
+                line = (f"#   B={b} (load avg {load}): pytorch runs {[round(r) for r in pt_runs]} ms, "
+                        f"cpu {pt_cpu:.0f} ms/run")
+                ka = None
+                if args.kairos:
+                    ka = time_kairos(args.kairos, ckpt, b, args.threads, args.iters)
+                    line += f"; kairos {ka}"
+                print(line, flush=True)
+                kept = results.get(b)
+                ratio = ka["median_ms"] / pt if ka else 0.0
+                if kept is None or (ratio > kept[2] if ka else pt < kept[0]):  # conservative for Kairos
+                    results[b] = (pt, pt_cpu, ratio, ka)
+    finally:
+        if tmp:
+            shutil.rmtree(tmp, ignore_errors=True)
+    print(f"# peak RSS (VmHWM) {status_kb('VmHWM') / 1024:.0f} MB")
+    print("| batch | PyTorch (LeRobot) ms | PyTorch CPU ms/run | Kairos ms | Kairos / PyTorch |")
+    print("|---:|---:|---:|---:|---:|")
+    for b in batches:
+        pt, pt_cpu, ratio, ka = results[b]
+        kcell = f"{ka['median_ms']:.0f}" if ka else "n/a"
+        rcell = f"{ratio:.2f}" if ka else "n/a"
+        print(f"| {b} | {pt:.0f} | {pt_cpu:.0f} | {kcell} | {rcell} |")
+
+
+if __name__ == "__main__":
+    main()
