@@ -82,14 +82,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .collect();
         expert.generate(&requests)?; // warm-up: page in weights, size the workspace
         let mut runs = Vec::with_capacity(iters);
-        let cpu0 = process_cpu_ms();
+        let cpu0 = kairos_engine::profile::process_cpu_ms();
         for _ in 0..iters {
             let t = Instant::now();
             let out = expert.generate(&requests)?;
             runs.push(t.elapsed().as_secs_f64() * 1e3);
             assert_eq!(out.len(), b);
         }
-        let cpu_ms = (process_cpu_ms() - cpu0) / iters as f64;
+        let cpu_ms = (kairos_engine::profile::process_cpu_ms() - cpu0) / iters as f64;
         let mut sorted = runs.clone();
         sorted.sort_by(f64::total_cmp);
         let median = sorted[sorted.len() / 2];
@@ -103,24 +103,4 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         );
     }
     Ok(())
-}
-
-/// CPU time of this process (all threads) in ms, from /proc (Linux); 0 elsewhere. On a shared
-/// machine wall time includes waiting for a core, CPU time does not.
-fn process_cpu_ms() -> f64 {
-    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
-        return 0.0;
-    };
-    let Some(rest) = stat.rsplit(')').next() else {
-        return 0.0;
-    };
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    // After the command: state is field 3; utime and stime are fields 14 and 15 (1-based).
-    let ticks = |i: usize| {
-        fields
-            .get(i - 3)
-            .and_then(|v| v.parse::<f64>().ok())
-            .unwrap_or(0.0)
-    };
-    (ticks(14) + ticks(15)) * 10.0
 }

@@ -84,9 +84,6 @@ pub enum EngineError {
         /// The length given.
         found: usize,
     },
-    /// A part of the model this build cannot run yet.
-    #[error("not supported: {0}")]
-    Unsupported(String),
     /// An error inside Candle.
     #[error(transparent)]
     Candle(#[from] candle_core::Error),

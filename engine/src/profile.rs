@@ -195,6 +195,26 @@ fn lerp(a: ProfilePoint, b: ProfilePoint, batch: u32) -> f64 {
     a.latency_ms + f * (b.latency_ms - a.latency_ms)
 }
 
+/// CPU time of this process (all threads) in ms, from /proc (Linux); 0 elsewhere. On a shared
+/// machine wall time includes waiting for a core, CPU time does not.
+pub fn process_cpu_ms() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
+        return 0.0;
+    };
+    let Some(rest) = stat.rsplit(')').next() else {
+        return 0.0;
+    };
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    // After the command: state is field 3; utime and stime are fields 14 and 15 (1-based).
+    let ticks = |i: usize| {
+        fields
+            .get(i - 3)
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or(0.0)
+    };
+    (ticks(14) + ticks(15)) * 10.0
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

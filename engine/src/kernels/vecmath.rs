@@ -158,6 +158,45 @@ multiversion! {
     }
 }
 
+multiversion! {
+    /// LayerNorm of each `weight.len()`-wide row of `x` into `out`, as `nn.LayerNorm`:
+    /// `(x - mean) / sqrt(var + eps) * weight + bias` with the biased variance.
+    pub fn layer_norm(x: &[f32], weight: &[f32], bias: &[f32], eps: f32, out: &mut [f32]) {
+        let h = weight.len();
+        let mut centred = vec![0.0f32; h];
+        for (xr, or) in x.chunks_exact(h).zip(out.chunks_exact_mut(h)) {
+            let mean = sum_lanes(xr) / h as f32;
+            for (c, &v) in centred.iter_mut().zip(xr) {
+                *c = v - mean;
+            }
+            for (o, &c) in or.iter_mut().zip(&centred) {
+                *o = c * c;
+            }
+            let var = sum_lanes(or) / h as f32;
+            let inv = 1.0 / (var + eps).sqrt();
+            for (((o, &c), &w), &b) in or.iter_mut().zip(&centred).zip(weight).zip(bias) {
+                *o = c * inv * w + b;
+            }
+        }
+    }
+}
+
+multiversion! {
+    /// `x[i] = gelu_tanh(x[i])` in place (`gelu_pytorch_tanh`):
+    /// `0.5 x (1 + tanh(sqrt(2/π) (x + 0.044715 x³)))`.
+    pub fn gelu_tanh_inplace(x: &mut [f32]) {
+        const SQRT_2_OVER_PI: f32 = 0.797_884_6;
+        for v in x.iter_mut() {
+            let u = *v;
+            let y = SQRT_2_OVER_PI * (u + 0.044_715 * u * u * u);
+            // tanh(y) = sign(y) (1 - e) / (1 + e) with e = exp(-2|y|): never overflows.
+            let e = exp_approx(-2.0 * y.abs());
+            let t = ((1.0 - e) / (1.0 + e)).copysign(y);
+            *v = 0.5 * u * (1.0 + t);
+        }
+    }
+}
+
 /// LeRobot's RoPE tables for one position: `radians = pos / 10000^(2i/d)` in f32, as
 /// `apply_rope` computes them. Writes `d/2` cosines and sines.
 pub fn rope_table(position: f32, head_dim: usize, cos: &mut [f32], sin: &mut [f32]) {
@@ -234,6 +273,53 @@ mod tests {
         let rms = (x.iter().map(|v| v * v).sum::<f32>() / 5.0).sqrt();
         for (o, v) in n.iter().zip(x) {
             assert!((o - 2.0 * v / rms).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn layer_norm_and_gelu_match_definitions() {
+        let x = [-3.0f32, -0.5, 0.0, 0.7, 4.0, 1.5];
+        let (w, b) = (
+            [0.5f32, 1.0, 2.0, -1.0, 1.5, 0.25],
+            [0.1f32, 0.0, -0.2, 0.3, 0.0, 1.0],
+        );
+        for isa in [Isa::Avx2Fma, Isa::Portable]
+            .into_iter()
+            .filter(|i| i.available())
+        {
+            let mut out = [0.0f32; 12];
+            let xx: Vec<f32> = x.iter().chain(&x).copied().collect();
+            layer_norm(isa, &xx, &w, &b, 1e-6, &mut out);
+            let mean = x.iter().map(|&v| f64::from(v)).sum::<f64>() / 6.0;
+            let var = x
+                .iter()
+                .map(|&v| (f64::from(v) - mean).powi(2))
+                .sum::<f64>()
+                / 6.0;
+            for i in 0..12 {
+                let want = (f64::from(x[i % 6]) - mean) / (var + 1e-6).sqrt() * f64::from(w[i % 6])
+                    + f64::from(b[i % 6]);
+                assert!(
+                    (f64::from(out[i]) - want).abs() < 1e-5,
+                    "{i}: {} vs {want}",
+                    out[i]
+                );
+            }
+            let mut g: Vec<f32> = (-80..80).map(|i| i as f32 / 8.0).collect();
+            let src = g.clone();
+            gelu_tanh_inplace(isa, &mut g);
+            for (o, &v) in g.iter().zip(&src) {
+                let v = f64::from(v);
+                let want = 0.5
+                    * v
+                    * (1.0
+                        + ((2.0 / std::f64::consts::PI).sqrt() * (v + 0.044715 * v * v * v))
+                            .tanh());
+                assert!(
+                    (f64::from(*o) - want).abs() < 2e-6 * (1.0 + want.abs()),
+                    "{v}: {o} vs {want}"
+                );
+            }
         }
     }
 

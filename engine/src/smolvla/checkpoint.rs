@@ -145,7 +145,10 @@ impl SmolVlaCheckpoint {
         if config.policy_type != "smolvla" {
             return Err(EngineError::Load {
                 path: config_path.display().to_string(),
-                reason: format!("policy type is `{}`, expected `smolvla`", config.policy_type),
+                reason: format!(
+                    "policy type is `{}`, expected `smolvla`",
+                    config.policy_type
+                ),
             });
         }
         let pre = Preprocessor::load(&dir.join("policy_preprocessor.json"))?;

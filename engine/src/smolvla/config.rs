@@ -37,6 +37,11 @@ pub struct SmolVlaConfig {
     pub min_period: f64,
     /// Largest period of the sinusoidal time embedding.
     pub max_period: f64,
+    /// Whether the prefix wraps each image in special tokens (not supported; LeRobot's default
+    /// is `false`).
+    pub add_image_special_tokens: bool,
+    /// Pad the prefix to this many tokens (`<= 0`: no padding, LeRobot's default).
+    pub prefix_length: i64,
     /// LeRobot's input features (`observation.state` gives the real state size), in file order:
     /// the order of the `VISUAL` ones is the camera order of the prefix.
     pub input_features: FeatureMap,
@@ -154,6 +159,8 @@ impl Default for SmolVlaConfig {
             attention_mode: "cross_attn".into(),
             min_period: 4e-3,
             max_period: 4.0,
+            add_image_special_tokens: false,
+            prefix_length: -1,
             input_features: FeatureMap::default(),
             output_features: FeatureMap::default(),
             normalization_mapping: [
@@ -200,6 +207,10 @@ pub struct VlmTextConfig {
     pub rms_norm_eps: f64,
     /// VLM layers before LeRobot truncates to `num_vlm_layers`.
     pub num_hidden_layers: usize,
+    /// Width of the text layers' SwiGLU MLP.
+    pub intermediate_size: usize,
+    /// Rows of `embed_tokens`.
+    pub vocab_size: usize,
 }
 
 impl VlmTextConfig {
@@ -212,6 +223,8 @@ impl VlmTextConfig {
             head_dim: 64,
             rms_norm_eps: 1e-5,
             num_hidden_layers: 32,
+            intermediate_size: 2560,
+            vocab_size: 49280,
         }
     }
 
@@ -223,6 +236,110 @@ impl VlmTextConfig {
         }
         let outer: Outer = read_json(path)?;
         Ok(outer.text_config)
+    }
+}
+
+/// The SigLIP vision tower's config (`vision_config` of the SmolVLM config). Missing fields take
+/// the defaults of transformers' `SmolVLMVisionConfig`, as `from_pretrained` would.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
+pub struct VlmVisionConfig {
+    /// Width of the patch embeddings and encoder layers.
+    pub hidden_size: usize,
+    /// Width of the encoder MLP.
+    pub intermediate_size: usize,
+    /// Encoder layers.
+    pub num_hidden_layers: usize,
+    /// Attention heads (`hidden_size / heads` wide each).
+    pub num_attention_heads: usize,
+    /// Image channels.
+    pub num_channels: usize,
+    /// Side of the square image the position embeddings were trained for.
+    pub image_size: usize,
+    /// Side of a square patch (the patch conv's kernel and stride).
+    pub patch_size: usize,
+    /// MLP activation; only `gelu_pytorch_tanh` (SigLIP's) is supported.
+    pub hidden_act: String,
+    /// LayerNorm epsilon.
+    pub layer_norm_eps: f64,
+}
+
+impl Default for VlmVisionConfig {
+    fn default() -> Self {
+        VlmVisionConfig {
+            hidden_size: 1152,
+            intermediate_size: 3072,
+            num_hidden_layers: 12,
+            num_attention_heads: 16,
+            num_channels: 3,
+            image_size: 224,
+            patch_size: 32,
+            hidden_act: "gelu_pytorch_tanh".into(),
+            layer_norm_eps: 1e-6,
+        }
+    }
+}
+
+/// The whole SmolVLM config the prefix needs: text model, vision tower and the connector's pixel
+/// shuffle factor.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct VlmConfig {
+    /// The text model (SmolLM2).
+    pub text_config: VlmTextConfig,
+    /// The vision tower (SigLIP).
+    #[serde(default)]
+    pub vision_config: VlmVisionConfig,
+    /// Pixel-shuffle factor of the connector (transformers' default 2).
+    #[serde(default = "default_scale_factor")]
+    pub scale_factor: usize,
+}
+
+fn default_scale_factor() -> usize {
+    2
+}
+
+impl VlmConfig {
+    /// SmolVLM2-500M-Video-Instruct, from its hub `config.json`.
+    pub fn smolvlm2_500m() -> Self {
+        VlmConfig {
+            text_config: VlmTextConfig::smolvlm2_500m(),
+            vision_config: VlmVisionConfig {
+                hidden_size: 768,
+                intermediate_size: 3072,
+                num_hidden_layers: 12,
+                num_attention_heads: 12,
+                num_channels: 3,
+                image_size: 512,
+                patch_size: 16,
+                hidden_act: "gelu_pytorch_tanh".into(),
+                layer_norm_eps: 1e-6,
+            },
+            scale_factor: 4,
+        }
+    }
+
+    /// Read a SmolVLM `config.json` (as `SmolVLMConfig.save_pretrained` writes it).
+    pub fn from_file(path: &Path) -> Result<Self, EngineError> {
+        read_json(path)
+    }
+
+    /// The VLM config of a SmolVLA checkpoint directory: its `vlm_config.json` when present,
+    /// else the built-in config of LeRobot's default VLM.
+    pub fn for_checkpoint(dir: &Path, cfg: &SmolVlaConfig) -> Result<Self, EngineError> {
+        let path = dir.join("vlm_config.json");
+        if path.exists() {
+            Self::from_file(&path)
+        } else if cfg.vlm_model_name == SMOLVLM2_500M {
+            Ok(Self::smolvlm2_500m())
+        } else {
+            Err(EngineError::Load {
+                path: path.display().to_string(),
+                reason: format!(
+                    "VLM `{}` has no built-in config; provide its config.json here",
+                    cfg.vlm_model_name
+                ),
+            })
+        }
     }
 }
 

@@ -12,20 +12,21 @@ use crate::kernels::attention::{KvSegment, QueryPositions, attend};
 use crate::kernels::gemm::{gemm, gemm_par};
 use crate::kernels::{Init, PackedMatrix, Pool, SharedMut, vecmath};
 
-struct Linear {
-    w: PackedMatrix,
-    bias: Option<Vec<f32>>,
+/// A `Linear` layer packed for the GEMM, with its bias.
+pub(crate) struct Linear {
+    pub(crate) w: PackedMatrix,
+    pub(crate) bias: Option<Vec<f32>>,
 }
 
 impl Linear {
-    fn new(l: &LinearWeights) -> Self {
+    pub(crate) fn new(l: &LinearWeights) -> Self {
         Linear {
             w: PackedMatrix::from_linear_weight(&l.weight, l.out_dim, l.in_dim),
             bias: l.bias.clone(),
         }
     }
 
-    fn init(&self) -> Init<'_> {
+    pub(crate) fn init(&self) -> Init<'_> {
         self.bias.as_deref().map_or(Init::Zero, Init::Bias)
     }
 }
@@ -515,7 +516,7 @@ impl CpuExpert {
     }
 }
 
-fn rms_norm_par(pool: &Pool, x: &[f32], weight: &[f32], eps: f32, out: &mut [f32]) {
+pub(crate) fn rms_norm_par(pool: &Pool, x: &[f32], weight: &[f32], eps: f32, out: &mut [f32]) {
     let h = weight.len();
     pool.for_row_chunks(out, h, |r0, rows| {
         vecmath::rms_norm(

@@ -200,17 +200,18 @@ pub fn empty_camera(like: &PreparedImage) -> PreparedImage {
     }
 }
 
-/// The worst-case absolute difference between this module's prepared pixels and PyTorch's for
-/// an input whose longer side is `side` pixels. Every output is a convex combination of four
-/// inputs in `[0, 1]`: four products and three sums, each rounded by at most `2^-24`
-/// (relative, on values at most 1), plus the bilinear weights, whose source coordinate
-/// `scale * (i + 0.5) - 0.5` (at most `side`) may be rounded differently by a fused
-/// multiply-add, moving a weight by up to `2 ulp(side)`; `x * 2 - 1` doubles all of it and
-/// rounds once more. PyTorch's kernels differ between thread counts and ISAs only within this.
+/// The worst-case absolute difference between this module's prepared pixels and PyTorch's
+/// (any kernel, thread count or ISA) for an input whose longer side is `side` pixels, with
+/// `u = 2^-24`:
+/// - every output is a convex combination of four inputs in `[0, 1]`, computed with four
+///   products and three sums, each rounded by at most `u` (values are at most 1): `7u`;
+/// - the source coordinate `scale * (i + 0.5) - 0.5` (below `side`) may be rounded once more or
+///   once less (a fused multiply-add in PyTorch's compiled kernel), moving a bilinear weight by
+///   up to `ulp(side) <= 2u side`, and the output by that much per axis: `4u side`;
+/// - `x * 2 - 1` doubles both and rounds once more.
 pub fn prepared_pixel_bound(side: usize) -> f32 {
-    let u = f32::EPSILON / 2.0; // 2^-24
-    let weights = 2.0 * 2.0 * (side as f32).max(1.0) * 2.0 * u;
-    2.0 * (7.0 * u + weights) + u
+    let u = f32::EPSILON / 2.0;
+    2.0 * (7.0 * u + 4.0 * u * (side as f32).max(1.0)) + u
 }
 
 #[cfg(test)]

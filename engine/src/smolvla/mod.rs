@@ -7,9 +7,10 @@
 //! `action_time_mlp_out(silu(action_time_mlp_in([action_in_proj(x_t) ; sincos(t)])))`, and
 //! `action_out_proj` of the final norm is the velocity. The sampler is LeRobot's Euler loop.
 //!
-//! Input: the VLM's prefix KV cache ([`PrefixKv`]); the VLM itself is not part of this crate.
-//! `state_proj` is loaded and exposed ([`SmolVlaExpert::embed_state`]) because in SmolVLA the
-//! state is the last prefix token the VLM encodes.
+//! Input: the VLM's prefix KV cache ([`PrefixKv`]), which [`SmolVlaVlm`] computes from images,
+//! tokens and the state token (SigLIP tower + connector in [`vision`], SmolLM2 layers in
+//! `vlm_text`). `state_proj` is loaded and exposed ([`SmolVlaExpert::embed_state`]) because in
+//! SmolVLA the state is the last prefix token the VLM encodes.
 
 pub mod checkpoint;
 pub mod config;
@@ -19,17 +20,24 @@ pub mod prefix;
 pub mod processors;
 pub mod serving;
 pub mod tokenize;
+pub mod vision;
+pub mod vlm;
+pub mod vlm_weights;
 pub mod weights;
 
 mod candle_backend;
 mod cpu;
+mod vlm_text;
 
 use std::path::Path;
 
 pub use checkpoint::{Observation, PreparedObservation, SmolVlaCheckpoint};
-pub use config::{ExpertDims, LayerKind, SmolVlaConfig, VlmTextConfig};
-pub use pipeline::{PrefixModel, SmolVlaPipeline};
+pub use config::{ExpertDims, LayerKind, SmolVlaConfig, VlmConfig, VlmTextConfig, VlmVisionConfig};
+pub use pipeline::SmolVlaPipeline;
 pub use prefix::PrefixKv;
+pub use vision::{VisionImage, VisionOutput};
+pub use vlm::{PrefixEmbeddings, SmolVlaVlm, VlmObservation};
+pub use vlm_weights::VlmWeights;
 pub use weights::ExpertWeights;
 
 use crate::options::{EngineOptions, Target};
@@ -92,20 +100,7 @@ impl SmolVlaExpert {
     /// SmolVLM2-500M, the VLM's own `vlm_config.json`.
     pub fn load(dir: &Path, options: &EngineOptions) -> Result<Self, EngineError> {
         let cfg: SmolVlaConfig = config::read_json(&dir.join("config.json"))?;
-        let vlm_path = dir.join("vlm_config.json");
-        let text = if vlm_path.exists() {
-            VlmTextConfig::from_vlm_config_file(&vlm_path)?
-        } else if cfg.vlm_model_name == config::SMOLVLM2_500M {
-            VlmTextConfig::smolvlm2_500m()
-        } else {
-            return Err(EngineError::Load {
-                path: vlm_path.display().to_string(),
-                reason: format!(
-                    "VLM `{}` has no built-in config; provide its config.json here",
-                    cfg.vlm_model_name
-                ),
-            });
-        };
+        let text = VlmConfig::for_checkpoint(dir, &cfg)?.text_config;
         let dims = ExpertDims::resolve(&cfg, &text)?;
         let ckpt = Checkpoint::open(&dir.join("model.safetensors"))?;
         let weights = ExpertWeights::load(&ckpt, &dims)?;

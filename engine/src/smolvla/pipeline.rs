@@ -1,35 +1,26 @@
 //! The whole SmolVLA policy for one checkpoint directory, LeRobot's `predict_action_chunk`:
 //!
 //! ```text
-//! Observation --preprocessor--> PreparedObservation --VLM (PrefixModel)--> PrefixKv
+//! Observation --preprocessor--> PreparedObservation --VLM (SmolVlaVlm)--> PrefixKv
 //!     --expert + Euler (SmolVlaExpert)--> normalised [chunk][max_action_dim]
 //!     --cut to action dim, postprocessor--> actions [chunk][action_dim]
 //! ```
 //!
-//! The processors ([`SmolVlaCheckpoint`]) and the expert exist; the VLM that turns a prepared
-//! observation into the prefix is a [`PrefixModel`]. Without one, [`SmolVlaPipeline::predict`]
-//! fails with [`EngineError::Unsupported`]: it never invents a prefix.
+//! Each stage is its own component: [`SmolVlaCheckpoint`] (processors), [`SmolVlaVlm`] (vision
+//! tower, connector, SmolLM2 prefix layers) and [`SmolVlaExpert`] (action expert and Euler loop).
+//! `model.safetensors` is read once and shared by the VLM and the expert.
 
 use std::path::Path;
 use std::time::Instant;
 
 use super::checkpoint::{Observation, PreparedObservation, SmolVlaCheckpoint};
-use super::{PrefixKv, SmolVlaExpert};
+use super::config::{ExpertDims, VlmConfig};
+use super::vision::VisionImage;
+use super::vlm::{SmolVlaVlm, VlmObservation};
+use super::{ExpertWeights, SmolVlaExpert};
 use crate::sampler::gaussian_noise;
+use crate::weights::Checkpoint;
 use crate::{EngineError, EngineOptions};
-
-/// The VLM half of SmolVLA: images, task tokens and state of each observation to the prefix
-/// key/value cache the expert attends to (LeRobot's `embed_prefix` and the prefix forward with
-/// `fill_kv_cache=True`). Called with a batch; each result must equal the one it gets alone.
-pub trait PrefixModel: Send + Sync {
-    /// One [`PrefixKv`] per observation, in order. `state_tokens[i]` is `state_proj` of
-    /// observation `i`'s padded state (the expert owns `state_proj`).
-    fn prefix(
-        &self,
-        batch: &[PreparedObservation],
-        state_tokens: &[Vec<f32>],
-    ) -> Result<Vec<PrefixKv>, EngineError>;
-}
 
 /// Milliseconds spent in each stage of one [`SmolVlaPipeline::predict`] call.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
@@ -55,11 +46,11 @@ pub struct Prediction {
     pub normalized: Vec<f32>,
 }
 
-/// A SmolVLA checkpoint ready to predict: processors, expert, and (when available) the VLM.
+/// A SmolVLA checkpoint ready to predict: processors, VLM and expert.
 pub struct SmolVlaPipeline {
     checkpoint: SmolVlaCheckpoint,
+    vlm: SmolVlaVlm,
     expert: SmolVlaExpert,
-    vlm: Option<Box<dyn PrefixModel>>,
 }
 
 impl std::fmt::Debug for SmolVlaPipeline {
@@ -67,32 +58,42 @@ impl std::fmt::Debug for SmolVlaPipeline {
         f.debug_struct("SmolVlaPipeline")
             .field("checkpoint", &self.checkpoint.dir())
             .field("expert", &self.expert)
-            .field("vlm", &self.vlm.is_some())
+            .field("vlm", &self.vlm)
             .finish()
     }
 }
 
 impl SmolVlaPipeline {
-    /// Load the processors and the expert from `dir`; the VLM is attached with
-    /// [`SmolVlaPipeline::with_vlm`].
+    /// Load the processors, the VLM and the expert from `dir` (`tokenizer`: see
+    /// [`SmolVlaCheckpoint::open`]).
     pub fn load(
         dir: &Path,
         tokenizer: Option<&Path>,
         options: &EngineOptions,
     ) -> Result<Self, EngineError> {
         let checkpoint = SmolVlaCheckpoint::open(dir, tokenizer)?;
-        let expert = SmolVlaExpert::load(dir, options)?;
+        let cfg = checkpoint.config();
+        let vlm_config = VlmConfig::for_checkpoint(dir, cfg)?;
+        let dims = ExpertDims::resolve(cfg, &vlm_config.text_config)?;
+        let weights_path = dir.join("model.safetensors");
+        if !weights_path.exists() {
+            return Err(EngineError::MissingFile {
+                path: weights_path.display().to_string(),
+            });
+        }
+        let ckpt = Checkpoint::open(&weights_path)?;
+        let expert = SmolVlaExpert::from_weights(&ExpertWeights::load(&ckpt, &dims)?, options)?;
+        let vlm = SmolVlaVlm::load_from(&ckpt, cfg, &vlm_config, options)?;
         Ok(SmolVlaPipeline {
             checkpoint,
+            vlm,
             expert,
-            vlm: None,
         })
     }
 
-    /// Attach the VLM.
-    pub fn with_vlm(mut self, vlm: Box<dyn PrefixModel>) -> Self {
-        self.vlm = Some(vlm);
-        self
+    /// The VLM.
+    pub fn vlm(&self) -> &SmolVlaVlm {
+        &self.vlm
     }
 
     /// The processors.
@@ -122,11 +123,26 @@ impl SmolVlaPipeline {
         observations: &[Observation],
         seeds: &[u64],
     ) -> Result<(Vec<Prediction>, StageTimes), EngineError> {
-        if observations.len() != seeds.len() {
+        let d = self.expert.dims();
+        let noises: Vec<Vec<f32>> = seeds
+            .iter()
+            .map(|&s| gaussian_noise(s, 0, d.chunk * d.action_pad))
+            .collect();
+        self.predict_with_noise(observations, &noises)
+    }
+
+    /// [`SmolVlaPipeline::predict`] from given initial noise, `[chunk][max_action_dim]` per
+    /// observation (LeRobot's `noise` argument).
+    pub fn predict_with_noise(
+        &self,
+        observations: &[Observation],
+        noises: &[Vec<f32>],
+    ) -> Result<(Vec<Prediction>, StageTimes), EngineError> {
+        if observations.len() != noises.len() {
             return Err(EngineError::InvalidInput(format!(
-                "{} observations but {} seeds",
+                "{} observations but {} noises",
                 observations.len(),
-                seeds.len()
+                noises.len()
             )));
         }
         let start = Instant::now();
@@ -140,34 +156,13 @@ impl SmolVlaPipeline {
             .collect::<Result<Vec<_>, _>>()?;
         times.preprocess = ms(t);
 
-        let vlm = self.vlm.as_ref().ok_or_else(|| {
-            EngineError::Unsupported(
-                "the SmolVLA VLM (SigLIP vision tower, connector, SmolLM2 prefix layers) is not \
-                 in this build, so no prefix can be computed; refusing to predict from a \
-                 stand-in"
-                    .into(),
-            )
-        })?;
         let t = Instant::now();
-        let states: Vec<Vec<f32>> = prepared.iter().map(|p| p.state.clone()).collect();
-        let state_tokens = self.expert.embed_state(&states)?;
-        let prefixes = vlm.prefix(&prepared, &state_tokens)?;
-        if prefixes.len() != prepared.len() {
-            return Err(EngineError::InvalidInput(format!(
-                "the VLM returned {} prefixes for {} observations",
-                prefixes.len(),
-                prepared.len()
-            )));
-        }
+        let prefixes = self.prefixes(&prepared)?;
         times.prefix = ms(t);
 
         let t = Instant::now();
         let d = self.expert.dims();
-        let len = d.chunk * d.action_pad;
-        let noises: Vec<Vec<Vec<f32>>> = seeds
-            .iter()
-            .map(|&s| vec![gaussian_noise(s, 0, len)])
-            .collect();
+        let noises: Vec<Vec<Vec<f32>>> = noises.iter().map(|n| vec![n.clone()]).collect();
         let inputs: Vec<super::ExpertInput<'_>> = prefixes
             .iter()
             .zip(&noises)
@@ -189,5 +184,44 @@ impl SmolVlaPipeline {
         times.postprocess = ms(t);
         times.total = ms(start);
         Ok((predictions, times))
+    }
+
+    /// The VLM prefix of each prepared observation, in one batch.
+    pub fn prefixes(
+        &self,
+        prepared: &[PreparedObservation],
+    ) -> Result<Vec<super::PrefixKv>, EngineError> {
+        let states: Vec<Vec<f32>> = prepared.iter().map(|p| p.state.clone()).collect();
+        let state_tokens = self.expert.embed_state(&states)?;
+        let observations = prepared
+            .iter()
+            .zip(&state_tokens)
+            .map(|(p, state_token)| {
+                let images = p
+                    .images
+                    .iter()
+                    .map(|img| {
+                        if img.height != img.width {
+                            return Err(EngineError::InvalidInput(format!(
+                                "prepared image is {}x{}; the vision tower takes square images \
+                                 (resize_imgs_with_padding)",
+                                img.height, img.width
+                            )));
+                        }
+                        Ok(img.present.then_some(VisionImage {
+                            side: img.height,
+                            pixels: &img.pixels,
+                        }))
+                    })
+                    .collect::<Result<Vec<_>, EngineError>>()?;
+                Ok(VlmObservation {
+                    images,
+                    tokens: &p.tokens.ids,
+                    token_mask: &p.tokens.mask,
+                    state_token,
+                })
+            })
+            .collect::<Result<Vec<_>, EngineError>>()?;
+        self.vlm.prefix(self.expert.dims(), &observations)
     }
 }

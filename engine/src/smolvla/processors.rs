@@ -126,10 +126,11 @@ impl Normalizer {
         fn default_eps() -> f64 {
             1e-8
         }
-        let cfg: Cfg = serde_json::from_value(step.config.clone()).map_err(|e| EngineError::Load {
-            path: file.display().to_string(),
-            reason: format!("step `{}`: {e}", step.registry_name),
-        })?;
+        let cfg: Cfg =
+            serde_json::from_value(step.config.clone()).map_err(|e| EngineError::Load {
+                path: file.display().to_string(),
+                reason: format!("step `{}`: {e}", step.registry_name),
+            })?;
         let mut modes = BTreeMap::new();
         for (kind, mode) in &cfg.norm_map {
             let parsed = NormMode::parse(mode).ok_or_else(|| EngineError::UnknownNormMode {
@@ -178,7 +179,9 @@ impl Normalizer {
                         mode: format!("{mode:?}"),
                     }
                 })?;
-                let values = ck.tensor(&name, &shape)?;
+                let values = ck
+                    .tensor(&name, &shape)
+                    .map_err(|e| in_file(ck.path(), e))?;
                 check_stat_len(ck.path(), &name, feature, values.len())?;
                 Ok(values)
             };
@@ -269,13 +272,46 @@ impl Normalizer {
     }
 }
 
+/// `error` with the stats file named in its key (a tensor error names only the key).
+fn in_file(file: &str, error: EngineError) -> EngineError {
+    match error {
+        EngineError::MissingTensor { key } => EngineError::MissingTensor {
+            key: format!("{file}: {key}"),
+        },
+        EngineError::ShapeMismatch {
+            key,
+            expected,
+            found,
+        } => EngineError::ShapeMismatch {
+            key: format!("{file}: {key}"),
+            expected,
+            found,
+        },
+        EngineError::DtypeMismatch {
+            key,
+            expected,
+            found,
+        } => EngineError::DtypeMismatch {
+            key: format!("{file}: {key}"),
+            expected,
+            found,
+        },
+        other => other,
+    }
+}
+
 /// `hi - lo`, or `eps` where that is exactly zero (LeRobot's `torch.where(denom == 0, eps, ..)`).
 fn range(lo: f32, hi: f32, eps: f32) -> f32 {
     let d = hi - lo;
     if d == 0.0 { eps } else { d }
 }
 
-fn check_stat_len(file: &str, name: &str, feature: &Feature, len: usize) -> Result<(), EngineError> {
+fn check_stat_len(
+    file: &str,
+    name: &str,
+    feature: &Feature,
+    len: usize,
+) -> Result<(), EngineError> {
     let total: usize = feature.shape.iter().product();
     let channels = feature.shape.first().copied().unwrap_or(0);
     let ok = len == total
@@ -352,8 +388,8 @@ impl TokenizerStep {
             path: file.display().to_string(),
             reason: format!("step `{}`, `{field}`: {reason}", step.registry_name),
         };
-        let cfg: Cfg =
-            serde_json::from_value(step.config.clone()).map_err(|e| bad("config", e.to_string()))?;
+        let cfg: Cfg = serde_json::from_value(step.config.clone())
+            .map_err(|e| bad("config", e.to_string()))?;
         let padding = match cfg.padding.as_str() {
             "longest" => TokenPadding::Longest,
             "max_length" => TokenPadding::MaxLength,
@@ -464,13 +500,12 @@ impl Preprocessor {
                         #[serde(default)]
                         rename_map: BTreeMap<String, String>,
                     }
-                    let cfg: Cfg =
-                        serde_json::from_value(step.config.clone()).map_err(|e| {
-                            EngineError::Load {
-                                path: path.display().to_string(),
-                                reason: format!("step `{}`: {e}", step.registry_name),
-                            }
-                        })?;
+                    let cfg: Cfg = serde_json::from_value(step.config.clone()).map_err(|e| {
+                        EngineError::Load {
+                            path: path.display().to_string(),
+                            reason: format!("step `{}`: {e}", step.registry_name),
+                        }
+                    })?;
                     pre.rename_map.extend(cfg.rename_map);
                 }
                 "to_batch_processor" | "device_processor" => {}

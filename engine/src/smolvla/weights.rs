@@ -21,7 +21,7 @@ pub struct LinearWeights {
 }
 
 impl LinearWeights {
-    fn load(
+    pub(crate) fn load(
         ckpt: &Checkpoint,
         key: &str,
         out_dim: usize,
@@ -89,6 +89,82 @@ pub struct LayerWeights {
     pub down_proj: LinearWeights,
 }
 
+/// Shapes of one Llama decoder layer.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct LlamaShape {
+    /// Hidden width.
+    pub hidden: usize,
+    /// `heads * head_dim`.
+    pub q: usize,
+    /// `kv_heads * head_dim`.
+    pub kv: usize,
+    /// Input width of `k_proj`/`v_proj` (`hidden`, or the VLM's kv width for cross-attention).
+    pub kv_in: usize,
+    /// MLP width.
+    pub intermediate: usize,
+}
+
+impl LayerWeights {
+    /// Read one Llama decoder layer under `p` (`{p}.input_layernorm.weight`, `{p}.self_attn.*`,
+    /// `{p}.mlp.*`): the expert's layers and the VLM's text layers have the same tensors.
+    pub(crate) fn load_llama(
+        ckpt: &Checkpoint,
+        p: &str,
+        kind: LayerKind,
+        s: LlamaShape,
+    ) -> Result<Self, EngineError> {
+        let LlamaShape {
+            hidden: h,
+            q,
+            kv,
+            kv_in,
+            intermediate: i,
+        } = s;
+        let lin = |name: &str, out: usize, inp: usize| {
+            LinearWeights::load(ckpt, &format!("{p}.{name}"), out, inp, false)
+        };
+        Ok(LayerWeights {
+            kind,
+            input_norm: ckpt.tensor(&format!("{p}.input_layernorm.weight"), &[h])?,
+            post_norm: ckpt.tensor(&format!("{p}.post_attention_layernorm.weight"), &[h])?,
+            q_proj: lin("self_attn.q_proj", q, h)?,
+            k_proj: lin("self_attn.k_proj", kv, kv_in)?,
+            v_proj: lin("self_attn.v_proj", kv, kv_in)?,
+            o_proj: lin("self_attn.o_proj", h, q)?,
+            gate_proj: lin("mlp.gate_proj", i, h)?,
+            up_proj: lin("mlp.up_proj", i, h)?,
+            down_proj: lin("mlp.down_proj", h, i)?,
+        })
+    }
+
+    /// Seeded random layer of the given shape (norm weights near 1).
+    pub(crate) fn random_llama(seed: u64, kind: LayerKind, s: LlamaShape) -> Self {
+        let mut k = seed.wrapping_mul(16);
+        let mut next = || {
+            k = k.wrapping_add(1);
+            k
+        };
+        let norm = |seed: u64| -> Vec<f32> {
+            crate::sampler::gaussian_noise(seed, 0, s.hidden)
+                .into_iter()
+                .map(|v| 1.0 + 0.1 * v)
+                .collect()
+        };
+        LayerWeights {
+            kind,
+            input_norm: norm(next()),
+            post_norm: norm(next()),
+            q_proj: LinearWeights::random(next(), s.q, s.hidden, false),
+            k_proj: LinearWeights::random(next(), s.kv, s.kv_in, false),
+            v_proj: LinearWeights::random(next(), s.kv, s.kv_in, false),
+            o_proj: LinearWeights::random(next(), s.hidden, s.q, false),
+            gate_proj: LinearWeights::random(next(), s.intermediate, s.hidden, false),
+            up_proj: LinearWeights::random(next(), s.intermediate, s.hidden, false),
+            down_proj: LinearWeights::random(next(), s.hidden, s.intermediate, false),
+        }
+    }
+}
+
 /// All expert weights.
 #[derive(Clone, Debug)]
 pub struct ExpertWeights {
@@ -113,12 +189,7 @@ pub struct ExpertWeights {
 impl ExpertWeights {
     /// Read every tensor the expert needs; errors name the first missing or mis-shaped key.
     pub fn load(ckpt: &Checkpoint, dims: &ExpertDims) -> Result<Self, EngineError> {
-        let (h, kv, q, i) = (
-            dims.hidden,
-            dims.kv_width(),
-            dims.q_width(),
-            dims.intermediate,
-        );
+        let (h, kv) = (dims.hidden, dims.kv_width());
         let layers = dims
             .layers
             .iter()
@@ -129,55 +200,14 @@ impl ExpertWeights {
                     LayerKind::SelfAttention => h,
                     LayerKind::CrossAttention => kv,
                 };
-                Ok(LayerWeights {
-                    kind,
-                    input_norm: ckpt.tensor(&format!("{p}.input_layernorm.weight"), &[h])?,
-                    post_norm: ckpt
-                        .tensor(&format!("{p}.post_attention_layernorm.weight"), &[h])?,
-                    q_proj: LinearWeights::load(
-                        ckpt,
-                        &format!("{p}.self_attn.q_proj"),
-                        q,
-                        h,
-                        false,
-                    )?,
-                    k_proj: LinearWeights::load(
-                        ckpt,
-                        &format!("{p}.self_attn.k_proj"),
-                        kv,
-                        kv_in,
-                        false,
-                    )?,
-                    v_proj: LinearWeights::load(
-                        ckpt,
-                        &format!("{p}.self_attn.v_proj"),
-                        kv,
-                        kv_in,
-                        false,
-                    )?,
-                    o_proj: LinearWeights::load(
-                        ckpt,
-                        &format!("{p}.self_attn.o_proj"),
-                        h,
-                        q,
-                        false,
-                    )?,
-                    gate_proj: LinearWeights::load(
-                        ckpt,
-                        &format!("{p}.mlp.gate_proj"),
-                        i,
-                        h,
-                        false,
-                    )?,
-                    up_proj: LinearWeights::load(ckpt, &format!("{p}.mlp.up_proj"), i, h, false)?,
-                    down_proj: LinearWeights::load(
-                        ckpt,
-                        &format!("{p}.mlp.down_proj"),
-                        h,
-                        i,
-                        false,
-                    )?,
-                })
+                let shape = LlamaShape {
+                    hidden: h,
+                    q: dims.q_width(),
+                    kv,
+                    kv_in,
+                    intermediate: dims.intermediate,
+                };
+                LayerWeights::load_llama(ckpt, &p, kind, shape)
             })
             .collect::<Result<Vec<_>, EngineError>>()?;
         Ok(ExpertWeights {

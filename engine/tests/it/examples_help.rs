@@ -21,6 +21,7 @@ fn the_timing_examples_answer_help_with_their_usage() {
     for (name, usage) in [
         ("expert_timing", "Usage: expert_timing"),
         ("gemm_timing", "Usage: gemm_timing"),
+        ("vision_timing", "Usage: vision_timing"),
     ] {
         for flag in ["--help", "-h"] {
             let output = Command::new(example(name))

@@ -9,3 +9,5 @@ mod loader_errors;
 mod models;
 mod smolvla_fixture;
 mod smolvla_parity;
+mod smolvla_processors;
+mod smolvla_vlm;

@@ -14,10 +14,10 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
+use kairos_engine::smolvla::SmolVlaPipeline;
 use kairos_engine::smolvla::checkpoint::Observation;
 use kairos_engine::smolvla::images::image_file;
 use kairos_engine::smolvla::pipeline::StageTimes;
-use kairos_engine::smolvla::SmolVlaPipeline;
 use kairos_engine::{DeviceKind, EngineOptions, Kernels};
 
 /// Arguments of `kairos predict`.

@@ -1,0 +1,444 @@
+//! SmolVLM's SigLIP vision tower and connector on the engine's CPU kernels.
+//!
+//! Per image (`[C][S][S]`, values in `[-1, 1]`): the patch conv as one GEMM over unfolded
+//! patches, plus the position embedding; `num_hidden_layers` pre-LN encoder layers
+//! (`x += out_proj(attn(ln1(x)))`, `x += fc2(gelu_tanh(fc1(ln2(x))))`); the post LayerNorm. The
+//! connector then pixel-shuffles the `S/p x S/p` patch grid by `scale_factor` and projects each
+//! group of `scale²` patches to the text width (transformers' `SmolVLMConnector`).
+//!
+//! All images of a batch go through every GEMM together (one row per patch), and attention runs
+//! per image and head; since each GEMM output row depends on its own input row only, in a fixed
+//! order (see [`crate::kernels::gemm`]), an image gets bit-identical results alone or batched.
+
+use super::config::VlmConfig;
+use super::cpu::Linear;
+use super::vlm_weights::{NormWeights, VlmWeights};
+use crate::EngineError;
+use crate::kernels::attention::{KvSegment, QueryPositions, attend};
+use crate::kernels::gemm::gemm_par;
+use crate::kernels::{Init, PackedMatrix, Pool, SharedMut, vecmath};
+
+/// A view of one prepared camera image: `channels x side x side` floats, row-major, in `[-1, 1]`
+/// (after LeRobot's `resize_with_pad` and `x * 2 - 1`).
+#[derive(Clone, Copy, Debug)]
+pub struct VisionImage<'a> {
+    /// Height and width in pixels (images are square, as SmolVLM's connector needs).
+    pub side: usize,
+    /// `[C][side][side]`.
+    pub pixels: &'a [f32],
+}
+
+/// What the vision tower computes for each image.
+#[derive(Clone, Debug, PartialEq)]
+pub struct VisionOutput {
+    /// Post-LayerNorm encoder output, `[patches][vision hidden]` per image.
+    pub hidden: Vec<Vec<f32>>,
+    /// Connector output (`embed_image`, before LeRobot's `x sqrt(hidden)`),
+    /// `[tokens][text hidden]` per image.
+    pub embeddings: Vec<Vec<f32>>,
+}
+
+struct VisionLayer {
+    norm1: NormWeights,
+    /// `[q | k | v]` in one GEMM, with the three biases.
+    qkv: Linear,
+    out: Linear,
+    norm2: NormWeights,
+    fc1: Linear,
+    fc2: Linear,
+}
+
+/// The packed vision tower and connector.
+pub(crate) struct CpuVision {
+    config: VlmConfig,
+    patch: Linear,
+    positions: Vec<f32>,
+    layers: Vec<VisionLayer>,
+    post: NormWeights,
+    connector: PackedMatrix,
+}
+
+impl CpuVision {
+    pub(crate) fn new(w: &VlmWeights) -> Self {
+        let vh = w.config.vision_config.hidden_size;
+        let layers = w
+            .vision_layers
+            .iter()
+            .map(|l| {
+                let bias: Vec<f32> = [&l.q_proj, &l.k_proj, &l.v_proj]
+                    .iter()
+                    .flat_map(|p| p.bias.iter().flatten().copied())
+                    .collect();
+                VisionLayer {
+                    norm1: l.norm1.clone(),
+                    qkv: Linear {
+                        w: PackedMatrix::from_linear_weights(
+                            &[
+                                (&l.q_proj.weight, vh),
+                                (&l.k_proj.weight, vh),
+                                (&l.v_proj.weight, vh),
+                            ],
+                            vh,
+                        ),
+                        bias: Some(bias),
+                    },
+                    out: Linear::new(&l.out_proj),
+                    norm2: l.norm2.clone(),
+                    fc1: Linear::new(&l.fc1),
+                    fc2: Linear::new(&l.fc2),
+                }
+            })
+            .collect();
+        CpuVision {
+            config: w.config.clone(),
+            patch: Linear::new(&w.patch_embedding),
+            positions: w.position_embedding.clone(),
+            layers,
+            post: w.post_layernorm.clone(),
+            connector: PackedMatrix::from_linear_weight(
+                &w.connector.weight,
+                w.connector.out_dim,
+                w.connector.in_dim,
+            ),
+        }
+    }
+
+    /// Patches per side of an image, or an error naming the image.
+    pub(crate) fn grid(&self, index: usize, side: usize) -> Result<usize, EngineError> {
+        let v = &self.config.vision_config;
+        let s = self.config.scale_factor;
+        if side == 0
+            || !side.is_multiple_of(v.patch_size)
+            || !(side / v.patch_size).is_multiple_of(s)
+        {
+            return Err(EngineError::InvalidInput(format!(
+                "images[{index}]: side {side} must be a multiple of patch_size {} x scale_factor {s}",
+                v.patch_size
+            )));
+        }
+        Ok(side / v.patch_size)
+    }
+
+    /// Tokens the connector makes of a `side x side` image.
+    pub(crate) fn tokens_per_image(&self, side: usize) -> usize {
+        let n = side / self.config.vision_config.patch_size / self.config.scale_factor;
+        n * n
+    }
+
+    /// Run the tower and the connector on `images`.
+    pub(crate) fn forward(
+        &self,
+        pool: &Pool,
+        images: &[VisionImage<'_>],
+    ) -> Result<VisionOutput, EngineError> {
+        let v = &self.config.vision_config;
+        let (vh, p, c) = (v.hidden_size, v.patch_size, v.num_channels);
+        let grids = images
+            .iter()
+            .enumerate()
+            .map(|(i, im)| {
+                let g = self.grid(i, im.side)?;
+                if im.pixels.len() != c * im.side * im.side {
+                    return Err(EngineError::InvalidInput(format!(
+                        "images[{i}]: {} values, expected {c} x {} x {}",
+                        im.pixels.len(),
+                        im.side,
+                        im.side
+                    )));
+                }
+                Ok(g)
+            })
+            .collect::<Result<Vec<_>, EngineError>>()?;
+        let counts: Vec<usize> = grids.iter().map(|g| g * g).collect();
+        let starts: Vec<usize> = counts
+            .iter()
+            .scan(0, |acc, &n| {
+                let s = *acc;
+                *acc += n;
+                Some(s)
+            })
+            .collect();
+        let rows: usize = counts.iter().sum();
+        if rows == 0 {
+            return Ok(VisionOutput {
+                hidden: Vec::new(),
+                embeddings: Vec::new(),
+            });
+        }
+
+        // Patch conv: unfold every patch to `[C][p][p]` (the conv weight's order), one GEMM.
+        let kdim = c * p * p;
+        let mut unfolded = vec![0.0f32; rows * kdim];
+        for ((im, &g), &start) in images.iter().zip(&grids).zip(&starts) {
+            for py in 0..g {
+                for px in 0..g {
+                    let row = &mut unfolded[(start + py * g + px) * kdim..][..kdim];
+                    for ch in 0..c {
+                        for ky in 0..p {
+                            let src = (ch * im.side + py * p + ky) * im.side + px * p;
+                            row[(ch * p + ky) * p..][..p].copy_from_slice(&im.pixels[src..src + p]);
+                        }
+                    }
+                }
+            }
+        }
+        let mut x = vec![0.0f32; rows * vh];
+        gemm_par(
+            pool,
+            &unfolded,
+            kdim,
+            rows,
+            &self.patch.w,
+            &mut x,
+            vh,
+            self.patch.init(),
+        );
+        drop(unfolded);
+        // Position embedding, per transformers' bucketised fractional coordinates.
+        let per_side = v.image_size / p;
+        for (&g, &start) in grids.iter().zip(&starts) {
+            let ids = position_ids(g, per_side);
+            for (t, &id) in ids.iter().enumerate() {
+                let row = &mut x[(start + t) * vh..][..vh];
+                for (a, &b) in row.iter_mut().zip(&self.positions[id * vh..][..vh]) {
+                    *a += b;
+                }
+            }
+        }
+
+        let eps = v.layer_norm_eps as f32;
+        let mut h = vec![0.0f32; rows * vh];
+        let mut qkv = vec![0.0f32; rows * 3 * vh];
+        let mut attn = vec![0.0f32; rows * vh];
+        let mut mlp = vec![0.0f32; rows * v.intermediate_size];
+        for layer in &self.layers {
+            layer_norm_par(pool, &x, &layer.norm1, eps, &mut h);
+            gemm_par(
+                pool,
+                &h,
+                vh,
+                rows,
+                &layer.qkv.w,
+                &mut qkv,
+                3 * vh,
+                layer.qkv.init(),
+            );
+            self.attention(pool, &qkv, &counts, &starts, &mut attn);
+            add_bias_rows(&mut x, layer.out.bias.as_deref());
+            gemm_par(
+                pool,
+                &attn,
+                vh,
+                rows,
+                &layer.out.w,
+                &mut x,
+                vh,
+                Init::Accumulate,
+            );
+            layer_norm_par(pool, &x, &layer.norm2, eps, &mut h);
+            let inter = v.intermediate_size;
+            gemm_par(
+                pool,
+                &h,
+                vh,
+                rows,
+                &layer.fc1.w,
+                &mut mlp,
+                inter,
+                layer.fc1.init(),
+            );
+            pool.for_row_chunks(&mut mlp, inter, |_, chunk| {
+                vecmath::gelu_tanh_inplace(pool.isa(), chunk);
+            });
+            add_bias_rows(&mut x, layer.fc2.bias.as_deref());
+            gemm_par(
+                pool,
+                &mlp,
+                inter,
+                rows,
+                &layer.fc2.w,
+                &mut x,
+                vh,
+                Init::Accumulate,
+            );
+        }
+        layer_norm_par(pool, &x, &self.post, eps, &mut h);
+
+        // Connector: pixel shuffle, then one GEMM for all images.
+        let s = self.config.scale_factor;
+        let wide = vh * s * s;
+        let tokens: Vec<usize> = grids.iter().map(|g| (g / s) * (g / s)).collect();
+        let total: usize = tokens.iter().sum();
+        let mut shuffled = vec![0.0f32; total * wide];
+        let mut t0 = 0;
+        for (&g, &start) in grids.iter().zip(&starts) {
+            let n = g / s;
+            for i2 in 0..n {
+                for j2 in 0..n {
+                    let dst = &mut shuffled[(t0 + i2 * n + j2) * wide..][..wide];
+                    for b in 0..s {
+                        for a in 0..s {
+                            let patch = (i2 * s + b) * g + j2 * s + a;
+                            dst[(b * s + a) * vh..][..vh]
+                                .copy_from_slice(&h[(start + patch) * vh..][..vh]);
+                        }
+                    }
+                }
+            }
+            t0 += n * n;
+        }
+        let th = self.connector.n();
+        let mut emb = vec![0.0f32; total * th];
+        gemm_par(
+            pool,
+            &shuffled,
+            wide,
+            total,
+            &self.connector,
+            &mut emb,
+            th,
+            Init::Zero,
+        );
+        let mut hidden = Vec::with_capacity(images.len());
+        let mut embeddings = Vec::with_capacity(images.len());
+        let mut t0 = 0;
+        for ((&n, &start), &tk) in counts.iter().zip(&starts).zip(&tokens) {
+            hidden.push(h[start * vh..(start + n) * vh].to_vec());
+            embeddings.push(emb[t0 * th..(t0 + tk) * th].to_vec());
+            t0 += tk;
+        }
+        Ok(VisionOutput { hidden, embeddings })
+    }
+
+    /// Bidirectional multi-head attention within each image: `attn = softmax(q kᵀ / sqrt(d)) v`
+    /// per head, from the `[q | k | v]` rows.
+    fn attention(
+        &self,
+        pool: &Pool,
+        qkv: &[f32],
+        counts: &[usize],
+        starts: &[usize],
+        attn: &mut [f32],
+    ) {
+        let v = &self.config.vision_config;
+        let (vh, heads) = (v.hidden_size, v.num_attention_heads);
+        let hd = vh / heads;
+        let scale = (hd as f64).powf(-0.5) as f32;
+        let ld = 3 * vh;
+        let tasks = counts.len() * heads;
+        let parts = pool.parts(tasks);
+        let out = SharedMut::new(attn);
+        let isa = pool.isa();
+        pool.run(parts, |part| {
+            let (mut q, mut scores, mut tmp) = (Vec::new(), Vec::new(), Vec::new());
+            let (mut kt, mut vv) = (PackedMatrix::default(), PackedMatrix::default());
+            for task in tasks * part / parts..tasks * (part + 1) / parts {
+                let (img, head) = (task / heads, task % heads);
+                let (n, start) = (counts[img], starts[img]);
+                let base = &qkv[start * ld..(start + n) * ld];
+                q.clear();
+                for row in base.chunks_exact(ld) {
+                    q.extend_from_slice(&row[head * hd..(head + 1) * hd]);
+                }
+                kt.pack_transposed(&base[vh + head * hd..], ld, n, hd);
+                vv.pack_rows(&base[2 * vh + head * hd..], ld, n, hd);
+                tmp.resize(n * hd, 0.0);
+                let segment = KvSegment {
+                    keys_t: &kt,
+                    values: &vv,
+                    causal: false,
+                };
+                attend(
+                    isa,
+                    &q,
+                    n,
+                    hd,
+                    &[segment],
+                    QueryPositions {
+                        offset: 0,
+                        period: n,
+                    },
+                    scale,
+                    &mut scores,
+                    &mut tmp,
+                    hd,
+                );
+                for (t, src) in tmp.chunks_exact(hd).enumerate() {
+                    // SAFETY: (image, token, head) is written by this task only.
+                    let dst = unsafe {
+                        std::slice::from_raw_parts_mut(
+                            out.ptr().add((start + t) * vh + head * hd),
+                            hd,
+                        )
+                    };
+                    dst.copy_from_slice(src);
+                }
+            }
+        });
+    }
+}
+
+/// `x[r] += bias` for every row (before a GEMM that accumulates onto the residual).
+fn add_bias_rows(x: &mut [f32], bias: Option<&[f32]>) {
+    if let Some(b) = bias {
+        for row in x.chunks_exact_mut(b.len()) {
+            for (a, &c) in row.iter_mut().zip(b) {
+                *a += c;
+            }
+        }
+    }
+}
+
+fn layer_norm_par(pool: &Pool, x: &[f32], norm: &NormWeights, eps: f32, out: &mut [f32]) {
+    let h = norm.weight.len();
+    pool.for_row_chunks(out, h, |r0, rows| {
+        vecmath::layer_norm(
+            pool.isa(),
+            &x[r0 * h..r0 * h + rows.len()],
+            &norm.weight,
+            &norm.bias,
+            eps,
+            rows,
+        );
+    });
+}
+
+/// Position ids of a `g x g` patch grid in a tower trained on `per_side x per_side` patches,
+/// exactly as `SmolVLMVisionEmbeddings.forward` computes them (full patch mask): fractional
+/// coordinates `i * (1/g)` in f32, clamped below 1, bucketised against
+/// `arange(1/per_side, 1, 1/per_side)` with `right=True`.
+fn position_ids(g: usize, per_side: usize) -> Vec<usize> {
+    let step = 1.0 / per_side as f64;
+    // torch.arange: length ceil((end - start) / step), values start + i * step (in double).
+    let len = ((1.0 - step) / step).ceil().max(0.0) as usize;
+    let boundaries: Vec<f32> = (0..len).map(|i| (step + i as f64 * step) as f32).collect();
+    let frac_step = 1.0f32 / g as f32;
+    let bucket = |i: usize| -> usize {
+        let f = (i as f32 * frac_step).min(1.0 - 1e-6);
+        // right=True: the number of boundaries <= f.
+        boundaries.iter().take_while(|&&b| b <= f).count()
+    };
+    let coords: Vec<usize> = (0..g).map(bucket).collect();
+    let mut ids = Vec::with_capacity(g * g);
+    for &h in &coords {
+        for &w in &coords {
+            ids.push(h * per_side + w);
+        }
+    }
+    ids
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn position_ids_are_the_grid_at_native_size_and_buckets_otherwise() {
+        assert_eq!(position_ids(4, 4), (0..16).collect::<Vec<_>>());
+        let ids = position_ids(32, 32);
+        assert_eq!(ids[33], 33);
+        assert_eq!(ids[1023], 1023);
+        // A 2x2 grid on a 4x4 table samples rows/cols 0 and 2.
+        assert_eq!(position_ids(2, 4), vec![0, 2, 8, 10]);
+    }
+}

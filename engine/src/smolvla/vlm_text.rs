@@ -1,0 +1,300 @@
+//! SmolVLM's text layers (SmolLM2, Llama-style) over the SmolVLA prefix, on the engine's CPU
+//! kernels, producing the [`PrefixKv`] the expert consumes.
+//!
+//! LeRobot's prefix prefill (`VLAFlowMatching.sample_actions` -> `SmolVLMWithExpertModel.forward`
+//! with `fill_kv_cache=True`) runs every kept text layer as self-attention over the prefix
+//! `[image tokens ; language tokens ; state token]`, with
+//! - positions `cumsum(pad_mask) - 1` and LeRobot's own RoPE (`apply_rope`, wavelength 10 000,
+//!   not the text config's `rope_theta`);
+//! - the mask of `make_att_2d_masks(pad, att)` with `att = [0 .. 0, 1]`: image and language
+//!   tokens see every valid image and language token, the state token sees every valid token,
+//!   and nothing sees padding.
+//!
+//! So padding tokens never influence a valid one: this module runs the valid tokens only (in
+//! order, which makes their positions `0..n`) and leaves zeros at padding positions of the
+//! cache, which the expert never reads. The K/V of the last layer are all the expert needs from
+//! it, so its attention output and MLP are skipped; `text_model.norm` is never needed.
+
+use super::config::VlmTextConfig;
+use super::cpu::{Linear, rms_norm_par};
+use super::weights::LayerWeights;
+use crate::kernels::attention::{KvSegment, QueryPositions, attend};
+use crate::kernels::gemm::gemm_par;
+use crate::kernels::{Init, PackedMatrix, Pool, SharedMut, vecmath};
+
+struct TextLayer {
+    input_norm: Vec<f32>,
+    post_norm: Vec<f32>,
+    /// `[q | k | v]` in one GEMM.
+    qkv: PackedMatrix,
+    o: PackedMatrix,
+    /// `[gate | up]` in one GEMM.
+    gate_up: PackedMatrix,
+    down: PackedMatrix,
+}
+
+/// The packed text layers.
+pub(crate) struct CpuText {
+    config: VlmTextConfig,
+    layers: Vec<TextLayer>,
+}
+
+/// The valid tokens of one observation's prefix: `[tokens][hidden]` embeddings, the last being
+/// the state token (which alone sees the state token).
+pub(crate) struct ValidPrefix<'a> {
+    /// Embeddings of the valid tokens, in prefix order.
+    pub(crate) embeddings: &'a [f32],
+}
+
+/// Per-layer keys and values of the valid tokens (post-RoPE), `[layer][tokens][kv width]`.
+pub(crate) struct ValidKv {
+    pub(crate) keys: Vec<Vec<f32>>,
+    pub(crate) values: Vec<Vec<f32>>,
+}
+
+impl CpuText {
+    pub(crate) fn new(config: &VlmTextConfig, layers: &[LayerWeights]) -> Self {
+        let h = config.hidden_size;
+        let layers = layers
+            .iter()
+            .map(|l| TextLayer {
+                input_norm: l.input_norm.clone(),
+                post_norm: l.post_norm.clone(),
+                qkv: PackedMatrix::from_linear_weights(
+                    &[
+                        (&l.q_proj.weight, l.q_proj.out_dim),
+                        (&l.k_proj.weight, l.k_proj.out_dim),
+                        (&l.v_proj.weight, l.v_proj.out_dim),
+                    ],
+                    h,
+                ),
+                o: Linear::new(&l.o_proj).w,
+                gate_up: PackedMatrix::from_linear_weights(
+                    &[
+                        (&l.gate_proj.weight, l.gate_proj.out_dim),
+                        (&l.up_proj.weight, l.up_proj.out_dim),
+                    ],
+                    h,
+                ),
+                down: Linear::new(&l.down_proj).w,
+            })
+            .collect();
+        CpuText {
+            config: config.clone(),
+            layers,
+        }
+    }
+
+    /// Number of text layers.
+    pub(crate) fn layers(&self) -> usize {
+        self.layers.len()
+    }
+
+    /// Run the layers over every observation's valid tokens at once (one GEMM per projection
+    /// for the whole batch; attention per observation).
+    pub(crate) fn forward(&self, pool: &Pool, prefixes: &[ValidPrefix<'_>]) -> Vec<ValidKv> {
+        let c = &self.config;
+        let (h, hd) = (c.hidden_size, c.head_dim);
+        let (qw, kvw) = (c.num_attention_heads * hd, c.num_key_value_heads * hd);
+        let ld = qw + 2 * kvw;
+        let counts: Vec<usize> = prefixes.iter().map(|p| p.embeddings.len() / h).collect();
+        let starts: Vec<usize> = counts
+            .iter()
+            .scan(0, |acc, &n| {
+                let s = *acc;
+                *acc += n;
+                Some(s)
+            })
+            .collect();
+        let rows: usize = counts.iter().sum();
+        let mut out: Vec<ValidKv> = counts
+            .iter()
+            .map(|_| ValidKv {
+                keys: Vec::with_capacity(self.layers.len()),
+                values: Vec::with_capacity(self.layers.len()),
+            })
+            .collect();
+        let mut x: Vec<f32> = prefixes
+            .iter()
+            .flat_map(|p| p.embeddings.iter().copied())
+            .collect();
+        // RoPE tables: valid token t of an observation is at position t.
+        let half = hd / 2;
+        let longest = counts.iter().copied().max().unwrap_or(0);
+        let (mut cos, mut sin) = (vec![0.0f32; longest * half], vec![0.0f32; longest * half]);
+        for t in 0..longest {
+            vecmath::rope_table(
+                t as f32,
+                hd,
+                &mut cos[t * half..(t + 1) * half],
+                &mut sin[t * half..(t + 1) * half],
+            );
+        }
+        let eps = c.rms_norm_eps as f32;
+        let inter = c.intermediate_size;
+        let mut hbuf = vec![0.0f32; rows * h];
+        let mut qkv = vec![0.0f32; rows * ld];
+        let mut attn = vec![0.0f32; rows * qw];
+        let mut gate_up = vec![0.0f32; rows * 2 * inter];
+        let mut act = vec![0.0f32; rows * inter];
+        let isa = pool.isa();
+        let last = self.layers.len().saturating_sub(1);
+        for (l, layer) in self.layers.iter().enumerate() {
+            rms_norm_par(pool, &x, &layer.input_norm, eps, &mut hbuf);
+            gemm_par(pool, &hbuf, h, rows, &layer.qkv, &mut qkv, ld, Init::Zero);
+            for (&n, &start) in counts.iter().zip(&starts) {
+                for t in 0..n {
+                    let (cs, sn) = (&cos[t * half..][..half], &sin[t * half..][..half]);
+                    let tok = &mut qkv[(start + t) * ld..][..ld];
+                    for head in tok[..qw + kvw].chunks_exact_mut(hd) {
+                        vecmath::rope(isa, head, cs, sn);
+                    }
+                }
+            }
+            for ((o, &n), &start) in out.iter_mut().zip(&counts).zip(&starts) {
+                let (mut k, mut v) = (Vec::with_capacity(n * kvw), Vec::with_capacity(n * kvw));
+                for row in qkv[start * ld..(start + n) * ld].chunks_exact(ld) {
+                    k.extend_from_slice(&row[qw..qw + kvw]);
+                    v.extend_from_slice(&row[qw + kvw..]);
+                }
+                o.keys.push(k);
+                o.values.push(v);
+            }
+            if l == last {
+                break;
+            }
+            self.attention(pool, &qkv, &counts, &starts, &mut attn);
+            gemm_par(pool, &attn, qw, rows, &layer.o, &mut x, h, Init::Accumulate);
+            rms_norm_par(pool, &x, &layer.post_norm, eps, &mut hbuf);
+            gemm_par(
+                pool,
+                &hbuf,
+                h,
+                rows,
+                &layer.gate_up,
+                &mut gate_up,
+                2 * inter,
+                Init::Zero,
+            );
+            for (gu, a) in gate_up
+                .chunks_exact(2 * inter)
+                .zip(act.chunks_exact_mut(inter))
+            {
+                let (g, u) = gu.split_at(inter);
+                vecmath::silu_mul(isa, g, u, a);
+            }
+            gemm_par(
+                pool,
+                &act,
+                inter,
+                rows,
+                &layer.down,
+                &mut x,
+                h,
+                Init::Accumulate,
+            );
+        }
+        out
+    }
+
+    /// Attention per observation and query head: tokens `0..n-1` see tokens `0..n-1`; the state
+    /// token `n-1` sees all `n`.
+    fn attention(
+        &self,
+        pool: &Pool,
+        qkv: &[f32],
+        counts: &[usize],
+        starts: &[usize],
+        attn: &mut [f32],
+    ) {
+        let c = &self.config;
+        let (heads, kv_heads, hd) = (c.num_attention_heads, c.num_key_value_heads, c.head_dim);
+        let (qw, kvw) = (heads * hd, kv_heads * hd);
+        let ld = qw + 2 * kvw;
+        let groups = heads / kv_heads;
+        let scale = (hd as f64).powf(-0.5) as f32;
+        let tasks = counts.len() * kv_heads;
+        let parts = pool.parts(tasks);
+        let out = SharedMut::new(attn);
+        let isa = pool.isa();
+        pool.run(parts, |part| {
+            let (mut q, mut scores, mut tmp) = (Vec::new(), Vec::new(), Vec::new());
+            let mut packed: [PackedMatrix; 4] = Default::default();
+            for task in tasks * part / parts..tasks * (part + 1) / parts {
+                let (obs, g) = (task / kv_heads, task % kv_heads);
+                let (n, start) = (counts[obs], starts[obs]);
+                if n == 0 {
+                    continue;
+                }
+                let base = &qkv[start * ld..(start + n) * ld];
+                let main = n - 1;
+                let [mk, mv, sk, sv] = &mut packed;
+                let k0 = qw + g * hd;
+                let v0 = qw + kvw + g * hd;
+                mk.pack_transposed(&base[k0..], ld, main, hd);
+                mv.pack_rows(&base[v0..], ld, main, hd);
+                sk.pack_transposed(&base[main * ld + k0..], ld, 1, hd);
+                sv.pack_rows(&base[main * ld + v0..], ld, 1, hd);
+                let main_seg = KvSegment {
+                    keys_t: mk,
+                    values: mv,
+                    causal: false,
+                };
+                let state_seg = KvSegment {
+                    keys_t: sk,
+                    values: sv,
+                    causal: false,
+                };
+                for head in g * groups..(g + 1) * groups {
+                    q.clear();
+                    for row in base.chunks_exact(ld) {
+                        q.extend_from_slice(&row[head * hd..(head + 1) * hd]);
+                    }
+                    tmp.resize(n * hd, 0.0);
+                    let all = QueryPositions {
+                        offset: 0,
+                        period: n,
+                    };
+                    if main > 0 {
+                        attend(
+                            isa,
+                            &q,
+                            main,
+                            hd,
+                            &[main_seg],
+                            all,
+                            scale,
+                            &mut scores,
+                            &mut tmp,
+                            hd,
+                        );
+                    }
+                    let (both, only) = ([main_seg, state_seg], [state_seg]);
+                    let segs: &[KvSegment<'_>] = if main > 0 { &both } else { &only };
+                    attend(
+                        isa,
+                        &q[main * hd..],
+                        1,
+                        hd,
+                        segs,
+                        all,
+                        scale,
+                        &mut scores,
+                        &mut tmp[main * hd..],
+                        hd,
+                    );
+                    for (t, src) in tmp.chunks_exact(hd).enumerate() {
+                        // SAFETY: (observation, token, head) is written by this task only.
+                        let dst = unsafe {
+                            std::slice::from_raw_parts_mut(
+                                out.ptr().add((start + t) * qw + head * hd),
+                                hd,
+                            )
+                        };
+                        dst.copy_from_slice(src);
+                    }
+                }
+            }
+        });
+    }
+}
