@@ -565,3 +565,34 @@ fn bad_observations_are_named_errors() {
     obs.images.clear();
     assert!(ck.prepare(&obs).is_err());
 }
+
+/// A real LeRobot SmolVLA checkpoint (e.g. a fine-tuned `lerobot/smolvla_base`), opt-in:
+/// `KAIROS_SMOLVLA_CHECKPOINT=DIR [KAIROS_SMOLVLA_TOKENIZER=tokenizer.json] cargo test -p
+/// kairos-engine --test it real_checkpoint -- --ignored`. It loads every file, predicts from the
+/// synthetic observation and checks the chunk's shape, that it is finite, and that batching and
+/// the seed behave.
+#[test]
+#[ignore = "needs a real checkpoint: set KAIROS_SMOLVLA_CHECKPOINT and run with --ignored"]
+fn real_checkpoint_predicts() {
+    let dir = PathBuf::from(
+        std::env::var("KAIROS_SMOLVLA_CHECKPOINT")
+            .expect("set KAIROS_SMOLVLA_CHECKPOINT to a LeRobot SmolVLA checkpoint directory"),
+    );
+    let tokenizer = std::env::var("KAIROS_SMOLVLA_TOKENIZER")
+        .ok()
+        .map(PathBuf::from);
+    let pipeline = SmolVlaPipeline::load(&dir, tokenizer.as_deref(), &cpu()).unwrap();
+    let obs = pipeline.checkpoint().synthetic_observation();
+    let (out, times) = pipeline
+        .predict(&[obs.clone(), obs.clone()], &[0, 1])
+        .unwrap();
+    eprintln!("{}: {times:?}", dir.display());
+    for p in &out {
+        assert_eq!(p.actions.len(), pipeline.chunk());
+        assert!(p.actions.iter().all(|a| a.len() == pipeline.action_dim()));
+        assert!(p.actions.iter().flatten().all(|v| v.is_finite()));
+    }
+    assert_ne!(out[0], out[1], "different seeds, same chunk");
+    let (alone, _) = pipeline.predict(&[obs], &[1]).unwrap();
+    assert_eq!(alone[0], out[1]);
+}
