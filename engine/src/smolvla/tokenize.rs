@@ -72,7 +72,7 @@ impl TaskTokenizer {
         }
         // transformers sets its own truncation and padding on the backend for every call.
         tokenizer.with_padding(None);
-        let truncation = step.truncation.then(|| TruncationParams {
+        let truncation = step.truncation.then_some(TruncationParams {
             direction: TruncationDirection::Right,
             max_length: step.max_length,
             strategy: TruncationStrategy::LongestFirst,

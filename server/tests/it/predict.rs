@@ -1,6 +1,8 @@
 //! `kairos predict` on the `smolvla_tiny` fixture, run as a user runs it: the printed actions are
 //! exactly what the engine's `SmolVlaPipeline` computes for the same observation and seed.
 
+#![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
+
 use std::path::PathBuf;
 use std::process::{Command, Output};
 
