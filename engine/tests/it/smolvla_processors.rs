@@ -20,99 +20,47 @@
 
 use std::path::{Path, PathBuf};
 
+use crate::smolvla_goldens::{Goldens, fixture};
 use kairos_engine::smolvla::images::prepared_pixel_bound;
 use kairos_engine::smolvla::{Observation, SmolVlaCheckpoint, SmolVlaPipeline};
 use kairos_engine::weights::Checkpoint;
 use kairos_engine::{DeviceKind, EngineError, EngineOptions, ImageFormat, ImageInput, Kernels};
 
-fn fixture() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/smolvla_tiny")
-}
-
-struct Goldens {
-    ckpt: Checkpoint,
-    bytes: Vec<u8>,
-    meta: serde_json::Value,
-}
-
-impl Goldens {
-    fn open() -> Self {
-        let bytes = std::fs::read(fixture().join("golden/goldens.safetensors")).unwrap();
-        let meta = serde_json::from_str(
-            &std::fs::read_to_string(fixture().join("golden/meta.json")).unwrap(),
-        )
-        .unwrap();
-        Goldens {
-            ckpt: Checkpoint::from_bytes("goldens", bytes.clone()).unwrap(),
-            bytes,
-            meta,
-        }
-    }
-
-    fn shape(&self, key: &str) -> Vec<usize> {
-        self.ckpt.shape(key).unwrap().to_vec()
-    }
-
-    fn f32(&self, key: &str) -> Vec<f32> {
-        self.ckpt.tensor(key, &self.shape(key)).unwrap()
-    }
-
-    fn u8(&self, key: &str) -> Vec<u8> {
-        self.ckpt.tensor_u8(key, &self.shape(key)).unwrap()
-    }
-
-    fn i64(&self, key: &str) -> Vec<i64> {
-        let st = safetensors::SafeTensors::deserialize(&self.bytes).unwrap();
-        st.tensor(key)
-            .unwrap()
-            .data()
-            .chunks_exact(8)
-            .map(|b| i64::from_le_bytes(b.try_into().unwrap()))
-            .collect()
-    }
-
-    fn e_lr(&self, key: &str) -> f32 {
-        self.meta["lerobot_f32_vs_f64"][key]["max_abs"]
-            .as_f64()
-            .unwrap() as f32
-    }
-
-    /// The raw observations of case `name`, keyed as the robot sends them.
-    fn observations(&self, name: &str) -> Vec<Observation> {
-        let case = &self.meta["cases"][name];
-        let batch = case["batch"].as_u64().unwrap() as usize;
-        let state = self.f32(&format!("{name}.raw.state"));
-        let dim = state.len() / batch;
-        (0..batch)
-            .map(|b| {
-                let images = case["raw_cameras"]
-                    .as_object()
-                    .unwrap()
-                    .iter()
-                    .map(|(key, hw)| {
-                        let (h, w) = (
-                            hw[0].as_u64().unwrap() as usize,
-                            hw[1].as_u64().unwrap() as usize,
-                        );
-                        let all = self.u8(&format!("{name}.raw.{key}"));
-                        let n = h * w * 3;
-                        let image = ImageInput::RawU8 {
-                            height: h,
-                            width: w,
-                            channels: 3,
-                            data: all[b * n..(b + 1) * n].to_vec(),
-                        };
-                        (key.clone(), image)
-                    })
-                    .collect();
-                Observation {
-                    images,
-                    state: state[b * dim..(b + 1) * dim].to_vec(),
-                    task: case["tasks"][b].as_str().unwrap().to_owned(),
-                }
-            })
-            .collect()
-    }
+/// The raw observations of case `name`, keyed as the robot sends them.
+fn observations(g: &Goldens, name: &str) -> Vec<Observation> {
+    let case = &g.meta["cases"][name];
+    let batch = case["batch"].as_u64().unwrap() as usize;
+    let state = g.f32(&format!("{name}.raw.state"));
+    let dim = state.len() / batch;
+    (0..batch)
+        .map(|b| {
+            let images = case["raw_cameras"]
+                .as_object()
+                .unwrap()
+                .iter()
+                .map(|(key, hw)| {
+                    let (h, w) = (
+                        hw[0].as_u64().unwrap() as usize,
+                        hw[1].as_u64().unwrap() as usize,
+                    );
+                    let all = g.u8(&format!("{name}.raw.{key}"));
+                    let n = h * w * 3;
+                    let image = ImageInput::RawU8 {
+                        height: h,
+                        width: w,
+                        channels: 3,
+                        data: all[b * n..(b + 1) * n].to_vec(),
+                    };
+                    (key.clone(), image)
+                })
+                .collect();
+            Observation {
+                images,
+                state: state[b * dim..(b + 1) * dim].to_vec(),
+                task: case["tasks"][b].as_str().unwrap().to_owned(),
+            }
+        })
+        .collect()
 }
 
 fn cpu() -> EngineOptions {
@@ -135,7 +83,7 @@ fn preprocessing_matches(name: &str) {
     let g = Goldens::open();
     let ck = SmolVlaCheckpoint::open(&fixture(), None).unwrap();
     let pad_id = g.meta["tokenizer"]["pad_id"].as_u64().unwrap() as u32;
-    let observations = g.observations(name);
+    let observations = observations(&g, name);
     let batch = observations.len();
     let tokens = g.i64(&format!("{name}.tokens"));
     let token_mask = g.u8(&format!("{name}.token_mask"));
@@ -196,7 +144,7 @@ fn two_cameras_a_truncated_task_and_state_match_lerobot() {
     // The case exercises what it claims: the first task is cut to max_length.
     let max = g.meta["tokenizer"]["max_length"].as_u64().unwrap() as usize;
     let ck = SmolVlaCheckpoint::open(&fixture(), None).unwrap();
-    let long = &g.observations("pair")[0].task;
+    let long = &observations(&g, "pair")[0].task;
     assert_eq!(
         ck.tokenizer()
             .encode(&format!("{long}\n"))
@@ -246,7 +194,7 @@ fn the_whole_pipeline_matches_lerobot_from_raw_inputs() {
     let g = Goldens::open();
     let pipeline = SmolVlaPipeline::load(&fixture(), None, &cpu()).unwrap();
     for name in ["pair", "missing"] {
-        let observations = g.observations(name);
+        let observations = observations(&g, name);
         let noise = g.f32(&format!("{name}.noise"));
         let per = noise.len() / observations.len();
         let noises: Vec<Vec<f32>> = noise.chunks_exact(per).map(<[f32]>::to_vec).collect();
@@ -267,7 +215,7 @@ fn the_whole_pipeline_matches_lerobot_from_raw_inputs() {
         assert_eq!(out[0].actions[0].len(), pipeline.action_dim());
     }
     // Batched == single, bit for bit, through the processors too.
-    let observations = g.observations("pair");
+    let observations = observations(&g, "pair");
     let (both, _) = pipeline.predict(&observations, &[3, 4]).unwrap();
     let (one, _) = pipeline.predict(&observations[1..], &[4]).unwrap();
     assert_eq!(both[1], one[0]);
@@ -277,7 +225,7 @@ fn the_whole_pipeline_matches_lerobot_from_raw_inputs() {
 fn png_and_raw_inputs_prepare_identically() {
     let g = Goldens::open();
     let ck = SmolVlaCheckpoint::open(&fixture(), None).unwrap();
-    let raw = &g.observations("missing")[0];
+    let raw = &observations(&g, "missing")[0];
     let mut png = raw.clone();
     png.images.insert(
         "observation.images.top".into(),
@@ -487,7 +435,7 @@ fn a_feature_without_stats_passes_through() {
     let normalizer = ck.preprocessor().normalizer.as_ref().unwrap();
     assert_eq!(normalizer.unnormalised(), ["observation.state".to_owned()]);
     let g = Goldens::open();
-    let obs = &g.observations("missing")[0];
+    let obs = &observations(&g, "missing")[0];
     assert_eq!(ck.prepare(obs).unwrap().state, obs.state);
 }
 
@@ -520,7 +468,7 @@ fn an_unknown_normalisation_mode_is_named() {
 fn bad_observations_are_named_errors() {
     let ck = SmolVlaCheckpoint::open(&fixture(), None).unwrap();
     let g = Goldens::open();
-    let good = g.observations("missing").remove(0);
+    let good = observations(&g, "missing").remove(0);
 
     let mut obs = good.clone();
     let img = obs.images.remove("observation.images.top").unwrap();
