@@ -13,6 +13,7 @@
 use std::path::Path;
 use std::time::Instant;
 
+use super::checkpoint::ACTION_KEY;
 use super::checkpoint::{Observation, PreparedObservation, SmolVlaCheckpoint};
 use super::config::{ExpertDims, VlmConfig};
 use super::vision::VisionImage;
@@ -20,7 +21,7 @@ use super::vlm::{SmolVlaVlm, VlmObservation};
 use super::{ExpertWeights, SmolVlaExpert};
 use crate::sampler::gaussian_noise;
 use crate::weights::Checkpoint;
-use crate::{EngineError, EngineOptions};
+use crate::{ActionChunk, ActionModel, ActionRequest, EngineError, EngineOptions, ModelSpec};
 
 /// Milliseconds spent in each stage of one [`SmolVlaPipeline::predict`] call.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
@@ -51,6 +52,7 @@ pub struct SmolVlaPipeline {
     checkpoint: SmolVlaCheckpoint,
     vlm: SmolVlaVlm,
     expert: SmolVlaExpert,
+    spec: ModelSpec,
 }
 
 impl std::fmt::Debug for SmolVlaPipeline {
@@ -84,10 +86,19 @@ impl SmolVlaPipeline {
         let ckpt = Checkpoint::open(&weights_path)?;
         let expert = SmolVlaExpert::from_weights(&ExpertWeights::load(&ckpt, &dims)?, options)?;
         let vlm = SmolVlaVlm::load_from(&ckpt, cfg, &vlm_config, options)?;
+        let spec = ModelSpec {
+            name: "smolvla".into(),
+            chunk_len: dims.chunk,
+            action_dim: checkpoint.action_dim(),
+            state_dim: checkpoint.state_dim(),
+            steps: dims.steps,
+            max_images: checkpoint.camera_keys().len(),
+        };
         Ok(SmolVlaPipeline {
             checkpoint,
             vlm,
             expert,
+            spec,
         })
     }
 
@@ -223,5 +234,75 @@ impl SmolVlaPipeline {
             })
             .collect::<Result<Vec<_>, EngineError>>()?;
         self.vlm.prefix(self.expert.dims(), &observations)
+    }
+}
+
+/// The whole policy behind the server's model interface: a request's images are the model's
+/// cameras in order ([`SmolVlaCheckpoint::camera_keys`]; fewer images leave the last cameras
+/// missing), its instruction is the task, its state the raw state. Samples of one request share
+/// the prefix. The chunk is in the robot's units: actions exactly as LeRobot's postprocessor
+/// gives them, and the noise and per-step updates mapped by the same affine unnormalisation
+/// (updates by its scale only), so `noise + sum(updates)` is the actions up to rounding.
+impl ActionModel for SmolVlaPipeline {
+    fn spec(&self) -> &ModelSpec {
+        &self.spec
+    }
+
+    fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
+        self.spec.validate(batch)?;
+        let keys = self.checkpoint.camera_keys();
+        let prepared = batch
+            .iter()
+            .map(|r| {
+                let obs = Observation {
+                    images: keys.iter().cloned().zip(r.images.iter().cloned()).collect(),
+                    state: r.state.clone(),
+                    task: r.instruction.clone(),
+                };
+                self.checkpoint.prepare(&obs)
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        let prefixes = self.prefixes(&prepared)?;
+        let requests: Vec<(&super::PrefixKv, usize, u64)> = prefixes
+            .iter()
+            .zip(batch)
+            .map(|(p, r)| (p, r.samples, r.seed))
+            .collect();
+        self.expert
+            .generate(&requests)?
+            .into_iter()
+            .map(|chunk| self.unnormalize_chunk(chunk))
+            .collect()
+    }
+}
+
+impl SmolVlaPipeline {
+    fn unnormalize_chunk(&self, mut chunk: ActionChunk) -> Result<ActionChunk, EngineError> {
+        let dim = chunk.action_dim;
+        chunk.actions = self
+            .checkpoint
+            .finish_actions(&chunk.actions, dim)?
+            .concat();
+        let affine = self
+            .checkpoint
+            .postprocessor()
+            .unnormalizer
+            .as_ref()
+            .and_then(|n| n.inverse_affine(ACTION_KEY));
+        if let Some((scale, shift)) = affine {
+            if scale.len() != dim {
+                return Err(EngineError::InvalidInput(format!(
+                    "action stats have {} values, the action dim is {dim}",
+                    scale.len()
+                )));
+            }
+            for (i, x) in chunk.noise.iter_mut().enumerate() {
+                *x = scale[i % dim] * *x + shift[i % dim];
+            }
+            for (i, u) in chunk.updates.iter_mut().enumerate() {
+                *u *= scale[i % dim];
+            }
+        }
+        Ok(chunk)
     }
 }

@@ -233,6 +233,24 @@ impl Normalizer {
         self.apply(key, values, true)
     }
 
+    /// The inverse transform of `key` as `y = scale * x + shift`, per element of the stats'
+    /// width (every mode is affine): what maps a normalised initial noise and, with the scale
+    /// alone, each Euler update into the robot's units so that `noise + sum(updates)` still
+    /// equals the (unnormalised) actions. `None` when `key` passes through.
+    pub fn inverse_affine(&self, key: &str) -> Option<(Vec<f32>, Vec<f32>)> {
+        let n = self.norms.get(key)?;
+        let eps = self.eps;
+        let pairs = n.a.iter().zip(&n.b).map(|(&a, &b)| match n.mode {
+            NormMode::Identity => (1.0, 0.0),
+            NormMode::MeanStd => (b, a),
+            NormMode::MinMax | NormMode::Quantiles | NormMode::Quantile10 => {
+                let half = range(a, b, eps) / 2.0;
+                (half, half + a)
+            }
+        });
+        Some(pairs.unzip())
+    }
+
     fn apply(&self, key: &str, values: &mut [f32], inverse: bool) -> Result<(), EngineError> {
         let Some(n) = self.norms.get(key) else {
             return Ok(());

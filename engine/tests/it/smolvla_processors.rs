@@ -544,3 +544,59 @@ fn real_checkpoint_predicts() {
     let (alone, _) = pipeline.predict(&[obs], &[1]).unwrap();
     assert_eq!(alone[0], out[1]);
 }
+
+/// The directory served through `ActionModel` (what `kairos serve --model DIR` loads): the whole
+/// policy, sample 0 of a request equal to `predict` with the request's seed, in robot units, with
+/// `noise + sum(updates)` equal to the actions up to rounding.
+#[test]
+fn the_checkpoint_serves_as_an_action_model() {
+    let g = Goldens::open();
+    let model = kairos_engine::load_model_with(&fixture(), &cpu()).unwrap();
+    let spec = model.spec().clone();
+    assert_eq!(
+        (
+            spec.name.as_str(),
+            spec.chunk_len,
+            spec.action_dim,
+            spec.state_dim,
+            spec.max_images
+        ),
+        ("smolvla", 16, 6, 7, 2)
+    );
+    let obs = observations(&g, "missing").remove(0);
+    let request = kairos_engine::ActionRequest {
+        state: obs.state.clone(),
+        images: obs.images.values().cloned().collect(),
+        instruction: obs.task.clone(),
+        samples: 2,
+        seed: 5,
+    };
+    let chunk = model
+        .generate(std::slice::from_ref(&request))
+        .unwrap()
+        .remove(0);
+    let pipeline = SmolVlaPipeline::load(&fixture(), None, &cpu()).unwrap();
+    let (want, _) = pipeline.predict(&[obs], &[5]).unwrap();
+    assert_eq!(chunk.sample_actions(0), want[0].actions.concat().as_slice());
+    assert_ne!(chunk.sample_actions(0), chunk.sample_actions(1));
+    let (n, k) = (spec.chunk_len * spec.action_dim, spec.steps);
+    for s in 0..2 {
+        let mut x = chunk.noise[s * n..(s + 1) * n].to_vec();
+        for step in chunk.sample_updates(s).chunks_exact(n).take(k) {
+            for (xi, u) in x.iter_mut().zip(step) {
+                *xi += u;
+            }
+        }
+        let d = max_abs_diff(&x, chunk.sample_actions(s));
+        let big = x.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        assert!(
+            d <= 1e-5 * big.max(1.0),
+            "sample {s}: noise + sum U off by {d}"
+        );
+    }
+    // Too many images for the model's cameras are refused by the spec.
+    let mut three = request;
+    three.images.push(three.images[0].clone());
+    three.images.push(three.images[0].clone());
+    assert!(model.generate(&[three]).is_err());
+}
