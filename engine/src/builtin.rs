@@ -5,13 +5,17 @@
 //! | `builtin:flow-head-small` (default) | [`FlowHead`] with [`FlowHeadConfig::default`] and seeded random weights |
 //! | `builtin:smolvla-random` | the full-size SmolVLA expert (`lerobot/smolvla_base` shapes) with seeded random weights, fed by the labelled stand-in prefix ([`SmolVlaStandIn`]) |
 //! | a directory (or its `config.json`) | a checkpoint: `"type": "kairos_flow_head"` or LeRobot's `"type": "smolvla"` |
+//!
+//! A LeRobot SmolVLA directory with its processors (`policy_preprocessor.json`) and a
+//! `tokenizer.json` beside them is served as the whole policy ([`SmolVlaPipeline`]: VLM, expert,
+//! processors); one with only `config.json` and weights gets the expert with the stand-in prefix.
 
 use std::path::{Path, PathBuf};
 
 use crate::flow_head::{FLOW_HEAD_TYPE, FlowHead, FlowHeadConfig};
 use crate::smolvla::config::{ExpertDims, read_json};
 use crate::smolvla::serving::SmolVlaStandIn;
-use crate::smolvla::{ExpertWeights, SmolVlaExpert};
+use crate::smolvla::{ExpertWeights, SmolVlaExpert, SmolVlaPipeline};
 use crate::{ActionModel, EngineError, EngineOptions};
 
 /// Seed of the built-in models' random weights.
@@ -53,6 +57,13 @@ pub fn load_model_with(
     let probe: Probe = read_json(&dir.join("config.json"))?;
     match probe.model_type.as_deref() {
         Some(FLOW_HEAD_TYPE) => Ok(Box::new(FlowHead::load(&dir, options)?)),
+        // A whole LeRobot checkpoint (processors and a tokenizer beside it): the real policy.
+        Some("smolvla")
+            if dir.join("policy_preprocessor.json").exists()
+                && dir.join("tokenizer.json").exists() =>
+        {
+            Ok(Box::new(SmolVlaPipeline::load(&dir, None, options)?))
+        }
         Some("smolvla") => {
             let cameras = probe
                 .input_features

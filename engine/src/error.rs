@@ -40,6 +40,50 @@ pub enum EngineError {
     /// A request does not fit the model (wrong state length, undecodable image, ...).
     #[error("invalid input: {0}")]
     InvalidInput(String),
+    /// A file a checkpoint needs does not exist.
+    #[error("missing file {path}")]
+    MissingFile {
+        /// The file looked for.
+        path: String,
+    },
+    /// A processor names a normalisation mode this engine does not implement.
+    #[error("{file}: unknown normalisation mode `{mode}` for `{feature}`")]
+    UnknownNormMode {
+        /// The processor file.
+        file: String,
+        /// The feature type (`STATE`, ...) the mode is for.
+        feature: String,
+        /// The mode as written.
+        mode: String,
+    },
+    /// A normaliser's stats file has stats for a feature, but not the one its mode needs.
+    #[error("{file}: missing stat `{key}` needed by {mode} normalisation")]
+    MissingStat {
+        /// The stats file.
+        file: String,
+        /// The missing tensor, `<feature>.<stat>`.
+        key: String,
+        /// The mode that reads it.
+        mode: String,
+    },
+    /// An observation names a camera the model does not have.
+    #[error("unknown camera `{camera}`; the model's cameras are: {known}")]
+    UnknownCamera {
+        /// The camera as given.
+        camera: String,
+        /// The model's camera keys, comma separated.
+        known: String,
+    },
+    /// A state vector of the wrong length.
+    #[error("{field} has {found} values, the model expects {expected}")]
+    StateLength {
+        /// The field (`observation.state`).
+        field: String,
+        /// The model's state width.
+        expected: usize,
+        /// The length given.
+        found: usize,
+    },
     /// An error inside Candle.
     #[error(transparent)]
     Candle(#[from] candle_core::Error),

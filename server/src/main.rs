@@ -19,6 +19,8 @@ enum Command {
     Serve(Box<kairos_server::cli::serve::ServeArgs>),
     /// Measure a model's latency against batch size and write its engine profile.
     Profile(Box<kairos_server::cli::profile::ProfileArgs>),
+    /// Predict one action chunk with a LeRobot SmolVLA checkpoint and print it as JSON.
+    Predict(Box<kairos_server::cli::predict::PredictArgs>),
     /// Print the protocol version and build information.
     Info,
     /// Policy plugins: check a component, turn a C core module into one, show the WIT.
@@ -44,6 +46,7 @@ fn main() -> anyhow::Result<()> {
         Command::Demo(args) => kairos_server::cli::demo::run(*args),
         Command::Serve(args) => kairos_server::cli::serve::run(*args),
         Command::Profile(args) => kairos_server::cli::profile::run(*args),
+        Command::Predict(args) => kairos_server::cli::predict::run(*args),
         Command::Plugin(args) => kairos_server::cli::plugin::run(args),
         Command::Robot(args) => kairos_server::cli::robot::run(*args),
         Command::Bench(args) => kairos_server::cli::bench::run(args),

@@ -42,10 +42,95 @@ pub struct SmolVlaConfig {
     pub add_image_special_tokens: bool,
     /// Pad the prefix to this many tokens (`<= 0`: no padding, LeRobot's default).
     pub prefix_length: i64,
-    /// LeRobot's input features (`observation.state` gives the real state size).
-    pub input_features: BTreeMap<String, Feature>,
+    /// LeRobot's input features (`observation.state` gives the real state size), in file order:
+    /// the order of the `VISUAL` ones is the camera order of the prefix.
+    pub input_features: FeatureMap,
     /// LeRobot's output features (`action` gives the real action size).
-    pub output_features: BTreeMap<String, Feature>,
+    pub output_features: FeatureMap,
+    /// Normalisation mode per feature type (`VISUAL`, `STATE`, `ACTION`). The processors'
+    /// own files carry the map that is applied; this is the policy's copy.
+    pub normalization_mapping: BTreeMap<String, String>,
+    /// Image size the cameras are resized (with padding) to, as LeRobot stores it:
+    /// `[width, height]`. `None`: images are used at their own size.
+    pub resize_imgs_with_padding: Option<[usize; 2]>,
+    /// How many missing cameras become an all-`-1` image with a false mask.
+    pub empty_cameras: usize,
+    /// The tokenizer's maximum length (the preprocessor's tokenizer step has its own copy).
+    pub tokenizer_max_length: usize,
+}
+
+/// A JSON object of [`Feature`]s that keeps the file's key order (LeRobot's `dict` order: the
+/// camera order of the prefix follows it).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FeatureMap(Vec<(String, Feature)>);
+
+impl FeatureMap {
+    /// The feature named `key`.
+    pub fn get(&self, key: &str) -> Option<&Feature> {
+        self.0.iter().find(|(k, _)| k == key).map(|(_, f)| f)
+    }
+
+    /// Insert or replace `key` (a new key goes last).
+    pub fn insert(&mut self, key: String, feature: Feature) {
+        match self.0.iter_mut().find(|(k, _)| *k == key) {
+            Some(slot) => slot.1 = feature,
+            None => self.0.push((key, feature)),
+        }
+    }
+
+    /// Features in file order.
+    pub fn iter(&self) -> impl Iterator<Item = (&String, &Feature)> {
+        self.0.iter().map(|(k, f)| (k, f))
+    }
+
+    /// Features in file order.
+    pub fn values(&self) -> impl Iterator<Item = &Feature> {
+        self.0.iter().map(|(_, f)| f)
+    }
+
+    /// Number of features.
+    pub fn len(&self) -> usize {
+        self.0.len()
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+}
+
+impl serde::Serialize for FeatureMap {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        use serde::ser::SerializeMap;
+        let mut map = s.serialize_map(Some(self.0.len()))?;
+        for (k, f) in &self.0 {
+            map.serialize_entry(k, f)?;
+        }
+        map.end()
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for FeatureMap {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Visit;
+        impl<'de> serde::de::Visitor<'de> for Visit {
+            type Value = FeatureMap;
+            fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str("an object of features")
+            }
+            fn visit_map<A: serde::de::MapAccess<'de>>(
+                self,
+                mut access: A,
+            ) -> Result<FeatureMap, A::Error> {
+                let mut map = FeatureMap::default();
+                while let Some((k, f)) = access.next_entry::<String, Feature>()? {
+                    map.insert(k, f);
+                }
+                Ok(map)
+            }
+        }
+        d.deserialize_map(Visit)
+    }
 }
 
 /// One LeRobot policy feature.
@@ -76,9 +161,31 @@ impl Default for SmolVlaConfig {
             max_period: 4.0,
             add_image_special_tokens: false,
             prefix_length: -1,
-            input_features: BTreeMap::new(),
-            output_features: BTreeMap::new(),
+            input_features: FeatureMap::default(),
+            output_features: FeatureMap::default(),
+            normalization_mapping: [
+                ("VISUAL", "IDENTITY"),
+                ("STATE", "MEAN_STD"),
+                ("ACTION", "MEAN_STD"),
+            ]
+            .into_iter()
+            .map(|(k, v)| (k.to_owned(), v.to_owned()))
+            .collect(),
+            resize_imgs_with_padding: Some([512, 512]),
+            empty_cameras: 0,
+            tokenizer_max_length: 48,
         }
+    }
+}
+
+impl SmolVlaConfig {
+    /// The camera keys (`VISUAL` input features) in the order LeRobot feeds them to the VLM.
+    pub fn image_keys(&self) -> Vec<String> {
+        self.input_features
+            .iter()
+            .filter(|(_, f)| f.kind == "VISUAL")
+            .map(|(k, _)| k.clone())
+            .collect()
     }
 }
 
@@ -319,7 +426,7 @@ impl ExpertDims {
                 "heads must be a multiple of KV heads; head_dim and hidden even".into(),
             ));
         }
-        let feature_dim = |map: &BTreeMap<String, Feature>, key: &str, default: usize| {
+        let feature_dim = |map: &FeatureMap, key: &str, default: usize| {
             map.get(key)
                 .and_then(|f| f.shape.first().copied())
                 .unwrap_or(default)

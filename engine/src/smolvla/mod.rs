@@ -12,9 +12,14 @@
 //! `vlm_text`). `state_proj` is loaded and exposed ([`SmolVlaExpert::embed_state`]) because in
 //! SmolVLA the state is the last prefix token the VLM encodes.
 
+pub mod checkpoint;
 pub mod config;
+pub mod images;
+pub mod pipeline;
 pub mod prefix;
+pub mod processors;
 pub mod serving;
+pub mod tokenize;
 pub mod vision;
 pub mod vlm;
 pub mod vlm_weights;
@@ -26,7 +31,9 @@ mod vlm_text;
 
 use std::path::Path;
 
+pub use checkpoint::{Observation, PreparedObservation, SmolVlaCheckpoint};
 pub use config::{ExpertDims, LayerKind, SmolVlaConfig, VlmConfig, VlmTextConfig, VlmVisionConfig};
+pub use pipeline::SmolVlaPipeline;
 pub use prefix::PrefixKv;
 pub use vision::{VisionImage, VisionOutput};
 pub use vlm::{PrefixEmbeddings, SmolVlaVlm, VlmObservation};

@@ -8,5 +8,7 @@ mod examples_help;
 mod loader_errors;
 mod models;
 mod smolvla_fixture;
+mod smolvla_goldens;
 mod smolvla_parity;
+mod smolvla_processors;
 mod smolvla_vlm;

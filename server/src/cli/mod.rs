@@ -7,6 +7,7 @@ pub mod bench_horizon;
 pub mod bench_live;
 pub mod demo;
 pub mod plugin;
+pub mod predict;
 pub mod profile;
 pub mod robot;
 pub mod serve;

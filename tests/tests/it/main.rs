@@ -20,4 +20,5 @@ mod openpi;
 mod plugins_served;
 mod sim_runner_agreement;
 mod sim_vs_live;
+mod smolvla_served;
 mod uploads;

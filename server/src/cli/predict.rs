@@ -1,0 +1,108 @@
+//! `kairos predict`: one action chunk from a LeRobot SmolVLA checkpoint directory, printed as
+//! JSON.
+//!
+//! ```text
+//! kairos predict --model ./my_smolvla --tokenizer ./tokenizer.json \
+//!     --image camera1=front.png --state 0.1,0.2,... --task "pick up the cube"
+//! ```
+//!
+//! With no inputs the observation is synthetic: a mid-grey image for every camera the config
+//! names, a zero state, the task "pick up the cube". The processors and the model live in
+//! `kairos_engine::smolvla` ([`SmolVlaPipeline`]); this command only assembles the observation
+//! and prints `{"actions": [[..]..], "chunk": C, "action_dim": D, "timing_ms": {..}}`.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use kairos_engine::smolvla::SmolVlaPipeline;
+use kairos_engine::smolvla::checkpoint::Observation;
+use kairos_engine::smolvla::images::image_file;
+use kairos_engine::smolvla::pipeline::StageTimes;
+use kairos_engine::{DeviceKind, EngineOptions, Kernels};
+
+/// Arguments of `kairos predict`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct PredictArgs {
+    /// A LeRobot SmolVLA checkpoint directory (what `save_pretrained` writes).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// The task tokenizer (`tokenizer.json`) [default: `tokenizer.json` in the model directory].
+    #[arg(long)]
+    pub tokenizer: Option<PathBuf>,
+    /// A camera image, `name=file.png` (PNG or JPEG); `name` is the camera's key or the part after
+    /// `observation.images.`. Repeat per camera; cameras not given count as missing.
+    #[arg(long = "image", value_name = "NAME=FILE")]
+    pub images: Vec<String>,
+    /// The robot state, comma separated (unnormalised).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub state: Option<Vec<f32>>,
+    /// The instruction.
+    #[arg(long)]
+    pub task: Option<String>,
+    /// A whole observation as JSON: `{"task", "state", "images": {name: path or raw}}`;
+    /// `--image`, `--state` and `--task` override its parts.
+    #[arg(long)]
+    pub json_in: Option<PathBuf>,
+    /// Seed of the initial noise.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Device: `cpu`, `cuda` or `cuda:N`.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Kernels: `auto`, `fast`, `portable` or `candle`.
+    #[arg(long, default_value = "auto")]
+    pub kernels: String,
+    /// CPU threads for the engine (0: one per core).
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+}
+
+/// What `kairos predict` prints.
+#[derive(serde::Serialize)]
+struct Output {
+    actions: Vec<Vec<f32>>,
+    chunk: usize,
+    action_dim: usize,
+    timing_ms: StageTimes,
+}
+
+/// Run `kairos predict`.
+pub fn run(args: PredictArgs) -> anyhow::Result<()> {
+    let options = EngineOptions {
+        device: args.device.parse::<DeviceKind>().context("--device")?,
+        kernels: args.kernels.parse::<Kernels>().context("--kernels")?,
+        threads: args.threads,
+    };
+    let pipeline = SmolVlaPipeline::load(&args.model, args.tokenizer.as_deref(), &options)
+        .with_context(|| format!("loading {}", args.model.display()))?;
+    let mut obs = match &args.json_in {
+        Some(path) => Observation::from_json_file(path)?,
+        None => pipeline.checkpoint().synthetic_observation(),
+    };
+    if !args.images.is_empty() {
+        obs.images.clear();
+        for spec in &args.images {
+            let (name, file) = spec
+                .split_once('=')
+                .with_context(|| format!("--image `{spec}` is not name=file"))?;
+            let image = image_file(std::path::Path::new(file))?;
+            obs.images.insert(name.to_owned(), image);
+        }
+    }
+    if let Some(state) = args.state {
+        obs.state = state;
+    }
+    if let Some(task) = args.task {
+        obs.task = task;
+    }
+    let (mut predictions, timing) = pipeline.predict(std::slice::from_ref(&obs), &[args.seed])?;
+    let prediction = predictions.pop().context("no prediction")?;
+    let out = Output {
+        chunk: prediction.actions.len(),
+        action_dim: pipeline.action_dim(),
+        actions: prediction.actions,
+        timing_ms: timing,
+    };
+    println!("{}", serde_json::to_string(&out)?);
+    Ok(())
+}
