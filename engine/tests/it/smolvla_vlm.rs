@@ -22,75 +22,16 @@
 
 #![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
 
-use std::path::PathBuf;
-
 use kairos_engine::smolvla::{ExpertInput, SmolVlaExpert, SmolVlaVlm, VisionImage, VlmObservation};
-use kairos_engine::weights::Checkpoint;
 use kairos_engine::{DeviceKind, EngineOptions, Kernels};
 
-fn fixture() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/smolvla_tiny")
-}
+use super::smolvla_goldens::{Goldens, fixture};
 
 fn cpu(kernels: Kernels) -> EngineOptions {
     EngineOptions {
         device: DeviceKind::Cpu,
         kernels,
         threads: 2,
-    }
-}
-
-struct Goldens {
-    ckpt: Checkpoint,
-    bytes: Vec<u8>,
-    meta: serde_json::Value,
-}
-
-impl Goldens {
-    fn open() -> Self {
-        let path = fixture().join("golden/goldens.safetensors");
-        let bytes = std::fs::read(&path).unwrap();
-        let meta: serde_json::Value = serde_json::from_str(
-            &std::fs::read_to_string(fixture().join("golden/meta.json")).unwrap(),
-        )
-        .unwrap();
-        Goldens {
-            ckpt: Checkpoint::from_bytes("goldens", bytes.clone()).unwrap(),
-            bytes,
-            meta,
-        }
-    }
-
-    fn shape(&self, key: &str) -> Vec<usize> {
-        self.ckpt
-            .shape(key)
-            .unwrap_or_else(|| panic!("no golden `{key}`"))
-            .to_vec()
-    }
-
-    fn f32(&self, key: &str) -> Vec<f32> {
-        self.ckpt.tensor(key, &self.shape(key)).unwrap()
-    }
-
-    fn u8(&self, key: &str) -> Vec<u8> {
-        self.ckpt.tensor_u8(key, &self.shape(key)).unwrap()
-    }
-
-    fn i64(&self, key: &str) -> Vec<i64> {
-        let st = safetensors::SafeTensors::deserialize(&self.bytes).unwrap();
-        let t = st.tensor(key).unwrap();
-        assert_eq!(t.dtype(), safetensors::Dtype::I64, "{key}");
-        t.data()
-            .chunks_exact(8)
-            .map(|b| i64::from_le_bytes(b.try_into().unwrap()))
-            .collect()
-    }
-
-    /// LeRobot's own f32-vs-f64 error of `key`.
-    fn e_lr(&self, key: &str) -> f32 {
-        self.meta["lerobot_f32_vs_f64"][key]["max_abs"]
-            .as_f64()
-            .unwrap_or_else(|| panic!("no error bound for `{key}`")) as f32
     }
 }
 
