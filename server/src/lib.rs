@@ -25,4 +25,5 @@ pub mod stats;
 pub mod time;
 pub mod transport;
 pub mod validation;
+pub mod worker;
 pub mod workload;

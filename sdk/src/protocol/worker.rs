@@ -248,6 +248,19 @@ pub enum WorkerMessage {
 }
 
 impl WorkerMessage {
+    /// The frame kind this message travels as.
+    pub fn kind(&self) -> MessageKind {
+        match self {
+            WorkerMessage::Register(_) => MessageKind::Register,
+            WorkerMessage::Registered(_) => MessageKind::Registered,
+            WorkerMessage::Refused(_) => MessageKind::Refused,
+            WorkerMessage::Heartbeat(_) => MessageKind::Heartbeat,
+            WorkerMessage::Drain(_) => MessageKind::Drain,
+            WorkerMessage::RunBatch(_) => MessageKind::RunBatch,
+            WorkerMessage::Chunks(_) => MessageKind::Chunks,
+        }
+    }
+
     /// Decodes a frame's body as the worker message its kind names; a robot-protocol kind is
     /// refused.
     pub fn decode(frame: &Frame) -> Result<WorkerMessage, FrameError> {
