@@ -11,3 +11,4 @@ mod plugin_common;
 mod plugin_containment;
 mod plugin_reload;
 mod plugin_twins;
+mod workers;
