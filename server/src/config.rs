@@ -655,10 +655,16 @@ impl Config {
             }
         }
         if self.workers.heartbeat_ms == 0 {
-            return Err(invalid("workers.heartbeat_ms".into(), "must be at least 1".into()));
+            return Err(invalid(
+                "workers.heartbeat_ms".into(),
+                "must be at least 1".into(),
+            ));
         }
         if self.workers.max_attempts == 0 {
-            return Err(invalid("workers.max_attempts".into(), "must be at least 1".into()));
+            return Err(invalid(
+                "workers.max_attempts".into(),
+                "must be at least 1".into(),
+            ));
         }
         if !(self.workers.batch_deadline_factor.is_finite()
             && self.workers.batch_deadline_factor >= 1.0)

@@ -260,18 +260,28 @@ mod tests {
     fn the_worker_token_is_generated_once_private_and_unlike_robot_tokens() {
         let tmp = tempfile::tempdir().unwrap();
         let dir = DataDir::new(tmp.path().join("data"));
-        assert!(dir.read_worker_token().is_err(), "not there before the first start");
+        assert!(
+            dir.read_worker_token().is_err(),
+            "not there before the first start"
+        );
         let token = dir.worker_token_or_generate().unwrap();
         assert!(token.starts_with(DataDir::WORKER_TOKEN_PREFIX), "{token}");
         assert_eq!(token.len(), DataDir::WORKER_TOKEN_PREFIX.len() + 64);
         assert_eq!(dir.read_worker_token().unwrap(), token);
-        assert_eq!(dir.worker_token_or_generate().unwrap(), token, "kept across starts");
+        assert_eq!(
+            dir.worker_token_or_generate().unwrap(),
+            token,
+            "kept across starts"
+        );
         let robot = dir.tokens_or_generate().unwrap();
         assert_ne!(robot.token(DEFAULT_ROBOT), Some(token.as_str()));
         #[cfg(unix)]
         {
             use std::os::unix::fs::PermissionsExt;
-            let mode = fs::metadata(dir.worker_token()).unwrap().permissions().mode();
+            let mode = fs::metadata(dir.worker_token())
+                .unwrap()
+                .permissions()
+                .mode();
             assert_eq!(mode & 0o777, 0o600, "the worker token is owner-only");
         }
     }

@@ -185,9 +185,13 @@ async fn connect(options: &WorkerOptions) -> Result<Connection, WorkerError> {
     let config = worker_client_config(&options.trust, &TransportTuning::default())
         .map_err(|e| WorkerError::Setup(e.to_string()))?;
     let bind: SocketAddr = if options.server.is_ipv6() {
-        "[::]:0".parse().map_err(|e| WorkerError::Setup(format!("{e}")))?
+        "[::]:0"
+            .parse()
+            .map_err(|e| WorkerError::Setup(format!("{e}")))?
     } else {
-        "0.0.0.0:0".parse().map_err(|e| WorkerError::Setup(format!("{e}")))?
+        "0.0.0.0:0"
+            .parse()
+            .map_err(|e| WorkerError::Setup(format!("{e}")))?
     };
     let mut endpoint =
         quinn::Endpoint::client(bind).map_err(|e| WorkerError::Setup(e.to_string()))?;
@@ -238,7 +242,10 @@ async fn register(
             Duration::from_millis(u64::from(registered.heartbeat_ms.max(1))),
         )),
         WorkerMessage::Refused(refused) => Err(WorkerError::Refused(refused.reason)),
-        other => Err(protocol(format!("expected Registered, got {}", other.kind()))),
+        other => Err(protocol(format!(
+            "expected Registered, got {}",
+            other.kind()
+        ))),
     }
 }
 

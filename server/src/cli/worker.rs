@@ -74,7 +74,9 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
     let data_dir = DataDir::new(&args.data_dir);
     let pin = match args.pin {
         Some(pin) => pin,
-        None => data_dir.read_pin().context("reading the scheduler's pin (or pass --pin)")?,
+        None => data_dir
+            .read_pin()
+            .context("reading the scheduler's pin (or pass --pin)")?,
     };
     let token = match &args.worker_token {
         Some(token) => token.clone(),

@@ -40,9 +40,9 @@ use std::time::Duration;
 use kairos_sdk::protocol::{ErrorReply, IntervalUs, Reply, RoundRecordWire};
 use tokio::sync::oneshot;
 
-pub use self::shell::{DriverGone, DriverHandle, PendingRound, spawn};
 pub use self::core::{Redispatch, RedispatchRule};
 pub use self::shell::EngineView;
+pub use self::shell::{DriverGone, DriverHandle, PendingRound, spawn};
 pub use self::stats::{DriverStats, LatencySummary, RECENT_LATENCIES, RedispatchCounts};
 use crate::lifecycle::RoundRecord;
 use crate::scheduler::{RobotId, TaskId};

@@ -107,7 +107,10 @@ impl RemoteEngine {
     }
 
     fn estimate(&self) -> RttEstimate {
-        *self.rtt.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+        *self
+            .rtt
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 }
 
@@ -206,10 +209,7 @@ impl EngineInstance for RemoteEngine {
 }
 
 /// One batch stream: `RunBatch` out, one `Chunks` for the same `(batch_id, attempt)` back.
-async fn exchange(
-    connection: &Connection,
-    run: &RunBatch,
-) -> Result<Chunks, (LossReason, String)> {
+async fn exchange(connection: &Connection, run: &RunBatch) -> Result<Chunks, (LossReason, String)> {
     let (mut send, mut recv) = connection.open_bi().await.map_err(connection_error)?;
     write_body(&mut send, run, WORKER_MAX_FRAME)
         .await
@@ -292,14 +292,23 @@ fn chunks_from_wire(
             (Some(chunk), None) => {
                 let chunk = chunk_from_wire(spec, request.samples.max(1), &chunk)
                     .map_err(|reason| bad(format!("result {i}: {reason}")))?;
-                check_output(name, spec, std::slice::from_ref(request), std::slice::from_ref(&chunk))?;
+                check_output(
+                    name,
+                    spec,
+                    std::slice::from_ref(request),
+                    std::slice::from_ref(&chunk),
+                )?;
                 Ok(chunk)
             }
             (None, Some(message)) => Err(PoolError::Remote {
                 engine: name.to_string(),
                 message,
             }),
-            _ => return Err(bad(format!("result {i} has neither or both of chunk and error"))),
+            _ => {
+                return Err(bad(format!(
+                    "result {i} has neither or both of chunk and error"
+                )));
+            }
         };
         out.push(entry);
     }
@@ -572,7 +581,10 @@ mod tests {
         req.samples = 2;
         let back = request_from_wire(request_to_wire(&req).unwrap()).unwrap();
         assert_eq!(back, req);
-        let chunk = model.generate(std::slice::from_ref(&req)).unwrap().remove(0);
+        let chunk = model
+            .generate(std::slice::from_ref(&req))
+            .unwrap()
+            .remove(0);
         let wire = chunk_to_wire(&chunk).unwrap();
         assert_eq!(chunk_from_wire(&model.spec, 2, &wire).unwrap(), chunk);
         // A worker that answers a wrong shape is caught before the action manager sees it.
@@ -614,7 +626,10 @@ mod tests {
             ],
             max_batch: 4,
         };
-        assert_eq!(profile_from_wire(profile_to_wire(&profile)).unwrap(), profile);
+        assert_eq!(
+            profile_from_wire(profile_to_wire(&profile)).unwrap(),
+            profile
+        );
         let mut empty = profile_to_wire(&profile);
         empty.points.clear();
         assert!(profile_from_wire(empty).is_err());

@@ -92,8 +92,7 @@ pub(super) async fn serve(
         Some(Admitted::Robot(connection, robot, place)) => (connection, robot, place),
         Some(Admitted::Worker(connection, deadline)) => {
             // A worker takes no robot place; its registration shares the handshake budget.
-            super::workers::serve(connection, unauthenticated, context, gate, deadline, stop)
-                .await;
+            super::workers::serve(connection, unauthenticated, context, gate, deadline, stop).await;
             return;
         }
         None => return,
@@ -208,10 +207,7 @@ async fn admit(
 fn is_worker(connection: &Connection) -> bool {
     connection
         .handshake_data()
-        .and_then(|data| {
-            data.downcast::<quinn::crypto::rustls::HandshakeData>()
-                .ok()
-        })
+        .and_then(|data| data.downcast::<quinn::crypto::rustls::HandshakeData>().ok())
         .and_then(|data| data.protocol)
         .is_some_and(|alpn| alpn == kairos_sdk::protocol::worker::WORKER_ALPN)
 }

@@ -174,15 +174,23 @@ async fn register(
                     profile.max_batch = profile.max_batch.min(register.max_batch.max(1));
                     profile
                 }
-                Err(reason) => return refuse(send, close_code::PROTOCOL_ERROR, reason, false).await,
+                Err(reason) => {
+                    return refuse(send, close_code::PROTOCOL_ERROR, reason, false).await;
+                }
             };
             let tier = match register.tier {
                 WorkerTier::Edge => Tier::Edge,
                 WorkerTier::Cloud => Tier::Cloud,
             };
-            let name = format!("worker:{}@{}", register.worker_id, connection.remote_address());
+            let name = format!(
+                "worker:{}@{}",
+                register.worker_id,
+                connection.remote_address()
+            );
             // The worker's batches and their chunks need more than the registration window.
-            connection.set_receive_window(VarInt::from_u32(kairos_sdk::protocol::worker::WORKER_MAX_FRAME));
+            connection.set_receive_window(VarInt::from_u32(
+                kairos_sdk::protocol::worker::WORKER_MAX_FRAME,
+            ));
             let engine = RemoteEngine::new(
                 name.clone(),
                 model_spec(&register.model),
@@ -198,7 +206,8 @@ async fn register(
                         engine: name.clone(),
                         heartbeat_ms: context.workers.config.heartbeat_ms,
                     };
-                    if let Err(error) = write_body(&mut send, &registered, REGISTER_MAX_FRAME).await {
+                    if let Err(error) = write_body(&mut send, &registered, REGISTER_MAX_FRAME).await
+                    {
                         context.driver.remove_engine(id).await;
                         return Err(protocol_error(error.to_string()));
                     }

@@ -79,7 +79,12 @@ fn robots(server: &LocalServer, dir: &Path, robots: u32, rounds: u32) -> Child {
         .arg(server.addr().to_string())
         .arg("--data-dir")
         .arg(dir.join("data"))
-        .args(["--robots", &robots.to_string(), "--rounds", &rounds.to_string()])
+        .args([
+            "--robots",
+            &robots.to_string(),
+            "--rounds",
+            &rounds.to_string(),
+        ])
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
@@ -136,7 +141,8 @@ async fn wait_exit(child: &mut Child) -> (std::process::ExitStatus, String) {
 /// The index in `ids` of a live worker that runs a batch now.
 fn busy_worker(engines: &[EngineView], ids: &[&str]) -> Option<usize> {
     let name = &engines.iter().find(|e| e.live && e.busy)?.name;
-    ids.iter().position(|id| name.starts_with(&format!("worker:{id}@")))
+    ids.iter()
+        .position(|id| name.starts_with(&format!("worker:{id}@")))
 }
 
 /// `--local-engines 0` plus two workers: robots complete. A worker killed with SIGKILL in the
@@ -148,7 +154,11 @@ async fn two_workers_serve_and_a_killed_workers_batch_is_redispatched() {
     let server = scheduler(dir.path()).await;
     write_profile(dir.path());
     let ids = ["w0", "w1"];
-    let mut procs = Procs(ids.iter().map(|id| worker(&server, dir.path(), id)).collect());
+    let mut procs = Procs(
+        ids.iter()
+            .map(|id| worker(&server, dir.path(), id))
+            .collect(),
+    );
     wait_engines(&server, "two workers", |e| {
         e.iter().filter(|e| e.live).count() == 2
     })
@@ -211,7 +221,11 @@ async fn a_sigterm_drains_the_worker_without_failing_a_round() {
     let server = scheduler(dir.path()).await;
     write_profile(dir.path());
     let ids = ["d0", "d1"];
-    let mut procs = Procs(ids.iter().map(|id| worker(&server, dir.path(), id)).collect());
+    let mut procs = Procs(
+        ids.iter()
+            .map(|id| worker(&server, dir.path(), id))
+            .collect(),
+    );
     wait_engines(&server, "two workers", |e| {
         e.iter().filter(|e| e.live).count() == 2
     })

@@ -20,3 +20,4 @@ mod plugins_served;
 mod sim_runner_agreement;
 mod sim_vs_live;
 mod uploads;
+mod workers;
