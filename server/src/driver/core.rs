@@ -654,11 +654,37 @@ impl DriverCore {
             self.stats.tasks_ended += 1;
             self.tasks.remove(&summary.task);
         }
+        self.answer_stranded(now);
         self.dispatch(now);
         let next = self.scheduler.poll_timeout();
         if next != self.timer {
             self.timer = next;
             self.effects.push_back(Effect::SetTimer(next));
+        }
+    }
+
+    /// Draining with no engine left (every remote worker gone) and nothing running: the queued
+    /// rounds can never run, so they are answered `shutting_down` (retryable) and the driver can
+    /// stop. Rounds wait for a worker only while the server runs.
+    fn answer_stranded(&mut self, now: Timestamp) {
+        if !self.draining || self.scheduler.live_engines() > 0 || !self.batches.is_empty() {
+            return;
+        }
+        let stranded: Vec<RequestId> = self
+            .requests
+            .iter()
+            .filter(|(_, r)| r.dispatched.is_none())
+            .map(|(&id, _)| id)
+            .collect();
+        for request in stranded {
+            self.scheduler.fail_pending(now, request);
+            if let Some(old) = self.requests.remove(&request) {
+                self.stats.failed += 1;
+                self.answer(
+                    old.waiters,
+                    Err(ErrorReply::from(&RequestError::ShuttingDown)),
+                );
+            }
         }
     }
 

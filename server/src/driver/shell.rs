@@ -422,10 +422,9 @@ impl Shell {
                     profile: instance.profile().clone(),
                     rtt: instance.rtt(),
                 };
-                let added = self.pool.add(instance).map(|id| {
+                let added = self.pool.add(instance).inspect(|&id| {
                     let scheduled = self.core.add_engine(now, spec);
                     debug_assert_eq!(id, scheduled, "pool and scheduler ids move together");
-                    id
                 });
                 let _ = answer.send(added);
             }

@@ -88,6 +88,7 @@ async fn watch_worker(
         ..Limits::default()
     };
     let mut draining = false;
+    let mut stopping = false;
     loop {
         tokio::select! {
             frame = tokio::time::timeout(idle, read_frame_bounded(&mut recv, &limits, &ReadBounds::UNBOUNDED)) => {
@@ -123,11 +124,10 @@ async fn watch_worker(
                 }
             }
             _ = connection.closed() => return "connection closed",
-            () = async { let _ = stop.wait_for(|stopping| *stopping).await; }, if !draining => {
-                // The scheduler stops: no new batch for the worker; the one it runs is answered
-                // (the driver drains), then the transport closes the connection.
-                draining = true;
-                context.driver.remove_engine(engine).await;
+            // The scheduler stops: the worker keeps serving while the driver answers the rounds
+            // it accepted; the transport closes the connection when it is done draining.
+            () = async { let _ = stop.wait_for(|stopping| *stopping).await; }, if !stopping => {
+                stopping = true;
             }
         }
     }

@@ -4,6 +4,8 @@
 //! on a wall-clock margin: every wait is for an event (a worker registered, a worker busy, a
 //! process exited), bounded only by a generous give-up time.
 
+#![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
+
 use std::io::Read;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};

@@ -5,6 +5,8 @@
 //! round trip and used only when the near worker is full. Process-level runs (`kairos worker`,
 //! SIGKILL, SIGTERM) are in `server/tests/it/workers.rs`.
 
+#![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
+
 use std::sync::Arc;
 use std::time::Duration;
 
