@@ -147,24 +147,41 @@ fn busy_worker(engines: &[EngineView], ids: &[&str]) -> Option<usize> {
         .position(|id| name.starts_with(&format!("worker:{id}@")))
 }
 
+/// Waits until one of the workers `ids` runs a batch; returns its index.
+async fn wait_busy(server: &LocalServer, ids: &[&str]) -> usize {
+    tokio::time::timeout(GIVE_UP, async {
+        loop {
+            let engines = server.server.driver.engines().await.unwrap();
+            if let Some(index) = busy_worker(&engines, ids) {
+                return index;
+            }
+            tokio::time::sleep(Duration::from_millis(1)).await;
+        }
+    })
+    .await
+    .expect("a worker was busy")
+}
+
+/// A scheduler with no local engine and a `kairos worker` process per id, all registered.
+async fn scheduler_and_workers(dir: &Path, ids: &[&str]) -> (LocalServer, Procs) {
+    let server = scheduler(dir).await;
+    write_profile(dir);
+    let procs = Procs(ids.iter().map(|id| worker(&server, dir, id)).collect());
+    wait_engines(&server, "the workers", |e| {
+        e.iter().filter(|e| e.live).count() == ids.len()
+    })
+    .await;
+    (server, procs)
+}
+
 /// `--local-engines 0` plus two workers: robots complete. A worker killed with SIGKILL in the
 /// middle of a batch: its rounds go back to the queue and run on the other worker, every round
 /// is answered exactly once and none fails; the re-dispatch is counted.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_workers_serve_and_a_killed_workers_batch_is_redispatched() {
     let dir = tempfile::tempdir().unwrap();
-    let server = scheduler(dir.path()).await;
-    write_profile(dir.path());
     let ids = ["w0", "w1"];
-    let mut procs = Procs(
-        ids.iter()
-            .map(|id| worker(&server, dir.path(), id))
-            .collect(),
-    );
-    wait_engines(&server, "two workers", |e| {
-        e.iter().filter(|e| e.live).count() == 2
-    })
-    .await;
+    let (server, mut procs) = scheduler_and_workers(dir.path(), &ids).await;
 
     // Both workers serve a first fleet.
     let mut fleet = robots(&server, dir.path(), 4, 6);
@@ -177,17 +194,7 @@ async fn two_workers_serve_and_a_killed_workers_batch_is_redispatched() {
 
     // Kill a worker while it runs a batch.
     let mut fleet = robots(&server, dir.path(), 4, 8);
-    let waited = tokio::time::timeout(GIVE_UP, async {
-        loop {
-            let engines = server.server.driver.engines().await.unwrap();
-            if let Some(index) = busy_worker(&engines, &ids) {
-                return index;
-            }
-            tokio::time::sleep(Duration::from_millis(1)).await;
-        }
-    })
-    .await;
-    let victim = waited.expect("a worker was busy");
+    let victim = wait_busy(&server, &ids).await;
     // SIGKILL: the worker vanishes mid-batch without a word.
     procs.0[victim].kill().unwrap();
     procs.0[victim].wait().unwrap();
@@ -220,30 +227,10 @@ async fn two_workers_serve_and_a_killed_workers_batch_is_redispatched() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_sigterm_drains_the_worker_without_failing_a_round() {
     let dir = tempfile::tempdir().unwrap();
-    let server = scheduler(dir.path()).await;
-    write_profile(dir.path());
     let ids = ["d0", "d1"];
-    let mut procs = Procs(
-        ids.iter()
-            .map(|id| worker(&server, dir.path(), id))
-            .collect(),
-    );
-    wait_engines(&server, "two workers", |e| {
-        e.iter().filter(|e| e.live).count() == 2
-    })
-    .await;
+    let (server, mut procs) = scheduler_and_workers(dir.path(), &ids).await;
     let mut fleet = robots(&server, dir.path(), 4, 8);
-    let index = tokio::time::timeout(GIVE_UP, async {
-        loop {
-            let engines = server.server.driver.engines().await.unwrap();
-            if let Some(index) = busy_worker(&engines, &ids) {
-                return index;
-            }
-            tokio::time::sleep(Duration::from_millis(1)).await;
-        }
-    })
-    .await
-    .expect("a worker was busy");
+    let index = wait_busy(&server, &ids).await;
     let pid = procs.0[index].id().to_string();
     let killed = Command::new("kill").args(["-TERM", &pid]).status().unwrap();
     assert!(killed.success());
