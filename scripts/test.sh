@@ -30,10 +30,25 @@ if ! .venv-openpi/bin/python -c "import openpi_client.websocket_client_policy" 2
 fi
 step_done "toolchains and Python packages"
 
+# The Kubernetes manifests, validated offline (installs kubernetes-validate into .venv-k8s once):
+# mostly a pip download, so it runs beside the build below and is waited for after it.
+k8s_log=$(mktemp)
+bash scripts/validate-k8s.sh >"$k8s_log" 2>&1 &
+k8s_pid=$!
+
 # One build of the whole workspace with the test feature set; the plugins are built with the
 # kairos binary it produced (the integration tests need it), so nothing compiles twice.
 cargo test --workspace --locked --no-run
 step_done "build (cargo test --no-run)"
+k8s_status=0
+wait "$k8s_pid" || k8s_status=$?
+cat "$k8s_log"
+rm -f "$k8s_log"
+if [ "$k8s_status" -ne 0 ]; then
+    echo "scripts/validate-k8s.sh failed" >&2
+    exit "$k8s_status"
+fi
+step_done "Kubernetes manifests (ran beside the build; kubectl kustomize | kubernetes-validate --strict)"
 KAIROS_BIN=target/debug/kairos bash plugins/build.sh
 step_done "plugins"
 

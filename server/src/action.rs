@@ -85,6 +85,8 @@ pub struct ActionManager {
     /// Always the native factory, even if a plugin shadows its name for requests.
     fallback_factory: Factory<dyn HorizonPolicy, PolicyParams, HorizonError>,
     fallbacks: AtomicU64,
+    /// Where fallbacks are exported too, by the policy that failed.
+    metrics: Option<crate::metrics::Metrics>,
 }
 
 /// The default horizon policy cannot be built.
@@ -153,7 +155,15 @@ impl ActionManager {
             fallback_params,
             fallback_factory,
             fallbacks: AtomicU64::new(0),
+            metrics: None,
         })
+    }
+
+    /// Exports fallbacks to `metrics` (`kairos_plugin_fallbacks_total{kind="horizon"}`, by the
+    /// policy that failed) as they are counted.
+    pub fn with_metrics(mut self, metrics: crate::metrics::Metrics) -> ActionManager {
+        self.metrics = Some(metrics);
+        self
     }
 
     /// The registry requests' policies are built from.
@@ -237,6 +247,11 @@ impl ActionManager {
             Err(error) => error,
         };
         self.fallbacks.fetch_add(1, Ordering::Relaxed);
+        if let Some(metrics) = &self.metrics {
+            metrics
+                .fallback_counter(crate::metrics::PolicyKind::Horizon, round.policy.name())
+                .inc();
+        }
         tracing::warn!(policy = round.policy.name(), error = %requested_error,
             fallback = %self.fallback_policy, "horizon policy failed; using the native fallback");
         let fallback_input = input(&self.fallback_params);

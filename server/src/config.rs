@@ -100,6 +100,8 @@ pub struct Config {
     pub openpi: OpenpiConfig,
     /// Remote engine workers (`kairos worker`, ALPN `kairos-worker/1`).
     pub workers: WorkersConfig,
+    /// The Prometheus `/metrics` and `/ready` endpoint (off unless `listen` is set).
+    pub metrics: MetricsConfig,
 }
 
 /// `[workers]`: how the scheduler treats remote engine workers (docs/SERVER.md, "Remote
@@ -178,8 +180,19 @@ impl Default for Config {
             plugins: Vec::new(),
             openpi: OpenpiConfig::default(),
             workers: WorkersConfig::default(),
+            metrics: MetricsConfig::default(),
         }
     }
+}
+
+/// `[metrics]`: plain HTTP on a TCP port of its own serving `GET /metrics` (Prometheus,
+/// OpenMetrics text) and `GET /ready` (200 once the server serves, 503 while it starts or
+/// drains); docs/SERVER.md, "Metrics and readiness".
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MetricsConfig {
+    /// TCP address of the endpoint; absent = no endpoint.
+    pub listen: Option<SocketAddr>,
 }
 
 /// `[tls]`: PEM (or DER, by extension `.der`) certificate chain and private key.

@@ -14,6 +14,7 @@ pub mod horizon;
 pub mod horizon_bench;
 pub mod lifecycle;
 pub mod live_replay;
+pub mod metrics;
 pub mod openpi;
 pub mod plot;
 pub mod plugin;

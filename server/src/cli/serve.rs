@@ -30,6 +30,11 @@ pub struct ServeArgs {
     /// address, overriding the file's `[openpi] listen` (docs/SERVER.md, "openpi endpoint").
     #[arg(long, value_name = "ADDR")]
     pub openpi_listen: Option<std::net::SocketAddr>,
+    /// Serve Prometheus metrics (`GET /metrics`) and readiness (`GET /ready`) over plain HTTP
+    /// on this TCP address, overriding the file's `[metrics] listen` (docs/SERVER.md,
+    /// "Metrics and readiness").
+    #[arg(long, value_name = "ADDR")]
+    pub metrics_listen: Option<std::net::SocketAddr>,
     /// Data directory, overriding the file's `data_dir`.
     #[arg(long)]
     pub data_dir: Option<PathBuf>,
@@ -82,6 +87,9 @@ pub fn config(args: &ServeArgs) -> anyhow::Result<Config> {
     }
     if let Some(addr) = args.openpi_listen {
         config.openpi.listen = Some(addr);
+    }
+    if let Some(addr) = args.metrics_listen {
+        config.metrics.listen = Some(addr);
     }
     if let Some(dir) = &args.data_dir {
         config.data_dir = dir.clone();
@@ -272,6 +280,9 @@ fn print_banner(config: &Config, server: &RunningServer) {
     if let Some(addr) = server.openpi_addr {
         println!("  openpi         ws://{addr} (openpi-client; Api-Key = a robot token)");
     }
+    if let Some(addr) = server.metrics_addr {
+        println!("  metrics        http://{addr}/metrics, readiness http://{addr}/ready");
+    }
     println!(
         "  certificate    {}{}",
         server.fingerprint,
@@ -346,6 +357,16 @@ mod tests {
         assert_eq!(overridden.listen.port(), 6000);
         assert_eq!(overridden.data_dir, PathBuf::from("/tmp/x"));
         assert_eq!(overridden.openpi.listen, None);
+        assert_eq!(overridden.metrics.listen, None);
+        let metrics = config(&ServeArgs {
+            metrics_listen: Some("0.0.0.0:9464".parse().unwrap()),
+            ..ServeArgs::default()
+        })
+        .unwrap();
+        assert_eq!(
+            metrics.metrics.listen,
+            Some("0.0.0.0:9464".parse().unwrap())
+        );
         let openpi = config(&ServeArgs {
             openpi_listen: Some("127.0.0.1:8000".parse().unwrap()),
             ..ServeArgs::default()

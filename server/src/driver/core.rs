@@ -18,6 +18,7 @@ use super::stats::{DriverStats, RecentLatencies};
 use super::{RoundAnswer, TaskSnapshot, WaiterId};
 use crate::action::{HorizonJob, RoundPolicy};
 use crate::lifecycle::exec_interval;
+use crate::metrics::Metrics;
 use crate::pool::{LossReason, PoolError};
 use crate::scheduler::{
     AdmitError, BatchId, CancelOutcome, Dispatch, EngineId, EngineSpec, RequestId, RobotId,
@@ -167,6 +168,8 @@ pub struct DriverCore {
     ended: VecDeque<TaskSnapshot>,
     stats: DriverStats,
     latencies: RecentLatencies,
+    /// Where the facts counted here are exported too (`/metrics`).
+    metrics: Metrics,
     draining: bool,
     redispatch: RedispatchRule,
     /// The timer last asked of the shell.
@@ -199,6 +202,7 @@ impl DriverCore {
             ended: VecDeque::new(),
             stats: DriverStats::default(),
             latencies: RecentLatencies::default(),
+            metrics: Metrics::new(),
             draining: false,
             redispatch: RedispatchRule::default(),
             timer: None,
@@ -217,7 +221,9 @@ impl DriverCore {
     /// pool under the same id).
     pub fn add_engine(&mut self, now: Timestamp, spec: EngineSpec) -> EngineId {
         let now = self.advance(now);
+        self.metrics.add_engine(&spec.name);
         let id = self.scheduler.add_engine(spec);
+        self.export_engines();
         self.after_event(now);
         id
     }
@@ -227,12 +233,21 @@ impl DriverCore {
     pub fn remove_engine(&mut self, now: Timestamp, engine: EngineId) {
         let now = self.advance(now);
         self.scheduler.remove_engine(engine);
+        self.export_engines();
+        if let Some(state) = self.scheduler.engines().nth(engine.0)
+            && state.batch.is_none()
+        {
+            self.metrics.remove_worker(&state.spec.name);
+        }
         self.after_event(now);
     }
 
     /// A remote instance's measured round trip changed: the scheduler plans with it from now.
     pub fn engine_rtt(&mut self, engine: EngineId, rtt: Duration) {
         self.scheduler.set_engine_rtt(engine, rtt);
+        if let Some(state) = self.scheduler.engines().nth(engine.0) {
+            self.metrics.set_worker_rtt(&state.spec.name, rtt);
+        }
     }
 
     /// The batch was lost with its engine (connection lost, stream reset, deadline passed)
@@ -267,6 +282,8 @@ impl DriverCore {
                 }
             }
             let requeued = self.scheduler.requeue_batch(now, batch);
+            self.metrics.remove_worker(&engine);
+            self.export_engines();
             for entry in &state.dispatch.requests {
                 let Some(req) = self.requests.get_mut(&entry.request) else {
                     continue;
@@ -281,6 +298,7 @@ impl DriverCore {
                 };
                 if verdict == Redispatch::Again && req.observation.is_some() {
                     self.stats.redispatched.count(reason);
+                    self.metrics.record_redispatch(reason.as_str(), 1);
                     continue;
                 }
                 self.scheduler.fail_pending(now, entry.request);
@@ -300,6 +318,38 @@ impl DriverCore {
             }
         }
         self.after_event(now);
+    }
+
+    /// Exports the core's facts to `metrics` (queue depth, batch sizes, round latency, deadline
+    /// misses, engine busy time) instead of a registry of its own.
+    pub fn with_metrics(mut self, metrics: Metrics) -> DriverCore {
+        for engine in self.scheduler.engines() {
+            metrics.add_engine(&engine.spec.name);
+        }
+        let reasons: Vec<&str> = LossReason::ALL.iter().map(|r| r.as_str()).collect();
+        metrics.declare_redispatch_reasons(&reasons);
+        self.metrics = metrics;
+        self.export_engines();
+        self
+    }
+
+    /// `kairos_workers{tier,state}`: live instances are ready; one that left the pool but still
+    /// runs its batch (a draining worker) is draining.
+    fn export_engines(&self) {
+        use crate::metrics::WorkerState;
+        use crate::scheduler::Tier;
+        for tier in [Tier::Edge, Tier::Cloud] {
+            let of_tier = || {
+                self.scheduler
+                    .engines()
+                    .filter(move |e| e.spec.tier == tier)
+            };
+            let ready = of_tier().filter(|e| e.live).count();
+            let draining = of_tier().filter(|e| !e.live && e.batch.is_some()).count();
+            self.metrics.set_workers(tier, WorkerState::Ready, ready);
+            self.metrics
+                .set_workers(tier, WorkerState::Draining, draining);
+        }
     }
 
     /// The next effect to carry out, oldest first.
@@ -406,6 +456,10 @@ impl DriverCore {
         let now = self.advance(now);
         if let Some(state) = self.batches.get_mut(&batch) {
             state.inference = inference;
+            if let Some(engine) = self.scheduler.engines().nth(state.dispatch.engine.0) {
+                self.metrics
+                    .record_engine_busy(&engine.spec.name, inference);
+            }
             self.scheduler.handle_generation_ended(now, batch);
         }
         self.after_event(now);
@@ -656,6 +710,7 @@ impl DriverCore {
         }
         self.answer_stranded(now);
         self.dispatch(now);
+        self.metrics.set_queue_depth(self.scheduler.pending_len());
         let next = self.scheduler.poll_timeout();
         if next != self.timer {
             self.timer = next;
@@ -785,6 +840,7 @@ impl DriverCore {
             }
             return;
         }
+        self.metrics.observe_batch_size(inputs.len());
         self.effects.push_back(Effect::RunBatch(BatchJob {
             batch,
             engine,
@@ -817,6 +873,20 @@ impl DriverCore {
                 (*request, outcome)
             })
             .collect();
+        // A deadline miss: the round is answered after its robot ran out of actions, i.e. after
+        // `E.end` of the task's previous round (read before the scheduler records this one).
+        for (request, result) in &results {
+            let late = result.is_ok()
+                && self
+                    .requests
+                    .get(request)
+                    .and_then(|req| self.scheduler.task(req.task))
+                    .and_then(|task| task.last_execution_end())
+                    .is_some_and(|deadline| now > deadline);
+            if late {
+                self.metrics.record_deadline_miss();
+            }
+        }
         self.scheduler.handle_batch_finished(now, batch, &outcomes);
         let keep = self.scheduler.config().history_rounds.max(1);
         for (request, result) in results {
@@ -837,6 +907,8 @@ impl DriverCore {
             match &answer {
                 Ok(reply) => {
                     self.stats.replies += 1;
+                    self.metrics
+                        .observe_round_latency(now.saturating_since(req.received));
                     // The server's own work: reading to acceptance, and dispatch to reply, less
                     // the re-fetch wait and the forward pass.
                     let own = req.accepted.saturating_since(req.received)

@@ -75,6 +75,19 @@ fn bench(stale_after: Duration, task_idle_timeout: Duration) -> Bench {
 
 impl Bench {
     fn valid(&self, robot: u32, task: u64, round: u64, at: Timestamp, state0: f32) -> ValidSubmit {
+        self.valid_after(robot, task, round, at, state0, None)
+    }
+
+    /// [`Bench::valid`] with the robot's Last Exec Info.
+    fn valid_after(
+        &self,
+        robot: u32,
+        task: u64,
+        round: u64,
+        at: Timestamp,
+        state0: f32,
+        last_exec: Option<kairos_sdk::protocol::LastExecInfo>,
+    ) -> ValidSubmit {
         let at = at.as_micros();
         let submit = Submit {
             task,
@@ -86,7 +99,7 @@ impl Bench {
                 images: Vec::new(),
                 instruction: String::new(),
             },
-            last_exec: None,
+            last_exec,
             horizon: None,
             remaining: None,
             attempt: 0,
@@ -453,4 +466,80 @@ fn a_round_out_of_attempts_or_time_gets_a_retryable_error_instead() {
     assert_eq!(rule.decide(ms(1000), ms(0), 2), Redispatch::Again);
     assert_eq!(rule.decide(ms(1001), ms(0), 2), Redispatch::TooLate);
     assert_eq!(rule.decide(ms(10), ms(0), 3), Redispatch::OutOfAttempts);
+}
+
+/// The core feeds `/metrics` where it counts: batch sizes, round latencies, engine busy time,
+/// queue depth, and a deadline miss for a round answered after its robot ran out of actions.
+#[test]
+fn metrics_follow_the_rounds_and_count_a_late_reply_as_a_deadline_miss() {
+    let mut b = bench(Duration::from_secs(10), Duration::MAX);
+    let metrics = crate::metrics::Metrics::new();
+    b.core = b.core.with_metrics(metrics.clone());
+    let sample = |series: &str| {
+        metrics.encode().lines().find_map(|line| {
+            line.strip_prefix(series)?
+                .strip_prefix(' ')?
+                .parse::<f64>()
+                .ok()
+        })
+    };
+    assert_eq!(
+        sample(r#"kairos_engine_busy_seconds_total{engine="e0"}"#),
+        Some(0.0)
+    );
+
+    // Round 0 runs alone; round 1 of another task waits behind it (batches of one).
+    b.core
+        .submit(ms(0), b.valid(0, 1, 0, ms(0), 1.0), ms(0), WaiterId(1));
+    b.core
+        .submit(ms(1), b.valid(1, 2, 0, ms(1), 1.0), ms(1), WaiterId(2));
+    let job = only_batch(b.effects());
+    assert_eq!(sample("kairos_queue_depth"), Some(1.0));
+    let batch = job.batch;
+    let answers = b.answers(job);
+    b.core
+        .generation_ended(ms(4), batch, Duration::from_millis(4));
+    b.core.batch_done(ms(5), batch, answers);
+    let job = only_batch(b.effects());
+    assert_eq!(sample("kairos_queue_depth"), Some(0.0));
+    assert_eq!(sample("kairos_round_latency_seconds_count"), Some(1.0));
+    assert_eq!(sample("kairos_round_latency_seconds_sum"), Some(0.005));
+    assert_eq!(sample("kairos_batch_size_count"), Some(2.0));
+    assert_eq!(
+        sample(r#"kairos_engine_busy_seconds_total{engine="e0"}"#),
+        Some(0.004)
+    );
+    let batch = job.batch;
+    let answers = b.answers(job);
+    b.core
+        .generation_ended(ms(6), batch, Duration::from_millis(1));
+    b.core.batch_done(ms(6), batch, answers);
+    let _ = b.effects();
+    assert_eq!(
+        sample("kairos_deadline_misses_total"),
+        Some(0.0),
+        "no E yet"
+    );
+
+    // Task 1's next round: the robot reports it will run dry at 20 ms + 1 action at 100 Hz.
+    let mut next = |round: u64, at: u64, answered: u64| {
+        let exec = kairos_sdk::protocol::LastExecInfo {
+            exec_started_at_us: ms(at).as_micros(),
+            actions_remaining: 1,
+            control_hz: 100.0,
+        };
+        let submit = b.valid_after(0, 1, round, ms(at), 1.0, Some(exec));
+        b.core.submit(ms(at), submit, ms(at), WaiterId(10 + round));
+        let job = only_batch(b.effects());
+        let batch = job.batch;
+        let answers = b.answers(job);
+        b.core
+            .generation_ended(ms(answered), batch, Duration::from_millis(1));
+        b.core.batch_done(ms(answered), batch, answers);
+        let _ = b.effects();
+    };
+    next(1, 20, 25); // dry at 30 ms, answered at 25: in time
+    assert_eq!(sample("kairos_deadline_misses_total"), Some(0.0));
+    next(2, 40, 60); // dry at 50 ms, answered at 60: the robot waited
+    assert_eq!(sample("kairos_deadline_misses_total"), Some(1.0));
 }

@@ -116,6 +116,8 @@ pub struct DriverConfig {
     pub queue: usize,
     /// What happens to rounds lost with a remote engine.
     pub redispatch: RedispatchRule,
+    /// Where the core exports its facts (`/metrics`); the default is a registry nobody serves.
+    pub metrics: crate::metrics::Metrics,
 }
 
 impl Default for DriverConfig {
@@ -125,6 +127,7 @@ impl Default for DriverConfig {
             ended_snapshots: 4096,
             queue: 8192,
             redispatch: RedispatchRule::default(),
+            metrics: crate::metrics::Metrics::new(),
         }
     }
 }

@@ -296,7 +296,7 @@ pub fn spawn(
     let mut core = DriverCore::new(scheduler, config.ended_snapshots);
     core.set_redispatch_rule(config.redispatch);
     let shell = Shell {
-        core,
+        core: core.with_metrics(config.metrics),
         commands,
         reports: commands_tx.downgrade(),
         waiters: HashMap::new(),

@@ -144,6 +144,7 @@ pub enum PluginSetupError {
 pub fn load_configured(
     plugins: &[PluginConfig],
     cache_dir: &Path,
+    metrics: Option<&crate::metrics::Metrics>,
 ) -> Result<(HorizonRegistry, PriorityRegistry), PluginSetupError> {
     let mut horizons = HorizonRegistry::new();
     let mut priorities = PriorityRegistry::new();
@@ -166,6 +167,13 @@ pub fn load_configured(
                 usize::try_from(mib.saturating_mul(1 << 20)).unwrap_or(usize::MAX)
             }),
             cache: Some(cache.clone()),
+            fallback_counter: metrics.map(|m| {
+                let kind = match kind {
+                    PluginKind::Horizon => crate::metrics::PolicyKind::Horizon,
+                    PluginKind::Priority => crate::metrics::PolicyKind::Priority,
+                };
+                m.fallback_counter(kind, &name)
+            }),
             reload_poll: if plugin.hot_reload {
                 defaults.reload_poll
             } else {

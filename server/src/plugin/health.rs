@@ -120,6 +120,8 @@ pub struct Health {
     failures: [u64; FailureKind::ALL.len()],
     logged: [bool; FailureKind::ALL.len()],
     stats: PluginStats,
+    /// `stats.fallbacks`, exported (`PluginOptions::fallback_counter`).
+    exported_fallbacks: Option<prometheus_client::metrics::counter::Counter>,
 }
 
 impl Health {
@@ -135,6 +137,7 @@ impl Health {
             failures: [0; FailureKind::ALL.len()],
             logged: [false; FailureKind::ALL.len()],
             stats: PluginStats::default(),
+            exported_fallbacks: options.fallback_counter.clone(),
         }
     }
 
@@ -147,9 +150,16 @@ impl Health {
             Some(left) => {
                 *left -= 1;
                 self.count(FailureKind::Quarantined);
-                self.stats.fallbacks += 1;
+                self.fell_back();
                 false
             }
+        }
+    }
+
+    fn fell_back(&mut self) {
+        self.stats.fallbacks += 1;
+        if let Some(counter) = &self.exported_fallbacks {
+            counter.inc();
         }
     }
 
@@ -167,7 +177,7 @@ impl Health {
 
     /// The plugin failed this decision; the caller answers with the fallback.
     pub fn failed(&mut self, kind: FailureKind, message: &str) {
-        self.stats.fallbacks += 1;
+        self.fell_back();
         self.record_failure(kind, message);
     }
 
@@ -254,7 +264,14 @@ mod tests {
 
     #[test]
     fn quarantine_starts_after_consecutive_failures_and_doubles_on_failed_probes() {
-        let mut h = Health::new("p", &options(2, 3));
+        let exported = prometheus_client::metrics::counter::Counter::default();
+        let mut h = Health::new(
+            "p",
+            &PluginOptions {
+                fallback_counter: Some(exported.clone()),
+                ..options(2, 3)
+            },
+        );
         assert!(h.admit());
         h.failed(FailureKind::Trap, "x");
         assert!(h.admit());
@@ -281,6 +298,7 @@ mod tests {
         assert_eq!(stats.failures_of(FailureKind::Trap), 3);
         assert_eq!(stats.failures_of(FailureKind::Timeout), 1);
         assert_eq!(stats.fallbacks, 13);
+        assert_eq!(exported.get(), 13, "every fallback is exported");
         assert_eq!(stats.answered, 2);
         assert_eq!(stats.decisions, 15);
     }

@@ -107,6 +107,9 @@ pub struct PluginOptions {
     pub cache: Option<cache::CodeCache>,
     /// How often to check the plugin file for changes; `None` disables hot reload.
     pub reload_poll: Option<Duration>,
+    /// Where its fallbacks are exported too (`kairos_plugin_fallbacks_total`); `None`: not
+    /// exported.
+    pub fallback_counter: Option<prometheus_client::metrics::counter::Counter>,
 }
 
 /// The default per-call deadline of a component that imports WASI, either world.
@@ -180,6 +183,7 @@ impl PluginOptions {
             probation: 100,
             cache: None,
             reload_poll: Some(Duration::from_millis(500)),
+            fallback_counter: None,
         }
     }
 }

@@ -231,7 +231,7 @@ pub fn load_user_plugins(
     if plugins.is_empty() {
         return Ok(UserPlugins::default());
     }
-    let (horizons, priorities) = load_configured(&configs, cache_dir)?;
+    let (horizons, priorities) = load_configured(&configs, cache_dir, None)?;
     for p in &plugins {
         let (registered, given) = match p.role {
             PluginRole::Priority => (priorities.contains(&p.name), "priority"),

@@ -16,6 +16,7 @@ use super::{RobotTable, ServerContext, TransportStats};
 use crate::action::{ActionConfigError, ActionManager};
 use crate::config::{Config, ConfigError, resolve_robots};
 use crate::driver::{DriverConfig, DriverHandle, DriverStats};
+use crate::metrics::{Metrics, Readiness, WorkerState};
 use crate::pool::EnginePool;
 use crate::registry::{build_priority, native_horizon_policies, native_priority_policies};
 use crate::scheduler::Scheduler;
@@ -58,6 +59,14 @@ pub enum LaunchError {
         /// The error.
         source: std::io::Error,
     },
+    /// The metrics endpoint's TCP socket could not be bound.
+    #[error("cannot listen for metrics scrapes on {addr}: {source}")]
+    MetricsBind {
+        /// The address.
+        addr: SocketAddr,
+        /// The error.
+        source: std::io::Error,
+    },
     /// The UDP socket could not be bound.
     #[error("cannot listen on {addr}: {source}")]
     Bind {
@@ -76,6 +85,12 @@ pub struct RunningServer {
     pub local_addr: SocketAddr,
     /// The openpi websocket endpoint's address, when `[openpi] listen` is set.
     pub openpi_addr: Option<SocketAddr>,
+    /// The `/metrics` and `/ready` endpoint's address, when `[metrics] listen` is set.
+    pub metrics_addr: Option<SocketAddr>,
+    /// The server's metrics (served at `metrics_addr`, readable in-process too).
+    pub metrics: Metrics,
+    /// Set while the server serves: listening, engines present, not shutting down.
+    pub readiness: Readiness,
     /// Its certificate (leaf), for clients that pin it.
     pub certificate: CertificateDer<'static>,
     /// `sha256:<hex>` of the certificate.
@@ -90,6 +105,18 @@ pub struct RunningServer {
     pub model: ModelInfo,
     stop: watch::Sender<bool>,
     task: tokio::task::JoinHandle<ServerReport>,
+    /// Held, not read: dropping it (with the server, or at the end of `stopped`) stops the
+    /// metrics endpoint.
+    _metrics_task: Option<AbortOnDrop>,
+}
+
+/// A task that ends when its handle is dropped.
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
 }
 
 /// What a server did, returned when it stops.
@@ -106,6 +133,7 @@ pub struct ServerReport {
 impl RunningServer {
     /// Starts shutting down: no new connections or rounds; accepted rounds are still answered.
     pub fn begin_shutdown(&self) {
+        self.readiness.set(false);
         let _ = self.stop.send(true);
     }
 
@@ -150,23 +178,33 @@ pub async fn start(
     let identity = super::tls::load_or_generate(config)?;
 
     // Configured plugins first, so that policies passed in by the caller shadow them.
+    let metrics = Metrics::new();
     let (mut horizons, mut priorities) = crate::plugin::factory::load_configured(
         &config.plugins,
         &crate::data_dir::DataDir::new(&config.data_dir).plugin_cache(),
+        Some(&metrics),
     )?;
     horizons.extend(policies.horizon);
     priorities.extend(policies.priority);
     let natives = native_horizon_policies();
-    let actions = Arc::new(ActionManager::new(
-        horizons,
-        &natives,
-        &config.horizon.policy,
-        config.horizon.params.clone(),
-    )?);
+    let actions = Arc::new(
+        ActionManager::new(
+            horizons,
+            &natives,
+            &config.horizon.policy,
+            config.horizon.params.clone(),
+        )?
+        .with_metrics(metrics.clone()),
+    );
     let mut all_priorities = native_priority_policies();
     all_priorities.extend(priorities);
     let priority = build_priority(&all_priorities, &config.scheduler.policy)?;
-    let scheduler = Scheduler::new(config.scheduler.core(), pool.specs(), priority);
+    let specs = pool.specs();
+    for tier in [crate::scheduler::Tier::Edge, crate::scheduler::Tier::Cloud] {
+        let count = specs.iter().filter(|e| e.tier == tier).count();
+        metrics.set_workers(tier, WorkerState::Ready, count);
+    }
+    let scheduler = Scheduler::new(config.scheduler.core(), specs, priority);
 
     let server_config = quinn_server_config(&identity, config)?;
     let bind_error = |source| LaunchError::Bind {
@@ -199,6 +237,16 @@ pub async fn start(
         None => (None, None),
     };
 
+    let (metrics_listener, metrics_addr) = match config.metrics.listen {
+        Some(addr) => {
+            let bind_error = |source| LaunchError::MetricsBind { addr, source };
+            let listener = crate::metrics::http::bind(addr).await.map_err(bind_error)?;
+            let local = listener.local_addr().map_err(bind_error)?;
+            (Some(listener), Some(local))
+        }
+        None => (None, None),
+    };
+
     let (stop, stop_rx) = watch::channel(false);
     let stopped = |mut rx: watch::Receiver<bool>| async move {
         let _ = rx.wait_for(|stop| *stop).await;
@@ -213,6 +261,7 @@ pub async fn start(
                 max_attempts: config.workers.max_attempts,
                 within: config.workers.redispatch_within(),
             },
+            metrics: metrics.clone(),
             ..DriverConfig::default()
         },
         stop_rx.clone(),
@@ -245,6 +294,17 @@ pub async fn start(
             stop_rx.clone(),
         ))
     });
+    let readiness = Readiness::new();
+    // The metrics endpoint stays up while the server drains (scrapes see the drain, probes see
+    // 503); it stops when the `RunningServer` is dropped or has stopped.
+    let metrics_task = metrics_listener.map(|listener| {
+        AbortOnDrop(tokio::spawn(crate::metrics::http::serve(
+            listener,
+            metrics.clone(),
+            readiness.clone(),
+            std::future::pending(),
+        )))
+    });
     let task = tokio::spawn(async move {
         let transport = super::run(endpoint, context, stopped(stop_rx)).await;
         let openpi = match openpi_task {
@@ -258,9 +318,15 @@ pub async fn start(
             openpi,
         }
     });
+    // Listening, engines loaded, driver running: probes may send traffic.
+    readiness.set(true);
     Ok(RunningServer {
         local_addr,
         openpi_addr,
+        metrics_addr,
+        metrics,
+        readiness,
+        _metrics_task: metrics_task,
         certificate: identity.cert_chain[0].clone(),
         fingerprint: identity.fingerprint.clone(),
         generated_certificate: identity.generated,

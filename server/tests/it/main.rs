@@ -7,6 +7,7 @@
 
 mod bench_horizon;
 mod bench_plugins;
+mod deploy;
 mod plugin_common;
 mod plugin_containment;
 mod plugin_reload;

@@ -210,6 +210,33 @@ async fn two_workers_serve_and_a_killed_workers_batch_is_redispatched() {
         stats.redispatched.total() >= 1,
         "the killed batch's rounds ran again: {stats:?}"
     );
+    // ... and so does `/metrics` (`kairos_redispatch_total{reason}`), with the workers by state.
+    let exported = server.server.metrics.encode();
+    let sample = |series: &str| {
+        exported
+            .lines()
+            .find_map(|l| {
+                l.strip_prefix(series)?
+                    .strip_prefix(' ')?
+                    .parse::<f64>()
+                    .ok()
+            })
+            .unwrap_or(0.0)
+    };
+    let redispatched: f64 = ["connection_lost", "stream_reset", "deadline", "gone"]
+        .iter()
+        .map(|r| sample(&format!("kairos_redispatch_total{{reason=\"{r}\"}}")))
+        .sum();
+    assert_eq!(
+        redispatched,
+        stats.redispatched.total() as f64,
+        "{exported}"
+    );
+    assert_eq!(
+        sample(r#"kairos_workers{tier="edge",state="ready"}"#),
+        1.0,
+        "{exported}"
+    );
     let engines = server.server.driver.engines().await.unwrap();
     let dead = engines
         .iter()

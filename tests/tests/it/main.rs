@@ -15,6 +15,7 @@ mod fuzz_replay;
 mod isolation;
 mod lossy;
 mod malformed;
+mod metrics;
 mod openpi;
 mod plugins_served;
 mod sim_runner_agreement;

@@ -1,0 +1,531 @@
+//! Prometheus metrics and readiness: what `/metrics` and `/ready` serve ([`http`]).
+//!
+//! One [`Metrics`] per process (the scheduler's `kairos serve`, or a `kairos worker`), cheap to
+//! clone (an `Arc`), owning the [`prometheus_client`] registry. The components that own a fact
+//! feed it at the point where they already count it: the driver core (queue depth, round
+//! latency, batch size, deadline misses, engine busy time), the action manager and the plugin
+//! host (policy fallbacks), the launcher (engine instances by tier and state), the worker pool
+//! (re-dispatches, worker round trips). Nothing here keeps a second copy of a count: each counter
+//! is either fed where the fact happens, or *is* the owner's counter (the plugin health record
+//! and the action manager count their fallbacks in the [`Counter`] handed to them).
+//!
+//! No label names a robot or a task: a fleet of thousands must not become thousands of series.
+//! Label values are engine instances, worker ids, tiers, re-dispatch reasons and policy names,
+//! all bounded by the deployment's configuration.
+
+pub mod http;
+
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Duration, Instant};
+
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
+use prometheus_client::registry::{Registry, Unit};
+
+use crate::scheduler::Tier;
+
+/// `Content-Type` of [`Metrics::encode`]'s output (OpenMetrics text, which Prometheus scrapes).
+pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
+
+/// Shortest interval over which [`Metrics::encode`] recomputes `kairos_engine_busy_ratio`;
+/// scrapes closer together than this see the previous value rather than a noisy ratio over a
+/// few milliseconds.
+pub const BUSY_RATIO_MIN_WINDOW: Duration = Duration::from_secs(1);
+
+/// The state of an engine instance, as `kairos_workers` counts it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum WorkerState {
+    /// Registered and taking batches.
+    Ready,
+    /// Finishing its batch before it leaves (a worker that sent `Drain`).
+    Draining,
+}
+
+impl WorkerState {
+    /// The label value.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            WorkerState::Ready => "ready",
+            WorkerState::Draining => "draining",
+        }
+    }
+}
+
+/// Which policy fell back, as `kairos_plugin_fallbacks_total` labels it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum PolicyKind {
+    /// A horizon policy (per round, on the return path).
+    Horizon,
+    /// A priority policy (the scheduler's, per decision).
+    Priority,
+}
+
+impl PolicyKind {
+    /// The label value.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            PolicyKind::Horizon => "horizon",
+            PolicyKind::Priority => "priority",
+        }
+    }
+}
+
+fn tier_label(tier: Tier) -> &'static str {
+    match tier {
+        Tier::Edge => "edge",
+        Tier::Cloud => "cloud",
+    }
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct WorkerLabels {
+    tier: &'static str,
+    state: &'static str,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct ReasonLabel {
+    reason: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct WorkerLabel {
+    worker: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct EngineLabel {
+    engine: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct FallbackLabels {
+    kind: &'static str,
+    policy: String,
+}
+
+type FloatGauge = Gauge<f64, AtomicU64>;
+type FloatCounter = Counter<f64, AtomicU64>;
+
+/// The busy seconds an engine had at the last recomputation of its busy ratio.
+#[derive(Clone, Copy, Debug)]
+struct BusyMark {
+    at: Instant,
+    busy_secs: f64,
+}
+
+struct EngineBusy {
+    busy: FloatCounter,
+    ratio: FloatGauge,
+    mark: Option<BusyMark>,
+}
+
+struct Inner {
+    registry: Registry,
+    queue_depth: Gauge,
+    workers: Family<WorkerLabels, Gauge>,
+    round_latency: Histogram,
+    batch_size: Histogram,
+    deadline_misses: Counter,
+    redispatch: Family<ReasonLabel, Counter>,
+    worker_rtt: Family<WorkerLabel, FloatGauge>,
+    plugin_fallbacks: Family<FallbackLabels, Counter>,
+    engine_busy: Family<EngineLabel, FloatCounter>,
+    engine_busy_ratio: Family<EngineLabel, FloatGauge>,
+    /// Per engine: its busy counter and ratio gauge, and where the ratio's window started.
+    engines: Mutex<BTreeMap<String, EngineBusy>>,
+}
+
+/// The process's metrics: a Prometheus registry and typed handles to every family in it.
+#[derive(Clone)]
+pub struct Metrics(Arc<Inner>);
+
+impl std::fmt::Debug for Metrics {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Metrics").finish_non_exhaustive()
+    }
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Metrics::new()
+    }
+}
+
+impl Metrics {
+    /// A registry with every Kairos family, all at zero.
+    pub fn new() -> Metrics {
+        let mut registry = Registry::default();
+        let queue_depth = Gauge::default();
+        registry.register(
+            "kairos_queue_depth",
+            "Rounds waiting for dispatch (accepted by the scheduler, not yet in a batch)",
+            queue_depth.clone(),
+        );
+        let workers = Family::<WorkerLabels, Gauge>::default();
+        registry.register(
+            "kairos_workers",
+            "Engine instances (local engines and remote workers) by tier and state",
+            workers.clone(),
+        );
+        // 1 ms .. ~16 s: a round is a forward pass (ms to a second) plus queueing.
+        let round_latency = Histogram::new(exponential_buckets(0.001, 2.0, 15));
+        registry.register_with_unit(
+            "kairos_round_latency",
+            "Server-side latency of answered rounds, from the Submit read to the reply",
+            Unit::Seconds,
+            round_latency.clone(),
+        );
+        // 1 .. 512 requests per batch.
+        let batch_size = Histogram::new(exponential_buckets(1.0, 2.0, 10));
+        registry.register(
+            "kairos_batch_size",
+            "Requests per batch given to an engine instance",
+            batch_size.clone(),
+        );
+        let deadline_misses = Counter::default();
+        registry.register(
+            "kairos_deadline_misses",
+            "Rounds answered after their robot ran out of actions (E.end of its previous round), \
+             plus rounds refused because they could no longer be served in time",
+            deadline_misses.clone(),
+        );
+        let redispatch = Family::<ReasonLabel, Counter>::default();
+        registry.register(
+            "kairos_redispatch",
+            "Rounds put back at the front of the queue after their worker failed, by reason",
+            redispatch.clone(),
+        );
+        let worker_rtt = Family::<WorkerLabel, FloatGauge>::default();
+        registry.register_with_unit(
+            "kairos_worker_rtt",
+            "Moving average of a remote worker's round trip (batch time less its compute time)",
+            Unit::Seconds,
+            worker_rtt.clone(),
+        );
+        let plugin_fallbacks = Family::<FallbackLabels, Counter>::default();
+        registry.register(
+            "kairos_plugin_fallbacks",
+            "Decisions answered by a fallback policy because the selected one failed",
+            plugin_fallbacks.clone(),
+        );
+        let engine_busy = Family::<EngineLabel, FloatCounter>::default();
+        registry.register_with_unit(
+            "kairos_engine_busy",
+            "Time an engine instance spent running forward passes; \
+             rate() of it is the busy fraction",
+            Unit::Seconds,
+            engine_busy.clone(),
+        );
+        let engine_busy_ratio = Family::<EngineLabel, FloatGauge>::default();
+        registry.register(
+            "kairos_engine_busy_ratio",
+            "Fraction of the time since the previous scrape (at least 1 s) an engine instance \
+             spent running forward passes",
+            engine_busy_ratio.clone(),
+        );
+        Metrics(Arc::new(Inner {
+            registry,
+            queue_depth,
+            workers,
+            round_latency,
+            batch_size,
+            deadline_misses,
+            redispatch,
+            worker_rtt,
+            plugin_fallbacks,
+            engine_busy,
+            engine_busy_ratio,
+            engines: Mutex::new(BTreeMap::new()),
+        }))
+    }
+
+    /// `kairos_queue_depth`: rounds waiting for dispatch.
+    pub fn set_queue_depth(&self, rounds: usize) {
+        self.0.queue_depth.set(saturating_i64(rounds));
+    }
+
+    /// `kairos_workers{tier,state}`: engine instances of `tier` in `state`.
+    pub fn set_workers(&self, tier: Tier, state: WorkerState, count: usize) {
+        self.0
+            .workers
+            .get_or_create(&WorkerLabels {
+                tier: tier_label(tier),
+                state: state.as_str(),
+            })
+            .set(saturating_i64(count));
+    }
+
+    /// `kairos_round_latency_seconds`: one answered round's server-side latency.
+    pub fn observe_round_latency(&self, latency: Duration) {
+        self.0.round_latency.observe(latency.as_secs_f64());
+    }
+
+    /// `kairos_batch_size`: one batch handed to an engine.
+    pub fn observe_batch_size(&self, requests: usize) {
+        self.0.batch_size.observe(requests as f64);
+    }
+
+    /// `kairos_deadline_misses_total`: one round late for its robot.
+    pub fn record_deadline_miss(&self) {
+        self.0.deadline_misses.inc();
+    }
+
+    /// `kairos_redispatch_total{reason}`: `rounds` rounds put back in the queue for `reason`
+    /// (e.g. `connection_lost`, `stream_reset`, `deadline`).
+    pub fn record_redispatch(&self, reason: &str, rounds: u64) {
+        self.0
+            .redispatch
+            .get_or_create(&ReasonLabel {
+                reason: reason.to_string(),
+            })
+            .inc_by(rounds);
+    }
+
+    /// Creates `kairos_redispatch_total{reason}` at zero for each of `reasons`, so that the
+    /// family is exported (and rate() queries and alerts resolve) before the first re-dispatch:
+    /// prometheus-client writes no family without a series.
+    pub fn declare_redispatch_reasons(&self, reasons: &[&str]) {
+        for reason in reasons {
+            self.record_redispatch(reason, 0);
+        }
+    }
+
+    /// `kairos_worker_rtt_seconds{worker}`: the worker's current round-trip estimate.
+    pub fn set_worker_rtt(&self, worker: &str, rtt: Duration) {
+        self.0
+            .worker_rtt
+            .get_or_create(&WorkerLabel {
+                worker: worker.to_string(),
+            })
+            .set(rtt.as_secs_f64());
+    }
+
+    /// Drops the series of a worker that left (its RTT and busy time), so departed workers do
+    /// not accumulate.
+    pub fn remove_worker(&self, worker: &str) {
+        self.0.worker_rtt.remove(&WorkerLabel {
+            worker: worker.to_string(),
+        });
+        let engine = EngineLabel {
+            engine: worker.to_string(),
+        };
+        self.0.engine_busy.remove(&engine);
+        self.0.engine_busy_ratio.remove(&engine);
+        lock(&self.0.engines).remove(worker);
+    }
+
+    /// The counter of fallbacks of `policy` (`kairos_plugin_fallbacks_total{kind,policy}`),
+    /// for its owner to count in. Handles to the same labels share one value.
+    pub fn fallback_counter(&self, kind: PolicyKind, policy: &str) -> Counter {
+        self.0
+            .plugin_fallbacks
+            .get_or_create(&FallbackLabels {
+                kind: kind.as_str(),
+                policy: policy.to_string(),
+            })
+            .clone()
+    }
+
+    /// Makes `engine` appear in `kairos_engine_busy_*` at zero before its first batch.
+    pub fn add_engine(&self, engine: &str) {
+        self.with_engine(engine, |_| ());
+    }
+
+    /// `kairos_engine_busy_seconds_total{engine}`: `engine` ran a forward pass for `busy`.
+    pub fn record_engine_busy(&self, engine: &str, busy: Duration) {
+        self.with_engine(engine, |e| e.busy.inc_by(busy.as_secs_f64()));
+    }
+
+    fn with_engine<R>(&self, engine: &str, f: impl FnOnce(&EngineBusy) -> R) -> R {
+        let mut engines = lock(&self.0.engines);
+        if let Some(e) = engines.get(engine) {
+            return f(e);
+        }
+        let label = EngineLabel {
+            engine: engine.to_string(),
+        };
+        let e = EngineBusy {
+            busy: self.0.engine_busy.get_or_create(&label).clone(),
+            ratio: self.0.engine_busy_ratio.get_or_create(&label).clone(),
+            mark: None,
+        };
+        let r = f(&e);
+        engines.insert(engine.to_string(), e);
+        r
+    }
+
+    /// The registry in the OpenMetrics text format ([`CONTENT_TYPE`]), after recomputing the
+    /// busy ratios.
+    pub fn encode(&self) -> String {
+        self.encode_at(Instant::now())
+    }
+
+    pub(crate) fn encode_at(&self, now: Instant) -> String {
+        self.refresh_busy_ratios(now);
+        let mut out = String::new();
+        if let Err(error) = prometheus_client::encoding::text::encode(&mut out, &self.0.registry) {
+            // Writing into a String cannot fail; a label encoder that does is a bug here.
+            tracing::error!(%error, "cannot encode the metrics");
+        }
+        out
+    }
+
+    /// `kairos_engine_busy_ratio`: busy seconds gained over the time since the previous
+    /// recomputation (at least [`BUSY_RATIO_MIN_WINDOW`] ago), per engine.
+    fn refresh_busy_ratios(&self, now: Instant) {
+        for e in lock(&self.0.engines).values_mut() {
+            let busy_secs = e.busy.get();
+            let Some(mark) = e.mark else {
+                e.mark = Some(BusyMark { at: now, busy_secs });
+                continue;
+            };
+            let window = now.saturating_duration_since(mark.at);
+            if window < BUSY_RATIO_MIN_WINDOW {
+                continue;
+            }
+            let ratio = ((busy_secs - mark.busy_secs) / window.as_secs_f64()).clamp(0.0, 1.0);
+            e.ratio.set(ratio);
+            e.mark = Some(BusyMark { at: now, busy_secs });
+        }
+    }
+}
+
+/// Whether the process can serve: `/ready` answers 200 while it is set, 503 otherwise. Cheap to
+/// clone; every clone sees the same flag.
+#[derive(Clone, Debug, Default)]
+pub struct Readiness(Arc<AtomicBool>);
+
+impl Readiness {
+    /// A flag, not ready yet.
+    pub fn new() -> Readiness {
+        Readiness::default()
+    }
+
+    /// Marks the process ready (engines present, endpoint listening) or not (starting,
+    /// draining, no engine left).
+    pub fn set(&self, ready: bool) {
+        self.0.store(ready, Ordering::Release);
+    }
+
+    /// Whether it is ready now.
+    pub fn is_ready(&self) -> bool {
+        self.0.load(Ordering::Acquire)
+    }
+}
+
+fn saturating_i64(n: usize) -> i64 {
+    i64::try_from(n).unwrap_or(i64::MAX)
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The sample line of `name` (with its labels) in `text`, parsed.
+    fn sample(text: &str, series: &str) -> Option<f64> {
+        text.lines()
+            .find_map(|line| line.strip_prefix(series)?.strip_prefix(' ')?.parse().ok())
+    }
+
+    #[test]
+    fn every_family_is_exported_and_typed() {
+        let metrics = Metrics::new();
+        metrics.set_queue_depth(7);
+        metrics.set_workers(Tier::Edge, WorkerState::Ready, 2);
+        metrics.set_workers(Tier::Cloud, WorkerState::Draining, 1);
+        metrics.observe_round_latency(Duration::from_millis(3));
+        metrics.observe_batch_size(4);
+        metrics.record_deadline_miss();
+        metrics.declare_redispatch_reasons(&["connection_lost", "deadline"]);
+        metrics.record_redispatch("connection_lost", 3);
+        metrics.set_worker_rtt("gpu-0", Duration::from_millis(20));
+        metrics.fallback_counter(PolicyKind::Priority, "plas").inc();
+        metrics.record_engine_busy("edge-0", Duration::from_millis(250));
+        let text = metrics.encode();
+        for (series, value) in [
+            ("kairos_queue_depth", 7.0),
+            (r#"kairos_workers{tier="edge",state="ready"}"#, 2.0),
+            (r#"kairos_workers{tier="cloud",state="draining"}"#, 1.0),
+            ("kairos_round_latency_seconds_count", 1.0),
+            ("kairos_round_latency_seconds_sum", 0.003),
+            ("kairos_batch_size_count", 1.0),
+            (r#"kairos_batch_size_bucket{le="4.0"}"#, 1.0),
+            (r#"kairos_batch_size_bucket{le="2.0"}"#, 0.0),
+            ("kairos_deadline_misses_total", 1.0),
+            (r#"kairos_redispatch_total{reason="connection_lost"}"#, 3.0),
+            (r#"kairos_redispatch_total{reason="deadline"}"#, 0.0),
+            (r#"kairos_worker_rtt_seconds{worker="gpu-0"}"#, 0.02),
+            (
+                r#"kairos_plugin_fallbacks_total{kind="priority",policy="plas"}"#,
+                1.0,
+            ),
+            (r#"kairos_engine_busy_seconds_total{engine="edge-0"}"#, 0.25),
+            (r#"kairos_engine_busy_ratio{engine="edge-0"}"#, 0.0),
+        ] {
+            assert_eq!(sample(&text, series), Some(value), "{series} in\n{text}");
+        }
+        assert!(text.contains("# TYPE kairos_round_latency_seconds histogram"));
+        assert!(text.contains("# TYPE kairos_deadline_misses counter"));
+        assert!(text.ends_with("# EOF\n"), "OpenMetrics ends with EOF");
+
+        // A departed worker's series go away.
+        metrics.remove_worker("gpu-0");
+        assert!(!metrics.encode().contains("gpu-0"));
+    }
+
+    #[test]
+    fn fallback_counters_of_the_same_labels_share_one_value() {
+        let metrics = Metrics::new();
+        let a = metrics.fallback_counter(PolicyKind::Horizon, "wasm-threshold");
+        let b = metrics.fallback_counter(PolicyKind::Horizon, "wasm-threshold");
+        a.inc();
+        b.inc_by(2);
+        assert_eq!(a.get(), 3);
+        let other = metrics.fallback_counter(PolicyKind::Priority, "wasm-threshold");
+        assert_eq!(other.get(), 0, "kind is part of the series");
+    }
+
+    #[test]
+    fn busy_ratio_is_busy_time_over_the_window_since_the_last_scrape() {
+        let metrics = Metrics::new();
+        metrics.add_engine("edge-0");
+        let t0 = Instant::now();
+        let ratio = |text: &str| sample(text, r#"kairos_engine_busy_ratio{engine="edge-0"}"#);
+        // The first scrape starts the window.
+        assert_eq!(ratio(&metrics.encode_at(t0)), Some(0.0));
+        metrics.record_engine_busy("edge-0", Duration::from_millis(500));
+        // Too soon: the previous value stands and the window keeps its start.
+        assert_eq!(
+            ratio(&metrics.encode_at(t0 + Duration::from_millis(100))),
+            Some(0.0)
+        );
+        assert_eq!(
+            ratio(&metrics.encode_at(t0 + Duration::from_secs(2))),
+            Some(0.25)
+        );
+        // An idle window decays to zero.
+        assert_eq!(
+            ratio(&metrics.encode_at(t0 + Duration::from_secs(4))),
+            Some(0.0)
+        );
+    }
+
+    #[test]
+    fn readiness_is_shared_by_clones() {
+        let ready = Readiness::new();
+        let probe = ready.clone();
+        assert!(!probe.is_ready());
+        ready.set(true);
+        assert!(probe.is_ready());
+    }
+}
