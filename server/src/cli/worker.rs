@@ -51,6 +51,12 @@ pub struct WorkerArgs {
     /// Name for logs and metrics (default: `<hostname>-<pid>`).
     #[arg(long)]
     pub worker_id: Option<String>,
+    /// Serve `/ready` (200 once the model is loaded, 503 from SIGTERM on) and `/metrics` on this
+    /// TCP address (plain HTTP, `server::metrics::http`). The worker's own registry has the
+    /// standard families; the per-worker facts (RTT, re-dispatches, busy time) are exported by
+    /// the scheduler.
+    #[arg(long, value_name = "ADDR")]
+    pub metrics_listen: Option<std::net::SocketAddr>,
 }
 
 /// `--tier`.
@@ -123,7 +129,22 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         .enable_all()
         .build()
         .context("cannot start the tokio runtime")?;
+    let readiness = crate::metrics::Readiness::new();
     let report = runtime.block_on(async {
+        if let Some(addr) = args.metrics_listen {
+            let listener = crate::metrics::http::bind(addr)
+                .await
+                .with_context(|| format!("cannot listen for metrics on {addr}"))?;
+            let metrics = crate::metrics::Metrics::new();
+            metrics.add_engine(engine.name());
+            tokio::spawn(crate::metrics::http::serve(
+                listener,
+                metrics,
+                readiness.clone(),
+                std::future::pending(),
+            ));
+        }
+        readiness.set(true);
         let shutdown = async {
             let mut term =
                 match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
@@ -137,8 +158,9 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
                 _ = term.recv() => {}
                 _ = tokio::signal::ctrl_c() => {}
             }
+            readiness.set(false);
         };
-        run_worker(options, Arc::clone(&engine), shutdown).await
+        anyhow::Ok(run_worker(options, Arc::clone(&engine), shutdown).await?)
     })?;
     println!(
         "worker {} stopped after draining: {} batches answered",
