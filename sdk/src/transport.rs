@@ -137,6 +137,27 @@ pub(crate) fn client_config_with(
     Ok(config)
 }
 
+/// A remote engine worker's quinn config (`kairos worker`): the same TLS trust as a robot
+/// (pinned fingerprint or CA roots) but ALPN `kairos-worker/1`, no 0-RTT (registration is not
+/// replay-safe), and room for the scheduler to open a few batch streams towards it.
+pub fn worker_client_config(
+    trust: &ServerTrust,
+    tuning: &TransportTuning,
+) -> Result<quinn::ClientConfig, TlsConfigError> {
+    let mut tls = crate::tls::client_tls(trust)?.config.as_ref().clone();
+    tls.alpn_protocols = vec![crate::protocol::worker::WORKER_ALPN.to_vec()];
+    tls.enable_early_data = false;
+    let crypto = quinn::crypto::rustls::QuicClientConfig::try_from(Arc::new(tls))
+        .map_err(|error| TlsConfigError::NoInitialSuite(error.to_string()))?;
+    let mut transport = tuning.build();
+    transport
+        .max_concurrent_bidi_streams(VarInt::from_u32(4))
+        .max_concurrent_uni_streams(VarInt::from_u32(0));
+    let mut config = quinn::ClientConfig::new(Arc::new(crypto));
+    config.transport_config(Arc::new(transport));
+    Ok(config)
+}
+
 /// A server's quinn config: tuned transport, [`crate::tls::server_crypto_config`], connection
 /// migration on (robots roam between access points), at most `max_rounds_in_flight` concurrent
 /// round streams per connection (each stream is one round or the `Hello`).

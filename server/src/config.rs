@@ -98,8 +98,69 @@ pub struct Config {
     pub plugins: Vec<PluginConfig>,
     /// The openpi-compatible websocket endpoint (off unless `listen` is set).
     pub openpi: OpenpiConfig,
+    /// Remote engine workers (`kairos worker`, ALPN `kairos-worker/1`).
+    pub workers: WorkersConfig,
     /// The Prometheus `/metrics` and `/ready` endpoint (off unless `listen` is set).
     pub metrics: MetricsConfig,
+}
+
+/// `[workers]`: how the scheduler treats remote engine workers (docs/SERVER.md, "Remote
+/// workers").
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct WorkersConfig {
+    /// Whether workers may register at all (they also need the data directory's worker token).
+    pub enabled: bool,
+    /// How often a worker sends `Heartbeat`, ms; a worker silent for three of them is removed.
+    pub heartbeat_ms: u32,
+    /// A batch sent to a worker must be answered within `batch_deadline_factor` times its
+    /// expected time (profile latency plus round trip) and at least `min_batch_deadline_ms`;
+    /// after that the worker is removed and the batch runs again elsewhere.
+    pub batch_deadline_factor: f64,
+    /// See `batch_deadline_factor`.
+    pub min_batch_deadline_ms: u32,
+    /// Dispatches a round may get in all (the first included) before a lost batch fails it
+    /// with a retryable error instead of running it again.
+    pub max_attempts: u32,
+    /// A round lost with a worker more than this long after it arrived is failed with a
+    /// retryable error instead of being run again: its robot has waited too long already.
+    pub redispatch_within_ms: u32,
+}
+
+impl Default for WorkersConfig {
+    fn default() -> Self {
+        WorkersConfig {
+            enabled: true,
+            heartbeat_ms: 500,
+            batch_deadline_factor: 4.0,
+            min_batch_deadline_ms: 2_000,
+            max_attempts: 3,
+            redispatch_within_ms: 10_000,
+        }
+    }
+}
+
+impl WorkersConfig {
+    /// The heartbeat period.
+    pub fn heartbeat(&self) -> Duration {
+        Duration::from_millis(u64::from(self.heartbeat_ms))
+    }
+
+    /// A worker silent this long is removed: about three heartbeats.
+    pub fn idle_timeout(&self) -> Duration {
+        self.heartbeat() * 3 + self.heartbeat() / 2
+    }
+
+    /// The deadline of a batch expected to take `expected`.
+    pub fn batch_deadline(&self, expected: Duration) -> Duration {
+        let scaled = expected.mul_f64(self.batch_deadline_factor.max(1.0));
+        scaled.max(Duration::from_millis(u64::from(self.min_batch_deadline_ms)))
+    }
+
+    /// The re-dispatch window.
+    pub fn redispatch_within(&self) -> Duration {
+        Duration::from_millis(u64::from(self.redispatch_within_ms))
+    }
 }
 
 impl Default for Config {
@@ -118,6 +179,7 @@ impl Default for Config {
             connections: ConnectionsConfig::default(),
             plugins: Vec::new(),
             openpi: OpenpiConfig::default(),
+            workers: WorkersConfig::default(),
             metrics: MetricsConfig::default(),
         }
     }
@@ -218,7 +280,9 @@ pub struct EngineConfig {
     pub model: String,
     /// Edge (co-located) or cloud.
     pub tier: Tier,
-    /// Identical instances to run, each on its own OS thread.
+    /// Identical instances to run, each on its own OS thread. 0: the model only fixes the
+    /// site's shapes and remote workers (`kairos worker`) serve it (`kairos serve
+    /// --local-engines 0`).
     pub instances: u32,
     /// A JSON `EngineProfile` file; absent = measured at start.
     pub profile: Option<PathBuf>,
@@ -572,12 +636,6 @@ impl Config {
             }
         }
         for (i, engine) in self.engines.iter().enumerate() {
-            if engine.instances == 0 {
-                return Err(invalid(
-                    format!("engine[{i}].instances"),
-                    "must be at least 1".into(),
-                ));
-            }
             if engine.max_batch == Some(0) {
                 return Err(invalid(
                     format!("engine[{i}].max_batch"),
@@ -608,6 +666,26 @@ impl Config {
                     "only a cloud engine has a link round trip (set tier = \"cloud\")".into(),
                 ));
             }
+        }
+        if self.workers.heartbeat_ms == 0 {
+            return Err(invalid(
+                "workers.heartbeat_ms".into(),
+                "must be at least 1".into(),
+            ));
+        }
+        if self.workers.max_attempts == 0 {
+            return Err(invalid(
+                "workers.max_attempts".into(),
+                "must be at least 1".into(),
+            ));
+        }
+        if !(self.workers.batch_deadline_factor.is_finite()
+            && self.workers.batch_deadline_factor >= 1.0)
+        {
+            return Err(invalid(
+                "workers.batch_deadline_factor".into(),
+                "must be a finite number >= 1".into(),
+            ));
         }
         if let Some((name, _)) = self.horizon.params.iter().find(|(_, v)| !v.is_finite()) {
             return Err(invalid(
@@ -977,7 +1055,8 @@ mod tests {
     #[test]
     fn bad_values_are_rejected_with_their_key() {
         let cases = [
-            ("[[engine]]\ninstances = 0\n", "engine[0].instances"),
+            ("[workers]\nheartbeat_ms = 0\n", "workers.heartbeat_ms"),
+            ("[workers]\nmax_attempts = 0\n", "workers.max_attempts"),
             (
                 "[[robot]]\nname = \"a\"\ntoken_sha256 = \"abc\"\n",
                 "robot[0].token_sha256",

@@ -8,6 +8,7 @@
 //! | `key.der` | with `cert.der`, mode 0600 | its private key (PKCS#8 DER) |
 //! | `fingerprint.txt` | every start | `sha256:<hex>` of the certificate in use; robots pin it |
 //! | `tokens.toml` | first start without `[[robot]]`, mode 0600 | [`TokensFile`]: generated robots and their plaintext tokens |
+//! | `worker-token.txt` | first start, mode 0600 | the token remote engine workers register with (one line); robots' tokens never register a worker, and it never authenticates a robot |
 //! | `plugin-cache/` | by the plugin host | authenticated precompiled plugin code |
 
 use std::fs;
@@ -29,6 +30,10 @@ impl DataDir {
     const FINGERPRINT: &'static str = kairos_sdk::data_dir::FINGERPRINT_FILE;
     const TOKENS: &'static str = kairos_sdk::data_dir::TOKENS_FILE;
     const PLUGIN_CACHE: &'static str = "plugin-cache";
+    const WORKER_TOKEN: &'static str = "worker-token.txt";
+    /// Worker tokens start with this, robot tokens with `kairos_`: a token pasted into the
+    /// wrong place says what it is.
+    pub const WORKER_TOKEN_PREFIX: &'static str = "kairos_worker_";
 
     /// The data directory at `root`.
     pub fn new(root: impl Into<PathBuf>) -> DataDir {
@@ -58,6 +63,46 @@ impl DataDir {
     /// The plaintext tokens of generated robots ([`TokensFile`]), owner-only.
     pub fn tokens(&self) -> PathBuf {
         self.root.join(Self::TOKENS)
+    }
+
+    /// The token remote engine workers register with, one line, owner-only.
+    pub fn worker_token(&self) -> PathBuf {
+        self.root.join(Self::WORKER_TOKEN)
+    }
+
+    /// Reads the worker token.
+    pub fn read_worker_token(&self) -> Result<String, ConfigError> {
+        let path = self.worker_token();
+        let text = fs::read_to_string(&path).map_err(|source| ConfigError::Io {
+            path: path.clone(),
+            source,
+        })?;
+        let token = text.trim();
+        if token.is_empty() {
+            return Err(ConfigError::Invalid {
+                path,
+                key: "worker token".into(),
+                reason: "the file is empty".into(),
+            });
+        }
+        Ok(token.to_owned())
+    }
+
+    /// The worker token, created on first use (a fresh random token, distinct from every robot
+    /// token). An existing file is never replaced: workers keep their token across restarts.
+    pub fn worker_token_or_generate(&self) -> Result<String, ConfigError> {
+        if self.worker_token().exists() {
+            return self.read_worker_token();
+        }
+        fs::create_dir_all(&self.root).map_err(|source| ConfigError::Io {
+            path: self.root.clone(),
+            source,
+        })?;
+        let robot_style = generate_token();
+        let random = robot_style.trim_start_matches("kairos_");
+        let token = format!("{}{random}", Self::WORKER_TOKEN_PREFIX);
+        write_private(&self.worker_token(), format!("{token}\n").as_bytes())?;
+        Ok(token)
     }
 
     /// The plugin host's cache of precompiled code.
@@ -159,6 +204,7 @@ mod tests {
             dir.fingerprint(),
             dir.tokens(),
             dir.plugin_cache(),
+            dir.worker_token(),
         ];
         let names: Vec<&str> = names
             .iter()
@@ -175,7 +221,8 @@ mod tests {
                 "key.der",
                 "fingerprint.txt",
                 "tokens.toml",
-                "plugin-cache"
+                "plugin-cache",
+                "worker-token.txt"
             ]
         );
     }
@@ -207,6 +254,36 @@ mod tests {
         let other = Fingerprint([9; 32]);
         dir.write_fingerprint(&other.to_string()).unwrap();
         assert_eq!(dir.read_pin().unwrap(), other, "every start rewrites it");
+    }
+
+    #[test]
+    fn the_worker_token_is_generated_once_private_and_unlike_robot_tokens() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = DataDir::new(tmp.path().join("data"));
+        assert!(
+            dir.read_worker_token().is_err(),
+            "not there before the first start"
+        );
+        let token = dir.worker_token_or_generate().unwrap();
+        assert!(token.starts_with(DataDir::WORKER_TOKEN_PREFIX), "{token}");
+        assert_eq!(token.len(), DataDir::WORKER_TOKEN_PREFIX.len() + 64);
+        assert_eq!(dir.read_worker_token().unwrap(), token);
+        assert_eq!(
+            dir.worker_token_or_generate().unwrap(),
+            token,
+            "kept across starts"
+        );
+        let robot = dir.tokens_or_generate().unwrap();
+        assert_ne!(robot.token(DEFAULT_ROBOT), Some(token.as_str()));
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let mode = fs::metadata(dir.worker_token())
+                .unwrap()
+                .permissions()
+                .mode();
+            assert_eq!(mode & 0o777, 0o600, "the worker token is owner-only");
+        }
     }
 
     #[test]

@@ -26,4 +26,5 @@ pub mod stats;
 pub mod time;
 pub mod transport;
 pub mod validation;
+pub mod worker;
 pub mod workload;

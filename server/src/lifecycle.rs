@@ -756,6 +756,31 @@ impl TaskTable {
         }
     }
 
+    /// The task's current request `request` was in a batch lost with its engine before it
+    /// answered: it waits in the queue again, as before dispatch. The lost forward pass counts as
+    /// queueing, not as service: the robot got nothing from it. Returns false (and changes
+    /// nothing) if `request` is not the task's current request.
+    pub fn requeued(&mut self, now: Timestamp, task: TaskId, request: RequestId) -> bool {
+        let Some(record) = self.tasks.get_mut(&task) else {
+            return false;
+        };
+        let Some(attempt) = record.attempt.as_mut().filter(|a| a.request == request) else {
+            return false;
+        };
+        let started = attempt.gen_start.take();
+        let arrived = attempt.arrived_at;
+        attempt.dispatched = false;
+        if let Some(started) = started {
+            // `generation_started` closed the queueing up to `started`; it is open again.
+            record.closed_queued = record
+                .closed_queued
+                .saturating_sub(started.saturating_since(arrived));
+        }
+        record.last_activity = now;
+        self.refresh_idle(task);
+        true
+    }
+
     /// The task's current request `request` was answered at `now` (`G.end`) with `horizon`.
     /// Returns false (and changes nothing) if `request` is not the task's current request.
     pub fn answered(

@@ -29,6 +29,8 @@ enum Command {
     Robot(Box<kairos_server::cli::robot::RobotArgs>),
     /// Evaluation tools: simulate workloads, generate traces.
     Bench(kairos_server::cli::bench::BenchArgs),
+    /// Serve a scheduler's batches on this machine's engine (a remote engine worker).
+    Worker(Box<kairos_server::cli::worker::WorkerArgs>),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -50,5 +52,6 @@ fn main() -> anyhow::Result<()> {
         Command::Plugin(args) => kairos_server::cli::plugin::run(args),
         Command::Robot(args) => kairos_server::cli::robot::run(*args),
         Command::Bench(args) => kairos_server::cli::bench::run(args),
+        Command::Worker(args) => kairos_server::cli::worker::run(*args),
     }
 }

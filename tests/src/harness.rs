@@ -32,7 +32,7 @@ use crate::model::TestFlow;
 pub struct ServerOptions {
     /// Robots as `(name, token)`; empty = the generated `default` robot.
     pub robots: Vec<(String, String)>,
-    /// Engine instances (edge, local threads).
+    /// Engine instances (edge, local threads); 0: none, remote workers serve the model.
     pub engines: usize,
     /// Largest batch per instance.
     pub max_batch: u32,
@@ -105,7 +105,7 @@ impl TestServer {
             ],
             max_batch: options.max_batch.max(1),
         };
-        let instances: Vec<Arc<dyn EngineInstance>> = (0..options.engines.max(1))
+        let instances: Vec<Arc<dyn EngineInstance>> = (0..options.engines)
             .map(|i| {
                 Arc::new(LocalEngine::start(
                     format!("edge-{i}"),
@@ -114,7 +114,8 @@ impl TestServer {
                 )) as Arc<dyn EngineInstance>
             })
             .collect();
-        let pool = EnginePool::new(instances)?;
+        // No engine: a scheduler served only by remote workers (`--local-engines 0`).
+        let pool = EnginePool::with_spec(model.spec().clone(), instances)?;
         let server = LocalServer::start(&config, pool, Policies::default()).await?;
         let token = match options.robots.first() {
             Some((_, token)) => token.clone(),

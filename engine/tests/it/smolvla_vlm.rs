@@ -22,7 +22,10 @@
 
 #![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
 
+use std::path::PathBuf;
+
 use kairos_engine::smolvla::{ExpertInput, SmolVlaExpert, SmolVlaVlm, VisionImage, VlmObservation};
+use kairos_engine::weights::Checkpoint;
 use kairos_engine::{DeviceKind, EngineOptions, Kernels};
 
 use super::smolvla_goldens::{Goldens, fixture};

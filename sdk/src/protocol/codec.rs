@@ -124,6 +124,18 @@ impl Message {
             MessageKind::EndTask => Message::EndTask(decode_body(kind, body)?),
             MessageKind::TaskEnded => Message::TaskEnded(decode_body(kind, body)?),
             MessageKind::Error => Message::Error(decode_body(kind, body)?),
+            MessageKind::Register
+            | MessageKind::Registered
+            | MessageKind::Refused
+            | MessageKind::Heartbeat
+            | MessageKind::Drain
+            | MessageKind::RunBatch
+            | MessageKind::Chunks => {
+                return Err(FrameError::Malformed {
+                    kind,
+                    reason: "a worker-protocol message on a robot stream".into(),
+                });
+            }
         })
     }
 

@@ -31,13 +31,28 @@ pub enum MessageKind {
     EndTask = 0x20,
     /// S→C, answer to `EndTask`: the task's record as the server saw it.
     TaskEnded = 0x21,
+    /// W→S (worker protocol), first message of a worker connection.
+    Register = 0x30,
+    /// S→W (worker protocol), the worker is in the pool.
+    Registered = 0x31,
+    /// S→W (worker protocol), the registration was refused.
+    Refused = 0x32,
+    /// W→S (worker protocol), liveness and load.
+    Heartbeat = 0x33,
+    /// W→S (worker protocol), the worker is stopping.
+    Drain = 0x34,
+    /// S→W (worker protocol), a batch to run, on its own stream.
+    RunBatch = 0x35,
+    /// W→S (worker protocol), the batch's chunks.
+    Chunks = 0x36,
     /// S→C, the request on this stream failed.
     Error = 0x7F,
 }
 
 impl MessageKind {
-    /// Every kind, in wire-byte order.
-    pub const ALL: [MessageKind; 9] = [
+    /// Every kind, in wire-byte order: the robot protocol's, then the worker protocol's
+    /// (`protocol::worker`).
+    pub const ALL: [MessageKind; 16] = [
         MessageKind::Hello,
         MessageKind::Welcome,
         MessageKind::Submit,
@@ -46,6 +61,13 @@ impl MessageKind {
         MessageKind::Reply,
         MessageKind::EndTask,
         MessageKind::TaskEnded,
+        MessageKind::Register,
+        MessageKind::Registered,
+        MessageKind::Refused,
+        MessageKind::Heartbeat,
+        MessageKind::Drain,
+        MessageKind::RunBatch,
+        MessageKind::Chunks,
         MessageKind::Error,
     ];
 
@@ -67,6 +89,13 @@ impl MessageKind {
             MessageKind::Reply => "Reply",
             MessageKind::EndTask => "EndTask",
             MessageKind::TaskEnded => "TaskEnded",
+            MessageKind::Register => "Register",
+            MessageKind::Registered => "Registered",
+            MessageKind::Refused => "Refused",
+            MessageKind::Heartbeat => "Heartbeat",
+            MessageKind::Drain => "Drain",
+            MessageKind::RunBatch => "RunBatch",
+            MessageKind::Chunks => "Chunks",
             MessageKind::Error => "Error",
         }
     }

@@ -20,6 +20,7 @@ pub mod limits;
 pub mod messages;
 mod strict;
 mod tensor;
+pub mod worker;
 
 pub use codec::{EncodeError, MAX_DEPTH, Message, WireBody, encode_body};
 pub use frame::{Frame, FrameError, HEADER_LEN};

@@ -11,6 +11,7 @@ pub mod predict;
 pub mod profile;
 pub mod robot;
 pub mod serve;
+pub mod worker;
 
 /// A policy parameter on the command line, `name=value` with a numeric value (`inf` is one).
 pub(crate) fn parse_param(text: &str) -> Result<(String, f64), String> {

@@ -47,6 +47,11 @@ pub struct ServeArgs {
     /// `--model`. CUDA needs a `kairos` built with `--features cuda`.
     #[arg(long)]
     pub device: Option<String>,
+    /// Local engine instances of the model (default: the file's `instances`, else 1). `0` runs a
+    /// scheduler with no local engine, served only by remote workers (`kairos worker`); the
+    /// model then only fixes the shapes workers must match.
+    #[arg(long, value_name = "N")]
+    pub local_engines: Option<u32>,
     /// A horizon-policy plugin (`.wasm` component), registered under its file stem and made
     /// the default horizon policy; robots may still select another by name.
     #[arg(long, value_name = "FILE.wasm")]
@@ -109,6 +114,19 @@ pub fn config(args: &ServeArgs) -> anyhow::Result<Config> {
         }
         // A profile file describes one model on one device.
         engine.profile = None;
+    }
+    if let Some(instances) = args.local_engines {
+        if config.engines.len() > 1 {
+            anyhow::bail!(
+                "--local-engines sets the instances of the one engine, but the file lists {} \
+                 [[engine]] tables: set `instances` in each of them instead",
+                config.engines.len()
+            );
+        }
+        if config.engines.is_empty() {
+            config.engines.push(EngineConfig::default());
+        }
+        config.engines[0].instances = instances;
     }
     if let Some(file) = &args.horizon_plugin {
         let plugin = PluginConfig::file(file);
@@ -295,6 +313,22 @@ fn print_banner(config: &Config, server: &RunningServer) {
         server.local_addr,
         data_dir.display()
     );
+    if config.workers.enabled {
+        let local: u32 = config.engines.iter().map(|e| e.instances).sum();
+        println!(
+            "  workers        kairos worker --server {} --data-dir {} (ALPN kairos-worker/1; token {}){}",
+            server.local_addr,
+            data_dir.display(),
+            crate::data_dir::DataDir::new(data_dir)
+                .worker_token()
+                .display(),
+            if local == 0 && !config.engines.is_empty() {
+                "; no local engine: rounds wait for a worker"
+            } else {
+                ""
+            }
+        );
+    }
 }
 
 #[cfg(test)]

@@ -19,9 +19,10 @@ use super::{RoundAnswer, TaskSnapshot, WaiterId};
 use crate::action::{HorizonJob, RoundPolicy};
 use crate::lifecycle::exec_interval;
 use crate::metrics::Metrics;
+use crate::pool::{LossReason, PoolError};
 use crate::scheduler::{
-    AdmitError, BatchId, CancelOutcome, Dispatch, EngineId, RequestId, RobotId, RoundOutcome,
-    Scheduler, ServerLoad, TaskId,
+    AdmitError, BatchId, CancelOutcome, Dispatch, EngineId, EngineSpec, RequestId, RobotId,
+    RoundOutcome, Scheduler, ServerLoad, TaskId,
 };
 use crate::time::{Timestamp, duration_micros};
 use crate::validation::{ClockMap, RequestError, ValidEndTask, ValidObservation, ValidSubmit};
@@ -56,6 +57,49 @@ pub enum Effect {
     SetTimer(Option<Timestamp>),
 }
 
+/// What happens to a round whose batch was lost with its engine (pure: time is an argument).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RedispatchRule {
+    /// Dispatches a round may get in all, the first included.
+    pub max_attempts: u32,
+    /// A round that arrived longer ago than this is not run again.
+    pub within: Duration,
+}
+
+/// The verdict of [`RedispatchRule::decide`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Redispatch {
+    /// Back to the front of the queue (its original arrival time), to run again.
+    Again,
+    /// Failed now with a retryable error: it ran `attempts` times already.
+    OutOfAttempts,
+    /// Failed now with a retryable error: it can no longer be served in time.
+    TooLate,
+}
+
+impl Default for RedispatchRule {
+    fn default() -> Self {
+        RedispatchRule {
+            max_attempts: 3,
+            within: Duration::from_secs(10),
+        }
+    }
+}
+
+impl RedispatchRule {
+    /// The verdict for a round received at `received` and dispatched `attempts` times, lost at
+    /// `now`.
+    pub fn decide(&self, now: Timestamp, received: Timestamp, attempts: u32) -> Redispatch {
+        if attempts >= self.max_attempts {
+            Redispatch::OutOfAttempts
+        } else if now.saturating_since(received) > self.within {
+            Redispatch::TooLate
+        } else {
+            Redispatch::Again
+        }
+    }
+}
+
 /// A batch to run.
 #[derive(Debug)]
 pub struct BatchJob {
@@ -63,6 +107,8 @@ pub struct BatchJob {
     pub batch: BatchId,
     /// The engine instance the scheduler placed it on.
     pub engine: EngineId,
+    /// Earlier dispatches of its rounds (the most of any): 0 unless some ran in a lost batch.
+    pub attempt: u32,
     /// The model inputs, in the order of `rounds`.
     pub inputs: Vec<ActionRequest>,
     /// Each round's horizon policy and context.
@@ -87,6 +133,11 @@ struct RequestState {
     dispatched: Option<Timestamp>,
     refetch: Duration,
     batch_size: u32,
+    /// Times the round was placed in a batch.
+    attempts: u32,
+    /// When the observation handed to the engine was captured (kept to put it back if the
+    /// batch is lost).
+    captured_at: Timestamp,
 }
 
 /// What the core keeps of an open task beyond the scheduler's record.
@@ -120,6 +171,7 @@ pub struct DriverCore {
     /// Where the facts counted here are exported too (`/metrics`).
     metrics: Metrics,
     draining: bool,
+    redispatch: RedispatchRule,
     /// The timer last asked of the shell.
     timer: Option<Timestamp>,
     /// The latest `now` seen: events' times never go backwards inside the core.
@@ -152,10 +204,120 @@ impl DriverCore {
             latencies: RecentLatencies::default(),
             metrics: Metrics::new(),
             draining: false,
+            redispatch: RedispatchRule::default(),
             timer: None,
             now: Timestamp::ZERO,
             effects: VecDeque::new(),
         }
+    }
+
+    /// Sets what happens to rounds lost with a remote engine.
+    pub fn set_redispatch_rule(&mut self, rule: RedispatchRule) {
+        self.redispatch = rule;
+    }
+
+    /// A new engine instance (a remote worker that registered) joins; pending rounds may be
+    /// placed on it at once. Returns its id, the next one (the shell adds the instance to its
+    /// pool under the same id).
+    pub fn add_engine(&mut self, now: Timestamp, spec: EngineSpec) -> EngineId {
+        let now = self.advance(now);
+        self.metrics.add_engine(&spec.name);
+        let id = self.scheduler.add_engine(spec);
+        self.export_engines();
+        self.after_event(now);
+        id
+    }
+
+    /// The instance leaves the pool (draining, or gone): no new batch is placed on it. A batch it
+    /// runs ends through [`DriverCore::batch_done`] or [`DriverCore::batch_lost`].
+    pub fn remove_engine(&mut self, now: Timestamp, engine: EngineId) {
+        let now = self.advance(now);
+        self.scheduler.remove_engine(engine);
+        self.export_engines();
+        if let Some(state) = self.scheduler.engines().nth(engine.0)
+            && state.batch.is_none()
+        {
+            self.metrics.remove_worker(&state.spec.name);
+        }
+        self.after_event(now);
+    }
+
+    /// A remote instance's measured round trip changed: the scheduler plans with it from now.
+    pub fn engine_rtt(&mut self, engine: EngineId, rtt: Duration) {
+        self.scheduler.set_engine_rtt(engine, rtt);
+        if let Some(state) = self.scheduler.engines().nth(engine.0) {
+            self.metrics.set_worker_rtt(&state.spec.name, rtt);
+        }
+    }
+
+    /// The batch was lost with its engine (connection lost, stream reset, deadline passed)
+    /// before it answered; `inputs` and `rounds` are its [`BatchJob`]'s, given back. The engine
+    /// leaves the pool; each round of the batch still wanted goes back to the front of the queue
+    /// with its original arrival time ([`RedispatchRule::decide`]: unless it ran out of attempts
+    /// or time, then it fails with a retryable error). A result of the lost batch that arrives
+    /// later is dropped: the batch is no longer known. Every round still gets exactly one answer.
+    pub fn batch_lost(
+        &mut self,
+        now: Timestamp,
+        batch: BatchId,
+        reason: LossReason,
+        inputs: Vec<ActionRequest>,
+        rounds: Vec<HorizonJob>,
+    ) {
+        let now = self.advance(now);
+        if let Some(state) = self.batches.remove(&batch) {
+            let engine = self
+                .scheduler
+                .engines()
+                .nth(state.dispatch.engine.0)
+                .map(|e| e.spec.name.clone())
+                .unwrap_or_default();
+            for (input, job) in inputs.into_iter().zip(rounds) {
+                if let Some(req) = self.requests.get_mut(&job.request) {
+                    req.observation = Some(ValidObservation {
+                        captured_at: req.captured_at,
+                        request: input,
+                    });
+                    req.policy = Some(job.policy);
+                }
+            }
+            let requeued = self.scheduler.requeue_batch(now, batch);
+            self.metrics.remove_worker(&engine);
+            self.export_engines();
+            for entry in &state.dispatch.requests {
+                let Some(req) = self.requests.get_mut(&entry.request) else {
+                    continue;
+                };
+                req.dispatched = None;
+                req.refetch = Duration::ZERO;
+                let verdict = if requeued.contains(&entry.request) {
+                    self.redispatch.decide(now, req.received, req.attempts)
+                } else {
+                    // Its task moved on while it ran: nothing to run again.
+                    Redispatch::TooLate
+                };
+                if verdict == Redispatch::Again && req.observation.is_some() {
+                    self.stats.redispatched.count(reason);
+                    self.metrics.record_redispatch(reason.as_str(), 1);
+                    continue;
+                }
+                self.scheduler.fail_pending(now, entry.request);
+                self.stats.redispatch_given_up += 1;
+                self.stats.failed += 1;
+                if let Some(old) = self.requests.remove(&entry.request) {
+                    let error = RequestError::Engine(PoolError::Lost {
+                        engine: engine.clone(),
+                        reason,
+                        detail: format!(
+                            "the round was not run again ({verdict:?} after {} attempts)",
+                            old.attempts
+                        ),
+                    });
+                    self.answer(old.waiters, Err(ErrorReply::from(&error)));
+                }
+            }
+        }
+        self.after_event(now);
     }
 
     /// Exports the core's facts to `metrics` (queue depth, batch sizes, round latency, deadline
@@ -164,8 +326,30 @@ impl DriverCore {
         for engine in self.scheduler.engines() {
             metrics.add_engine(&engine.spec.name);
         }
+        let reasons: Vec<&str> = LossReason::ALL.iter().map(|r| r.as_str()).collect();
+        metrics.declare_redispatch_reasons(&reasons);
         self.metrics = metrics;
+        self.export_engines();
         self
+    }
+
+    /// `kairos_workers{tier,state}`: live instances are ready; one that left the pool but still
+    /// runs its batch (a draining worker) is draining.
+    fn export_engines(&self) {
+        use crate::metrics::WorkerState;
+        use crate::scheduler::Tier;
+        for tier in [Tier::Edge, Tier::Cloud] {
+            let of_tier = || {
+                self.scheduler
+                    .engines()
+                    .filter(move |e| e.spec.tier == tier)
+            };
+            let ready = of_tier().filter(|e| e.live).count();
+            let draining = of_tier().filter(|e| !e.live && e.batch.is_some()).count();
+            self.metrics.set_workers(tier, WorkerState::Ready, ready);
+            self.metrics
+                .set_workers(tier, WorkerState::Draining, draining);
+        }
     }
 
     /// The next effect to carry out, oldest first.
@@ -402,6 +586,8 @@ impl DriverCore {
                         dispatched: None,
                         refetch: Duration::ZERO,
                         batch_size: 0,
+                        attempts: 0,
+                        captured_at: now,
                     },
                 );
             }
@@ -530,12 +716,38 @@ impl DriverCore {
             self.stats.tasks_ended += 1;
             self.tasks.remove(&summary.task);
         }
+        self.answer_stranded(now);
         self.dispatch(now);
         self.metrics.set_queue_depth(self.scheduler.pending_len());
         let next = self.scheduler.poll_timeout();
         if next != self.timer {
             self.timer = next;
             self.effects.push_back(Effect::SetTimer(next));
+        }
+    }
+
+    /// Draining with no engine left (every remote worker gone) and nothing running: the queued
+    /// rounds can never run, so they are answered `shutting_down` (retryable) and the driver can
+    /// stop. Rounds wait for a worker only while the server runs.
+    fn answer_stranded(&mut self, now: Timestamp) {
+        if !self.draining || self.scheduler.live_engines() > 0 || !self.batches.is_empty() {
+            return;
+        }
+        let stranded: Vec<RequestId> = self
+            .requests
+            .iter()
+            .filter(|(_, r)| r.dispatched.is_none())
+            .map(|(&id, _)| id)
+            .collect();
+        for request in stranded {
+            self.scheduler.fail_pending(now, request);
+            if let Some(old) = self.requests.remove(&request) {
+                self.stats.failed += 1;
+                self.answer(
+                    old.waiters,
+                    Err(ErrorReply::from(&RequestError::ShuttingDown)),
+                );
+            }
         }
     }
 
@@ -550,6 +762,7 @@ impl DriverCore {
                 };
                 state.dispatched = Some(now);
                 state.batch_size = batch_size;
+                state.attempts = state.attempts.saturating_add(1);
                 if !entry.refetch {
                     continue;
                 }
@@ -595,6 +808,7 @@ impl DriverCore {
         self.stats.batches += 1;
         let engine = state.dispatch.engine;
         let mut inputs = Vec::with_capacity(state.dispatch.requests.len());
+        let mut attempt = 0;
         let mut rounds = Vec::with_capacity(state.dispatch.requests.len());
         for entry in &state.dispatch.requests {
             let record = self.scheduler.task(entry.task);
@@ -610,6 +824,8 @@ impl DriverCore {
                 state.missing.push(entry.request);
                 continue;
             };
+            let captured_at = observation.captured_at;
+            attempt = attempt.max(req.attempts.saturating_sub(1));
             inputs.push(observation.request);
             rounds.push(HorizonJob {
                 request: entry.request,
@@ -620,6 +836,9 @@ impl DriverCore {
                 round_index,
                 recent_horizons,
             });
+            if let Some(req) = self.requests.get_mut(&entry.request) {
+                req.captured_at = captured_at;
+            }
         }
         if rounds.is_empty() {
             // Nothing to run: the batch ends here, its requests answered as failed.
@@ -633,6 +852,7 @@ impl DriverCore {
         self.effects.push_back(Effect::RunBatch(BatchJob {
             batch,
             engine,
+            attempt,
             inputs,
             rounds,
         }));

@@ -319,6 +319,155 @@ fn the_owner_comes_from_the_scheduler_and_a_draining_core_refuses_rounds() {
     );
 }
 
+fn remote_spec(name: &str) -> EngineSpec {
+    EngineSpec {
+        name: name.into(),
+        tier: Tier::Edge,
+        profile: kairos_engine::EngineProfile {
+            model: "linear-flow".into(),
+            device: "remote".into(),
+            points: vec![kairos_engine::ProfilePoint {
+                batch: 1,
+                latency_ms: 1.0,
+            }],
+            max_batch: 2,
+        },
+        rtt: Duration::from_millis(2),
+    }
+}
+
+#[test]
+fn a_lost_batch_runs_again_on_another_engine_and_each_round_is_answered_once() {
+    let mut b = bench(Duration::from_secs(10), Duration::MAX);
+    // The local engine leaves (as if it were a worker that drained): rounds wait.
+    b.core.remove_engine(ms(0), EngineId(0));
+    for task in 1..=2 {
+        let submit = b.valid(0, task, 0, ms(1), task as f32);
+        b.core.submit(ms(1), submit, ms(1), WaiterId(task));
+    }
+    assert!(
+        !b.effects().iter().any(|e| matches!(e, Effect::RunBatch(_))),
+        "no live engine: the rounds wait"
+    );
+    // A worker registers: both rounds go to it in one batch.
+    let worker = b.core.add_engine(ms(2), remote_spec("worker:a"));
+    assert_eq!(worker, EngineId(1));
+    let lost = only_batch(b.effects());
+    assert_eq!(
+        (lost.engine, lost.rounds.len(), lost.attempt),
+        (worker, 2, 0)
+    );
+    // Another worker registers while the first runs: nothing to place yet.
+    let other = b.core.add_engine(ms(3), remote_spec("worker:b"));
+    assert!(!b.effects().iter().any(|e| matches!(e, Effect::RunBatch(_))));
+    // The first worker is lost: the batch is given back and placed on the other at once.
+    let (batch, requests) = (
+        lost.batch,
+        lost.rounds.iter().map(|r| r.request).collect::<Vec<_>>(),
+    );
+    b.core.batch_lost(
+        ms(10),
+        batch,
+        crate::pool::LossReason::ConnectionLost,
+        lost.inputs,
+        lost.rounds,
+    );
+    let again = only_batch(b.effects());
+    assert_eq!(again.engine, other);
+    assert_eq!(again.attempt, 1, "its rounds ran once before");
+    assert_ne!(again.batch, batch, "a new batch id");
+    assert_eq!(
+        again.rounds.iter().map(|r| r.request).collect::<Vec<_>>(),
+        requests,
+        "same requests, same order (original arrival)"
+    );
+    let stats = b.core.stats();
+    assert_eq!(stats.redispatched.connection_lost, 2);
+    assert_eq!(stats.redispatched.total(), 2);
+    let engines: Vec<bool> = b.core.scheduler().engines().map(|e| e.live).collect();
+    assert_eq!(
+        engines,
+        [false, false, true],
+        "the lost worker left the pool"
+    );
+    // A late answer of the lost batch is dropped; the new one answers each round once.
+    let late = b.answers(BatchJob {
+        batch,
+        engine: worker,
+        attempt: 0,
+        inputs: again.inputs.clone(),
+        rounds: Vec::new(),
+    });
+    b.core
+        .generation_ended(ms(11), batch, Duration::from_millis(1));
+    b.core.batch_done(ms(11), batch, late);
+    assert!(answers_of(&b.effects()).is_empty(), "late result dropped");
+    let batch2 = again.batch;
+    let answers = b.answers(again);
+    b.core
+        .generation_ended(ms(12), batch2, Duration::from_millis(1));
+    b.core.batch_done(ms(12), batch2, answers);
+    let effects = b.effects();
+    let answered = answers_of(&effects);
+    assert_eq!(answered.len(), 2);
+    assert!(answered.iter().all(|(_, a)| a.is_ok()));
+    let mut waiters: Vec<WaiterId> = answered.iter().flat_map(|(w, _)| w.clone()).collect();
+    waiters.sort();
+    assert_eq!(waiters, [WaiterId(1), WaiterId(2)]);
+    assert_eq!(b.core.stats().failed, 0);
+}
+
+#[test]
+fn a_round_out_of_attempts_or_time_gets_a_retryable_error_instead() {
+    let mut b = bench(Duration::from_secs(10), Duration::MAX);
+    b.core.set_redispatch_rule(RedispatchRule {
+        max_attempts: 2,
+        within: Duration::from_secs(1),
+    });
+    b.core.remove_engine(ms(0), EngineId(0));
+    let submit = b.valid(0, 1, 0, ms(0), 1.0);
+    b.core.submit(ms(0), submit, ms(0), WaiterId(1));
+    let mut engine = b.core.add_engine(ms(0), remote_spec("worker:0"));
+    // First loss: run again; second loss: out of attempts.
+    for (attempt, at) in [(0u32, 5u64), (1, 6)] {
+        let job = only_batch(b.effects());
+        assert_eq!((job.engine, job.attempt), (engine, attempt));
+        b.core.batch_lost(
+            ms(at),
+            job.batch,
+            crate::pool::LossReason::Deadline,
+            job.inputs,
+            job.rounds,
+        );
+        engine = b.core.add_engine(ms(at), remote_spec("worker:n"));
+    }
+    let effects = b.effects();
+    let answered = answers_of(&effects);
+    assert_eq!(answered.len(), 1, "exactly one answer");
+    let error = answered[0].1.as_ref().unwrap_err();
+    assert_eq!(error.code, ErrorCode::Internal);
+    assert!(error.retryable, "{error:?}");
+    let stats = b.core.stats();
+    assert_eq!(
+        (stats.redispatched.deadline, stats.redispatch_given_up),
+        (1, 1)
+    );
+    // The task may send the round again.
+    let again = b.valid(0, 1, 0, ms(7), 1.0);
+    b.core.submit(ms(7), again, ms(7), WaiterId(2));
+    assert_eq!(only_batch(b.effects()).engine, engine);
+
+    // The rule itself: attempts first, then age.
+    let rule = RedispatchRule {
+        max_attempts: 3,
+        within: Duration::from_secs(1),
+    };
+    assert_eq!(rule.decide(ms(500), ms(0), 1), Redispatch::Again);
+    assert_eq!(rule.decide(ms(1000), ms(0), 2), Redispatch::Again);
+    assert_eq!(rule.decide(ms(1001), ms(0), 2), Redispatch::TooLate);
+    assert_eq!(rule.decide(ms(10), ms(0), 3), Redispatch::OutOfAttempts);
+}
+
 /// The core feeds `/metrics` where it counts: batch sizes, round latencies, engine busy time,
 /// queue depth, and a deadline miss for a round answered after its robot ran out of actions.
 #[test]

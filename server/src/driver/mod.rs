@@ -40,8 +40,10 @@ use std::time::Duration;
 use kairos_sdk::protocol::{ErrorReply, IntervalUs, Reply, RoundRecordWire};
 use tokio::sync::oneshot;
 
+pub use self::core::{Redispatch, RedispatchRule};
+pub use self::shell::EngineView;
 pub use self::shell::{DriverGone, DriverHandle, PendingRound, spawn};
-pub use self::stats::{DriverStats, LatencySummary, RECENT_LATENCIES};
+pub use self::stats::{DriverStats, LatencySummary, RECENT_LATENCIES, RedispatchCounts};
 use crate::lifecycle::RoundRecord;
 use crate::scheduler::{RobotId, TaskId};
 use crate::time::Timestamp;
@@ -112,6 +114,8 @@ pub struct DriverConfig {
     pub ended_snapshots: usize,
     /// Capacity of the command channel.
     pub queue: usize,
+    /// What happens to rounds lost with a remote engine.
+    pub redispatch: RedispatchRule,
     /// Where the core exports its facts (`/metrics`); the default is a registry nobody serves.
     pub metrics: crate::metrics::Metrics,
 }
@@ -122,6 +126,7 @@ impl Default for DriverConfig {
             refetch_timeout: Duration::from_millis(50),
             ended_snapshots: 4096,
             queue: 8192,
+            redispatch: RedispatchRule::default(),
             metrics: crate::metrics::Metrics::new(),
         }
     }

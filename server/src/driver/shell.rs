@@ -17,8 +17,11 @@ use tokio::sync::{mpsc, oneshot, watch};
 use super::core::{BatchJob, DriverCore, Effect};
 use super::{DriverConfig, DriverStats, RefetchAsk, RoundAnswer, TaskSnapshot, WaiterId};
 use crate::action::ActionManager;
-use crate::pool::EnginePool;
-use crate::scheduler::{BatchId, RequestId, RobotId, Scheduler, ServerLoad, TaskId};
+use crate::pool::BatchLabel;
+use crate::pool::{EngineInstance, EnginePool, LossReason, PoolBuildError, PoolError};
+use crate::scheduler::{
+    BatchId, EngineId, EngineSpec, RequestId, RobotId, Scheduler, ServerLoad, TaskId, Tier,
+};
 use crate::time::{Clock, Timestamp};
 use crate::validation::{RequestError, ValidEndTask, ValidObservation, ValidSubmit};
 
@@ -56,10 +59,27 @@ enum Command {
     },
     GenerationEnded {
         batch: BatchId,
+        engine: EngineId,
         inference: Duration,
         /// Gets the server's load right after the generation ended, for the batch's horizon
         /// policies.
         load: oneshot::Sender<ServerLoad>,
+    },
+    BatchLost {
+        batch: BatchId,
+        reason: LossReason,
+        inputs: Vec<kairos_engine::ActionRequest>,
+        rounds: Vec<crate::action::HorizonJob>,
+    },
+    AddEngine {
+        instance: NewInstance,
+        answer: oneshot::Sender<Result<EngineId, PoolBuildError>>,
+    },
+    RemoveEngine {
+        engine: EngineId,
+    },
+    Engines {
+        answer: oneshot::Sender<Vec<EngineView>>,
     },
     BatchDone {
         batch: BatchId,
@@ -81,6 +101,32 @@ pub struct DriverHandle {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 #[error("the driver has stopped")]
 pub struct DriverGone;
+
+/// An instance on its way to the pool (a command must be `Debug`).
+struct NewInstance(Arc<dyn EngineInstance>);
+
+impl std::fmt::Debug for NewInstance {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.0.name())
+    }
+}
+
+/// One engine instance as the scheduler plans with it now (for `/metrics`, logs and tests).
+#[derive(Clone, Debug, PartialEq)]
+pub struct EngineView {
+    /// Its id (never reused).
+    pub id: EngineId,
+    /// Its name.
+    pub name: String,
+    /// Edge or cloud.
+    pub tier: Tier,
+    /// The round trip placement uses (a worker's measured one).
+    pub rtt: Duration,
+    /// Still in the pool (false: drained or lost).
+    pub live: bool,
+    /// Running a batch.
+    pub busy: bool,
+}
 
 /// A round accepted by the driver: await its answer, and detach if the stream goes away first.
 #[derive(Debug)]
@@ -168,6 +214,39 @@ impl DriverHandle {
         rx.await.map_err(|_| DriverGone)
     }
 
+    /// Adds an engine instance (a remote worker that registered) to the pool and the
+    /// scheduler, if it serves the site's shapes.
+    pub async fn add_engine(
+        &self,
+        instance: Arc<dyn EngineInstance>,
+    ) -> Result<Result<EngineId, PoolBuildError>, DriverGone> {
+        let (answer, rx) = oneshot::channel();
+        self.commands
+            .send(Command::AddEngine {
+                instance: NewInstance(instance),
+                answer,
+            })
+            .await
+            .map_err(|_| DriverGone)?;
+        rx.await.map_err(|_| DriverGone)
+    }
+
+    /// The instance leaves the pool: no new batch goes to it (the one it runs finishes or is
+    /// lost).
+    pub async fn remove_engine(&self, engine: EngineId) {
+        let _ = self.commands.send(Command::RemoveEngine { engine }).await;
+    }
+
+    /// Every engine instance the scheduler knows, live or not.
+    pub async fn engines(&self) -> Result<Vec<EngineView>, DriverGone> {
+        let (answer, rx) = oneshot::channel();
+        self.commands
+            .send(Command::Engines { answer })
+            .await
+            .map_err(|_| DriverGone)?;
+        rx.await.map_err(|_| DriverGone)
+    }
+
     /// The driver's running totals.
     pub async fn stats(&self) -> Result<DriverStats, DriverGone> {
         let (answer, rx) = oneshot::channel();
@@ -217,8 +296,10 @@ pub fn spawn(
     let (timer, deadlines) = watch::channel(None);
     runtime.spawn(run_timer(deadlines, clock, commands_tx.downgrade()));
     runtime.spawn(watch_shutdown(shutdown.clone(), commands_tx.downgrade()));
+    let mut core = DriverCore::new(scheduler, config.ended_snapshots);
+    core.set_redispatch_rule(config.redispatch);
     let shell = Shell {
-        core: DriverCore::new(scheduler, config.ended_snapshots).with_metrics(config.metrics),
+        core: core.with_metrics(config.metrics),
         commands,
         reports: commands_tx.downgrade(),
         waiters: HashMap::new(),
@@ -318,10 +399,58 @@ impl Shell {
             } => self.core.refetched(now, batch, request, observation),
             Command::GenerationEnded {
                 batch,
+                engine,
                 inference,
                 load,
             } => {
+                if let Some(instance) = self.pool.get(engine)
+                    && instance.can_lose_batches()
+                {
+                    self.core.engine_rtt(engine, instance.rtt());
+                }
                 let _ = load.send(self.core.generation_ended(now, batch, inference));
+            }
+            Command::BatchLost {
+                batch,
+                reason,
+                inputs,
+                rounds,
+            } => self.core.batch_lost(now, batch, reason, inputs, rounds),
+            Command::AddEngine {
+                instance: NewInstance(instance),
+                answer,
+            } => {
+                let spec = EngineSpec {
+                    name: instance.name().to_string(),
+                    tier: instance.tier(),
+                    profile: instance.profile().clone(),
+                    rtt: instance.rtt(),
+                };
+                let added = self.pool.add(instance).inspect(|&id| {
+                    let scheduled = self.core.add_engine(now, spec);
+                    debug_assert_eq!(id, scheduled, "pool and scheduler ids move together");
+                });
+                let _ = answer.send(added);
+            }
+            Command::RemoveEngine { engine } => {
+                self.pool.remove(engine);
+                self.core.remove_engine(now, engine);
+            }
+            Command::Engines { answer } => {
+                let views = self
+                    .core
+                    .scheduler()
+                    .engines()
+                    .map(|e| EngineView {
+                        id: e.id,
+                        name: e.spec.name.clone(),
+                        tier: e.spec.tier,
+                        rtt: e.spec.rtt,
+                        live: e.live,
+                        busy: e.batch.is_some(),
+                    })
+                    .collect();
+                let _ = answer.send(views);
             }
             Command::BatchDone { batch, results } => self.core.batch_done(now, batch, results),
             Command::Timeout => self.core.timeout(now),
@@ -396,6 +525,7 @@ impl Shell {
         let BatchJob {
             batch,
             engine,
+            attempt,
             inputs,
             rounds,
         } = job;
@@ -407,8 +537,15 @@ impl Shell {
                 .map(|r| (r, Err(reply.clone())))
                 .collect::<Vec<_>>()
         };
-        let engine = self.pool.get(engine).cloned();
-        let (Some(engine), Some(reports)) = (engine, self.reports.upgrade()) else {
+        let engine_id = engine;
+        let Some(engine) = self.pool.get(engine_id).cloned() else {
+            // The instance left (a worker drained or was lost) between placement and the end
+            // of the batch's re-fetches: the batch runs elsewhere.
+            self.core
+                .batch_lost(now, batch, LossReason::Gone, inputs, rounds);
+            return;
+        };
+        let Some(reports) = self.reports.upgrade() else {
             let results = fail_all(RequestError::Internal(
                 "no engine instance for the batch".into(),
             ));
@@ -417,14 +554,32 @@ impl Shell {
             return;
         };
         let (actions, clock) = (self.actions.clone(), self.clock);
+        // A batch that can be lost with its instance may have to run again: keep its inputs.
+        let kept = engine.can_lose_batches().then(|| inputs.clone());
+        let label = BatchLabel { batch, attempt };
         self.runtime.spawn(async move {
             let started = clock.now();
-            let outcome = engine.run(inputs).await;
+            let outcome = engine.run_labeled(label, inputs).await;
+            if let (Err(PoolError::Lost { reason, .. }), Some(inputs)) = (&outcome, kept) {
+                if let Err(PoolError::Lost { engine, detail, .. }) = &outcome {
+                    tracing::warn!(%engine, %reason, %detail, ?batch, "batch lost with its engine");
+                }
+                let _ = reports
+                    .send(Command::BatchLost {
+                        batch,
+                        reason: *reason,
+                        inputs,
+                        rounds,
+                    })
+                    .await;
+                return;
+            }
             let inference = clock.now().saturating_since(started);
             let (load_tx, load_rx) = oneshot::channel();
             let _ = reports
                 .send(Command::GenerationEnded {
                     batch,
+                    engine: engine_id,
                     inference,
                     load: load_tx,
                 })

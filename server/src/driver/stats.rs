@@ -4,6 +4,7 @@ use std::collections::VecDeque;
 
 use kairos_sdk::protocol::Timing;
 
+use crate::pool::LossReason;
 use crate::stats::quantile;
 
 /// Running totals of the driver.
@@ -33,6 +34,10 @@ pub struct DriverStats {
     pub batches: u64,
     /// Tasks ended (explicitly or by expiry).
     pub tasks_ended: u64,
+    /// Rounds put back in the queue after their batch was lost with a remote engine, by reason.
+    pub redispatched: RedispatchCounts,
+    /// Rounds of lost batches failed (retryable) instead: out of attempts or of time.
+    pub redispatch_given_up: u64,
     /// Server-added latency of recent replies: `timing.total − timing.inference` (queueing
     /// behind other batches included).
     pub overhead: LatencySummary,
@@ -41,6 +46,50 @@ pub struct DriverStats {
     /// (validation, the driver's queue), plus from dispatch to the reply handed to the stream
     /// (batch start, engine hand-off, horizon policy, trim, driver), less the forward pass.
     pub processing: LatencySummary,
+}
+
+/// Re-dispatched rounds by [`LossReason`] (the `kairos_redispatch_total{reason}` counter).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct RedispatchCounts {
+    /// The worker's connection closed or timed out.
+    pub connection_lost: u64,
+    /// The batch's stream was reset or answered unusably.
+    pub stream_reset: u64,
+    /// The batch's deadline passed.
+    pub deadline: u64,
+    /// The engine had left before the batch was sent.
+    pub gone: u64,
+}
+
+impl RedispatchCounts {
+    /// Counts one round.
+    pub fn count(&mut self, reason: LossReason) {
+        *self.get_mut(reason) += 1;
+    }
+
+    /// The count for `reason`.
+    pub fn get(&self, reason: LossReason) -> u64 {
+        match reason {
+            LossReason::ConnectionLost => self.connection_lost,
+            LossReason::StreamReset => self.stream_reset,
+            LossReason::Deadline => self.deadline,
+            LossReason::Gone => self.gone,
+        }
+    }
+
+    fn get_mut(&mut self, reason: LossReason) -> &mut u64 {
+        match reason {
+            LossReason::ConnectionLost => &mut self.connection_lost,
+            LossReason::StreamReset => &mut self.stream_reset,
+            LossReason::Deadline => &mut self.deadline,
+            LossReason::Gone => &mut self.gone,
+        }
+    }
+
+    /// All reasons together.
+    pub fn total(&self) -> u64 {
+        LossReason::ALL.iter().map(|&r| self.get(r)).sum()
+    }
 }
 
 /// Percentiles of a latency over the most recent [`RECENT_LATENCIES`] replies, µs.

@@ -85,7 +85,9 @@ pub enum BuildEvent {
 }
 
 /// Starts every configured engine instance (an empty list means one edge instance of the
-/// built-in model). Blocking: loading and profiling run models; call it off the async runtime.
+/// built-in model). An engine with `instances = 0` (`kairos serve --local-engines 0`) is loaded
+/// only for its spec, the shapes remote workers must match; it is not profiled and runs
+/// nothing. Blocking: loading and profiling run models; call it off the async runtime.
 pub fn build_pool(
     engines: &[EngineConfig],
     mut progress: impl FnMut(BuildEvent),
@@ -97,6 +99,7 @@ pub fn build_pool(
         engines
     };
     let mut instances: Vec<Arc<dyn EngineInstance>> = Vec::new();
+    let mut site_spec = None;
     for (index, config) in engines.iter().enumerate() {
         progress(BuildEvent::Loading {
             index,
@@ -111,6 +114,10 @@ pub fn build_pool(
         let model: Arc<dyn ActionModel> = kairos_engine::resolve_model(&config.model, &options)
             .map_err(failed)?
             .into();
+        site_spec.get_or_insert_with(|| model.spec().clone());
+        if config.instances == 0 {
+            continue;
+        }
         let mut profile = match &config.profile {
             Some(path) => read_profile(index, path)?,
             None => measure_at_start(index, config, model.as_ref(), &options, &mut progress)?,
@@ -132,7 +139,8 @@ pub fn build_pool(
             });
         }
     }
-    Ok(EnginePool::new(instances)?)
+    let spec = site_spec.ok_or(PoolBuildError::Empty)?;
+    Ok(EnginePool::with_spec(spec, instances)?)
 }
 
 fn tier_name(tier: Tier) -> &'static str {

@@ -7,13 +7,18 @@
 //!   added to every batch), so a cloud tier can be exercised on one machine. It is labelled as
 //!   emulated wherever it shows up; it is not a remote engine.
 //!
-//! A real remote engine (another server reached over the network) implements the same trait.
+//! - [`RemoteEngine`]: a `kairos worker` on another machine, reached over QUIC
+//!   (`kairos-worker/1`); it joins and leaves while the server runs.
+//!
 //! The scheduler plans with [`EnginePool::specs`], built from each instance's profile, tier and
-//! round trip.
+//! round trip. Membership is dynamic: [`EnginePool::add`] and [`EnginePool::remove`] are called by
+//! the driver's shell (the one owner of the live pool) when a worker registers or goes away;
+//! ids are never reused.
 
 mod build;
 mod link;
 mod local;
+pub mod remote;
 pub mod replay;
 
 use std::sync::Arc;
@@ -25,6 +30,7 @@ use kairos_engine::{ActionChunk, ActionRequest, EngineError, EngineProfile, Mode
 pub use build::{BuildEvent, PoolConfigError, build_pool};
 pub use link::EmulatedLinkEngine;
 pub use local::LocalEngine;
+pub use remote::RemoteEngine;
 
 use crate::scheduler::{EngineId, EngineSpec, Tier};
 
@@ -61,6 +67,64 @@ pub enum PoolError {
         /// The instance.
         engine: String,
     },
+    /// A remote worker's engine failed this request (its error, as the worker reported it).
+    #[error("engine {engine}: {message}")]
+    Remote {
+        /// The instance.
+        engine: String,
+        /// The worker's error.
+        message: String,
+    },
+    /// A remote instance was lost before it answered (connection lost, stream reset, deadline
+    /// passed): the batch produced nothing and may run again elsewhere.
+    #[error("engine {engine} was lost ({reason}): {detail}")]
+    Lost {
+        /// The instance.
+        engine: String,
+        /// Which way it was lost.
+        reason: LossReason,
+        /// What the transport said.
+        detail: String,
+    },
+}
+
+/// Why a batch was lost with its engine instance (the label of the re-dispatch counter).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum LossReason {
+    /// The worker's connection closed or timed out (missed heartbeats, kill).
+    ConnectionLost,
+    /// The worker reset the batch's stream, or answered something unusable for the batch.
+    StreamReset,
+    /// The batch's deadline passed without an answer.
+    Deadline,
+    /// The instance had left the pool before the batch could be sent.
+    Gone,
+}
+
+impl LossReason {
+    /// Every reason, for exporting counters.
+    pub const ALL: [LossReason; 4] = [
+        LossReason::ConnectionLost,
+        LossReason::StreamReset,
+        LossReason::Deadline,
+        LossReason::Gone,
+    ];
+
+    /// The label, `snake_case`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            LossReason::ConnectionLost => "connection_lost",
+            LossReason::StreamReset => "stream_reset",
+            LossReason::Deadline => "deadline",
+            LossReason::Gone => "gone",
+        }
+    }
+}
+
+impl std::fmt::Display for LossReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
 }
 
 /// One result per request of a batch, in order: its chunk, or why that request got none.
@@ -83,18 +147,43 @@ pub trait EngineInstance: Send + Sync {
     /// error only when the instance could run nothing (it stopped). The future does no heavy
     /// work on the caller's thread.
     fn run(&self, batch: Vec<ActionRequest>) -> BoxFuture<'static, Result<BatchChunks, PoolError>>;
+    /// Runs one batch, told its scheduler id and attempt (a remote instance puts them on the
+    /// wire to match the answer; others ignore them).
+    fn run_labeled(
+        &self,
+        label: BatchLabel,
+        batch: Vec<ActionRequest>,
+    ) -> BoxFuture<'static, Result<BatchChunks, PoolError>> {
+        let _ = label;
+        self.run(batch)
+    }
+    /// Whether a batch can be lost with the instance ([`PoolError::Lost`]), so the caller keeps
+    /// what it needs to run the batch again elsewhere. Local instances never lose one.
+    fn can_lose_batches(&self) -> bool {
+        false
+    }
 }
 
-/// All engine instances, indexed by [`EngineId`].
+/// Which batch an instance runs: the scheduler's id and how many times its rounds ran before.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BatchLabel {
+    /// The scheduler's batch id (never reused).
+    pub batch: crate::scheduler::BatchId,
+    /// Earlier dispatches of its rounds (0: none ran in a lost batch).
+    pub attempt: u32,
+}
+
+/// All engine instances, indexed by [`EngineId`]; an instance that left keeps its id, empty.
 #[derive(Clone)]
 pub struct EnginePool {
-    instances: Vec<Arc<dyn EngineInstance>>,
+    spec: ModelSpec,
+    instances: Vec<Option<Arc<dyn EngineInstance>>>,
 }
 
 impl std::fmt::Debug for EnginePool {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_list()
-            .entries(self.instances.iter().map(|i| i.name()))
+            .entries(self.iter().map(|i| i.name()))
             .finish()
     }
 }
@@ -120,53 +209,78 @@ pub enum PoolBuildError {
 }
 
 impl EnginePool {
-    /// A pool of instances that all serve the same model shapes.
+    /// A pool of instances that all serve the same model shapes (at least one: the first
+    /// gives the site's spec).
     pub fn new(instances: Vec<Arc<dyn EngineInstance>>) -> Result<EnginePool, PoolBuildError> {
         let first = instances.first().ok_or(PoolBuildError::Empty)?;
-        if let Some(other) = instances
-            .iter()
-            .find(|i| !same_shapes(i.spec(), first.spec()))
-        {
+        EnginePool::with_spec(first.spec().clone(), instances)
+    }
+
+    /// A pool serving `spec`, possibly empty at first (a scheduler served only by remote
+    /// workers, `--local-engines 0`): every instance must have `spec`'s shapes.
+    pub fn with_spec(
+        spec: ModelSpec,
+        instances: Vec<Arc<dyn EngineInstance>>,
+    ) -> Result<EnginePool, PoolBuildError> {
+        let mut pool = EnginePool {
+            spec,
+            instances: Vec::with_capacity(instances.len()),
+        };
+        for instance in instances {
+            pool.add(instance)?;
+        }
+        Ok(pool)
+    }
+
+    /// Adds an instance under the next [`EngineId`] if it serves the pool's shapes (the same
+    /// check for local engines at start and for workers that register).
+    pub fn add(&mut self, instance: Arc<dyn EngineInstance>) -> Result<EngineId, PoolBuildError> {
+        if !same_shapes(instance.spec(), &self.spec) {
             return Err(PoolBuildError::SpecMismatch {
-                first: first.name().to_string(),
-                engine: other.name().to_string(),
-                expected: Box::new(first.spec().clone()),
-                found: Box::new(other.spec().clone()),
+                first: self.spec.name.clone(),
+                engine: instance.name().to_string(),
+                expected: Box::new(self.spec.clone()),
+                found: Box::new(instance.spec().clone()),
             });
         }
-        Ok(EnginePool { instances })
+        self.instances.push(Some(instance));
+        Ok(EngineId(self.instances.len() - 1))
+    }
+
+    /// The instance leaves the pool; its id stays taken. Returns it, if it was there.
+    pub fn remove(&mut self, id: EngineId) -> Option<Arc<dyn EngineInstance>> {
+        self.instances.get_mut(id.0).and_then(Option::take)
     }
 
     /// The model shapes every instance shares.
     pub fn spec(&self) -> &ModelSpec {
-        // `new` refuses an empty pool.
-        self.instances[0].spec()
+        &self.spec
     }
 
-    /// Number of instances.
+    /// Number of instances in the pool now.
     pub fn len(&self) -> usize {
-        self.instances.len()
+        self.iter().count()
     }
 
-    /// Always false: a pool has at least one instance.
+    /// Whether no instance is in the pool now.
     pub fn is_empty(&self) -> bool {
-        self.instances.is_empty()
+        self.len() == 0
     }
 
-    /// The instance `id`, if it exists.
+    /// The instance `id`, if it is in the pool.
     pub fn get(&self, id: EngineId) -> Option<&Arc<dyn EngineInstance>> {
-        self.instances.get(id.0)
+        self.instances.get(id.0).and_then(Option::as_ref)
     }
 
-    /// Every instance, in [`EngineId`] order.
+    /// Every instance in the pool, in [`EngineId`] order.
     pub fn iter(&self) -> impl Iterator<Item = &Arc<dyn EngineInstance>> {
-        self.instances.iter()
+        self.instances.iter().flatten()
     }
 
-    /// What the scheduler plans with, in [`EngineId`] order.
+    /// What the scheduler plans with, in [`EngineId`] order (call it before any instance
+    /// left, as `Scheduler::new` indexes engines by position).
     pub fn specs(&self) -> Vec<EngineSpec> {
-        self.instances
-            .iter()
+        self.iter()
             .map(|i| EngineSpec {
                 name: i.name().to_string(),
                 tier: i.tier(),
@@ -178,7 +292,7 @@ impl EnginePool {
 }
 
 /// Instances may differ in name (a checkpoint vs the same weights elsewhere) but not in shapes.
-fn same_shapes(a: &ModelSpec, b: &ModelSpec) -> bool {
+pub fn same_shapes(a: &ModelSpec, b: &ModelSpec) -> bool {
     a.chunk_len == b.chunk_len
         && a.action_dim == b.action_dim
         && a.state_dim == b.state_dim

@@ -24,11 +24,13 @@ struct PendingRequest {
     remaining: Option<RemainingWork>,
 }
 
-/// A request inside a dispatched batch.
+/// A request inside a dispatched batch, with what it was while pending, so that a batch lost
+/// with its engine can put it back exactly as it was.
 #[derive(Clone, Copy, Debug)]
 struct BatchEntry {
     request: RequestId,
     task: TaskId,
+    pending: PendingRequest,
 }
 
 /// A dispatched batch, until its end is reported.
@@ -45,6 +47,9 @@ struct Batch {
 #[derive(Clone, Debug)]
 struct EngineState {
     spec: EngineSpec,
+    /// False once the instance left the pool (a remote worker gone or draining): placement no
+    /// longer sees it. Its id is never reused.
+    live: bool,
     max_batch: usize,
     busy: Option<BatchId>,
     /// Estimated end of the current batch (meaningful while `busy`).
@@ -86,6 +91,8 @@ pub struct EngineStatus<'a> {
     pub batch: Option<BatchId>,
     /// When the scheduler expects the batch to end (profile latency plus RTT from its start).
     pub busy_until: Option<Timestamp>,
+    /// Whether it is still in the pool (placement sees only live instances).
+    pub live: bool,
 }
 
 /// What one scheduling decision did.
@@ -134,6 +141,8 @@ pub struct SchedulerCounters {
     pub policy_errors: u64,
     /// Events about unknown batches or requests, ignored.
     pub ignored_events: u64,
+    /// Requests put back in the queue because their batch was lost with its engine.
+    pub requeued: u64,
     /// Tasks ended (any way).
     pub tasks_ended: u64,
 }
@@ -172,15 +181,7 @@ impl Scheduler {
             config.task_idle_timeout,
             config.ended_tasks_remembered,
         );
-        let engines = engines
-            .into_iter()
-            .map(|spec| EngineState {
-                max_batch: usize::try_from(spec.profile.max_batch.max(1)).unwrap_or(usize::MAX),
-                spec,
-                busy: None,
-                busy_until: Timestamp::ZERO,
-            })
-            .collect();
+        let engines = engines.into_iter().map(EngineState::new).collect();
         Scheduler {
             config,
             engines,
@@ -285,14 +286,15 @@ impl Scheduler {
     /// decision happens). Returns the batches to run, each to be confirmed with
     /// `handle_batch_started` once its re-fetches are done and its forward pass begins.
     pub fn poll_dispatch(&mut self, now: Timestamp) -> Vec<Dispatch> {
-        let any_idle = self.engines.iter().any(|e| e.busy.is_none());
+        let any_idle = self.engines.iter().any(|e| e.live && e.busy.is_none());
         if !any_idle || self.pending.is_empty() {
             return Vec::new();
         }
         self.build_views(now);
         let policy_failed = self.order_pending(now);
 
-        let slots = self.engine_slots();
+        // Placement sees live instances only; `live_ids[i]` is the engine of slot `i`.
+        let (live_ids, slots) = self.live_engine_slots();
         let placed = placement::place(now, &self.order, &slots);
         let costs: Vec<Duration> = slots
             .iter()
@@ -304,10 +306,11 @@ impl Scheduler {
         let mut dispatches = Vec::new();
         let mut dispatched = 0;
         let mut refetch = 0;
-        for (engine_index, batch) in placed.batches.iter().enumerate() {
+        for (slot_index, batch) in placed.batches.iter().enumerate() {
             if batch.is_empty() {
                 continue;
             }
+            let engine_index = live_ids[slot_index];
             let batch_id = BatchId(self.next_batch);
             self.next_batch += 1;
             let mut requests = Vec::with_capacity(batch.len());
@@ -329,13 +332,14 @@ impl Scheduler {
                 entries.push(BatchEntry {
                     request,
                     task: entry.task,
+                    pending: entry,
                 });
                 self.tasks.dispatched(entry.task, request);
             }
             dispatched += requests.len();
             let engine = &mut self.engines[engine_index];
             engine.busy = Some(batch_id);
-            engine.busy_until = now + costs[engine_index];
+            engine.busy_until = now + costs[slot_index];
             self.batches.insert(
                 batch_id,
                 Batch {
@@ -595,10 +599,14 @@ impl Scheduler {
         self.tasks.len()
     }
 
-    /// Every engine instance as placement sees it, in `EngineId` order.
-    fn engine_slots(&self) -> Vec<EngineSlot<'_>> {
-        self.engines
+    /// The live engine instances as placement sees them, with their `EngineId` indexes, in order.
+    fn live_engine_slots(&self) -> (Vec<usize>, Vec<EngineSlot<'_>>) {
+        let live_ids: Vec<usize> = (0..self.engines.len())
+            .filter(|&i| self.engines[i].live)
+            .collect();
+        let slots = live_ids
             .iter()
+            .map(|&i| &self.engines[i])
             .map(|e| EngineSlot {
                 tier: e.spec.tier,
                 max_batch: e.max_batch,
@@ -606,14 +614,15 @@ impl Scheduler {
                 profile: &e.spec.profile,
                 rtt: e.spec.rtt,
             })
-            .collect()
+            .collect();
+        (live_ids, slots)
     }
 
     /// The load at `now` (see [`ServerLoad`]): what the action manager hands load-aware horizon
     /// policies. Drivers take it right after `handle_generation_ended`, before the next dispatch
     /// decision, so a batch's horizons see the queue that built up during its forward pass.
     pub fn load(&self, now: Timestamp) -> ServerLoad {
-        let slots = self.engine_slots();
+        let (_, slots) = self.live_engine_slots();
         let running: usize = self
             .batches
             .values()
@@ -650,14 +659,87 @@ impl Scheduler {
         self.pending.get(&request).map(|p| p.skipped)
     }
 
-    /// Every engine instance's state, in `EngineId` order.
+    /// Every engine instance's state, in `EngineId` order (instances that left included).
     pub fn engines(&self) -> impl ExactSizeIterator<Item = EngineStatus<'_>> {
         self.engines.iter().enumerate().map(|(i, e)| EngineStatus {
             id: EngineId(i),
             spec: &e.spec,
             batch: e.busy,
             busy_until: e.busy.map(|_| e.busy_until),
+            live: e.live,
         })
+    }
+
+    /// The instance's round trip changed (a remote worker's measured RTT): placement and the
+    /// busy estimate use the new one from the next decision.
+    pub fn set_engine_rtt(&mut self, engine: EngineId, rtt: Duration) {
+        if let Some(state) = self.engines.get_mut(engine.0) {
+            state.spec.rtt = rtt;
+        }
+    }
+
+    /// Instances placement may use.
+    pub fn live_engines(&self) -> usize {
+        self.engines.iter().filter(|e| e.live).count()
+    }
+
+    /// A new engine instance joins (a remote worker registered). It gets the next
+    /// [`EngineId`]; ids are never reused, so a late event about an instance that left cannot
+    /// hit a new one.
+    pub fn add_engine(&mut self, spec: EngineSpec) -> EngineId {
+        self.engines.push(EngineState::new(spec));
+        EngineId(self.engines.len() - 1)
+    }
+
+    /// The instance leaves the pool: placement no longer sees it. A batch it is running is not
+    /// touched: it still ends through `handle_batch_finished` (a draining worker finishes it) or
+    /// comes back through [`Scheduler::requeue_batch`] (the worker was lost). Returns that
+    /// batch, if any; `None` too for an unknown or already removed instance.
+    pub fn remove_engine(&mut self, engine: EngineId) -> Option<BatchId> {
+        let state = self.engines.get_mut(engine.0)?;
+        if !state.live {
+            return None;
+        }
+        state.live = false;
+        state.busy
+    }
+
+    /// The batch was lost with its engine instance before it produced anything: the instance
+    /// leaves the pool ([`Scheduler::remove_engine`]) and every request of the batch that is
+    /// still its task's current round goes back to the queue as it was before dispatch (same
+    /// `RequestId`, so the same place in arrival order, same arrival time and skip count), to be
+    /// dispatched again. Returns those requests in batch order; the others (their task moved on)
+    /// are dropped. An unknown batch returns nothing.
+    pub fn requeue_batch(&mut self, now: Timestamp, batch: BatchId) -> Vec<RequestId> {
+        let Some(b) = self.batches.remove(&batch) else {
+            self.counters.ignored_events += 1;
+            return Vec::new();
+        };
+        self.remove_engine(b.engine);
+        self.release_engine(b.engine, batch);
+        let mut requeued = Vec::with_capacity(b.entries.len());
+        for entry in &b.entries {
+            if self.tasks.requeued(now, entry.task, entry.request) {
+                self.pending.insert(entry.request, entry.pending);
+                requeued.push(entry.request);
+            } else {
+                self.counters.abandoned += 1;
+            }
+        }
+        self.counters.requeued += requeued.len() as u64;
+        requeued
+    }
+
+    /// A pending request that will not be served (a requeued round out of attempts or time)
+    /// fails now: it leaves the queue and the task may send the round again. Returns whether it
+    /// was pending.
+    pub fn fail_pending(&mut self, now: Timestamp, request: RequestId) -> bool {
+        let Some(entry) = self.pending.remove(&request) else {
+            return false;
+        };
+        self.tasks.failed(now, entry.task, request);
+        self.counters.failed += 1;
+        true
     }
 
     /// The batch engine instance `engine` runs, if it is busy.
@@ -695,6 +777,19 @@ impl Scheduler {
     /// answers each with an error.
     pub fn take_superseded(&mut self) -> Vec<Superseded> {
         std::mem::take(&mut self.superseded)
+    }
+}
+
+impl EngineState {
+    /// A live, idle instance. A profile with `max_batch` 0 is treated as 1.
+    fn new(spec: EngineSpec) -> EngineState {
+        EngineState {
+            max_batch: usize::try_from(spec.profile.max_batch.max(1)).unwrap_or(usize::MAX),
+            spec,
+            live: true,
+            busy: None,
+            busy_until: Timestamp::ZERO,
+        }
     }
 }
 

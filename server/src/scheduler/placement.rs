@@ -1,8 +1,9 @@
 //! Algorithm 1 phase 3 ("shortest estimated delay guided placement"), generalised from one edge
 //! and one cloud instance to any number of each.
 //!
-//! 1. Idle edge instances, in `EngineId` order, each take the next `max_batch` requests of the
-//!    priority order.
+//! 1. Idle edge instances, nearest first (by RTT, then `EngineId`: local instances have RTT 0,
+//!    so they keep `EngineId` order), each take the next `max_batch` requests of the priority
+//!    order.
 //! 2. Every request still in the order (in priority order) is offloaded to an idle cloud instance
 //!    only if `cloud.latency(batch + 1) + cloud.rtt < edge_delay(request)` for the idle cloud
 //!    instance with room where the left side is smallest (ties: lowest `EngineId`). A request not
@@ -58,8 +59,14 @@ pub(crate) struct Placement {
 pub(crate) fn place(now: Timestamp, order: &[usize], engines: &[EngineSlot<'_>]) -> Placement {
     let mut batches: Vec<Vec<usize>> = vec![Vec::new(); engines.len()];
     let mut pos = 0;
-    for (i, engine) in engines.iter().enumerate() {
-        if engine.tier == Tier::Edge && engine.busy_until.is_none() && pos < order.len() {
+    // Nearest first: a remote edge worker's round trip is part of every batch it runs.
+    let mut edges: Vec<usize> = (0..engines.len())
+        .filter(|&i| engines[i].tier == Tier::Edge)
+        .collect();
+    edges.sort_by_key(|&i| (engines[i].rtt, i));
+    for i in edges {
+        let engine = &engines[i];
+        if engine.busy_until.is_none() && pos < order.len() {
             let take = engine.max_batch.min(order.len() - pos);
             batches[i].extend_from_slice(&order[pos..pos + take]);
             pos += take;
@@ -322,6 +329,28 @@ mod tests {
         let placed = place(t(0), &[0, 1, 2, 3, 4], &engines);
         assert_eq!(placed.batches[1], vec![2, 3]);
         assert!(placed.batches[0].is_empty(), "a busy edge gets nothing");
+    }
+
+    #[test]
+    fn the_nearest_idle_edge_fills_first_and_the_far_one_takes_the_rest() {
+        let p = profile(&[(1, 10.0), (2, 12.0)], 2);
+        let edge = |rtt_ms: u64| EngineSlot {
+            tier: Tier::Edge,
+            max_batch: 2,
+            busy_until: None,
+            profile: &p,
+            rtt: Duration::from_millis(rtt_ms),
+        };
+        // The far worker registered first (lower id) but the near one takes the head.
+        let engines = [edge(40), edge(1)];
+        let placed = place(t(0), &[3, 1], &engines);
+        assert_eq!(placed.batches, vec![vec![], vec![3, 1]]);
+        let placed = place(t(0), &[3, 1, 0, 2, 4], &engines);
+        assert_eq!(placed.batches, vec![vec![0, 2], vec![3, 1]]);
+        // Equal round trips keep `EngineId` order.
+        let engines = [edge(5), edge(5)];
+        let placed = place(t(0), &[3, 1, 0], &engines);
+        assert_eq!(placed.batches, vec![vec![3, 1], vec![0]]);
     }
 
     #[test]

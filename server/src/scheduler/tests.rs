@@ -1143,3 +1143,75 @@ proptest! {
         prop_assert_eq!(s.counters().policy_errors, 0);
     }
 }
+
+mod membership {
+    //! Engines joining and leaving (remote workers): ids never reused, placement over live
+    //! instances only, a lost batch's requests back in the queue as they were.
+    use super::*;
+
+    #[test]
+    fn requeued_requests_keep_their_place_and_only_live_engines_are_placed() {
+        let mut s = Scheduler::new(
+            SchedulerConfig::default(),
+            Vec::new(),
+            Box::new(crate::scheduler::fifo::Fifo::default()),
+        );
+        let spec = |name: &str| EngineSpec {
+            name: name.into(),
+            tier: Tier::Edge,
+            profile: kairos_engine::EngineProfile {
+                model: "m".into(),
+                device: "d".into(),
+                points: vec![kairos_engine::ProfilePoint {
+                    batch: 1,
+                    latency_ms: 10.0,
+                }],
+                max_batch: 2,
+            },
+            rtt: Duration::ZERO,
+        };
+        let t = |ms: u64| Timestamp::from_micros(ms * 1000);
+        let submit = |task: u64, at: Timestamp| RoundSubmit {
+            task: TaskId(task),
+            robot: RobotId(0),
+            round: 0,
+            sent_at: at,
+            obs_captured_at: at,
+            last_exec: None,
+            remaining: None,
+            control_hz: None,
+        };
+        let r: Vec<RequestId> = (0..3)
+            .map(|i| s.handle_submit(t(i), submit(i, t(i))).unwrap())
+            .collect();
+        assert!(s.poll_dispatch(t(3)).is_empty(), "no engine yet");
+        let a = s.add_engine(spec("a"));
+        let first = s.poll_dispatch(t(4));
+        assert_eq!(first.len(), 1);
+        assert_eq!(first[0].engine, a);
+        let placed: Vec<RequestId> = first[0].requests.iter().map(|d| d.request).collect();
+        assert_eq!(placed, [r[0], r[1]]);
+        s.handle_batch_started(t(4), first[0].batch);
+        // `a` is lost: its two requests come back ahead of r[2] (arrival order).
+        assert_eq!(s.remove_engine(a), Some(first[0].batch));
+        assert_eq!(s.requeue_batch(t(6), first[0].batch), placed);
+        assert_eq!(s.pending_len(), 3);
+        assert!(
+            s.poll_dispatch(t(6)).is_empty(),
+            "the lost engine gets nothing"
+        );
+        let b = s.add_engine(spec("b"));
+        assert_ne!(a, b, "ids are never reused");
+        let second = s.poll_dispatch(t(7));
+        assert_eq!(second[0].engine, b);
+        let placed: Vec<RequestId> = second[0].requests.iter().map(|d| d.request).collect();
+        assert_eq!(placed, [r[0], r[1]], "front of the queue again");
+        // The lost forward pass counts as queueing: round 0's queueing runs from its arrival.
+        assert_eq!(s.counters().requeued, 2);
+        assert_eq!(s.live_engines(), 1);
+        // A request that will not run again fails and leaves the queue.
+        assert!(s.fail_pending(t(8), r[2]));
+        assert_eq!(s.pending_len(), 0);
+        assert!(!s.fail_pending(t(8), r[2]));
+    }
+}

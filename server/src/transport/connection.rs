@@ -88,8 +88,14 @@ pub(super) async fn serve(
         admitted = admit(incoming, &context, &gate) => admitted,
         _ = stop.wait_for(|stopping| *stopping) => None,
     };
-    let Some((connection, robot, _place)) = admitted else {
-        return;
+    let (connection, robot, _place) = match admitted {
+        Some(Admitted::Robot(connection, robot, place)) => (connection, robot, place),
+        Some(Admitted::Worker(connection, deadline)) => {
+            // A worker takes no robot place; its registration shares the handshake budget.
+            super::workers::serve(connection, unauthenticated, context, gate, deadline, stop).await;
+            return;
+        }
+        None => return,
     };
     drop(unauthenticated);
     tracing::debug!(%remote, robot = context.robots.name(robot), "robot connected");
@@ -133,13 +139,22 @@ pub(super) async fn serve(
     }
 }
 
+/// What a connection turned out to be.
+enum Admitted {
+    /// A robot that sent a valid `Hello`, with its place among the authenticated connections.
+    Robot(Connection, RobotId, OwnedSemaphorePermit),
+    /// A connection with ALPN `kairos-worker/1`: it must register by the deadline.
+    Worker(Connection, Instant),
+}
+
 /// The handshake and `Hello`, both within `hello_timeout_ms` of the first packet: the connection,
-/// its robot and its place among the authenticated connections, or `None` after closing it.
+/// its robot and its place among the authenticated connections, or `None` after closing it. A
+/// worker connection (by its ALPN) is returned after the handshake, for `workers::serve`.
 async fn admit(
     incoming: quinn::Incoming,
     context: &ServerContext,
     gate: &Gate,
-) -> Option<(Connection, RobotId, OwnedSemaphorePermit)> {
+) -> Option<Admitted> {
     let deadline = Instant::now() + context.connections.hello_timeout();
     let remote = incoming.remote_address();
     let connecting = match incoming.accept() {
@@ -169,8 +184,11 @@ async fn admit(
             return None;
         }
     };
+    if is_worker(&connection) {
+        return Some(Admitted::Worker(connection, deadline));
+    }
     match tokio::time::timeout_at(deadline, hello(&connection, context, gate)).await {
-        Ok(Ok((robot, place))) => Some((connection, robot, place)),
+        Ok(Ok((robot, place))) => Some(Admitted::Robot(connection, robot, place)),
         Ok(Err((code, reason))) => {
             connection.close(VarInt::from_u32(code), reason.as_bytes());
             None
@@ -183,6 +201,15 @@ async fn admit(
             None
         }
     }
+}
+
+/// Whether the handshake chose the worker protocol's ALPN.
+fn is_worker(connection: &Connection) -> bool {
+    connection
+        .handshake_data()
+        .and_then(|data| data.downcast::<quinn::crypto::rustls::HandshakeData>().ok())
+        .and_then(|data| data.protocol)
+        .is_some_and(|alpn| alpn == kairos_sdk::protocol::worker::WORKER_ALPN)
 }
 
 /// The `Hello`/`Welcome` exchange on the connection's first stream. A source over its budget

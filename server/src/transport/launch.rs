@@ -169,6 +169,12 @@ pub async fn start(
         });
     }
     let (robots, tokens_file) = resolve_robots(config)?;
+    let worker_token_hash = if config.workers.enabled {
+        let token = crate::data_dir::DataDir::new(&config.data_dir).worker_token_or_generate()?;
+        Some(crate::config::hash_token(&token))
+    } else {
+        None
+    };
     let identity = super::tls::load_or_generate(config)?;
 
     // Configured plugins first, so that policies passed in by the caller shadow them.
@@ -251,6 +257,10 @@ pub async fn start(
         actions.clone(),
         DriverConfig {
             refetch_timeout: config.scheduler.refetch_timeout(),
+            redispatch: crate::driver::RedispatchRule {
+                max_attempts: config.workers.max_attempts,
+                within: config.workers.redispatch_within(),
+            },
             metrics: metrics.clone(),
             ..DriverConfig::default()
         },
@@ -271,6 +281,10 @@ pub async fn start(
         driver: driver.clone(),
         model: model.clone(),
         connections: config.connections.clone(),
+        workers: super::workers::WorkerGate {
+            token_hash: worker_token_hash,
+            config: config.workers.clone(),
+        },
     });
     let openpi_task = openpi_listener.map(|listener| {
         tokio::spawn(crate::openpi::run(

@@ -38,6 +38,7 @@ mod admit;
 mod connection;
 pub mod launch;
 pub mod tls;
+pub mod workers;
 
 use std::collections::HashMap;
 use std::future::Future;
@@ -118,6 +119,8 @@ pub struct ServerContext {
     pub model: ModelInfo,
     /// Connection limits.
     pub connections: ConnectionsConfig,
+    /// Remote engine workers: their token and `[workers]`.
+    pub workers: workers::WorkerGate,
 }
 
 impl ServerContext {

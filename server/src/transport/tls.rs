@@ -142,7 +142,8 @@ impl ServerIdentity {
         })
     }
 
-    /// The QUIC server crypto: TLS 1.3 only, ALPN `kairos/1`, 0-RTT with single-use tickets
+    /// The QUIC server crypto: TLS 1.3 only, ALPN `kairos/1` (robots) and `kairos-worker/1`
+    /// (remote engine workers, refused unless `[workers] enabled`), 0-RTT with single-use tickets
     /// (see the module docs). `sessions` bounds the resumption cache (one entry per ticket).
     pub fn quic_crypto(
         &self,
@@ -153,7 +154,10 @@ impl ServerIdentity {
             .with_protocol_versions(&[&rustls::version::TLS13])?
             .with_no_client_auth()
             .with_single_cert(self.cert_chain.clone(), self.key.clone_key())?;
-        tls.alpn_protocols = vec![kairos_sdk::protocol::ALPN.to_vec()];
+        tls.alpn_protocols = vec![
+            kairos_sdk::protocol::ALPN.to_vec(),
+            kairos_sdk::protocol::worker::WORKER_ALPN.to_vec(),
+        ];
         // QUIC allows only 0 or u32::MAX; MAX enables 0-RTT.
         tls.max_early_data_size = u32::MAX;
         // Stateful resumption: single-use tickets are what makes 0-RTT replay-safe.

@@ -16,3 +16,4 @@ mod plugin_containment;
 mod plugin_reload;
 mod plugin_twins;
 mod predict;
+mod workers;

@@ -22,3 +22,4 @@ mod sim_runner_agreement;
 mod sim_vs_live;
 mod smolvla_served;
 mod uploads;
+mod workers;

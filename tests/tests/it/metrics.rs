@@ -77,14 +77,15 @@ async fn metrics_count_a_round_and_ready_flips_on_shutdown() {
             "{family}:\n{before}"
         );
     }
-    // Labelled families appear with their first series (a re-dispatch, a worker, a configured
-    // plugin); this server has none, and prometheus-client writes no empty family.
-    for family in [
-        "kairos_redispatch",
-        "kairos_worker_rtt_seconds",
-        "kairos_plugin_fallbacks",
-    ] {
+    // Labelled families appear with their first series (a worker, a configured plugin); this
+    // server has none, and prometheus-client writes no empty family. The re-dispatch reasons
+    // are declared at zero by the driver from the start.
+    for family in ["kairos_worker_rtt_seconds", "kairos_plugin_fallbacks"] {
         assert!(!before.contains(family), "{family}:\n{before}");
+    }
+    for reason in ["connection_lost", "stream_reset", "deadline", "gone"] {
+        let series = format!("kairos_redispatch_total{{reason=\"{reason}\"}}");
+        assert_eq!(sample(&before, &series), Some(0.0), "{series}:\n{before}");
     }
     assert_eq!(
         sample(&before, r#"kairos_workers{tier="edge",state="ready"}"#),
