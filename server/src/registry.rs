@@ -356,7 +356,10 @@ mod tests {
     fn every_native_name_resolves_through_its_registry() {
         let horizons = HorizonRegistry::natives();
         let names: Vec<&str> = horizons.names().collect();
-        assert_eq!(names, ["load-aware", "spread", "static", "steady", "threshold"]);
+        assert_eq!(
+            names,
+            ["load-aware", "spread", "static", "steady", "threshold"]
+        );
         for native in HorizonKind::NATIVES {
             // `static` requires `h`; the others build with their defaults.
             let params = match native.name {
