@@ -131,41 +131,24 @@ impl Default for PendingColumns {
     }
 }
 
-/// Moves every column between two structs with the same fields (`$a` emptied into `$b`).
-macro_rules! move_columns {
-    ($from:expr => $to:expr) => {
-        move_columns!($from => $to; request, task, round_index, arrived_at_us, task_started_at_us,
+/// Builds a `$to` from every column of `$from`, leaving `$from`'s columns empty (no copy): 0.2.0's
+/// and 0.3.0's `pending-columns` have the same fields.
+macro_rules! take_columns {
+    ($from:expr => $to:ident) => {
+        take_columns!($from => $to; request, task, round_index, arrived_at_us, task_started_at_us,
             skipped, wait_ns, attained_service_ns, queued_ns, last_exec_ns, exec_ends_at_us,
             last_gen_ns, rounds_completed, remaining_rounds, remaining_seconds, present)
     };
-    ($from:expr => $to:expr; $($field:ident),*) => {
-        $( $to.$field = std::mem::take(&mut $from.$field); )*
+    ($from:expr => $to:ident; $($field:ident),*) => {
+        $to { $( $field: std::mem::take(&mut $from.$field), )* }
     };
 }
 
 impl PendingColumns {
     /// The columns as 0.3.0's type, leaving these empty (no copy).
     fn move_to_v0_3(&mut self) -> v0_3::exports::kairos::policy::priority::PendingColumns {
-        let mut out = v0_3::exports::kairos::policy::priority::PendingColumns {
-            request: Vec::new(),
-            task: Vec::new(),
-            round_index: Vec::new(),
-            arrived_at_us: Vec::new(),
-            task_started_at_us: Vec::new(),
-            skipped: Vec::new(),
-            wait_ns: Vec::new(),
-            attained_service_ns: Vec::new(),
-            queued_ns: Vec::new(),
-            last_exec_ns: Vec::new(),
-            exec_ends_at_us: Vec::new(),
-            last_gen_ns: Vec::new(),
-            rounds_completed: Vec::new(),
-            remaining_rounds: Vec::new(),
-            remaining_seconds: Vec::new(),
-            present: Vec::new(),
-        };
-        move_columns!(self.0 => out);
-        out
+        use v0_3::exports::kairos::policy::priority::PendingColumns as V0_3Columns;
+        take_columns!(self.0 => V0_3Columns)
     }
 
     /// Takes the vectors back (keeping their capacity for the next call).
@@ -173,7 +156,8 @@ impl PendingColumns {
         &mut self,
         from: &mut v0_3::exports::kairos::policy::priority::PendingColumns,
     ) {
-        move_columns!(from => self.0);
+        use v0_2::exports::kairos::policy::priority::PendingColumns as V0_2Columns;
+        self.0 = take_columns!(from => V0_2Columns);
     }
 }
 
