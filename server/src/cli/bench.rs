@@ -12,7 +12,7 @@ use kairos_sdk::trace::TraceSet;
 
 use crate::scheduler::PolicySpec;
 use crate::sim::experiment::{self, Experiment, Job, JobResult, Plan, Report, Variant};
-use crate::sim::plugins::{load_user_plugins, plugin_cache_dir};
+use crate::sim::plugins::{UserPluginError, UserPlugins, load_user_plugins, plugin_cache_dir};
 use crate::sim::scale::{DEFAULT_ROBOTS_PER_WORKER, ScalePlan};
 use crate::workload::generate::{self, DYNAMIC, STATIC};
 use crate::workload::{self, Workload};
@@ -90,26 +90,9 @@ pub struct SimArgs {
     /// Robots send the remaining-work hint in the runs of the --policy policies.
     #[arg(long)]
     pub hints: bool,
-    /// A priority-policy plugin (`.wasm` component) to compare with the built-in schedulers in
-    /// the online experiment: rows `F.wasm` (static-horizon traces) and `F.wasm + dyn. horizon`.
-    /// Repeatable.
-    #[arg(long = "priority-plugin", value_name = "F.wasm")]
-    pub priority_plugins: Vec<PathBuf>,
-    /// A horizon-policy plugin (`.wasm` component): every task is also recorded with it choosing
-    /// the horizon, and Algorithm 1 replays that (row `Kairos + F.wasm`, beside `Kairos` with the
-    /// native threshold rule). Repeatable.
-    #[arg(long = "horizon-plugin", value_name = "F.wasm")]
-    pub horizon_plugins: Vec<PathBuf>,
-    /// A parameter handed to every plugin, `name=value` (repeatable).
-    #[arg(long = "param", value_parser = super::parse_param)]
-    pub params: Vec<(String, f64)>,
-    /// The priority plugins' runs re-fetch stale observations (as Algorithm 1 does; off by
-    /// default, as for the baseline schedulers, so a plugin's row shows its ordering alone).
-    #[arg(long)]
-    pub plugin_refetch: bool,
-    /// Precompiled plugin code cache (default: the user's cache directory).
-    #[arg(long, value_name = "DIR")]
-    pub plugin_cache: Option<PathBuf>,
+    /// Users' plugins to compare with the built-in systems.
+    #[command(flatten)]
+    pub plugins: UserPluginArgs,
     /// Seed of arrivals and task picks.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -306,19 +289,13 @@ fn run_sim(a: SimArgs) -> anyhow::Result<()> {
         extra.push(v);
     }
 
-    let cache = plugin_cache_dir(a.plugin_cache.clone());
-    let user = load_user_plugins(
-        &a.priority_plugins,
-        &a.horizon_plugins,
-        &a.params.iter().cloned().collect(),
-        &cache,
-    )?;
-    if a.traces.is_some() && !a.horizon_plugins.is_empty() {
+    let user = a.plugins.load()?;
+    if a.traces.is_some() && !a.plugins.horizon_plugins.is_empty() {
         bail!(
             "--horizon-plugin needs generated traces (a recorded trace file has no rounds chosen by the plugin)"
         );
     }
-    extra.extend(user.variants(a.plugin_refetch));
+    extra.extend(user.variants(a.plugins.plugin_refetch));
 
     let mut workloads = Vec::new();
     let mut traces = Vec::new();
@@ -528,4 +505,41 @@ fn summary_markdown(report: &Report<'_>, a: &SimArgs, threads: usize) -> String 
         s.push_str(&report.scale_table());
     }
     s
+}
+
+/// Users' plugins in `kairos bench sim` and `kairos bench live`: loaded into the same policy
+/// registries as the built-ins and compared beside them.
+#[derive(Debug, Clone, clap::Args)]
+pub struct UserPluginArgs {
+    /// A priority-policy plugin (`.wasm` component) to compare with the built-in schedulers:
+    /// systems `F.wasm` (static-horizon traces) and `F.wasm + dyn. horizon`. Repeatable.
+    #[arg(long = "priority-plugin", value_name = "F.wasm")]
+    pub priority_plugins: Vec<PathBuf>,
+    /// A horizon-policy plugin (`.wasm` component): every task is also recorded with it choosing
+    /// the horizon, and Algorithm 1 replays that (system `Kairos + F.wasm`, beside `Kairos` with
+    /// the native threshold rule). Repeatable.
+    #[arg(long = "horizon-plugin", value_name = "F.wasm")]
+    pub horizon_plugins: Vec<PathBuf>,
+    /// A parameter handed to every plugin, `name=value` (repeatable).
+    #[arg(long = "param", value_parser = super::parse_param)]
+    pub params: Vec<(String, f64)>,
+    /// The priority plugins' runs re-fetch stale observations (as Algorithm 1 does; off by
+    /// default, as for the baseline schedulers, so a plugin's system shows its ordering alone).
+    #[arg(long)]
+    pub plugin_refetch: bool,
+    /// Precompiled plugin code cache (default: the user's cache directory).
+    #[arg(long, value_name = "DIR")]
+    pub plugin_cache: Option<PathBuf>,
+}
+
+impl UserPluginArgs {
+    /// Loads and checks every plugin named.
+    pub fn load(&self) -> Result<UserPlugins, UserPluginError> {
+        load_user_plugins(
+            &self.priority_plugins,
+            &self.horizon_plugins,
+            &self.params.iter().cloned().collect(),
+            &plugin_cache_dir(self.plugin_cache.clone()),
+        )
+    }
 }

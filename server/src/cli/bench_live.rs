@@ -16,7 +16,6 @@ use crate::live_replay::{
     relative_diff, run_live, scale_traces, simulate_scaled, start_replay_server, variant,
 };
 use crate::sim::experiment::{Job, JobResult, Report, Variant};
-use crate::sim::plugins::{load_user_plugins, plugin_cache_dir};
 use crate::workload::Workload;
 
 /// `kairos bench live`
@@ -82,26 +81,9 @@ pub struct LiveArgs {
     /// first of `--variants`, print how to connect, and wait for Ctrl-C.
     #[arg(long, conflicts_with = "server")]
     pub serve: Option<SocketAddr>,
-    /// A priority-policy plugin (`.wasm` component) to run beside the built-in systems: the
-    /// systems `F.wasm` (static-horizon traces) and `F.wasm + dyn. horizon`, as in
-    /// `kairos bench sim`. Repeatable.
-    #[arg(long = "priority-plugin", value_name = "F.wasm")]
-    pub priority_plugins: Vec<PathBuf>,
-    /// A horizon-policy plugin (`.wasm` component): tasks are also recorded with it choosing
-    /// the horizon, and the system `Kairos + F.wasm` replays them, as in `kairos bench sim`.
-    /// Repeatable.
-    #[arg(long = "horizon-plugin", value_name = "F.wasm")]
-    pub horizon_plugins: Vec<PathBuf>,
-    /// A parameter handed to every plugin, `name=value` (repeatable).
-    #[arg(long = "param", value_parser = super::parse_param)]
-    pub params: Vec<(String, f64)>,
-    /// The priority plugins' runs re-fetch stale observations (off by default, as in
-    /// `kairos bench sim`).
-    #[arg(long)]
-    pub plugin_refetch: bool,
-    /// Precompiled plugin code cache (default: the user's cache directory).
-    #[arg(long, value_name = "DIR")]
-    pub plugin_cache: Option<PathBuf>,
+    /// Users' plugins to run beside the built-in systems, as in `kairos bench sim`.
+    #[command(flatten)]
+    pub plugins: super::bench::UserPluginArgs,
 }
 
 /// Runs `kairos bench live`.
@@ -112,12 +94,7 @@ pub fn run(args: LiveArgs) -> anyhow::Result<()> {
     }
     // Users' plugins, loaded and registered exactly as `kairos bench sim` does it; the server
     // of every live run and its simulation resolve policies in the same registries.
-    let user = load_user_plugins(
-        &args.priority_plugins,
-        &args.horizon_plugins,
-        &args.params.iter().cloned().collect(),
-        &plugin_cache_dir(args.plugin_cache.clone()),
-    )?;
+    let user = args.plugins.load()?;
     let (w, set) = load(
         &args.workload,
         args.traces.as_deref(),
@@ -134,7 +111,7 @@ pub fn run(args: LiveArgs) -> anyhow::Result<()> {
         .iter()
         .map(|key| variant(key.trim()))
         .collect::<anyhow::Result<Vec<_>>>()?;
-    variants.extend(user.variants(args.plugin_refetch));
+    variants.extend(user.variants(args.plugins.plugin_refetch));
     // A run's job, with the users' plugins registered.
     let job_for = |v: &Variant, rate: f64, tasks: usize, seed: u64, k: f64| {
         let mut job = live_job(&w, v, rate, tasks, seed, k);
