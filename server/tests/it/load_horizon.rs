@@ -9,54 +9,13 @@ use std::time::Duration;
 
 use kairos_server::horizon::load_aware::LoadAware;
 use kairos_server::horizon::threshold::Threshold;
-use kairos_server::horizon::{HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
-use kairos_server::plugin::cache::CodeCache;
+use kairos_server::horizon::{HorizonPolicy, PolicyParams};
 use kairos_server::plugin::conformance::horizon_cases;
-use kairos_server::plugin::{PluginOptions, PluginSource, WasmHorizonPolicy};
 use kairos_server::scheduler::ServerLoad;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-use crate::plugin_common::{repo_root, shipped_plugin};
-
-/// A fallback that must never answer: the plugin itself is under test.
-struct Unreachable;
-
-impl HorizonPolicy for Unreachable {
-    fn name(&self) -> &str {
-        "unreachable"
-    }
-    fn choose(&mut self, _: &HorizonInput<'_>) -> Result<usize, HorizonError> {
-        panic!("the fallback answered: the plugin failed")
-    }
-}
-
-fn plugin(name: &str) -> WasmHorizonPolicy {
-    WasmHorizonPolicy::load(
-        &PluginSource::File(shipped_plugin(name)),
-        PluginOptions {
-            // Equality, not speed, is under test.
-            deadline: Duration::from_secs(5),
-            reload_poll: None,
-            cache: Some(CodeCache::open(repo_root().join("plugins/build/cache")).unwrap()),
-            ..PluginOptions::horizon()
-        },
-        Box::new(Unreachable),
-    )
-    .unwrap_or_else(|e| panic!("{name}: {e}"))
-}
-
-fn same_answer(native: &Result<usize, HorizonError>, plugin: &Result<usize, HorizonError>) -> bool {
-    match (native, plugin) {
-        (Ok(a), Ok(b)) => a == b,
-        (
-            Err(HorizonError::InvalidParam { name: a, .. }),
-            Err(HorizonError::InvalidParam { name: b, .. }),
-        ) => a == b,
-        (Err(HorizonError::Unsupported(_)), Err(HorizonError::Unsupported(_))) => true,
-        _ => false,
-    }
-}
+use crate::plugin_common::{horizon_plugin, same_answer};
 
 /// A load whose backlog lasts about `actions` actions at `hz`, give or take a fraction (so the
 /// ceiling is exercised), or none.
@@ -73,7 +32,7 @@ fn load_lasting(rng: &mut StdRng, actions: u32, hz: f32) -> Option<ServerLoad> {
 
 #[test]
 fn load_aware_plugin_matches_its_native_twin() {
-    let mut wasm = plugin("load_aware");
+    let mut wasm = horizon_plugin("load_aware");
     assert_eq!(wasm.meta().version.to_string(), "0.3.0");
     let mut rng = StdRng::seed_from_u64(21);
     let (mut decided, mut lengthened) = (0, 0);
@@ -148,7 +107,7 @@ fn plugins_of_older_versions_ignore_the_load_and_answer_as_before() {
     // threshold.wasm is built for 0.2.0, fifo_v0_1.wasm for 0.1.0 (the latter's loading and
     // answers are checked in plugin_twins). A 0.2.0 horizon plugin cannot see the load: its
     // answer is the native threshold rule's with or without one.
-    let mut wasm = plugin("threshold");
+    let mut wasm = horizon_plugin("threshold");
     assert_eq!(wasm.meta().version.to_string(), "0.2.0");
     let mut native = Threshold::default();
     let mut rng = StdRng::seed_from_u64(22);

@@ -11,85 +11,18 @@ use std::time::Duration;
 use kairos_server::horizon::fixed::StaticHorizon;
 use kairos_server::horizon::steady::Steady;
 use kairos_server::horizon::threshold::Threshold;
-use kairos_server::horizon::{HorizonError, HorizonPolicy, PolicyParams};
-use kairos_server::plugin::cache::CodeCache;
+use kairos_server::horizon::{HorizonPolicy, PolicyParams};
 use kairos_server::plugin::conformance::{HorizonCase, UpdateShape, horizon_case, horizon_cases};
-use kairos_server::plugin::{
-    FailureKind, PluginOptions, PluginSource, WasmHorizonPolicy, WasmPriorityPolicy,
-};
+use kairos_server::plugin::{FailureKind, PluginOptions, PluginSource, WasmPriorityPolicy};
 use kairos_server::scheduler::{
-    FinishedTask, PendingView, PolicyError, PolicySpec, PriorityPolicy, RemainingWork, RequestId,
-    TaskId, build_policy,
+    FinishedTask, PendingView, PolicySpec, PriorityPolicy, RemainingWork, RequestId, TaskId,
+    build_policy,
 };
 use kairos_server::time::Timestamp;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-use crate::plugin_common::{repo_root, shipped_plugin};
-
-fn options(base: PluginOptions) -> PluginOptions {
-    let cache = repo_root().join("plugins/build/cache");
-    PluginOptions {
-        // Equality, not speed, is under test: generous limits so a loaded machine cannot
-        // turn a slow call into a fallback answer.
-        deadline: Duration::from_secs(5),
-        memory_limit: 256 << 20,
-        reload_poll: None,
-        cache: Some(CodeCache::open(cache).expect("plugin cache")),
-        ..base
-    }
-}
-
-/// A horizon policy that must never be asked: equality tests compare the plugin itself.
-struct Unreachable;
-
-impl HorizonPolicy for Unreachable {
-    fn name(&self) -> &str {
-        "unreachable"
-    }
-    fn choose(
-        &mut self,
-        _: &kairos_server::horizon::HorizonInput<'_>,
-    ) -> Result<usize, HorizonError> {
-        panic!("the fallback answered: the plugin failed")
-    }
-}
-
-impl PriorityPolicy for Unreachable {
-    fn name(&self) -> &str {
-        "unreachable"
-    }
-    fn order(
-        &mut self,
-        _: Timestamp,
-        _: &[PendingView],
-        _: &mut Vec<usize>,
-    ) -> Result<(), PolicyError> {
-        panic!("the fallback answered: the plugin failed")
-    }
-}
-
-fn horizon_plugin(name: &str) -> WasmHorizonPolicy {
-    WasmHorizonPolicy::load(
-        &PluginSource::File(shipped_plugin(name)),
-        options(PluginOptions::horizon()),
-        Box::new(Unreachable),
-    )
-    .unwrap_or_else(|e| panic!("{name}: {e}"))
-}
-
-/// Errors agree when they are the same kind about the same parameter; messages are prose.
-fn same_answer(native: &Result<usize, HorizonError>, plugin: &Result<usize, HorizonError>) -> bool {
-    match (native, plugin) {
-        (Ok(a), Ok(b)) => a == b,
-        (
-            Err(HorizonError::InvalidParam { name: a, .. }),
-            Err(HorizonError::InvalidParam { name: b, .. }),
-        ) => a == b,
-        (Err(HorizonError::Unsupported(_)), Err(HorizonError::Unsupported(_))) => true,
-        _ => false,
-    }
-}
+use crate::plugin_common::{Unreachable, horizon_plugin, options, same_answer, shipped_plugin};
 
 /// Random chunks whose convergence varies along the chunk, so `H_thresh` lands anywhere.
 fn threshold_inputs(seed: u64, count: usize) -> Vec<HorizonCase> {

@@ -8,9 +8,15 @@
 #![allow(dead_code)]
 
 use std::path::PathBuf;
+use std::time::Duration;
 
+use kairos_server::horizon::{HorizonError, HorizonInput, HorizonPolicy};
 use kairos_server::plugin::PluginKind;
+use kairos_server::plugin::cache::CodeCache;
 use kairos_server::plugin::componentize::componentize;
+use kairos_server::plugin::{PluginOptions, PluginSource, WasmHorizonPolicy};
+use kairos_server::scheduler::{PendingView, PolicyError, PriorityPolicy};
+use kairos_server::time::Timestamp;
 
 /// The repository root.
 pub fn repo_root() -> PathBuf {
@@ -211,4 +217,72 @@ pub fn wit_with_version(version: &str) -> String {
     kairos_server::plugin::componentize::WIT_SOURCES[0]
         .1
         .replace("kairos:policy@0.1.0", &format!("kairos:policy@{version}"))
+}
+
+// Equality tests of shipped plugins against their native twins (plugin_twins, load_horizon).
+
+/// Plugin options for equality tests.
+pub fn options(base: PluginOptions) -> PluginOptions {
+    let cache = repo_root().join("plugins/build/cache");
+    PluginOptions {
+        // Equality, not speed, is under test: generous limits so a loaded machine cannot
+        // turn a slow call into a fallback answer.
+        deadline: Duration::from_secs(5),
+        memory_limit: 256 << 20,
+        reload_poll: None,
+        cache: Some(CodeCache::open(cache).expect("plugin cache")),
+        ..base
+    }
+}
+
+/// A horizon policy that must never be asked: equality tests compare the plugin itself.
+pub struct Unreachable;
+
+impl HorizonPolicy for Unreachable {
+    fn name(&self) -> &str {
+        "unreachable"
+    }
+    fn choose(&mut self, _: &HorizonInput<'_>) -> Result<usize, HorizonError> {
+        panic!("the fallback answered: the plugin failed")
+    }
+}
+
+impl PriorityPolicy for Unreachable {
+    fn name(&self) -> &str {
+        "unreachable"
+    }
+    fn order(
+        &mut self,
+        _: Timestamp,
+        _: &[PendingView],
+        _: &mut Vec<usize>,
+    ) -> Result<(), PolicyError> {
+        panic!("the fallback answered: the plugin failed")
+    }
+}
+
+/// Loads the shipped horizon plugin `name`, with a fallback that must never answer.
+pub fn horizon_plugin(name: &str) -> WasmHorizonPolicy {
+    WasmHorizonPolicy::load(
+        &PluginSource::File(shipped_plugin(name)),
+        options(PluginOptions::horizon()),
+        Box::new(Unreachable),
+    )
+    .unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+/// Errors agree when they are the same kind about the same parameter; messages are prose.
+pub fn same_answer(
+    native: &Result<usize, HorizonError>,
+    plugin: &Result<usize, HorizonError>,
+) -> bool {
+    match (native, plugin) {
+        (Ok(a), Ok(b)) => a == b,
+        (
+            Err(HorizonError::InvalidParam { name: a, .. }),
+            Err(HorizonError::InvalidParam { name: b, .. }),
+        ) => a == b,
+        (Err(HorizonError::Unsupported(_)), Err(HorizonError::Unsupported(_))) => true,
+        _ => false,
+    }
 }
