@@ -36,6 +36,10 @@ k8s_log=$(mktemp)
 bash scripts/validate-k8s.sh >"$k8s_log" 2>&1 &
 k8s_pid=$!
 
+# The Python extension must resolve the workspace's features, or its pip install below compiles
+# dozens of crates a second time (scripts/check-python-features.sh says which to add).
+bash scripts/check-python-features.sh
+
 # One build of the whole workspace with the test feature set; the plugins are built with the
 # kairos binary it produced (the integration tests need it), so nothing compiles twice.
 cargo test --workspace --locked --no-run
