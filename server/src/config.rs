@@ -952,6 +952,11 @@ mod tests {
             "relative checkpoint paths resolve against the config file's directory"
         );
         assert_eq!(c.engines[0].model, "builtin:tiny");
+        // A `horizon-flow:DIR` model keeps its prefix; its directory resolves like a checkpoint.
+        let mut h = c.clone();
+        h.engines[1].model = "horizon-flow:horizon/model".into();
+        h.resolve_paths(Path::new("/etc/kairos"));
+        assert_eq!(h.engines[1].model, "horizon-flow:/etc/kairos/horizon/model");
         assert_eq!(
             c.engines[0].options().unwrap(),
             EngineOptions {
