@@ -9,9 +9,9 @@ use anyhow::{Context, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
+use crate::horizon_bench::live::{LiveSetup, remove_scratch, run_live_bench, scratch_data_dir};
 use crate::horizon_bench::model::{FlowPolicy, TrainConfig, train};
 use crate::horizon_bench::signals;
-use crate::horizon_bench::live::{LiveSetup, remove_scratch, run_live_bench, scratch_data_dir};
 use crate::horizon_bench::{
     BenchPlan, PolicyPoint, action_manager, builtin_points, episodes_csv, markdown_table,
     pareto_csv, run_bench,

@@ -20,8 +20,8 @@
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use kairos_sdk::client::{Client, NoRefetch, RoundRequest};
 use kairos_sdk::protocol::{HorizonSelection, Observation, TaskOutcome, Tensor};
@@ -232,10 +232,8 @@ pub async fn run_live_episode(
                     flat.len()
                 )));
             }
-            let actions: Vec<Vec<f32>> = flat
-                .chunks_exact(ACTION_DIM)
-                .map(<[f32]>::to_vec)
-                .collect();
+            let actions: Vec<Vec<f32>> =
+                flat.chunks_exact(ACTION_DIM).map(<[f32]>::to_vec).collect();
             exec.reply_arrived(round, actions);
             out.calls += 1;
             out.horizon_sum += h as u64;

@@ -187,7 +187,10 @@ fn live_and_in_process_episodes_agree() {
     );
     let rows: Vec<&str> = episodes.lines().skip(1).collect();
     assert_eq!(rows.len(), 4 * 6, "{episodes}");
-    assert!(rows.iter().any(|r| r.starts_with("threshold.wasm,t=0.2,41,")));
+    assert!(
+        rows.iter()
+            .any(|r| r.starts_with("threshold.wasm,t=0.2,41,"))
+    );
     // The policies chose differently (the comparison is not between identical trivia).
     let horizons: std::collections::BTreeSet<&str> =
         rows.iter().map(|r| r.rsplit(',').next().unwrap()).collect();
