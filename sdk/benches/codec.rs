@@ -35,6 +35,7 @@ fn submit() -> Submit {
         remaining: None,
         attempt: 0,
         control_hz: None,
+        seed: None,
     }
 }
 

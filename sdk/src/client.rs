@@ -375,6 +375,8 @@ pub struct RoundRequest {
     /// The robot's control rate, Hz, if known: lets the server account the execution of the
     /// chunk it answers on a task's first round, before any `last_exec` reports the rate.
     pub control_hz: Option<f32>,
+    /// Seed of the sampler noise; `None` = the server derives it from task and round.
+    pub seed: Option<u64>,
 }
 
 impl RoundRequest {
@@ -386,6 +388,7 @@ impl RoundRequest {
             horizon: None,
             remaining: None,
             control_hz: None,
+            seed: None,
         }
     }
 }
@@ -961,6 +964,7 @@ impl Task {
             remaining: request.remaining,
             attempt: 0,
             control_hz: request.control_hz,
+            seed: request.seed,
         };
         let sent_at_us = submit.sent_at_us;
         let mut refetches = 0;

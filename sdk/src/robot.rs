@@ -705,6 +705,7 @@ impl<R: Robot, T: RoundTransport, E: FnMut(&RunnerEvent) + Send> Run<'_, R, T, E
                 seconds: None,
             }),
             control_hz: Some(self.config.control_hz),
+            seed: None,
         };
         let refetch = self.config.refetch;
         let requests = self.fetch_tx.clone();

@@ -254,6 +254,7 @@ fn driver(c: &mut Criterion) {
                         remaining: None,
                         attempt: 0,
                         control_hz: None,
+                        seed: None,
                     };
                     let valid = validator
                         .submit(submit, RobotId(0), &actions, clock)

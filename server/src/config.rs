@@ -275,8 +275,8 @@ impl PluginConfig {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct EngineConfig {
-    /// `builtin` (the engine crate's default built-in model), `builtin:<preset>`, or a path to a
-    /// checkpoint.
+    /// `builtin` (the engine crate's default built-in model), `builtin:<preset>`, a path to a
+    /// checkpoint, or `horizon-flow:DIR` (`kairos bench horizon`'s policy, saved in `DIR`).
     pub model: String,
     /// Edge (co-located) or cloud.
     pub tier: Tier,
@@ -596,7 +596,12 @@ impl Config {
             if let Some(p) = engine.profile.as_mut() {
                 resolve(p);
             }
-            if !engine.model.starts_with("builtin") {
+            let prefix = crate::horizon_bench::served::HORIZON_FLOW_PREFIX;
+            if let Some(dir) = engine.model.strip_prefix(prefix) {
+                let mut p = PathBuf::from(dir);
+                resolve(&mut p);
+                engine.model = format!("{prefix}{}", p.to_string_lossy());
+            } else if !engine.model.starts_with("builtin") {
                 let mut p = PathBuf::from(&engine.model);
                 resolve(&mut p);
                 engine.model = p.to_string_lossy().into_owned();
@@ -947,6 +952,11 @@ mod tests {
             "relative checkpoint paths resolve against the config file's directory"
         );
         assert_eq!(c.engines[0].model, "builtin:tiny");
+        // A `horizon-flow:DIR` model keeps its prefix; its directory resolves like a checkpoint.
+        let mut h = c.clone();
+        h.engines[1].model = "horizon-flow:horizon/model".into();
+        h.resolve_paths(Path::new("/etc/kairos"));
+        assert_eq!(h.engines[1].model, "horizon-flow:/etc/kairos/horizon/model");
         assert_eq!(
             c.engines[0].options().unwrap(),
             EngineOptions {

@@ -300,6 +300,7 @@ pub fn image(data: &[u8]) -> bool {
         remaining: None,
         control_hz: None,
         attempt: 0,
+        seed: None,
     };
     let validator = validator();
     let Ok(valid) = validator.submit(submit, RobotId(1), actions(), clock(1_000)) else {

@@ -360,7 +360,11 @@ impl Validator {
         }
         let mut observation = observation;
         observation.request.samples = samples;
-        observation.request.seed = round_seed(submit.task, submit.round);
+        // The client's own sampler seed when it sent one (reproducible evaluation), else the
+        // fixed mix of task and round.
+        observation.request.seed = submit
+            .seed
+            .unwrap_or_else(|| round_seed(submit.task, submit.round));
         Ok(ValidSubmit {
             round: RoundSubmit {
                 task: TaskId(submit.task),
@@ -651,6 +655,7 @@ mod tests {
             remaining: None,
             attempt: 0,
             control_hz: None,
+            seed: None,
         }
     }
 
@@ -729,6 +734,13 @@ mod tests {
         assert_eq!(v.observation.request.state, vec![1.0, 2.0, 3.0]);
         assert_eq!(v.observation.request.seed, round_seed(5, 2));
         assert_ne!(round_seed(5, 2), round_seed(5, 3));
+        // A client's own sampler seed wins over the derived one.
+        let seeded = check(Submit {
+            seed: Some(77),
+            ..submit()
+        })
+        .unwrap();
+        assert_eq!(seeded.observation.request.seed, 77);
         assert_eq!(v.samples, 1);
         assert_eq!(v.policy.policy.name(), "threshold");
         assert_eq!(v.control_hz, Some(50.0));

@@ -571,6 +571,7 @@ impl Client {
                 remaining: None,
                 // The server accounts the first chunk's execution at this rate (no last_exec yet).
                 control_hz: Some(task.executor.control_hz()),
+                seed: None,
             },
             id,
             source: Refetch {

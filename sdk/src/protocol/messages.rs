@@ -352,6 +352,12 @@ pub struct Submit {
     /// is no `last_exec` to take the rate from. `last_exec.control_hz` wins when both are sent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub control_hz: Option<f32>,
+    /// Seed of the round's sampler noise, when the client wants to choose it (reproducible
+    /// evaluation: `kairos bench horizon --live` sends the noise its in-process mode draws);
+    /// absent = derived by the server from `task` and `round`. A resent round sends the same
+    /// seed, so it reproduces its chunk either way.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub seed: Option<u64>,
 }
 
 fn is_zero(value: &u32) -> bool {

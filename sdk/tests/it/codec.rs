@@ -178,6 +178,9 @@ fn message() -> impl Strategy<Value = Message> {
                     remaining,
                     attempt,
                     control_hz: None,
+                    // The optional sampler seed round-trips when present and stays absent when
+                    // not.
+                    seed: (ids[0] % 3 == 0).then_some(ids[1] ^ ids[2]),
                 })
             },
         );
@@ -343,6 +346,7 @@ fn small_submit() -> Submit {
         remaining: None,
         attempt: 0,
         control_hz: None,
+        seed: None,
     }
 }
 

@@ -62,7 +62,7 @@ pub fn run(args: ProfileArgs) -> anyhow::Result<()> {
         PathBuf::from("profiles").join(format!("{}.json", builtin::model_slug(&args.model)))
     });
 
-    let model = builtin::resolve_model(&args.model, &options)
+    let model = crate::pool::resolve_model(&args.model, &options)
         .with_context(|| format!("loading model `{}`", args.model))?;
     let device_desc = match device {
         DeviceKind::Cpu => format!("{} ({})", cpu_name(), options.describe()?),

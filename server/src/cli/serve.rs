@@ -38,8 +38,8 @@ pub struct ServeArgs {
     /// Data directory, overriding the file's `data_dir`.
     #[arg(long)]
     pub data_dir: Option<PathBuf>,
-    /// The engine's model (`builtin`, `builtin:smolvla-random`, or a checkpoint directory),
-    /// overriding the file's. Its profile is then measured at start. With several `[[engine]]`
+    /// The engine's model (`builtin`, `builtin:smolvla-random`, a checkpoint directory, or
+    /// `horizon-flow:DIR`: the closed-loop bench's policy), overriding the file's. Its profile is then measured at start. With several `[[engine]]`
     /// tables in the file, set it there instead.
     #[arg(long)]
     pub model: Option<String>,

@@ -104,6 +104,7 @@ impl Bench {
             remaining: None,
             attempt: 0,
             control_hz: None,
+            seed: None,
         };
         self.validator
             .submit(submit, RobotId(robot), &self.actions, self.clock)

@@ -198,6 +198,7 @@ fn wire_submit(
         remaining: None,
         attempt: 0,
         control_hz: None,
+        seed: None,
     }
 }
 

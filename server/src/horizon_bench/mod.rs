@@ -16,7 +16,9 @@
 //! [`env::EnvConfig::control_hz`].
 
 pub mod env;
+pub mod live;
 pub mod model;
+pub mod served;
 pub mod signals;
 
 use std::fmt::Write as _;
@@ -49,6 +51,9 @@ pub enum BenchError {
     /// The executor had no action to run (a bug: every reply carries at least one).
     #[error("episode {0}: no action to execute")]
     NoAction(u64),
+    /// `--live`: the loopback server, the connection or a round failed.
+    #[error("live: {0}")]
+    Live(String),
 }
 
 /// One horizon policy under test: a name in the horizon registry and its parameters.
@@ -204,8 +209,14 @@ pub(crate) fn noise_seed(episode: u64, call: u32) -> u64 {
         .wrapping_add(u64::from(call))
 }
 
-/// Horizons remembered per episode for `HorizonInput::recent_horizons` (as the server does).
-const RECENT: usize = 8;
+/// Horizons remembered per episode for `HorizonInput::recent_horizons`: as many as the server
+/// keeps per task, so a policy that reads them decides alike in-process and `--live`.
+const RECENT: usize = crate::lifecycle::RECENT_HORIZONS;
+
+/// The horizon policy that answers when the one under test fails (and the default when a
+/// request names none): the native §3.1 rule with its default parameters, in-process and on the
+/// `--live` server alike.
+pub const FALLBACK_POLICY: &str = "threshold";
 
 /// Runs episode `seed` with `policy` choosing horizons through `manager`.
 pub fn run_episode(
@@ -279,6 +290,9 @@ pub struct PointResult {
     pub calls_per_episode: f64,
     /// Control steps per episode.
     pub mean_steps: f64,
+    /// Every episode's outcome, in the order summarised (for the bench's policies: episode
+    /// seed order).
+    pub outcomes: Vec<Episode>,
 }
 
 impl PointResult {
@@ -327,10 +341,42 @@ pub fn action_manager(extra: HorizonRegistry) -> Result<ActionManager, BenchErro
     ActionManager::new(
         extra,
         &native_horizon_policies(),
-        "threshold",
+        FALLBACK_POLICY,
         PolicyParams::new(),
     )
     .map_err(|e| BenchError::Setup(e.to_string()))
+}
+
+/// The jobs of `plan`, `(policy index, episode index)`, in plan order: every policy's episodes
+/// in seed order.
+pub(crate) fn plan_jobs(plan: &BenchPlan) -> Vec<(usize, u64)> {
+    (0..plan.points.len())
+        .flat_map(|p| (0..plan.episodes as u64).map(move |e| (p, e)))
+        .collect()
+}
+
+/// Summarises the outcomes of [`plan_jobs`]' jobs (one slot each, in the same order) per policy.
+pub(crate) fn gather(
+    plan: &BenchPlan,
+    slots: Vec<Option<Result<Episode, BenchError>>>,
+) -> Result<Vec<PointResult>, BenchError> {
+    let mut out = Vec::with_capacity(plan.points.len());
+    let mut slots = slots.into_iter();
+    for point in &plan.points {
+        let mut episodes = Vec::with_capacity(plan.episodes);
+        for slot in slots.by_ref().take(plan.episodes) {
+            match slot {
+                Some(Ok(e)) => episodes.push(e),
+                Some(Err(e)) => return Err(e),
+                None => return Err(BenchError::Setup("an episode did not run".into())),
+            }
+        }
+        if episodes.len() != plan.episodes {
+            return Err(BenchError::Setup("an episode did not run".into()));
+        }
+        out.push(summarize(point, &episodes));
+    }
+    Ok(out)
 }
 
 /// Runs every policy of `plan` on the same episodes, `on_episode` after each. Results come in
@@ -341,9 +387,7 @@ pub fn run_bench(
     plan: &BenchPlan,
     on_episode: &(dyn Fn() + Sync),
 ) -> Result<Vec<PointResult>, BenchError> {
-    let jobs: Vec<(usize, u64)> = (0..plan.points.len())
-        .flat_map(|p| (0..plan.episodes as u64).map(move |e| (p, e)))
-        .collect();
+    let jobs = plan_jobs(plan);
     let next = AtomicUsize::new(0);
     let results: Mutex<Vec<Option<Result<Episode, BenchError>>>> =
         Mutex::new((0..jobs.len()).map(|_| None).collect());
@@ -362,22 +406,12 @@ pub fn run_bench(
             });
         }
     });
-    let slots = results
-        .into_inner()
-        .unwrap_or_else(|poisoned| poisoned.into_inner());
-    let mut out = Vec::with_capacity(plan.points.len());
-    for (p, point) in plan.points.iter().enumerate() {
-        let mut episodes = Vec::with_capacity(plan.episodes);
-        for slot in &slots[p * plan.episodes..(p + 1) * plan.episodes] {
-            match slot {
-                Some(Ok(e)) => episodes.push(*e),
-                Some(Err(e)) => return Err(BenchError::Setup(e.to_string())),
-                None => return Err(BenchError::Setup("an episode did not run".into())),
-            }
-        }
-        out.push(summarize(point, &episodes));
-    }
-    Ok(out)
+    gather(
+        plan,
+        results
+            .into_inner()
+            .unwrap_or_else(|poisoned| poisoned.into_inner()),
+    )
 }
 
 pub(crate) fn summarize(point: &PolicyPoint, episodes: &[Episode]) -> PointResult {
@@ -393,7 +427,31 @@ pub(crate) fn summarize(point: &PolicyPoint, episodes: &[Episode]) -> PointResul
         mean_chosen: chosen as f64 / calls.max(1) as f64,
         calls_per_episode: calls as f64 / n,
         mean_steps: steps as f64 / n,
+        outcomes: episodes.to_vec(),
     }
+}
+
+/// `episodes.csv`: one row per episode of `results` (the bench's policies, whose outcomes are
+/// in seed order from `first_seed`), to compare runs episode for episode (`--live` against
+/// in-process).
+pub fn episodes_csv(results: &[PointResult], first_seed: u64) -> String {
+    let mut s = String::from("policy,params,seed,success,steps,calls,horizon_sum\n");
+    for r in results {
+        for (i, e) in r.outcomes.iter().enumerate() {
+            let _ = writeln!(
+                s,
+                "{},{},{},{},{},{},{}",
+                r.point.family,
+                r.point.params_text(),
+                first_seed + i as u64,
+                u8::from(e.success),
+                e.steps,
+                e.calls,
+                e.horizon_sum
+            );
+        }
+    }
+    s
 }
 
 /// `pareto.csv`: one row per policy.

@@ -230,7 +230,22 @@ impl FlowPolicy {
 
     /// `samples` chunks for `obs`, drawn in one batch with the engine's sampler from the noise
     /// of `seed` (sample `s` gets `gaussian_noise(seed, s, ..)`, as in the engine).
+    ///
+    /// Runs on a one-thread rayon pool of the calling thread's own ([`on_own_pool`]): Candle
+    /// splits every matmul over the global rayon pool, and for this network's few-row matmuls
+    /// waking the pool's workers costs far more than the arithmetic (9× the bench's wall time
+    /// on a loaded 2-core machine, docs/BENCHMARKS.md). The split is the same, so the chunk is
+    /// the same bit for bit.
     pub fn sample(
+        &self,
+        obs: &[f32; OBS_DIM],
+        samples: usize,
+        seed: u64,
+    ) -> Result<ActionChunk, ModelError> {
+        on_own_pool(|| self.sample_here(obs, samples, seed))
+    }
+
+    fn sample_here(
         &self,
         obs: &[f32; OBS_DIM],
         samples: usize,
@@ -277,6 +292,22 @@ impl FlowPolicy {
             ))
         })
     }
+}
+
+thread_local! {
+    /// This thread's one-thread rayon pool (`None` if it could not be started: then the global
+    /// pool is used).
+    static OWN_POOL: Option<rayon::ThreadPool> =
+        rayon::ThreadPoolBuilder::new().num_threads(1).build().ok();
+}
+
+/// Runs `f` inside the calling thread's one-thread rayon pool, so that the parallel loops inside
+/// it (Candle's matmuls) never wake the global pool.
+fn on_own_pool<T: Send>(f: impl FnOnce() -> T + Send) -> T {
+    OWN_POOL.with(|pool| match pool {
+        Some(pool) => pool.install(f),
+        None => f(),
+    })
 }
 
 /// Demonstrations: `(observation, the next N expert actions)` pairs from `cfg.demos` episodes

@@ -153,6 +153,7 @@ impl Requests {
                 seconds: None,
             }),
             control_hz: Some(self.trace.control_hz),
+            seed: None,
         }
     }
 }

@@ -445,6 +445,7 @@ impl Session {
             // The configured or estimated rate: the task's idle clock then covers the chunk the
             // client executes before its next call, from the first round on.
             control_hz: self.exec.control_hz(),
+            seed: None,
         };
         // The server clock is the "robot" clock here: the identity mapping.
         let identity = ClockMap::new(received, at_us, Duration::ZERO);

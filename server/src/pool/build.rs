@@ -111,7 +111,7 @@ pub fn build_pool(
             source,
         };
         let options = config.options().map_err(failed)?;
-        let model: Arc<dyn ActionModel> = kairos_engine::resolve_model(&config.model, &options)
+        let model: Arc<dyn ActionModel> = resolve_model(&config.model, &options)
             .map_err(failed)?
             .into();
         site_spec.get_or_insert_with(|| model.spec().clone());
@@ -141,6 +141,19 @@ pub fn build_pool(
     }
     let spec = site_spec.ok_or(PoolBuildError::Empty)?;
     Ok(EnginePool::with_spec(spec, instances)?)
+}
+
+/// Loads the model a `model` spec names: `horizon-flow:DIR`, the closed-loop bench's policy
+/// ([`crate::horizon_bench::served`], on the CPU whatever `options` say), or anything the engine
+/// crate resolves (`builtin`, `builtin:<preset>`, a checkpoint path).
+pub fn resolve_model(
+    name: &str,
+    options: &EngineOptions,
+) -> Result<Box<dyn ActionModel>, EngineError> {
+    match crate::horizon_bench::served::resolve(name) {
+        Some(model) => Ok(Box::new(model?)),
+        None => kairos_engine::resolve_model(name, options),
+    }
 }
 
 fn tier_name(tier: Tier) -> &'static str {

@@ -27,7 +27,7 @@ use std::time::Duration;
 use futures::future::BoxFuture;
 use kairos_engine::{ActionChunk, ActionRequest, EngineError, EngineProfile, ModelSpec};
 
-pub use build::{BuildEvent, PoolConfigError, build_pool};
+pub use build::{BuildEvent, PoolConfigError, build_pool, resolve_model};
 pub use link::EmulatedLinkEngine;
 pub use local::LocalEngine;
 pub use remote::RemoteEngine;

@@ -174,6 +174,7 @@ fn submit(images: Vec<ImagePayload>) -> Submit {
         }),
         attempt: 0,
         control_hz: Some(50.0),
+        seed: None,
     }
 }
 

@@ -27,6 +27,7 @@ fn submit(task: u64, round: u64, state: Tensor, images: Vec<Image>) -> Submit {
         remaining: None,
         attempt: 0,
         control_hz: None,
+        seed: None,
     }
 }
 
