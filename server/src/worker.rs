@@ -22,6 +22,7 @@ use kairos_sdk::transport::{TransportTuning, worker_client_config};
 use quinn::{Connection, RecvStream, SendStream, VarInt};
 use tokio::sync::Notify;
 
+use crate::metrics::{Metrics, WorkerConnection};
 use crate::pool::EngineInstance;
 use crate::pool::remote::{chunk_to_wire, model_info, profile_to_wire, request_from_wire};
 
@@ -36,10 +37,13 @@ pub struct WorkerOptions {
     pub token: String,
     /// A name for logs and metrics.
     pub worker_id: String,
-    /// Edge or cloud.
+    /// Edge, cloud, or auto (the scheduler classifies it from its measured round trip).
     pub tier: WorkerTier,
     /// Largest batch to accept (caps the profile's).
     pub max_batch: u32,
+    /// Where the worker counts what it does (a [`Metrics::for_worker`] registry, served on
+    /// `--metrics-listen` when given).
+    pub metrics: Metrics,
 }
 
 /// Why a worker stopped other than by draining.
@@ -91,11 +95,26 @@ pub async fn run(
     engine: Arc<dyn EngineInstance>,
     shutdown: impl Future<Output = ()>,
 ) -> Result<WorkerReport, WorkerError> {
+    let metrics = options.metrics.clone();
+    metrics.add_engine(engine.name());
+    metrics.set_worker_connection(WorkerConnection::Connecting);
+    let served = serve(options, engine, shutdown).await;
+    metrics.set_worker_connection(WorkerConnection::Disconnected);
+    served
+}
+
+async fn serve(
+    options: WorkerOptions,
+    engine: Arc<dyn EngineInstance>,
+    shutdown: impl Future<Output = ()>,
+) -> Result<WorkerReport, WorkerError> {
+    let metrics = options.metrics.clone();
     let connection = connect(&options).await?;
     let (mut control, engine_name, heartbeat) = register(&connection, &options, engine.as_ref())
         .await
         .inspect_err(|_| connection.close(VarInt::from_u32(0), b"refused"))?;
     tracing::info!(engine = %engine_name, server = %options.server, "registered");
+    metrics.set_worker_connection(WorkerConnection::Registered);
     let load = Arc::new(Load::default());
     let mut shutdown = std::pin::pin!(shutdown);
     let mut ticker = tokio::time::interval(heartbeat);
@@ -107,11 +126,12 @@ pub async fn run(
         tokio::select! {
             accepted = connection.accept_bi() => match accepted {
                 Ok((send, recv)) => {
-                    let (engine, load) = (engine.clone(), load.clone());
+                    let (engine, load, metrics) = (engine.clone(), load.clone(), metrics.clone());
                     load.running.fetch_add(1, Ordering::SeqCst);
                     tokio::spawn(async move {
-                        if let Err(error) = serve_batch(engine.as_ref(), send, recv).await {
+                        if let Err(error) = serve_batch(engine.as_ref(), &metrics, send, recv).await {
                             tracing::warn!(%error, "batch not answered");
+                            metrics.record_worker_failed_batch();
                         } else {
                             load.done.fetch_add(1, Ordering::SeqCst);
                         }
@@ -140,6 +160,7 @@ pub async fn run(
                     }
                     return Err(WorkerError::Lost(error.to_string()));
                 }
+                metrics.record_worker_heartbeat();
             }
             // Batches placed before the scheduler read `Drain` may still arrive during a
             // heartbeat period: they are served as usual. Then, once none is running, the
@@ -154,6 +175,7 @@ pub async fn run(
             }
             () = &mut shutdown, if !draining => {
                 draining = true;
+                metrics.set_worker_connection(WorkerConnection::Draining);
                 tracing::info!("draining: no new batches; finishing the ones held");
                 let drain = Drain { reason: "shutdown".into() };
                 if write_body(&mut control, &drain, WORKER_MAX_FRAME).await.is_err() {
@@ -252,6 +274,7 @@ async fn register(
 /// One batch stream: `RunBatch` in, the engine's answers out as `Chunks`.
 async fn serve_batch(
     engine: &dyn EngineInstance,
+    metrics: &Metrics,
     mut send: SendStream,
     mut recv: RecvStream,
 ) -> Result<(), String> {
@@ -278,12 +301,16 @@ async fn serve_batch(
     }
     let n = inputs.len() + refused.len();
     let started = tokio::time::Instant::now();
-    let answered = if inputs.is_empty() {
+    let inputs_empty = inputs.is_empty();
+    let answered = if inputs_empty {
         Vec::new()
     } else {
         engine.run(inputs).await.map_err(|e| e.to_string())?
     };
     let compute = started.elapsed();
+    if !inputs_empty {
+        metrics.record_engine_busy(engine.name(), compute);
+    }
     let mut answered = answered.into_iter();
     let mut results = Vec::with_capacity(n);
     for i in 0..n {
@@ -326,6 +353,7 @@ async fn serve_batch(
         .await
         .map_err(|e| e.to_string())?;
     let _ = send.finish();
+    metrics.record_worker_batch(n, compute);
     // Wait for the scheduler to read it, so that the stream is not cut by a close after it.
     let _ = tokio::time::timeout(Duration::from_secs(2), send.stopped()).await;
     Ok(())

@@ -57,6 +57,9 @@ pub enum WorkerTier {
     Edge,
     /// Far: placed only when its latency plus round trip beats the edge queue.
     Cloud,
+    /// Undeclared: the scheduler classifies the worker as edge or cloud from its measured
+    /// round trip, and re-classifies it as that moves.
+    Auto,
 }
 
 /// One measured point of a worker's engine profile.

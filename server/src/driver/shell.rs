@@ -406,7 +406,8 @@ impl Shell {
                 if let Some(instance) = self.pool.get(engine)
                     && instance.can_lose_batches()
                 {
-                    self.core.engine_rtt(engine, instance.rtt());
+                    self.core
+                        .engine_link(engine, instance.rtt(), instance.tier());
                 }
                 let _ = load.send(self.core.generation_ended(now, batch, inference));
             }

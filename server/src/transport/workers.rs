@@ -20,7 +20,7 @@ use tokio::time::Instant;
 use super::{Gate, ServerContext};
 use crate::config::{WorkersConfig, hash_token};
 use crate::pool::remote::{model_spec, profile_from_wire};
-use crate::pool::{RemoteEngine, same_shapes};
+use crate::pool::{EngineInstance, RemoteEngine, same_shapes};
 use crate::scheduler::Tier;
 
 /// Who may register as a worker, and how workers are treated.
@@ -178,9 +178,10 @@ async fn register(
                     return refuse(send, close_code::PROTOCOL_ERROR, reason, false).await;
                 }
             };
-            let tier = match register.tier {
-                WorkerTier::Edge => Tier::Edge,
-                WorkerTier::Cloud => Tier::Cloud,
+            let declared = match register.tier {
+                WorkerTier::Edge => Some(Tier::Edge),
+                WorkerTier::Cloud => Some(Tier::Cloud),
+                WorkerTier::Auto => None,
             };
             let name = format!(
                 "worker:{}@{}",
@@ -195,10 +196,11 @@ async fn register(
                 name.clone(),
                 model_spec(&register.model),
                 profile,
-                tier,
+                declared,
                 connection.clone(),
                 context.workers.config.clone(),
             );
+            let tier = engine.tier();
             match context.driver.add_engine(Arc::new(engine)).await {
                 Ok(Ok(id)) => {
                     let registered = Registered {
