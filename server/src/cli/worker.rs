@@ -19,9 +19,10 @@ use crate::worker::{WorkerOptions, run as run_worker};
 /// Serve a scheduler's batches on this machine's engine.
 #[derive(clap::Args, Debug, Clone)]
 pub struct WorkerArgs {
-    /// The scheduler's QUIC address (`kairos serve`'s `listen`).
-    #[arg(long, value_name = "ADDR")]
-    pub server: std::net::SocketAddr,
+    /// The scheduler's QUIC address (`kairos serve`'s `listen`), `host:port`: an IP address or
+    /// a DNS name (e.g. a Kubernetes Service's), resolved again whenever the worker reconnects.
+    #[arg(long, value_name = "HOST:PORT")]
+    pub server: String,
     /// The scheduler's data directory, read for the certificate pin and the worker token when
     /// `--pin` or `--worker-token` is not given.
     #[arg(long, default_value = "kairos-data")]
@@ -71,7 +72,9 @@ pub enum TierArg {
     Auto,
 }
 
-/// Runs `kairos worker` until SIGTERM/Ctrl-C (exit 0 after draining) or the connection is lost.
+/// Runs `kairos worker` until SIGTERM/Ctrl-C (exit 0 after draining). A lost connection is
+/// dialled again with backoff (`crate::worker::run`); a refusal or a first connection that
+/// fails ends it with an error.
 pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
     let _ = tracing_subscriber::fmt()
         .with_env_filter(
@@ -118,7 +121,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         format!("{}-{}", host.trim(), std::process::id())
     });
     let options = WorkerOptions {
-        server: args.server,
+        server: args.server.clone(),
         trust: ServerTrust::Pinned(pin),
         token,
         worker_id,

@@ -57,7 +57,7 @@ fn options(
     id: &str,
 ) -> WorkerOptions {
     WorkerOptions {
-        server: addr,
+        server: addr.to_string(),
         trust: ServerTrust::Pinned(server.pin),
         token: token.to_owned(),
         worker_id: id.to_owned(),
@@ -381,4 +381,40 @@ async fn a_worker_in_a_network_namespace_behind_a_delay_relay_is_measured_and_pl
     server.shutdown().await;
     drop(relay);
     drop(ns);
+}
+
+/// A worker whose scheduler restarts (its connection closed, no drain) dials again with backoff,
+/// by name (`localhost:PORT`, resolved by the worker at every attempt), registers with the new
+/// scheduler (same address and data directory, so the same pin and worker token) and serves
+/// its robots; its report and `/metrics` count both connections' batches.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_reconnects_by_name_after_its_scheduler_restarts() {
+    let mut server = TestServer::start(no_engine()).await.unwrap();
+    let token = worker_token(&server);
+    let metrics = Metrics::for_worker();
+    let mut by_name = options(&server, server.addr, &token, "phoenix");
+    by_name.server = format!("localhost:{}", server.addr.port());
+    by_name.metrics = metrics.clone();
+    let (stop, task) = spawn_worker(by_name);
+    wait_engines(&server, |e| e.iter().any(|e| e.live)).await;
+    let rounds = 3;
+    let logs = run_fleet(&server, vec![RobotPlan::static_horizon(1, rounds, 4)])
+        .await
+        .unwrap();
+    assert_eq!(logs[0].rounds.len() as u64, rounds);
+    assert_eq!(metrics.worker_batches(), rounds);
+
+    server.restart(no_engine()).await.unwrap();
+    // The new scheduler starts with no engine; the worker registers again by itself.
+    wait_engines(&server, |e| e.iter().any(|e| e.live)).await;
+    let logs = run_fleet(&server, vec![RobotPlan::static_horizon(2, rounds, 4)])
+        .await
+        .unwrap();
+    assert_eq!(logs[0].rounds.len() as u64, rounds);
+    let _ = stop.send(());
+    let report = task.await.unwrap().unwrap();
+    assert_eq!(report.registrations, 2, "{report:?}");
+    assert_eq!(report.batches, 2 * rounds, "{report:?}");
+    assert_eq!(metrics.worker_batches(), 2 * rounds);
+    server.shutdown().await;
 }
