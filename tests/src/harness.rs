@@ -101,13 +101,26 @@ impl TestServer {
             Some(server) => server.shutdown().await,
             None => ServerReport::default(),
         };
-        let server = launch(
-            self.dir.path(),
-            self.addr,
-            &options,
-            Arc::new(TestFlow::new()),
-        )
-        .await?;
+        // The old endpoint's socket is released when its last connection handle is dropped,
+        // which may be a moment after the shutdown returned: wait for the port (bounded).
+        let mut attempts = 0;
+        let server = loop {
+            match launch(
+                self.dir.path(),
+                self.addr,
+                &options,
+                Arc::new(TestFlow::new()),
+            )
+            .await
+            {
+                Ok(server) => break server,
+                Err(error) if attempts < 200 && format!("{error:#}").contains("in use") => {
+                    attempts += 1;
+                    tokio::time::sleep(Duration::from_millis(25)).await;
+                }
+                Err(error) => return Err(error),
+            }
+        };
         anyhow::ensure!(
             server.pin == self.pin,
             "the restarted server has another certificate"

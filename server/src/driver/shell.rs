@@ -237,6 +237,12 @@ impl DriverHandle {
         let _ = self.commands.send(Command::RemoveEngine { engine }).await;
     }
 
+    /// Resolves once the driver has stopped: after a shutdown, when every round it accepted
+    /// was answered.
+    pub async fn stopped(&self) {
+        self.commands.closed().await;
+    }
+
     /// Every engine instance the scheduler knows, live or not.
     pub async fn engines(&self) -> Result<Vec<EngineView>, DriverGone> {
         let (answer, rx) = oneshot::channel();

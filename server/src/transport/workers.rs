@@ -129,6 +129,12 @@ async fn watch_worker(
             () = async { let _ = stop.wait_for(|stopping| *stopping).await; }, if !stopping => {
                 stopping = true;
             }
+            // Every accepted round is answered: the worker is told at once (it reconnects to
+            // the next scheduler) instead of holding the shutdown until the drain timeout.
+            () = context.driver.stopped(), if stopping => {
+                connection.close(VarInt::from_u32(close_code::SHUTTING_DOWN), b"scheduler stopped");
+                return "scheduler stopped";
+            }
         }
     }
 }
