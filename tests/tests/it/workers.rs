@@ -353,8 +353,9 @@ async fn a_worker_in_a_network_namespace_behind_a_delay_relay_is_measured_and_pl
         .unwrap_or_else(|| panic!("no RTT of the far worker in\n{text}"));
     let rtt = Duration::from_secs_f64(rtt);
     eprintln!(
-        "netns relay: injected {injected:?}, measured {rtt:?} (seed {:?}) after {rounds} batches",
-        far_view.rtt
+        "netns relay: injected {injected:?}, measured {rtt:?} (seed {:?}) after {rounds} batches; \
+         near worker on loopback, no relay (the baseline): {:?}",
+        far_view.rtt, near_view.rtt
     );
     assert!(
         rtt >= injected && rtt <= injected + RTT_SLACK,
