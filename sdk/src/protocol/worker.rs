@@ -413,6 +413,18 @@ mod tests {
             let (decoded, used) = WorkerMessage::decode_from(&bytes, 1 << 20).unwrap();
             assert_eq!(used, bytes.len());
             assert_eq!(decoded, message);
+            // Every tier survives the wire, `auto` included.
+            if let WorkerMessage::Register(register) = &message {
+                for tier in [WorkerTier::Edge, WorkerTier::Cloud, WorkerTier::Auto] {
+                    let with_tier = WorkerMessage::Register(Register {
+                        tier,
+                        ..register.clone()
+                    });
+                    let bytes = with_tier.encode(1 << 20).unwrap();
+                    let (decoded, _) = WorkerMessage::decode_from(&bytes, 1 << 20).unwrap();
+                    assert_eq!(decoded, with_tier);
+                }
+            }
             // The robot protocol's decoder refuses a worker frame ...
             assert!(matches!(
                 Message::decode_from(&bytes, 1 << 20),
