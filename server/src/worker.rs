@@ -148,9 +148,12 @@ pub async fn run(
             Ok(()) => break Ok(report),
             Err(error) => error,
         };
+        // Only a worker that was in a pool once dials again: one that never got in (a wrong
+        // address, a wrong pin) would retry a mistake forever.
         let retry = match &error {
-            WorkerError::Lost(_) => true,
-            WorkerError::Connect { .. } | WorkerError::Resolve { .. } => report.registrations > 0,
+            WorkerError::Lost(_) | WorkerError::Connect { .. } | WorkerError::Resolve { .. } => {
+                report.registrations > 0
+            }
             WorkerError::Setup(_) | WorkerError::Refused(_) | WorkerError::Protocol(_) => false,
         };
         if !retry {
