@@ -16,6 +16,15 @@ step_done() {
 }
 
 bash scripts/install-plugin-toolchains.sh
+# `ip` (iproute2): the remote-worker test puts a worker in a network namespace of its own
+# (tests/tests/it/workers.rs, tests/src/netns.rs); it fails rather than skips without it.
+if ! command -v ip >/dev/null 2>&1; then
+    echo "installing iproute2 (apt)"
+    SUDO=""
+    if [ "$(id -u)" -ne 0 ]; then SUDO=sudo; fi
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends iproute2 >/dev/null
+fi
 # The Python example client's packages (sdk/examples/python), for the cross-language test below.
 PY_TEST_DEPS=(aioquic==1.7.2 msgpack==1.2.4 numpy==2.4.6)
 if ! .venv/bin/python -c "import aioquic, msgpack, numpy" 2>/dev/null; then

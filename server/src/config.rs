@@ -125,6 +125,10 @@ pub struct WorkersConfig {
     /// A round lost with a worker more than this long after it arrived is failed with a
     /// retryable error instead of being run again: its robot has waited too long already.
     pub redispatch_within_ms: u32,
+    /// A worker that registers with tier `auto` is cloud when its measured round trip is at
+    /// least this many ms and edge below it; it is re-classified as the moving average moves
+    /// (25 % hysteresis around the threshold, `pool::remote::tier_from_rtt`).
+    pub cloud_rtt_ms: u32,
 }
 
 impl Default for WorkersConfig {
@@ -136,6 +140,7 @@ impl Default for WorkersConfig {
             min_batch_deadline_ms: 2_000,
             max_attempts: 3,
             redispatch_within_ms: 10_000,
+            cloud_rtt_ms: 20,
         }
     }
 }
@@ -155,6 +160,11 @@ impl WorkersConfig {
     pub fn batch_deadline(&self, expected: Duration) -> Duration {
         let scaled = expected.mul_f64(self.batch_deadline_factor.max(1.0));
         scaled.max(Duration::from_millis(u64::from(self.min_batch_deadline_ms)))
+    }
+
+    /// The round trip from which an `auto` worker is cloud.
+    pub fn cloud_rtt(&self) -> Duration {
+        Duration::from_millis(u64::from(self.cloud_rtt_ms))
     }
 
     /// The re-dispatch window.

@@ -4,7 +4,11 @@
 //! worker token, then runs every `RunBatch` the scheduler sends on its [`EngineInstance`] (a
 //! `LocalEngine`: the model on its own OS thread, never on a tokio worker) and heartbeats. On
 //! shutdown (SIGTERM) it sends `Drain`, finishes the batches it holds and exits. It holds no
-//! task state: a batch it never answers is run again elsewhere by the scheduler.
+//! task state: a batch it never answers is run again elsewhere by the scheduler. A connection
+//! that drops without a drain (the scheduler restarted or removed it, the network failed) is
+//! dialled again with exponential backoff ([`reconnect_delay`]) and the worker registers anew;
+//! the scheduler's `host:port` may be a DNS name, resolved at every attempt. It counts what it
+//! does in its own [`Metrics::for_worker`] registry.
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -22,24 +26,29 @@ use kairos_sdk::transport::{TransportTuning, worker_client_config};
 use quinn::{Connection, RecvStream, SendStream, VarInt};
 use tokio::sync::Notify;
 
+use crate::metrics::{Metrics, WorkerConnection};
 use crate::pool::EngineInstance;
 use crate::pool::remote::{chunk_to_wire, model_info, profile_to_wire, request_from_wire};
 
 /// Where and as whom a worker registers.
 #[derive(Clone, Debug)]
 pub struct WorkerOptions {
-    /// The scheduler's QUIC address.
-    pub server: SocketAddr,
+    /// The scheduler's QUIC address, `host:port` (an IP address or a DNS name, resolved with
+    /// `tokio::net::lookup_host` at every connection attempt; IPv4 addresses are tried first).
+    pub server: String,
     /// How the scheduler's certificate is checked (a pin, normally).
     pub trust: ServerTrust,
     /// The worker token.
     pub token: String,
     /// A name for logs and metrics.
     pub worker_id: String,
-    /// Edge or cloud.
+    /// Edge, cloud, or auto (the scheduler classifies it from its measured round trip).
     pub tier: WorkerTier,
     /// Largest batch to accept (caps the profile's).
     pub max_batch: u32,
+    /// Where the worker counts what it does (a [`Metrics::for_worker`] registry, served on
+    /// `--metrics-listen` when given).
+    pub metrics: Metrics,
 }
 
 /// Why a worker stopped other than by draining.
@@ -48,6 +57,14 @@ pub enum WorkerError {
     /// The QUIC or TLS setup.
     #[error("cannot set up the connection: {0}")]
     Setup(String),
+    /// The scheduler's name did not resolve to an address.
+    #[error("cannot resolve the scheduler's address {server}: {reason}")]
+    Resolve {
+        /// The `host:port` given.
+        server: String,
+        /// Why.
+        reason: String,
+    },
     /// Dialling or the handshake failed (a wrong pin ends here).
     #[error("cannot connect to the scheduler at {addr}: {reason}")]
     Connect {
@@ -70,10 +87,12 @@ pub enum WorkerError {
 /// What a worker did.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct WorkerReport {
-    /// The name the scheduler gave it.
+    /// The name the scheduler gave it (at its last registration).
     pub engine: String,
-    /// Batches answered.
+    /// Batches answered, over all its connections.
     pub batches: u64,
+    /// Times it registered (more than one: it reconnected after losing the scheduler).
+    pub registrations: u64,
 }
 
 /// Shared between the batch tasks, the heartbeat and the drain.
@@ -84,20 +103,104 @@ struct Load {
     idle: Notify,
 }
 
+/// First wait before reconnecting after the connection to the scheduler dropped; it doubles
+/// with every failed attempt up to [`RECONNECT_MAX`], and starts over once registered again.
+pub const RECONNECT_FIRST: Duration = Duration::from_millis(100);
+/// Longest wait between reconnection attempts.
+pub const RECONNECT_MAX: Duration = Duration::from_secs(5);
+/// Longest a connection attempt to one address may take (QUIC ignores ICMP unreachable, so a
+/// scheduler that is not there yet would otherwise cost a whole idle timeout).
+pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// The wait before reconnection attempt `attempt` (0-based): [`RECONNECT_FIRST`] doubled per
+/// attempt, at most [`RECONNECT_MAX`]. Pure.
+pub fn reconnect_delay(attempt: u32) -> Duration {
+    RECONNECT_FIRST
+        .checked_mul(1u32.checked_shl(attempt.min(31)).unwrap_or(u32::MAX))
+        .unwrap_or(RECONNECT_MAX)
+        .min(RECONNECT_MAX)
+}
+
 /// Registers with the scheduler and serves batches until `shutdown` resolves (then drains and
-/// returns) or the connection is lost (an error).
+/// returns). When the connection drops without a drain (the scheduler restarted, a network
+/// failure, the scheduler removed it), the worker dials again after [`reconnect_delay`] and
+/// registers anew, for as long as it is not shut down; the `--server` name is resolved again at
+/// every attempt. A first connection that fails, and any refusal, end it with the error.
 pub async fn run(
     options: WorkerOptions,
     engine: Arc<dyn EngineInstance>,
     shutdown: impl Future<Output = ()>,
 ) -> Result<WorkerReport, WorkerError> {
-    let connection = connect(&options).await?;
-    let (mut control, engine_name, heartbeat) = register(&connection, &options, engine.as_ref())
+    let metrics = options.metrics.clone();
+    metrics.add_engine(engine.name());
+    let mut shutdown = std::pin::pin!(shutdown);
+    let mut report = WorkerReport::default();
+    let mut attempt = 0u32;
+    let ended = loop {
+        metrics.set_worker_connection(WorkerConnection::Connecting);
+        let registrations = report.registrations;
+        let served = serve(&options, &engine, shutdown.as_mut(), &mut report).await;
+        metrics.set_worker_connection(WorkerConnection::Disconnected);
+        if report.registrations > registrations {
+            attempt = 0;
+        }
+        let error = match served {
+            Ok(()) => break Ok(report),
+            Err(error) => error,
+        };
+        // Only a worker that was in a pool once dials again: one that never got in (a wrong
+        // address, a wrong pin) would retry a mistake forever.
+        let retry = match &error {
+            WorkerError::Lost(_) | WorkerError::Connect { .. } | WorkerError::Resolve { .. } => {
+                report.registrations > 0
+            }
+            WorkerError::Setup(_) | WorkerError::Refused(_) | WorkerError::Protocol(_) => false,
+        };
+        if !retry {
+            break Err(error);
+        }
+        let delay = reconnect_delay(attempt);
+        attempt = attempt.saturating_add(1);
+        tracing::warn!(%error, ?delay, "reconnecting to the scheduler");
+        tokio::select! {
+            () = tokio::time::sleep(delay) => {}
+            () = shutdown.as_mut() => break Ok(report),
+        }
+    };
+    metrics.set_worker_connection(WorkerConnection::Disconnected);
+    ended
+}
+
+/// One connection: dial, register, serve until drained (`Ok`) or lost. Adds its registration
+/// and the batches it answered to `report`.
+async fn serve(
+    options: &WorkerOptions,
+    engine: &Arc<dyn EngineInstance>,
+    mut shutdown: std::pin::Pin<&mut impl Future<Output = ()>>,
+    report: &mut WorkerReport,
+) -> Result<(), WorkerError> {
+    let metrics = options.metrics.clone();
+    let connection = tokio::select! {
+        connected = connect(options) => connected?,
+        // Shut down before it could connect: there is nothing to drain.
+        () = shutdown.as_mut() => return Ok(()),
+    };
+    let (mut control, engine_name, heartbeat) = register(&connection, options, engine.as_ref())
         .await
         .inspect_err(|_| connection.close(VarInt::from_u32(0), b"refused"))?;
     tracing::info!(engine = %engine_name, server = %options.server, "registered");
+    metrics.set_worker_connection(WorkerConnection::Registered);
+    report.engine = engine_name;
+    report.registrations += 1;
     let load = Arc::new(Load::default());
-    let mut shutdown = std::pin::pin!(shutdown);
+    // Batches answered on this connection go into the report however it ends.
+    struct Tally<'a>(&'a mut WorkerReport, Arc<Load>);
+    impl Drop for Tally<'_> {
+        fn drop(&mut self) {
+            self.0.batches += self.1.done.load(Ordering::SeqCst);
+        }
+    }
+    let tally = Tally(report, load.clone());
     let mut ticker = tokio::time::interval(heartbeat);
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut draining = false;
@@ -107,11 +210,12 @@ pub async fn run(
         tokio::select! {
             accepted = connection.accept_bi() => match accepted {
                 Ok((send, recv)) => {
-                    let (engine, load) = (engine.clone(), load.clone());
+                    let (engine, load, metrics) = (engine.clone(), load.clone(), metrics.clone());
                     load.running.fetch_add(1, Ordering::SeqCst);
                     tokio::spawn(async move {
-                        if let Err(error) = serve_batch(engine.as_ref(), send, recv).await {
+                        if let Err(error) = serve_batch(engine.as_ref(), &metrics, send, recv).await {
                             tracing::warn!(%error, "batch not answered");
+                            metrics.record_worker_failed_batch();
                         } else {
                             load.done.fetch_add(1, Ordering::SeqCst);
                         }
@@ -124,7 +228,10 @@ pub async fn run(
                     tracing::info!(%error, "connection closed after draining");
                     break;
                 }
-                Err(error) => return Err(WorkerError::Lost(error.to_string())),
+                Err(error) => {
+                    wait_idle(&load).await;
+                    return Err(WorkerError::Lost(error.to_string()));
+                }
             },
             _ = ticker.tick() => {
                 let beat = Heartbeat {
@@ -138,8 +245,10 @@ pub async fn run(
                     if draining {
                         break;
                     }
+                    wait_idle(&load).await;
                     return Err(WorkerError::Lost(error.to_string()));
                 }
+                metrics.record_worker_heartbeat();
             }
             // Batches placed before the scheduler read `Drain` may still arrive during a
             // heartbeat period: they are served as usual. Then, once none is running, the
@@ -152,8 +261,9 @@ pub async fn run(
                 finished = true;
                 let _ = control.finish();
             }
-            () = &mut shutdown, if !draining => {
+            () = shutdown.as_mut(), if !draining => {
                 draining = true;
+                metrics.set_worker_connection(WorkerConnection::Draining);
                 tracing::info!("draining: no new batches; finishing the ones held");
                 let drain = Drain { reason: "shutdown".into() };
                 if write_body(&mut control, &drain, WORKER_MAX_FRAME).await.is_err() {
@@ -165,10 +275,8 @@ pub async fn run(
     }
     wait_idle(&load).await;
     connection.close(VarInt::from_u32(0), b"drained");
-    Ok(WorkerReport {
-        engine: engine_name,
-        batches: load.done.load(Ordering::SeqCst),
-    })
+    drop(tally);
+    Ok(())
 }
 
 async fn wait_idle(load: &Load) {
@@ -181,30 +289,52 @@ async fn wait_idle(load: &Load) {
     }
 }
 
+/// Resolves `options.server` and dials its addresses in turn (IPv4 first), each within
+/// [`CONNECT_TIMEOUT`]; the last failure if none answers.
 async fn connect(options: &WorkerOptions) -> Result<Connection, WorkerError> {
+    let resolve_error = |reason: String| WorkerError::Resolve {
+        server: options.server.clone(),
+        reason,
+    };
+    let mut addrs: Vec<SocketAddr> = tokio::net::lookup_host(options.server.as_str())
+        .await
+        .map_err(|e| resolve_error(e.to_string()))?
+        .collect();
+    addrs.sort_by_key(SocketAddr::is_ipv6);
+    let mut failed = resolve_error("no address".into());
+    for addr in addrs {
+        match connect_to(options, addr).await {
+            Ok(connection) => return Ok(connection),
+            Err(error) => {
+                tracing::debug!(%error, "connection attempt failed");
+                failed = error;
+            }
+        }
+    }
+    Err(failed)
+}
+
+async fn connect_to(options: &WorkerOptions, addr: SocketAddr) -> Result<Connection, WorkerError> {
     let config = worker_client_config(&options.trust, &TransportTuning::default())
         .map_err(|e| WorkerError::Setup(e.to_string()))?;
-    let bind: SocketAddr = if options.server.is_ipv6() {
-        "[::]:0"
-            .parse()
-            .map_err(|e| WorkerError::Setup(format!("{e}")))?
+    let bind: SocketAddr = if addr.is_ipv6() {
+        (std::net::Ipv6Addr::UNSPECIFIED, 0).into()
     } else {
-        "0.0.0.0:0"
-            .parse()
-            .map_err(|e| WorkerError::Setup(format!("{e}")))?
+        (std::net::Ipv4Addr::UNSPECIFIED, 0).into()
     };
     let mut endpoint =
         quinn::Endpoint::client(bind).map_err(|e| WorkerError::Setup(e.to_string()))?;
     endpoint.set_default_client_config(config);
-    let connect_error = |reason: String| WorkerError::Connect {
-        addr: options.server,
-        reason,
-    };
-    endpoint
-        .connect(options.server, "kairos")
-        .map_err(|e| connect_error(e.to_string()))?
-        .await
-        .map_err(|e| connect_error(e.to_string()))
+    let connect_error = |reason: String| WorkerError::Connect { addr, reason };
+    let connecting = endpoint
+        .connect(addr, "kairos")
+        .map_err(|e| connect_error(e.to_string()))?;
+    match tokio::time::timeout(CONNECT_TIMEOUT, connecting).await {
+        Ok(connected) => connected.map_err(|e| connect_error(e.to_string())),
+        Err(_) => Err(connect_error(format!(
+            "no handshake within {CONNECT_TIMEOUT:?}"
+        ))),
+    }
 }
 
 /// `Register` → `Registered` (the engine's name and the heartbeat period) or `Refused`.
@@ -252,6 +382,7 @@ async fn register(
 /// One batch stream: `RunBatch` in, the engine's answers out as `Chunks`.
 async fn serve_batch(
     engine: &dyn EngineInstance,
+    metrics: &Metrics,
     mut send: SendStream,
     mut recv: RecvStream,
 ) -> Result<(), String> {
@@ -278,12 +409,16 @@ async fn serve_batch(
     }
     let n = inputs.len() + refused.len();
     let started = tokio::time::Instant::now();
-    let answered = if inputs.is_empty() {
+    let inputs_empty = inputs.is_empty();
+    let answered = if inputs_empty {
         Vec::new()
     } else {
         engine.run(inputs).await.map_err(|e| e.to_string())?
     };
     let compute = started.elapsed();
+    if !inputs_empty {
+        metrics.record_engine_busy(engine.name(), compute);
+    }
     let mut answered = answered.into_iter();
     let mut results = Vec::with_capacity(n);
     for i in 0..n {
@@ -326,7 +461,22 @@ async fn serve_batch(
         .await
         .map_err(|e| e.to_string())?;
     let _ = send.finish();
+    metrics.record_worker_batch(n, compute);
     // Wait for the scheduler to read it, so that the stream is not cut by a close after it.
     let _ = tokio::time::timeout(Duration::from_secs(2), send.stopped()).await;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reconnection_backs_off_exponentially_up_to_the_cap() {
+        let waits: Vec<u64> = (0..8)
+            .map(|attempt| reconnect_delay(attempt).as_millis() as u64)
+            .collect();
+        assert_eq!(waits, [100, 200, 400, 800, 1600, 3200, 5000, 5000]);
+        assert_eq!(reconnect_delay(u32::MAX), RECONNECT_MAX);
+    }
 }

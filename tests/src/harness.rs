@@ -76,47 +76,7 @@ impl TestServer {
         model: Arc<dyn ActionModel>,
     ) -> anyhow::Result<TestServer> {
         let dir = tempfile::tempdir()?;
-        let mut config = Config {
-            listen: "127.0.0.1:0".parse()?,
-            data_dir: dir.path().join("data"),
-            ..Config::default()
-        };
-        config.robots = options
-            .robots
-            .iter()
-            .map(|(name, token)| RobotConfig {
-                name: name.clone(),
-                token_sha256: hex::encode(hash_token(token)),
-            })
-            .collect();
-        (options.tweak)(&mut config);
-        let profile = EngineProfile {
-            model: model.spec().name.clone(),
-            device: "cpu (test flow, microseconds per batch)".into(),
-            points: vec![
-                ProfilePoint {
-                    batch: 1,
-                    latency_ms: 0.05,
-                },
-                ProfilePoint {
-                    batch: options.max_batch.max(1),
-                    latency_ms: 0.1,
-                },
-            ],
-            max_batch: options.max_batch.max(1),
-        };
-        let instances: Vec<Arc<dyn EngineInstance>> = (0..options.engines)
-            .map(|i| {
-                Arc::new(LocalEngine::start(
-                    format!("edge-{i}"),
-                    model.clone(),
-                    profile.clone(),
-                )) as Arc<dyn EngineInstance>
-            })
-            .collect();
-        // No engine: a scheduler served only by remote workers (`--local-engines 0`).
-        let pool = EnginePool::with_spec(model.spec().clone(), instances)?;
-        let server = LocalServer::start(&config, pool, Policies::default()).await?;
+        let server = launch(dir.path(), "127.0.0.1:0".parse()?, &options, model).await?;
         let token = match options.robots.first() {
             Some((_, token)) => token.clone(),
             None => server
@@ -131,6 +91,42 @@ impl TestServer {
             token,
             dir,
         })
+    }
+
+    /// Shuts the server down and starts a new one (the [`TestFlow`] model, `options`) on the same
+    /// address and data directory, so with the same certificate pin and tokens: a scheduler
+    /// restart as robots and workers see it. Returns what the first one did.
+    pub async fn restart(&mut self, options: ServerOptions) -> anyhow::Result<ServerReport> {
+        let report = match self.server.take() {
+            Some(server) => server.shutdown().await,
+            None => ServerReport::default(),
+        };
+        // The old endpoint's socket is released when its last connection handle is dropped,
+        // which may be a moment after the shutdown returned: wait for the port (bounded).
+        let mut attempts = 0;
+        let server = loop {
+            match launch(
+                self.dir.path(),
+                self.addr,
+                &options,
+                Arc::new(TestFlow::new()),
+            )
+            .await
+            {
+                Ok(server) => break server,
+                Err(error) if attempts < 200 && format!("{error:#}").contains("in use") => {
+                    attempts += 1;
+                    tokio::time::sleep(Duration::from_millis(25)).await;
+                }
+                Err(error) => return Err(error),
+            }
+        };
+        anyhow::ensure!(
+            server.pin == self.pin,
+            "the restarted server has another certificate"
+        );
+        self.server = Some(server);
+        Ok(report)
     }
 
     /// The running server.
@@ -185,6 +181,56 @@ impl Drop for TestServer {
             server.server.begin_shutdown();
         }
     }
+}
+
+/// A server on `listen` with its data directory in `dir` (created, or reused as it is).
+async fn launch(
+    dir: &std::path::Path,
+    listen: SocketAddr,
+    options: &ServerOptions,
+    model: Arc<dyn ActionModel>,
+) -> anyhow::Result<LocalServer> {
+    let mut config = Config {
+        listen,
+        data_dir: dir.join("data"),
+        ..Config::default()
+    };
+    config.robots = options
+        .robots
+        .iter()
+        .map(|(name, token)| RobotConfig {
+            name: name.clone(),
+            token_sha256: hex::encode(hash_token(token)),
+        })
+        .collect();
+    (options.tweak)(&mut config);
+    let profile = EngineProfile {
+        model: model.spec().name.clone(),
+        device: "cpu (test flow, microseconds per batch)".into(),
+        points: vec![
+            ProfilePoint {
+                batch: 1,
+                latency_ms: 0.05,
+            },
+            ProfilePoint {
+                batch: options.max_batch.max(1),
+                latency_ms: 0.1,
+            },
+        ],
+        max_batch: options.max_batch.max(1),
+    };
+    let instances: Vec<Arc<dyn EngineInstance>> = (0..options.engines)
+        .map(|i| {
+            Arc::new(LocalEngine::start(
+                format!("edge-{i}"),
+                model.clone(),
+                profile.clone(),
+            )) as Arc<dyn EngineInstance>
+        })
+        .collect();
+    // No engine: a scheduler served only by remote workers (`--local-engines 0`).
+    let pool = EnginePool::with_spec(model.spec().clone(), instances)?;
+    Ok(LocalServer::start(&config, pool, Policies::default()).await?)
 }
 
 /// One simulated robot's task.

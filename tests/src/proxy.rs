@@ -6,7 +6,9 @@
 //! NAT rebinding or Wi-Fi roam looks like) and QUIC connection migration is exercised. Each
 //! direction has its own [`Impairment`]: loss, a base delay, jitter (a uniform extra delay per
 //! packet, so packets overtake each other: reordering) and duplication. Decisions come from
-//! seeded RNGs, one per direction. The proxy is bounded (at most `max_queued` packets in flight
+//! seeded RNGs, one per direction. It listens on loopback ([`Proxy::start`]) or on any local
+//! address ([`Proxy::start_on`]: the host side of a network namespace's veth pair, for a delay
+//! relay in front of a "far" worker). The proxy is bounded (at most `max_queued` packets in flight
 //! per direction; beyond that packets are dropped and counted) and stops itself when dropped or
 //! after `idle_timeout` without a packet.
 
@@ -100,6 +102,8 @@ pub struct ProxyStats {
     pub to_client: DirectionStats,
     /// Distinct client addresses seen (a rebind adds one).
     pub flows: AtomicU64,
+    /// Those addresses, in the order first seen.
+    pub clients: Mutex<Vec<SocketAddr>>,
 }
 
 /// A running proxy. Dropping it stops it.
@@ -112,7 +116,18 @@ pub struct Proxy {
 impl Proxy {
     /// Starts a proxy on `127.0.0.1:0` in front of `server`.
     pub async fn start(server: SocketAddr, config: ProxyConfig) -> std::io::Result<Proxy> {
-        let front = Arc::new(UdpSocket::bind("127.0.0.1:0").await?);
+        Proxy::start_on(SocketAddr::from(([127, 0, 0, 1], 0)), server, config).await
+    }
+
+    /// Starts a proxy listening on `bind` (e.g. the host side of a [`crate::netns::NetNs`]'s
+    /// veth pair, so clients inside the namespace reach `server` only through it) in front of
+    /// `server`.
+    pub async fn start_on(
+        bind: SocketAddr,
+        server: SocketAddr,
+        config: ProxyConfig,
+    ) -> std::io::Result<Proxy> {
+        let front = Arc::new(UdpSocket::bind(bind).await?);
         let addr = front.local_addr()?;
         let stats = Arc::new(ProxyStats::default());
         let mut tasks = JoinSet::new();
@@ -344,11 +359,21 @@ async fn front_loop(
         let upstream = match flows.get(&client) {
             Some(socket) => socket.clone(),
             None => {
-                let Ok(socket) = UdpSocket::bind("127.0.0.1:0").await else {
+                let upstream: SocketAddr = if server.ip().is_loopback() {
+                    ([127, 0, 0, 1], 0).into()
+                } else if server.is_ipv6() {
+                    (std::net::Ipv6Addr::UNSPECIFIED, 0).into()
+                } else {
+                    ([0, 0, 0, 0], 0).into()
+                };
+                let Ok(socket) = UdpSocket::bind(upstream).await else {
                     continue;
                 };
                 let socket = Arc::new(socket);
                 shared.stats.flows.fetch_add(1, Ordering::Relaxed);
+                if let Ok(mut clients) = shared.stats.clients.lock() {
+                    clients.push(client);
+                }
                 flows.insert(client, socket.clone());
                 readers.spawn(upstream_loop(
                     socket.clone(),

@@ -57,6 +57,9 @@ pub enum WorkerTier {
     Edge,
     /// Far: placed only when its latency plus round trip beats the edge queue.
     Cloud,
+    /// Undeclared: the scheduler classifies the worker as edge or cloud from its measured
+    /// round trip, and re-classifies it as that moves.
+    Auto,
 }
 
 /// One measured point of a worker's engine profile.
@@ -410,6 +413,18 @@ mod tests {
             let (decoded, used) = WorkerMessage::decode_from(&bytes, 1 << 20).unwrap();
             assert_eq!(used, bytes.len());
             assert_eq!(decoded, message);
+            // Every tier survives the wire, `auto` included.
+            if let WorkerMessage::Register(register) = &message {
+                for tier in [WorkerTier::Edge, WorkerTier::Cloud, WorkerTier::Auto] {
+                    let with_tier = WorkerMessage::Register(Register {
+                        tier,
+                        ..register.clone()
+                    });
+                    let bytes = with_tier.encode(1 << 20).unwrap();
+                    let (decoded, _) = WorkerMessage::decode_from(&bytes, 1 << 20).unwrap();
+                    assert_eq!(decoded, with_tier);
+                }
+            }
             // The robot protocol's decoder refuses a worker frame ...
             assert!(matches!(
                 Message::decode_from(&bytes, 1 << 20),

@@ -19,9 +19,10 @@ use crate::worker::{WorkerOptions, run as run_worker};
 /// Serve a scheduler's batches on this machine's engine.
 #[derive(clap::Args, Debug, Clone)]
 pub struct WorkerArgs {
-    /// The scheduler's QUIC address (`kairos serve`'s `listen`).
-    #[arg(long, value_name = "ADDR")]
-    pub server: std::net::SocketAddr,
+    /// The scheduler's QUIC address (`kairos serve`'s `listen`), `host:port`: an IP address or
+    /// a DNS name (e.g. a Kubernetes Service's), resolved again whenever the worker reconnects.
+    #[arg(long, value_name = "HOST:PORT")]
+    pub server: String,
     /// The scheduler's data directory, read for the certificate pin and the worker token when
     /// `--pin` or `--worker-token` is not given.
     #[arg(long, default_value = "kairos-data")]
@@ -39,7 +40,8 @@ pub struct WorkerArgs {
     /// The device (`cpu`, `cuda`, `cuda:N`).
     #[arg(long, default_value = "cpu")]
     pub device: String,
-    /// Edge or cloud.
+    /// Edge or cloud; `auto`: the scheduler classifies the worker from its measured round
+    /// trip (`[workers] cloud_rtt_ms`), and re-classifies it as that moves.
     #[arg(long, value_enum, default_value = "edge")]
     pub tier: TierArg,
     /// Largest batch to accept (caps the measured saturation batch).
@@ -52,9 +54,9 @@ pub struct WorkerArgs {
     #[arg(long)]
     pub worker_id: Option<String>,
     /// Serve `/ready` (200 once the model is loaded, 503 from SIGTERM on) and `/metrics` on this
-    /// TCP address (plain HTTP, `server::metrics::http`). The worker's own registry has the
-    /// standard families; the per-worker facts (RTT, re-dispatches, busy time) are exported by
-    /// the scheduler.
+    /// TCP address (plain HTTP, `server::metrics::http`): the worker's connection state,
+    /// batches answered and failed, heartbeats sent, compute time per batch, batch sizes and
+    /// its engine's busy time. Its round trip and re-dispatches are the scheduler's to export.
     #[arg(long, value_name = "ADDR")]
     pub metrics_listen: Option<std::net::SocketAddr>,
 }
@@ -66,9 +68,13 @@ pub enum TierArg {
     Edge,
     /// Far from them.
     Cloud,
+    /// Classified by the scheduler from the measured round trip.
+    Auto,
 }
 
-/// Runs `kairos worker` until SIGTERM/Ctrl-C (exit 0 after draining) or the connection is lost.
+/// Runs `kairos worker` until SIGTERM/Ctrl-C (exit 0 after draining). A lost connection is
+/// dialled again with backoff (`crate::worker::run`); a refusal or a first connection that
+/// fails ends it with an error.
 pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
     let _ = tracing_subscriber::fmt()
         .with_env_filter(
@@ -115,15 +121,17 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         format!("{}-{}", host.trim(), std::process::id())
     });
     let options = WorkerOptions {
-        server: args.server,
+        server: args.server.clone(),
         trust: ServerTrust::Pinned(pin),
         token,
         worker_id,
         tier: match args.tier {
             TierArg::Edge => WorkerTier::Edge,
             TierArg::Cloud => WorkerTier::Cloud,
+            TierArg::Auto => WorkerTier::Auto,
         },
         max_batch: args.max_batch.unwrap_or(u32::MAX),
+        metrics: crate::metrics::Metrics::for_worker(),
     };
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -135,11 +143,9 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
             let listener = crate::metrics::http::bind(addr)
                 .await
                 .with_context(|| format!("cannot listen for metrics on {addr}"))?;
-            let metrics = crate::metrics::Metrics::new();
-            metrics.add_engine(engine.name());
             tokio::spawn(crate::metrics::http::serve(
                 listener,
-                metrics,
+                options.metrics.clone(),
                 readiness.clone(),
                 std::future::pending(),
             ));

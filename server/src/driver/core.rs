@@ -242,11 +242,19 @@ impl DriverCore {
         self.after_event(now);
     }
 
-    /// A remote instance's measured round trip changed: the scheduler plans with it from now.
-    pub fn engine_rtt(&mut self, engine: EngineId, rtt: Duration) {
+    /// A remote instance's measured round trip changed, and with it perhaps its tier (a worker
+    /// registered as `auto`): the scheduler plans with them from now.
+    pub fn engine_link(&mut self, engine: EngineId, rtt: Duration, tier: crate::scheduler::Tier) {
         self.scheduler.set_engine_rtt(engine, rtt);
+        let retiered = self.scheduler.set_engine_tier(engine, tier);
         if let Some(state) = self.scheduler.engines().nth(engine.0) {
             self.metrics.set_worker_rtt(&state.spec.name, rtt);
+            if retiered {
+                tracing::info!(engine = %state.spec.name, ?tier, ?rtt, "worker re-classified");
+            }
+        }
+        if retiered {
+            self.export_engines();
         }
     }
 

@@ -544,3 +544,40 @@ fn metrics_follow_the_rounds_and_count_a_late_reply_as_a_deadline_miss() {
     next(2, 40, 60); // dry at 50 ms, answered at 60: the robot waited
     assert_eq!(sample("kairos_deadline_misses_total"), Some(1.0));
 }
+
+/// A worker's new round trip and tier (an `auto` worker re-classified by its `RemoteEngine`)
+/// reach the scheduler and `kairos_workers{tier,state}` at once.
+#[test]
+fn a_reclassified_worker_moves_tier_in_the_scheduler_and_the_metrics() {
+    let mut b = bench(Duration::from_secs(10), Duration::MAX);
+    let metrics = crate::metrics::Metrics::new();
+    b.core = b.core.with_metrics(metrics.clone());
+    let worker = b.core.add_engine(ms(0), remote_spec("worker:w"));
+    let ready = |tier: &str| {
+        let series = format!("kairos_workers{{tier=\"{tier}\",state=\"ready\"}}");
+        metrics.encode().lines().find_map(|line| {
+            line.strip_prefix(series.as_str())?
+                .strip_prefix(' ')?
+                .parse::<f64>()
+                .ok()
+        })
+    };
+    let view = |b: &Bench| {
+        let e = b.core.scheduler().engines().nth(worker.0).unwrap();
+        (e.spec.tier, e.spec.rtt)
+    };
+    b.core
+        .engine_link(worker, Duration::from_millis(30), Tier::Edge);
+    assert_eq!(view(&b), (Tier::Edge, Duration::from_millis(30)));
+    assert_eq!((ready("edge"), ready("cloud")), (Some(2.0), Some(0.0)));
+    b.core
+        .engine_link(worker, Duration::from_millis(60), Tier::Cloud);
+    assert_eq!(view(&b), (Tier::Cloud, Duration::from_millis(60)));
+    assert_eq!((ready("edge"), ready("cloud")), (Some(1.0), Some(1.0)));
+    let rtt = metrics.encode().lines().find_map(|l| {
+        l.strip_prefix(r#"kairos_worker_rtt_seconds{worker="worker:w"} "#)?
+            .parse::<f64>()
+            .ok()
+    });
+    assert_eq!(rtt, Some(0.06));
+}

@@ -237,6 +237,12 @@ impl DriverHandle {
         let _ = self.commands.send(Command::RemoveEngine { engine }).await;
     }
 
+    /// Resolves once the driver has stopped: after a shutdown, when every round it accepted
+    /// was answered.
+    pub async fn stopped(&self) {
+        self.commands.closed().await;
+    }
+
     /// Every engine instance the scheduler knows, live or not.
     pub async fn engines(&self) -> Result<Vec<EngineView>, DriverGone> {
         let (answer, rx) = oneshot::channel();
@@ -406,7 +412,8 @@ impl Shell {
                 if let Some(instance) = self.pool.get(engine)
                     && instance.can_lose_batches()
                 {
-                    self.core.engine_rtt(engine, instance.rtt());
+                    self.core
+                        .engine_link(engine, instance.rtt(), instance.tier());
                 }
                 let _ = load.send(self.core.generation_ended(now, batch, inference));
             }

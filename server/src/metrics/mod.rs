@@ -9,6 +9,10 @@
 //! is either fed where the fact happens, or *is* the owner's counter (the plugin health record
 //! and the action manager count their fallbacks in the [`Counter`] handed to them).
 //!
+//! A `kairos worker` process uses [`Metrics::for_worker`]: the same registry type and families
+//! (its engine's busy time, its batch sizes) plus the worker's own ([`WorkerConnection`],
+//! batches answered, heartbeats sent, compute time per batch), fed by `crate::worker`.
+//!
 //! No label names a robot or a task: a fleet of thousands must not become thousands of series.
 //! Label values are engine instances, worker ids, tiers, re-dispatch reasons and policy names,
 //! all bounded by the deployment's configuration.
@@ -52,6 +56,40 @@ impl WorkerState {
         match self {
             WorkerState::Ready => "ready",
             WorkerState::Draining => "draining",
+        }
+    }
+}
+
+/// A worker process's connection to its scheduler, as `kairos_worker_connection{state}` shows
+/// it (1 for the current state, 0 for the others).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum WorkerConnection {
+    /// Dialling the scheduler or waiting for `Registered`.
+    Connecting,
+    /// In the scheduler's pool, taking batches.
+    Registered,
+    /// Sent `Drain`: finishing the batches it holds.
+    Draining,
+    /// Not connected (lost, drained, or refused).
+    Disconnected,
+}
+
+impl WorkerConnection {
+    /// Every state, in the order exported.
+    pub const ALL: [WorkerConnection; 4] = [
+        WorkerConnection::Connecting,
+        WorkerConnection::Registered,
+        WorkerConnection::Draining,
+        WorkerConnection::Disconnected,
+    ];
+
+    /// The label value.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            WorkerConnection::Connecting => "connecting",
+            WorkerConnection::Registered => "registered",
+            WorkerConnection::Draining => "draining",
+            WorkerConnection::Disconnected => "disconnected",
         }
     }
 }
@@ -104,6 +142,11 @@ struct EngineLabel {
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct StateLabel {
+    state: &'static str,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct FallbackLabels {
     kind: &'static str,
     policy: String,
@@ -139,6 +182,17 @@ struct Inner {
     engine_busy_ratio: Family<EngineLabel, FloatGauge>,
     /// Per engine: its busy counter and ratio gauge, and where the ratio's window started.
     engines: Mutex<BTreeMap<String, EngineBusy>>,
+    /// The worker process's own families ([`Metrics::for_worker`]); `None` in a scheduler.
+    worker: Option<WorkerFamilies>,
+}
+
+/// What only a `kairos worker` process exports.
+struct WorkerFamilies {
+    connection: Family<StateLabel, Gauge>,
+    batches: Counter,
+    failed_batches: Counter,
+    heartbeats: Counter,
+    compute: Histogram,
 }
 
 /// The process's metrics: a Prometheus registry and typed handles to every family in it.
@@ -160,6 +214,20 @@ impl Default for Metrics {
 impl Metrics {
     /// A registry with every Kairos family, all at zero.
     pub fn new() -> Metrics {
+        Metrics::build(false)
+    }
+
+    /// A `kairos worker` process's registry: every family of [`Metrics::new`] plus the
+    /// worker's own (`kairos_worker_connection{state}`, `kairos_worker_batches_total`,
+    /// `kairos_worker_failed_batches_total`, `kairos_worker_heartbeats_total`,
+    /// `kairos_worker_compute_seconds`), starting `connecting`.
+    pub fn for_worker() -> Metrics {
+        let metrics = Metrics::build(true);
+        metrics.set_worker_connection(WorkerConnection::Connecting);
+        metrics
+    }
+
+    fn build(worker: bool) -> Metrics {
         let mut registry = Registry::default();
         let queue_depth = Gauge::default();
         registry.register(
@@ -229,6 +297,47 @@ impl Metrics {
              spent running forward passes",
             engine_busy_ratio.clone(),
         );
+        let worker = worker.then(|| {
+            let connection = Family::<StateLabel, Gauge>::default();
+            registry.register(
+                "kairos_worker_connection",
+                "This worker's connection to its scheduler: 1 for the current state",
+                connection.clone(),
+            );
+            let batches = Counter::default();
+            registry.register(
+                "kairos_worker_batches",
+                "Batches this worker ran and answered",
+                batches.clone(),
+            );
+            let failed_batches = Counter::default();
+            registry.register(
+                "kairos_worker_failed_batches",
+                "Batches this worker received but could not answer (engine failure, stream lost)",
+                failed_batches.clone(),
+            );
+            let heartbeats = Counter::default();
+            registry.register(
+                "kairos_worker_heartbeats",
+                "Heartbeats this worker sent to its scheduler",
+                heartbeats.clone(),
+            );
+            // 0.5 ms .. ~8 s: one forward pass of a batch.
+            let compute = Histogram::new(exponential_buckets(0.0005, 2.0, 15));
+            registry.register_with_unit(
+                "kairos_worker_compute",
+                "Compute time of one batch on this worker (what it reports as compute_us)",
+                Unit::Seconds,
+                compute.clone(),
+            );
+            WorkerFamilies {
+                connection,
+                batches,
+                failed_batches,
+                heartbeats,
+                compute,
+            }
+        });
         Metrics(Arc::new(Inner {
             registry,
             queue_depth,
@@ -242,7 +351,50 @@ impl Metrics {
             engine_busy,
             engine_busy_ratio,
             engines: Mutex::new(BTreeMap::new()),
+            worker,
         }))
+    }
+
+    /// `kairos_worker_connection{state}`: the worker is now in `state`. No-op in a scheduler.
+    pub fn set_worker_connection(&self, state: WorkerConnection) {
+        if let Some(w) = &self.0.worker {
+            for s in WorkerConnection::ALL {
+                w.connection
+                    .get_or_create(&StateLabel { state: s.as_str() })
+                    .set(i64::from(s == state));
+            }
+        }
+    }
+
+    /// A worker answered a batch of `requests` requests that computed for `compute`:
+    /// `kairos_worker_batches_total`, `kairos_worker_compute_seconds` and `kairos_batch_size`
+    /// (the engine's busy time is [`Metrics::record_engine_busy`], counted even when the answer
+    /// cannot be sent).
+    pub fn record_worker_batch(&self, requests: usize, compute: Duration) {
+        if let Some(w) = &self.0.worker {
+            w.batches.inc();
+            w.compute.observe(compute.as_secs_f64());
+        }
+        self.observe_batch_size(requests);
+    }
+
+    /// `kairos_worker_failed_batches_total`: a batch the worker could not answer.
+    pub fn record_worker_failed_batch(&self) {
+        if let Some(w) = &self.0.worker {
+            w.failed_batches.inc();
+        }
+    }
+
+    /// `kairos_worker_heartbeats_total`: one heartbeat sent.
+    pub fn record_worker_heartbeat(&self) {
+        if let Some(w) = &self.0.worker {
+            w.heartbeats.inc();
+        }
+    }
+
+    /// Batches this worker answered (`kairos_worker_batches_total`; 0 in a scheduler).
+    pub fn worker_batches(&self) -> u64 {
+        self.0.worker.as_ref().map_or(0, |w| w.batches.get())
     }
 
     /// `kairos_queue_depth`: rounds waiting for dispatch.
@@ -481,6 +633,49 @@ mod tests {
         // A departed worker's series go away.
         metrics.remove_worker("gpu-0");
         assert!(!metrics.encode().contains("gpu-0"));
+    }
+
+    #[test]
+    fn worker_families_exist_only_in_a_worker_registry() {
+        let scheduler = Metrics::new();
+        scheduler.record_worker_heartbeat();
+        scheduler.set_worker_connection(WorkerConnection::Registered);
+        assert!(!scheduler.encode().contains("kairos_worker_"));
+
+        let worker = Metrics::for_worker();
+        let connected = |text: &str, state: &str| {
+            sample(
+                text,
+                &format!("kairos_worker_connection{{state=\"{state}\"}}"),
+            )
+        };
+        let text = worker.encode();
+        assert_eq!(connected(&text, "connecting"), Some(1.0));
+        assert_eq!(connected(&text, "registered"), Some(0.0));
+        worker.set_worker_connection(WorkerConnection::Registered);
+        worker.record_worker_heartbeat();
+        worker.record_worker_heartbeat();
+        worker.record_worker_batch(3, Duration::from_millis(40));
+        worker.record_engine_busy("engine-0", Duration::from_millis(40));
+        worker.record_worker_failed_batch();
+        let text = worker.encode();
+        assert_eq!(connected(&text, "connecting"), Some(0.0));
+        assert_eq!(connected(&text, "registered"), Some(1.0));
+        for (series, value) in [
+            ("kairos_worker_heartbeats_total", 2.0),
+            ("kairos_worker_batches_total", 1.0),
+            ("kairos_worker_failed_batches_total", 1.0),
+            ("kairos_worker_compute_seconds_count", 1.0),
+            ("kairos_worker_compute_seconds_sum", 0.04),
+            ("kairos_batch_size_sum", 3.0),
+            (
+                r#"kairos_engine_busy_seconds_total{engine="engine-0"}"#,
+                0.04,
+            ),
+        ] {
+            assert_eq!(sample(&text, series), Some(value), "{series} in\n{text}");
+        }
+        assert_eq!(worker.worker_batches(), 1);
     }
 
     #[test]

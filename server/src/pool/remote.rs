@@ -72,46 +72,84 @@ impl RttEstimate {
     }
 }
 
+/// How far past the threshold ([`WorkersConfig::cloud_rtt_ms`]) a worker's round trip must move
+/// before [`tier_from_rtt`] re-classifies it, as a fraction of the threshold: an edge worker
+/// becomes cloud above `threshold × (1 + HYSTERESIS)` and a cloud worker edge again below
+/// `threshold × (1 − HYSTERESIS)`, so an average that wanders around the threshold does not
+/// flip placement at every batch.
+pub const TIER_HYSTERESIS: f64 = 0.25;
+
+/// The tier of a worker that registered as `auto`, from its measured round trip `rtt` against
+/// the `threshold`: first (`current` is `None`, at registration) cloud iff `rtt >= threshold`,
+/// then with [`TIER_HYSTERESIS`] around it. Pure.
+pub fn tier_from_rtt(current: Option<Tier>, rtt: Duration, threshold: Duration) -> Tier {
+    let rtt = rtt.as_secs_f64();
+    let threshold = threshold.as_secs_f64();
+    match current {
+        None if rtt >= threshold => Tier::Cloud,
+        None => Tier::Edge,
+        Some(Tier::Edge) if rtt > threshold * (1.0 + TIER_HYSTERESIS) => Tier::Cloud,
+        Some(Tier::Cloud) if rtt < threshold * (1.0 - TIER_HYSTERESIS) => Tier::Edge,
+        Some(tier) => tier,
+    }
+}
+
+/// What the scheduler knows of a worker's link: its round trip and, for an `auto` worker, the
+/// tier that round trip gives.
+#[derive(Clone, Copy, Debug)]
+struct Link {
+    rtt: RttEstimate,
+    tier: Tier,
+}
+
 /// A registered worker, as one engine instance of the pool.
 pub struct RemoteEngine {
     name: String,
     spec: ModelSpec,
     profile: EngineProfile,
-    tier: Tier,
+    /// Whether the tier follows the measured round trip (the worker registered as `auto`).
+    auto_tier: bool,
     connection: Connection,
-    rtt: Arc<Mutex<RttEstimate>>,
+    link: Arc<Mutex<Link>>,
     workers: WorkersConfig,
 }
 
 impl RemoteEngine {
     /// The worker on `connection`, registered as `name` with its spec, profile (its `max_batch`
-    /// already capped to the worker's) and tier. Its round trip starts at QUIC's estimate.
+    /// already capped to the worker's) and tier (`None`: `auto`, classified by
+    /// [`tier_from_rtt`] against `workers.cloud_rtt()`, first from QUIC's estimate). Its round
+    /// trip starts at QUIC's estimate.
     pub fn new(
         name: String,
         spec: ModelSpec,
         profile: EngineProfile,
-        tier: Tier,
+        tier: Option<Tier>,
         connection: Connection,
         workers: WorkersConfig,
     ) -> RemoteEngine {
-        let rtt = Arc::new(Mutex::new(RttEstimate::new(connection.rtt())));
+        let rtt = RttEstimate::new(connection.rtt());
+        let auto_tier = tier.is_none();
+        let tier = tier.unwrap_or_else(|| tier_from_rtt(None, rtt.get(), workers.cloud_rtt()));
         RemoteEngine {
             name,
             spec,
             profile,
-            tier,
+            auto_tier,
             connection,
-            rtt,
+            link: Arc::new(Mutex::new(Link { rtt, tier })),
             workers,
         }
     }
 
-    fn estimate(&self) -> RttEstimate {
-        *self
-            .rtt
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    fn link(&self) -> Link {
+        *lock(&self.link)
     }
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    mutex
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 impl EngineInstance for RemoteEngine {
@@ -128,11 +166,11 @@ impl EngineInstance for RemoteEngine {
     }
 
     fn tier(&self) -> Tier {
-        self.tier
+        self.link().tier
     }
 
     fn rtt(&self) -> Duration {
-        self.estimate().get()
+        self.link().rtt.get()
     }
 
     fn can_lose_batches(&self) -> bool {
@@ -160,7 +198,8 @@ impl EngineInstance for RemoteEngine {
         let name = self.name.clone();
         let spec = self.spec.clone();
         let connection = self.connection.clone();
-        let rtt = self.rtt.clone();
+        let link = self.link.clone();
+        let cloud_rtt = self.auto_tier.then(|| self.workers.cloud_rtt());
         async move {
             let lost = |reason: LossReason, detail: String| PoolError::Lost {
                 engine: name.clone(),
@@ -199,9 +238,13 @@ impl EngineInstance for RemoteEngine {
                 }
             };
             let compute = Duration::from_micros(chunks.compute_us);
-            rtt.lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner)
-                .observe(sent.elapsed(), compute);
+            {
+                let mut link = lock(&link);
+                link.rtt.observe(sent.elapsed(), compute);
+                if let Some(threshold) = cloud_rtt {
+                    link.tier = tier_from_rtt(Some(link.tier), link.rtt.get(), threshold);
+                }
+            }
             chunks_from_wire(&name, &spec, &batch, chunks.results)
         }
         .boxed()
@@ -560,6 +603,62 @@ mod tests {
         // A worker that reports more compute than the whole trip took adds a zero sample.
         rtt.observe(Duration::from_millis(5), Duration::from_millis(9));
         assert!(rtt.get() < Duration::from_millis(20));
+    }
+
+    #[test]
+    fn auto_tier_follows_the_round_trip_with_hysteresis() {
+        let ms = Duration::from_millis;
+        let threshold = ms(20);
+        // At registration: the threshold itself is cloud.
+        assert_eq!(tier_from_rtt(None, ms(19), threshold), Tier::Edge);
+        assert_eq!(tier_from_rtt(None, ms(20), threshold), Tier::Cloud);
+        // An edge worker stays edge up to 25 % above the threshold, then turns cloud.
+        assert_eq!(
+            tier_from_rtt(Some(Tier::Edge), ms(24), threshold),
+            Tier::Edge
+        );
+        assert_eq!(
+            tier_from_rtt(Some(Tier::Edge), ms(25), threshold),
+            Tier::Edge
+        );
+        assert_eq!(
+            tier_from_rtt(Some(Tier::Edge), ms(26), threshold),
+            Tier::Cloud
+        );
+        // A cloud worker stays cloud down to 25 % below it, then turns edge.
+        assert_eq!(
+            tier_from_rtt(Some(Tier::Cloud), ms(16), threshold),
+            Tier::Cloud
+        );
+        assert_eq!(
+            tier_from_rtt(Some(Tier::Cloud), ms(15), threshold),
+            Tier::Cloud
+        );
+        assert_eq!(
+            tier_from_rtt(Some(Tier::Cloud), ms(14), threshold),
+            Tier::Edge
+        );
+        // An average that wanders inside the band never flips it.
+        let mut rtt = RttEstimate::new(ms(30));
+        let mut tier = tier_from_rtt(None, rtt.get(), threshold);
+        let mut flips = 0;
+        for i in 0..200 {
+            let sample = if i % 2 == 0 { ms(17) } else { ms(23) };
+            rtt.observe(sample, Duration::ZERO);
+            let next = tier_from_rtt(Some(tier), rtt.get(), threshold);
+            flips += u32::from(next != tier);
+            tier = next;
+        }
+        assert_eq!(flips, 0, "{rtt:?}");
+        assert_eq!(tier, Tier::Cloud);
+        // A link that really got shorter moves it once.
+        for _ in 0..40 {
+            rtt.observe(ms(2), Duration::ZERO);
+            let next = tier_from_rtt(Some(tier), rtt.get(), threshold);
+            flips += u32::from(next != tier);
+            tier = next;
+        }
+        assert_eq!((tier, flips), (Tier::Edge, 1));
     }
 
     #[test]

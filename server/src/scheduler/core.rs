@@ -8,7 +8,7 @@ use super::placement::{self, EngineSlot};
 use super::policy::{PendingView, PriorityPolicy, RemainingWork, validate_order};
 use super::{
     AdmitError, BatchId, Dispatch, DispatchedRequest, EngineId, EngineSpec, ExecReport, RequestId,
-    RobotId, RoundOutcome, RoundSubmit, SchedulerConfig, ServerLoad, TaskEnd, TaskId,
+    RobotId, RoundOutcome, RoundSubmit, SchedulerConfig, ServerLoad, TaskEnd, TaskId, Tier,
 };
 use crate::lifecycle::{TaskRecord, TaskSummary, TaskTable};
 use crate::time::Timestamp;
@@ -675,6 +675,17 @@ impl Scheduler {
     pub fn set_engine_rtt(&mut self, engine: EngineId, rtt: Duration) {
         if let Some(state) = self.engines.get_mut(engine.0) {
             state.spec.rtt = rtt;
+        }
+    }
+
+    /// The instance's tier changed (a worker classified from its round trip); whether it did.
+    pub fn set_engine_tier(&mut self, engine: EngineId, tier: Tier) -> bool {
+        match self.engines.get_mut(engine.0) {
+            Some(state) if state.spec.tier != tier => {
+                state.spec.tier = tier;
+                true
+            }
+            _ => false,
         }
     }
 

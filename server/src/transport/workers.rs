@@ -20,7 +20,7 @@ use tokio::time::Instant;
 use super::{Gate, ServerContext};
 use crate::config::{WorkersConfig, hash_token};
 use crate::pool::remote::{model_spec, profile_from_wire};
-use crate::pool::{RemoteEngine, same_shapes};
+use crate::pool::{EngineInstance, RemoteEngine, same_shapes};
 use crate::scheduler::Tier;
 
 /// Who may register as a worker, and how workers are treated.
@@ -129,6 +129,12 @@ async fn watch_worker(
             () = async { let _ = stop.wait_for(|stopping| *stopping).await; }, if !stopping => {
                 stopping = true;
             }
+            // Every accepted round is answered: the worker is told at once (it reconnects to
+            // the next scheduler) instead of holding the shutdown until the drain timeout.
+            () = context.driver.stopped(), if stopping => {
+                connection.close(VarInt::from_u32(close_code::SHUTTING_DOWN), b"scheduler stopped");
+                return "scheduler stopped";
+            }
         }
     }
 }
@@ -178,9 +184,10 @@ async fn register(
                     return refuse(send, close_code::PROTOCOL_ERROR, reason, false).await;
                 }
             };
-            let tier = match register.tier {
-                WorkerTier::Edge => Tier::Edge,
-                WorkerTier::Cloud => Tier::Cloud,
+            let declared = match register.tier {
+                WorkerTier::Edge => Some(Tier::Edge),
+                WorkerTier::Cloud => Some(Tier::Cloud),
+                WorkerTier::Auto => None,
             };
             let name = format!(
                 "worker:{}@{}",
@@ -195,10 +202,11 @@ async fn register(
                 name.clone(),
                 model_spec(&register.model),
                 profile,
-                tier,
+                declared,
                 connection.clone(),
                 context.workers.config.clone(),
             );
+            let tier = engine.tier();
             match context.driver.add_engine(Arc::new(engine)).await {
                 Ok(Ok(id)) => {
                     let registered = Registered {
