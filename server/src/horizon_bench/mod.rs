@@ -135,6 +135,33 @@ pub const STEADY_GRID: [(f64, f64, f64); 4] = [
     (0.5, 1.0, 0.0),
 ];
 
+/// `contact` settings `(slow, margin, h_max)` in the contact task's full grid (0: no cap).
+pub const CONTACT_GRID: [(f64, f64, f64); 4] = [
+    (0.5, 1.0, 0.0),
+    (0.5, 2.0, 0.0),
+    (0.7, 1.0, 0.0),
+    (0.5, 1.0, 8.0),
+];
+
+/// The contact-aware policy's points, run on the contact task beside [`builtin_points`]
+/// (`quick`: the first setting).
+pub fn contact_points(quick: bool) -> Vec<PolicyPoint> {
+    let grid = if quick {
+        &CONTACT_GRID[..1]
+    } else {
+        &CONTACT_GRID[..]
+    };
+    grid.iter()
+        .map(|&(slow, margin, cap)| {
+            let mut p = PolicyPoint::new("contact", &[("slow", slow), ("margin", margin)]);
+            if cap > 0.0 {
+                p.params.insert("h_max".into(), cap);
+            }
+            p
+        })
+        .collect()
+}
+
 /// The built-in policies of a run: static H over a grid, the §3.1 threshold rule at several
 /// thresholds, and the multi-sample spread rule (`quick`: a few of each).
 pub fn builtin_points(quick: bool) -> Vec<PolicyPoint> {
