@@ -460,7 +460,10 @@ fn contact_cuts_margin_actions_before_the_plan_slows_or_switches_the_gripper() {
     let transit = approach_chunk(12, 12, 12, 0.3);
     assert_eq!(contact::first_contact(&transit.view(), 0.5), 12);
     assert_eq!(choose("contact", &[], &transit, 1, 12), Ok(11));
-    assert_eq!(choose("contact", &[("margin", 0.0)], &transit, 1, 10), Ok(10));
+    assert_eq!(
+        choose("contact", &[("margin", 0.0)], &transit, 1, 10),
+        Ok(10)
+    );
     assert_eq!(choose("contact", &[("h_max", 4.0)], &transit, 1, 12), Ok(4));
     // A gripper that was closed from the start (carrying) is not an event; opening it is.
     let mut carry = approach_chunk(12, 12, 0, 0.3);
@@ -476,5 +479,10 @@ fn contact_cuts_margin_actions_before_the_plan_slows_or_switches_the_gripper() {
     assert!(bad(&[("margin", 1.5)]));
     assert!(bad(&[("h_max", 0.0)]));
     assert!(bad(&[("delta", 0.3)]));
-    assert!(!bad(&[("slow", 0.0), ("margin", 0.0), ("h_min", 2.0), ("h_max", 8.0)]));
+    assert!(!bad(&[
+        ("slow", 0.0),
+        ("margin", 0.0),
+        ("h_min", 2.0),
+        ("h_max", 8.0)
+    ]));
 }
