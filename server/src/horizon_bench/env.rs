@@ -555,19 +555,20 @@ mod tests {
     fn in_the_contact_task_open_loop_fails_at_contact_not_in_transit() {
         let cfg = EnvConfig::contact_task();
         let (one, _) = open_loop_expert(&cfg, 0..400, &|_| 1);
-        let (two, _) = open_loop_expert(&cfg, 0..400, &|_| 2);
+        let (eight, _) = open_loop_expert(&cfg, 0..400, &|_| 8);
         let (sixteen, _) = open_loop_expert(&cfg, 0..400, &|_| 16);
-        // Long open-loop chunks fail; even H = 2 pays, as every step at contact counts.
-        assert!(sixteen + 0.4 < one, "H=1 {one}, H=16 {sixteen}");
-        assert!(two + 0.02 < one, "H=1 {one}, H=2 {two}");
-        // Re-planning only at contact keeps H = 1's success at more than twice its horizon:
-        // transit is forgiving.
+        // Long open-loop chunks fail (noise-free plans of the expert: 100%, 91%, 68% when
+        // written).
+        assert!(eight + 0.05 < one, "H=1 {one}, H=8 {eight}");
+        assert!(sixteen + 0.2 < one, "H=1 {one}, H=16 {sixteen}");
+        // Re-planning only at contact keeps H = 1's success at three times its horizon
+        // (100% at 3.0 when written): transit is forgiving.
         let (rate, mean) = open_loop_expert(&cfg, 0..400, &|p| contact_cut(p, 0.9, 1));
         assert!(
-            rate + 0.02 >= one && mean >= 2.0,
+            rate + 0.01 >= one && mean >= 2.5,
             "H=1 {one}; contact {rate} at {mean}"
         );
-        // In the uniform task the same rule pays like a static horizon of its mean.
+        // In the uniform task the same rule loses success: risk is everywhere.
         let uniform = EnvConfig::default();
         let (one, _) = open_loop_expert(&uniform, 0..400, &|_| 1);
         let (rate, mean) = open_loop_expert(&uniform, 0..400, &|p| contact_cut(p, 0.9, 1));
