@@ -377,6 +377,7 @@ proptest! {
             ("static", params(&[("h", h as f64)])),
             ("spread", params(&[("threshold", t)])),
             ("steady", params(&[("delta", t), ("margin", (h % 4) as f64)])),
+            ("contact", params(&[("slow", t), ("margin", (h % 4) as f64)])),
             ("threshold", params(&[("t", t), ("step", (h % 5 + 1) as f64)])),
         ] {
             let mut policy = builtin(name, &p).unwrap();
@@ -396,6 +397,8 @@ proptest! {
         prop_assert!(threshold::threshold_prefix(&v, t) <= threshold::threshold_prefix(&v, t + dt));
         prop_assert!(spread::spread_prefix(&v, t) <= spread::spread_prefix(&v, t + dt));
         prop_assert!(steady::first_change(&v, t) <= steady::first_change(&v, t + dt));
+        // A larger `slow` counts more actions as slow: the contact comes no later.
+        prop_assert!(contact::first_contact(&v, t + dt) <= contact::first_contact(&v, t));
     }
 
     #[test]
