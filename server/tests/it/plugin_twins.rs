@@ -305,12 +305,16 @@ fn steady_inputs(seed: u64, count: usize) -> Vec<(HorizonCase, PolicyParams)> {
         .collect()
 }
 
-#[test]
-fn steady_plugin_matches_its_native_twin() {
-    let mut plugin = horizon_plugin("steady");
-    let mut native = Steady::default();
+/// Asserts that the shipped plugin `name` answers every input as `native` does, with enough
+/// valid decisions and cuts strictly inside the bounds that the comparison means something.
+fn assert_twins(
+    name: &str,
+    native: &mut dyn HorizonPolicy,
+    inputs: Vec<(HorizonCase, PolicyParams)>,
+) {
+    let mut plugin = horizon_plugin(name);
     let (mut decided, mut cut_inside) = (0, 0);
-    for (case, params) in steady_inputs(21, 600) {
+    for (case, params) in inputs {
         let input = case.input(&params);
         let want = native.choose(&input);
         let (got, _) = plugin
@@ -326,11 +330,16 @@ fn steady_plugin_matches_its_native_twin() {
             cut_inside += usize::from(h > input.h_min.max(1) && h < input.h_max.min(case.dims.2));
         }
     }
-    assert!(decided > 300, "too few valid decisions: {decided}");
+    assert!(decided > 300, "{name}: too few valid decisions: {decided}");
     assert!(
         cut_inside > 50,
-        "too few cuts inside the bounds: {cut_inside}"
+        "{name}: too few cuts inside the bounds: {cut_inside}"
     );
+}
+
+#[test]
+fn steady_plugin_matches_its_native_twin() {
+    assert_twins("steady", &mut Steady::default(), steady_inputs(21, 600));
 }
 
 /// Chunks whose sample-0 actions have speeds (norm of all dimensions but the last) around
@@ -409,29 +418,10 @@ fn contact_inputs(seed: u64, count: usize) -> Vec<(HorizonCase, PolicyParams)> {
 
 #[test]
 fn contact_plugin_matches_its_native_twin() {
-    let mut plugin = horizon_plugin("contact");
-    let mut native = ContactAware::default();
-    let (mut decided, mut cut_inside) = (0, 0);
-    for (case, params) in contact_inputs(23, 600) {
-        let input = case.input(&params);
-        let want = native.choose(&input);
-        let (got, _) = plugin
-            .call_plugin(&input)
-            .unwrap_or_else(|f| panic!("{}: {f}", case.name));
-        assert!(
-            same_answer(&want, &got),
-            "{}: native {want:?}, plugin {got:?}, params {params:?}",
-            case.name
-        );
-        decided += usize::from(want.is_ok());
-        if let Ok(h) = want {
-            cut_inside += usize::from(h > input.h_min.max(1) && h < input.h_max.min(case.dims.2));
-        }
-    }
-    assert!(decided > 300, "too few valid decisions: {decided}");
-    assert!(
-        cut_inside > 50,
-        "too few cuts inside the bounds: {cut_inside}"
+    assert_twins(
+        "contact",
+        &mut ContactAware::default(),
+        contact_inputs(23, 600),
     );
 }
 
