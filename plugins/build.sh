@@ -59,6 +59,7 @@ build_py() { # name world
 build_c threshold horizon
 build_c static horizon
 build_c steady horizon
+build_c contact horizon
 # The load-aware horizon reads the server's load: kairos:policy@0.3.0.
 build_c load_aware horizon since_v0.3.0
 build_c fifo priority
@@ -75,6 +76,7 @@ check() { "$KAIROS" plugin check --cache-dir "$CACHE" --cases 100 "$@" >/dev/nul
 check "$OUT/threshold.wasm"
 check "$OUT/static.wasm" --param h=8
 check "$OUT/steady.wasm"
+check "$OUT/contact.wasm"
 check "$OUT/load_aware.wasm"
 check "$OUT/fifo.wasm"
 check "$OUT/plas.wasm"

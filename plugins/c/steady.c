@@ -15,11 +15,10 @@
  */
 #include "horizon_policy.h"
 #include "kairos_policy.h"
+#include "cut_rule.h"
 
 #define DEFAULT_DELTA 0.25
 #define DEFAULT_MARGIN 1u
-
-typedef exports_kairos_policy_horizon_horizon_error_t horizon_error_t;
 
 static uint32_t first_change(const exports_kairos_policy_horizon_chunk_t *c, double delta) {
     uint32_t n_len = c->chunk_len, d = c->action_dim;
@@ -36,85 +35,14 @@ static uint32_t first_change(const exports_kairos_policy_horizon_chunk_t *c, dou
     return n_len;
 }
 
-static void param_error(horizon_error_t *err, const kairos_policy_types_param_t *p, const char *reason) {
-    err->tag = EXPORTS_KAIROS_POLICY_HORIZON_HORIZON_ERROR_INVALID_PARAM;
-    horizon_policy_string_dup_n(&err->val.invalid_param.name, (const char *)p->name.ptr, p->name.len);
-    horizon_policy_string_dup(&err->val.invalid_param.reason, reason);
-}
-
-/* A whole-number parameter >= 1 into *out (0 when absent); false after setting *err. */
-static bool count_param(const exports_kairos_policy_horizon_list_param_t *params, const char *name,
-                        uint32_t *out, horizon_error_t *err) {
-    const kairos_policy_types_param_t *p = kairos_param_find(params->ptr, params->len, name);
-    *out = 0;
-    if (!p) return true;
-    if (!kairos_is_count(p->value)) {
-        param_error(err, p, "not a whole number of actions >= 1");
-        return false;
-    }
-    *out = (uint32_t)p->value;
-    return true;
-}
-
-static bool decide(exports_kairos_policy_horizon_chunk_t *chunk,
-                   exports_kairos_policy_horizon_horizon_context_t *ctx,
-                   exports_kairos_policy_horizon_list_param_t *params, uint32_t *ret,
-                   horizon_error_t *err) {
-    static const char *const known[] = {"delta", "h_max", "h_min", "margin", NULL};
-    const kairos_policy_types_param_t *p = kairos_param_unknown(params->ptr, params->len, known);
-    if (p) {
-        param_error(err, p, "unknown parameter (expected one of: delta, margin, h_min, h_max)");
-        return false;
-    }
-    /* Checked in the native policy's order: margin, delta, h_min, h_max. */
-    uint32_t margin = DEFAULT_MARGIN;
-    p = kairos_param_find(params->ptr, params->len, "margin");
-    if (p) {
-        if (!(isfinite(p->value) && p->value >= 0.0 && p->value == trunc(p->value) && p->value <= 1e9)) {
-            param_error(err, p, "not a whole number of actions >= 0");
-            return false;
-        }
-        margin = (uint32_t)p->value;
-    }
-    double delta = DEFAULT_DELTA;
-    p = kairos_param_find(params->ptr, params->len, "delta");
-    if (p) {
-        if (!kairos_is_real(p->value, 0.0)) {
-            param_error(err, p, "not a finite number >= 0");
-            return false;
-        }
-        delta = p->value;
-    }
-    uint32_t extra_min, cap;
-    if (!count_param(params, "h_min", &extra_min, err)) return false;
-    if (!count_param(params, "h_max", &cap, err)) return false;
-    uint32_t h_max = ctx->h_max;
-    if (cap != 0) {
-        uint32_t floor = ctx->h_min > extra_min ? ctx->h_min : extra_min;
-        uint32_t raised = cap > floor ? cap : floor;
-        if (raised < h_max) h_max = raised;
-    }
-    if (chunk->chunk_len < h_max) h_max = chunk->chunk_len;
-    if (ctx->h_min == 0 || ctx->h_min > h_max) {
-        err->tag = EXPORTS_KAIROS_POLICY_HORIZON_HORIZON_ERROR_UNSUPPORTED;
-        horizon_policy_string_dup(&err->val.unsupported, "no horizon satisfies 1 <= h_min <= h_max");
-        return false;
-    }
-    uint32_t h_min = ctx->h_min > extra_min ? ctx->h_min : extra_min;
-    if (h_min > h_max) h_min = h_max;
-    uint32_t change = first_change(chunk, delta);
-    uint32_t h = change > margin ? change - margin : 0;
-    if (h < h_min) h = h_min;
-    if (h > h_max) h = h_max;
-    *ret = h;
-    return true;
-}
+static const char *const KNOWN[] = {"delta", "h_max", "h_min", "margin", NULL};
+static const cut_rule_t RULE = {"delta", DEFAULT_DELTA, DEFAULT_MARGIN, KNOWN, "unknown parameter (expected one of: delta, margin, h_min, h_max)", first_change};
 
 bool exports_kairos_policy_horizon_choose(exports_kairos_policy_horizon_chunk_t *chunk,
                                           exports_kairos_policy_horizon_horizon_context_t *ctx,
                                           exports_kairos_policy_horizon_list_param_t *params,
                                           uint32_t *ret, horizon_error_t *err) {
-    bool ok = decide(chunk, ctx, params, ret, err);
+    bool ok = cut_decide(&RULE, chunk, ctx, params, ret, err);
     /* The arguments belong to the callee. */
     exports_kairos_policy_horizon_chunk_free(chunk);
     exports_kairos_policy_horizon_horizon_context_free(ctx);

@@ -358,7 +358,14 @@ mod tests {
         let names: Vec<&str> = horizons.names().collect();
         assert_eq!(
             names,
-            ["load-aware", "spread", "static", "steady", "threshold"]
+            [
+                "contact",
+                "load-aware",
+                "spread",
+                "static",
+                "steady",
+                "threshold"
+            ]
         );
         for native in HorizonKind::NATIVES {
             // `static` requires `h`; the others build with their defaults.
@@ -421,7 +428,9 @@ mod tests {
                 assert_eq!(name, "policy");
                 assert!(
                     reason.contains("`nope`")
-                        && reason.contains("bound, load-aware, spread, static, steady, threshold"),
+                        && reason.contains(
+                            "bound, contact, load-aware, spread, static, steady, threshold"
+                        ),
                     "{reason}"
                 );
             }
@@ -437,7 +446,7 @@ mod tests {
         assert!(
             error
                 .to_string()
-                .contains("load-aware, spread, static, steady, threshold"),
+                .contains("contact, load-aware, spread, static, steady, threshold"),
             "{error}"
         );
         match build_priority(&PriorityRegistry::natives(), &"lottery".parse().unwrap()) {

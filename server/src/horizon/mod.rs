@@ -11,6 +11,8 @@
 //! - [`spread`]: agreement across `S ≥ 2` samples of the chunk;
 //! - [`steady`]: execute while the chunk's actions stay steady, cut before the chunk changes
 //!   course (the closed-loop bench's best trade-off, `docs/eval/horizon/`).
+//! - [`contact`]: execute through transit, cut before the chunk's planned contact (slows down
+//!   or switches the gripper; the contact task's policy, `docs/eval/horizon-contact/`);
 //! - [`load_aware`]: the threshold rule, lengthened by the server's backlog (reads
 //!   [`HorizonInput::load`]).
 //!
@@ -19,6 +21,7 @@
 //! policy's defaults; a non-empty [`HorizonInput::params`] overrides them for that call (validated
 //! the same way), so one instance can serve requests with different parameters.
 
+pub mod contact;
 pub mod fixed;
 pub mod load_aware;
 mod params;
@@ -189,6 +192,11 @@ pub const NATIVE_POLICIES: &[Native<HorizonKind>] = &[
         build: build_steady,
     },
     Native {
+        name: "contact",
+        summary: "execute until the chunk plans a contact (speed of the velocity dims < slow, or the last dim, the gripper, switches sign), cut margin actions before; params slow (0.5), margin (1), h_min, h_max",
+        build: build_contact,
+    },
+    Native {
         name: "load-aware",
         summary: "threshold rule plus the actions the server's backlog lasts (longer H when busy); params t (0.4), h_min, gain (1)",
         build: build_load_aware,
@@ -209,6 +217,10 @@ fn build_static(params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, Horizon
 
 fn build_spread(params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, HorizonError> {
     Ok(Box::new(spread::Spread::from_params(params)?))
+}
+
+fn build_contact(params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, HorizonError> {
+    Ok(Box::new(contact::ContactAware::from_params(params)?))
 }
 
 fn build_steady(params: &PolicyParams) -> Result<Box<dyn HorizonPolicy>, HorizonError> {

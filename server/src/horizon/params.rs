@@ -44,3 +44,19 @@ pub(crate) fn count(params: &PolicyParams, name: &str) -> Result<Option<usize>, 
         }),
     }
 }
+
+/// A whole-number parameter `>= 0` (e.g. a margin of actions), or `default` when absent.
+pub(crate) fn whole(
+    params: &PolicyParams,
+    name: &str,
+    default: usize,
+) -> Result<usize, HorizonError> {
+    match params.get(name) {
+        None => Ok(default),
+        Some(&v) if v.is_finite() && v >= 0.0 && v.fract() == 0.0 && v <= 1e9 => Ok(v as usize),
+        Some(&v) => Err(HorizonError::InvalidParam {
+            name: name.to_string(),
+            reason: format!("{v} is not a whole number of actions >= 0"),
+        }),
+    }
+}

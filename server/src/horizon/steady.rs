@@ -20,7 +20,7 @@
 //! Parameters: `delta` (default 0.25, in action units), `margin` (whole number ≥ 0, default 1),
 //! `h_min` (optional), `h_max` (optional cap, whole number ≥ 1).
 
-use super::params::{count, real, reject_unknown};
+use super::params::{count, real, reject_unknown, whole};
 use super::threshold::clamp_to_input;
 use super::{ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
 
@@ -57,16 +57,7 @@ impl Steady {
     /// Reads `delta`, `margin`, `h_min` and `h_max`; any other name is an error.
     pub fn from_params(params: &PolicyParams) -> Result<Self, HorizonError> {
         reject_unknown(params, &["delta", "margin", "h_min", "h_max"])?;
-        let margin = match params.get("margin") {
-            None => DEFAULT_MARGIN,
-            Some(&v) if v.is_finite() && v >= 0.0 && v.fract() == 0.0 && v <= 1e9 => v as usize,
-            Some(&v) => {
-                return Err(HorizonError::InvalidParam {
-                    name: "margin".into(),
-                    reason: format!("{v} is not a whole number of actions >= 0"),
-                });
-            }
-        };
+        let margin = whole(params, "margin", DEFAULT_MARGIN)?;
         Ok(Steady {
             delta: real(params, "delta", 0.0, Some(DEFAULT_DELTA))?.unwrap_or(DEFAULT_DELTA),
             margin,
@@ -117,14 +108,25 @@ impl HorizonPolicy for Steady {
             ));
         }
         let prefix = first_change(&input.chunk, config.delta).saturating_sub(config.margin);
-        let capped = HorizonInput {
-            h_max: config.h_max.map_or(input.h_max, |cap| {
-                input
-                    .h_max
-                    .min(cap.max(input.h_min.max(config.h_min.unwrap_or(0))))
-            }),
-            ..*input
-        };
-        clamp_to_input(prefix, config.h_min, &capped)
+        clamp_with_cap(prefix, config.h_min, config.h_max, input)
     }
+}
+
+/// Step 4 of the module doc: `prefix` clamped to `[h_min, h_max]`, where `extra_min` raises the
+/// robot's `h_min` and `cap` lowers its `h_max` (a cap below the lower bound is raised to it).
+pub(crate) fn clamp_with_cap(
+    prefix: usize,
+    extra_min: Option<usize>,
+    cap: Option<usize>,
+    input: &HorizonInput<'_>,
+) -> Result<usize, HorizonError> {
+    let capped = HorizonInput {
+        h_max: cap.map_or(input.h_max, |cap| {
+            input
+                .h_max
+                .min(cap.max(input.h_min.max(extra_min.unwrap_or(0))))
+        }),
+        ..*input
+    };
+    clamp_to_input(prefix, extra_min, &capped)
 }

@@ -377,6 +377,7 @@ proptest! {
             ("static", params(&[("h", h as f64)])),
             ("spread", params(&[("threshold", t)])),
             ("steady", params(&[("delta", t), ("margin", (h % 4) as f64)])),
+            ("contact", params(&[("slow", t), ("margin", (h % 4) as f64)])),
             ("threshold", params(&[("t", t), ("step", (h % 5 + 1) as f64)])),
         ] {
             let mut policy = builtin(name, &p).unwrap();
@@ -396,6 +397,8 @@ proptest! {
         prop_assert!(threshold::threshold_prefix(&v, t) <= threshold::threshold_prefix(&v, t + dt));
         prop_assert!(spread::spread_prefix(&v, t) <= spread::spread_prefix(&v, t + dt));
         prop_assert!(steady::first_change(&v, t) <= steady::first_change(&v, t + dt));
+        // A larger `slow` counts more actions as slow: the contact comes no later.
+        prop_assert!(contact::first_contact(&v, t + dt) <= contact::first_contact(&v, t));
     }
 
     #[test]
@@ -419,4 +422,70 @@ proptest! {
         }
         prop_assert_eq!(spread::spread_prefix(&same.view(), 0.0), c.chunk_len);
     }
+}
+
+/// One sample, D = 3 (velocity x, y, gripper): full speed with the gripper open, slowing to
+/// `slow_speed` from action `slows`, the gripper closing at action `closes`.
+fn approach_chunk(n: usize, slows: usize, closes: usize, slow_speed: f32) -> Chunk {
+    let mut c = Chunk::zeros(1, 1, n, 3);
+    for i in 0..n {
+        let speed = if i < slows { 1.0 } else { slow_speed };
+        let gripper = if i < closes { -1.0 } else { 1.0 };
+        // A 3-4-5 direction, so the speed is exact.
+        c.set_action(0, i, &[0.6 * speed, -0.8 * speed, gripper]);
+    }
+    c
+}
+
+#[test]
+fn contact_cuts_margin_actions_before_the_plan_slows_or_switches_the_gripper() {
+    // Slows at 6, closes at 9: the event is 6.
+    let c = approach_chunk(12, 6, 9, 0.3);
+    let v = c.view();
+    assert!((contact::planned_speed(&v, 0) - 1.0).abs() < 1e-6);
+    assert!((contact::planned_speed(&v, 7) - 0.3).abs() < 1e-6);
+    assert!(!contact::gripper_switches(&v, 8) && contact::gripper_switches(&v, 9));
+    assert_eq!(contact::first_contact(&v, 0.5), 6);
+    assert_eq!(choose("contact", &[], &c, 1, 12), Ok(5), "margin 1");
+    assert_eq!(choose("contact", &[("margin", 0.0)], &c, 1, 12), Ok(6));
+    // A slow threshold below the slow speed: only the gripper's switch is an event.
+    assert_eq!(contact::first_contact(&v, 0.2), 9);
+    assert_eq!(
+        choose("contact", &[("slow", 0.2), ("margin", 2.0)], &c, 1, 12),
+        Ok(7)
+    );
+    // Already slow at action 0 (inside the contact phase): h_min.
+    let inside = approach_chunk(12, 0, 12, 0.3);
+    assert_eq!(contact::first_contact(&inside.view(), 0.5), 0);
+    assert_eq!(choose("contact", &[], &inside, 1, 12), Ok(1));
+    assert_eq!(choose("contact", &[("h_min", 2.0)], &inside, 1, 12), Ok(2));
+    // No event: the whole chunk, up to the caps.
+    let transit = approach_chunk(12, 12, 12, 0.3);
+    assert_eq!(contact::first_contact(&transit.view(), 0.5), 12);
+    assert_eq!(choose("contact", &[], &transit, 1, 12), Ok(11));
+    assert_eq!(
+        choose("contact", &[("margin", 0.0)], &transit, 1, 10),
+        Ok(10)
+    );
+    assert_eq!(choose("contact", &[("h_max", 4.0)], &transit, 1, 12), Ok(4));
+    // A gripper that was closed from the start (carrying) is not an event; opening it is.
+    let mut carry = approach_chunk(12, 12, 0, 0.3);
+    assert_eq!(contact::first_contact(&carry.view(), 0.5), 12);
+    carry.set_action(0, 7, &[0.6, -0.8, -1.0]);
+    assert_eq!(contact::first_contact(&carry.view(), 0.5), 7);
+    // A NaN speed counts as slow.
+    carry.set_action(0, 3, &[f32::NAN, 0.0, 1.0]);
+    assert_eq!(contact::first_contact(&carry.view(), 0.5), 3);
+    // Parameters are checked.
+    let bad = |p: &[(&str, f64)]| builtin("contact", &params(p)).is_err();
+    assert!(bad(&[("slow", -0.1)]));
+    assert!(bad(&[("margin", 1.5)]));
+    assert!(bad(&[("h_max", 0.0)]));
+    assert!(bad(&[("delta", 0.3)]));
+    assert!(!bad(&[
+        ("slow", 0.0),
+        ("margin", 0.0),
+        ("h_min", 2.0),
+        ("h_max", 8.0)
+    ]));
 }

@@ -1,6 +1,6 @@
 //! `kairos bench horizon`: the quick run with the committed policy writes pareto.csv with the
-//! documented columns and one row per policy, and `--train` still trains (a few steps) and
-//! writes a model the bench loads.
+//! documented columns and one row per policy, `--task contact` runs with its own committed
+//! model, and `--train` still trains (a few steps) and writes a model the bench loads.
 
 #![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
 
@@ -197,4 +197,57 @@ fn live_and_in_process_episodes_agree() {
     assert!(horizons.len() > 4, "{episodes}");
     assert_eq!(live_episodes, episodes);
     assert_eq!(live_pareto, pareto);
+}
+
+#[test]
+fn the_contact_task_runs_quick_with_its_own_model_and_refuses_the_other_tasks() {
+    let out = tempfile::tempdir().unwrap();
+    let stdout = kairos(
+        &[
+            "--task",
+            "contact",
+            "--quick",
+            "--episodes",
+            "4",
+            "--no-plots",
+            "--out",
+        ],
+        out.path(),
+    );
+    assert!(stdout.contains("--task contact --quick"), "{stdout}");
+    let csv = std::fs::read_to_string(out.path().join("pareto.csv")).unwrap();
+    // --quick's built-in rows and the contact-aware rule, all on the contact model.
+    let rows: Vec<Vec<&str>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').collect())
+        .collect();
+    assert_eq!(rows.len(), 8, "{csv}");
+    assert!(
+        rows.iter()
+            .any(|r| r[0] == "contact" && r[1] == "margin=1;slow=0.7"),
+        "{csv}"
+    );
+    // A model trained on the uniform task is refused for the contact task.
+    let refused = Command::new(env!("CARGO_BIN_EXE_kairos"))
+        .current_dir(repo_root())
+        .args([
+            "bench",
+            "horizon",
+            "--task",
+            "contact",
+            "--quick",
+            "--episodes",
+            "1",
+        ])
+        .args(["--model", "workloads/horizon/model", "--out"])
+        .arg(out.path())
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    assert!(
+        String::from_utf8_lossy(&refused.stderr).contains("trained on the uniform task"),
+        "{}",
+        String::from_utf8_lossy(&refused.stderr)
+    );
 }

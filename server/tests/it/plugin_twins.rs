@@ -1,5 +1,5 @@
 //! Every shipped plugin gives exactly the answer of its native twin, on the same randomized
-//! inputs: `threshold`, `static` and `steady` (C), `fifo`, `plas`, `kairos` and `srw` (C), and `kairos`
+//! inputs: `threshold`, `static`, `steady` and `contact` (C), `fifo`, `plas`, `kairos` and `srw` (C), and `kairos`
 //! again in Python. `srw` learns from finished tasks, so both twins are told the same ones
 //! between decisions and must keep agreeing as their Gittins indexes evolve. Run
 //! `plugins/build.sh` first (CI does); a missing plugin fails the test.
@@ -8,6 +8,7 @@
 
 use std::time::Duration;
 
+use kairos_server::horizon::contact::ContactAware;
 use kairos_server::horizon::fixed::StaticHorizon;
 use kairos_server::horizon::steady::Steady;
 use kairos_server::horizon::threshold::Threshold;
@@ -304,12 +305,16 @@ fn steady_inputs(seed: u64, count: usize) -> Vec<(HorizonCase, PolicyParams)> {
         .collect()
 }
 
-#[test]
-fn steady_plugin_matches_its_native_twin() {
-    let mut plugin = horizon_plugin("steady");
-    let mut native = Steady::default();
+/// Asserts that the shipped plugin `name` answers every input as `native` does, with enough
+/// valid decisions and cuts strictly inside the bounds that the comparison means something.
+fn assert_twins(
+    name: &str,
+    native: &mut dyn HorizonPolicy,
+    inputs: Vec<(HorizonCase, PolicyParams)>,
+) {
+    let mut plugin = horizon_plugin(name);
     let (mut decided, mut cut_inside) = (0, 0);
-    for (case, params) in steady_inputs(21, 600) {
+    for (case, params) in inputs {
         let input = case.input(&params);
         let want = native.choose(&input);
         let (got, _) = plugin
@@ -325,10 +330,98 @@ fn steady_plugin_matches_its_native_twin() {
             cut_inside += usize::from(h > input.h_min.max(1) && h < input.h_max.min(case.dims.2));
         }
     }
-    assert!(decided > 300, "too few valid decisions: {decided}");
+    assert!(decided > 300, "{name}: too few valid decisions: {decided}");
     assert!(
         cut_inside > 50,
-        "too few cuts inside the bounds: {cut_inside}"
+        "{name}: too few cuts inside the bounds: {cut_inside}"
+    );
+}
+
+#[test]
+fn steady_plugin_matches_its_native_twin() {
+    assert_twins("steady", &mut Steady::default(), steady_inputs(21, 600));
+}
+
+/// Chunks whose sample-0 actions have speeds (norm of all dimensions but the last) around
+/// `slow` — some a few ulps either side of it, some far below — and a gripper (the last
+/// dimension) that now and then switches sign or sits at exactly 0, some NaN, so the cut lands
+/// anywhere.
+fn contact_inputs(seed: u64, count: usize) -> Vec<(HorizonCase, PolicyParams)> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    horizon_cases(seed, count)
+        .into_iter()
+        .map(|mut case| {
+            let (_, _, n, d) = case.dims;
+            let slow: f64 = [0.0, 0.25, 0.5, rng.random_range(0.0..1.5)][rng.random_range(0..4)];
+            let mut gripper = if rng.random_bool(0.5) { 1.0f32 } else { -1.0 };
+            for action in 0..n {
+                let speed = match rng.random_range(0..12) {
+                    0 => rng.random_range(0.0..=1.0) * slow,
+                    1 => slow * (1.0 + f64::from(rng.random_range(-3i32..=3)) * f64::EPSILON),
+                    _ => slow + rng.random_range(0.0..1.0),
+                };
+                let row = &mut case.actions[action * d..(action + 1) * d];
+                // One velocity dimension carries the whole speed, so the norm is |speed| up to
+                // the f32 rounding; the others are 0.
+                let dim = rng.random_range(0..d.max(2) - 1);
+                for (i, x) in row.iter_mut().enumerate() {
+                    *x = if i + 1 == d {
+                        0.0
+                    } else if i == dim {
+                        speed as f32 * if rng.random_bool(0.5) { 1.0 } else { -1.0 }
+                    } else {
+                        0.0
+                    };
+                }
+                if rng.random_bool(0.08) {
+                    gripper = -gripper;
+                }
+                row[d - 1] = if rng.random_bool(0.05) { 0.0 } else { gripper };
+            }
+            if rng.random_bool(0.05) {
+                let at = rng.random_range(0..n * d);
+                case.actions[at] = f32::NAN;
+            }
+            let mut params = PolicyParams::new();
+            match rng.random_range(0..12) {
+                0 => {}
+                1 => {
+                    params.insert("margin".into(), 0.5);
+                }
+                2 => {
+                    params.insert("slow".into(), -0.1);
+                }
+                3 => {
+                    params.insert("h_min".into(), 0.0);
+                }
+                4 => {
+                    params.insert("delta".into(), 0.3);
+                }
+                _ => {
+                    params.insert("slow".into(), slow);
+                    params.insert("margin".into(), rng.random_range(0..=3) as f64);
+                    if rng.random_bool(0.4) {
+                        params.insert("h_min".into(), rng.random_range(1..=n + 2) as f64);
+                    }
+                    if rng.random_bool(0.5) {
+                        params.insert("h_max".into(), rng.random_range(1..=n + 2) as f64);
+                    }
+                }
+            }
+            if rng.random_bool(0.7) {
+                case.bounds = (1, n);
+            }
+            (case, params)
+        })
+        .collect()
+}
+
+#[test]
+fn contact_plugin_matches_its_native_twin() {
+    assert_twins(
+        "contact",
+        &mut ContactAware::default(),
+        contact_inputs(23, 600),
     );
 }
 

@@ -1,0 +1,127 @@
+//! Contact-aware: execute the chunk through free-space transit, and hand control back just
+//! before the chunk's own plan reaches a contact.
+//!
+//! Manipulation fails at contact (grasping an object that was knocked, releasing where noise
+//! took the gripper), not on the way there: a plan that is still far from its target can run
+//! open loop, a plan that is about to touch something should be re-made from a fresh
+//! observation. The chunk itself says where its contact is: the plan **slows down** for a
+//! target (precise contact needs it), or it **switches the gripper** (grasp, release). So this
+//! rule cuts `margin` actions before the first such event, and executes only `h_min` once the
+//! plan is already slow (inside the contact phase). It assumes velocity-like actions whose last
+//! dimension is the gripper command (`> 0` closes), as in `kairos bench horizon`'s task.
+//!
+//! Exact semantics (a plugin twin must reproduce them bit for bit), over the final actions
+//! `A[0][n][d]` of sample 0, `D` = action dimension, in `f64` widened from `f32`, no fused
+//! multiply-add:
+//!
+//! 1. `speed_n = sqrt(Σ_{d < D−1} A[0][n][d]²)` (dimension order; 0 when `D = 1`).
+//! 2. `event` = the first `n ≥ 0` with `!(speed_n >= slow)` (a NaN counts as slow), or with
+//!    `n ≥ 1` and `(A[0][n][D−1] > 0) != (A[0][n−1][D−1] > 0)` (the gripper switches), or `N`
+//!    if there is none.
+//! 3. `prefix = event − margin` if `event > margin`, else 0.
+//! 4. `H = min(max(prefix, h_min), h_max)` with `h_min = max(input.h_min, param h_min)` and
+//!    `h_max = min(input.h_max, N, param h_max)` (an `h_max` below `h_min` is raised to it), as
+//!    in [`super::steady`].
+//!
+//! Parameters: `slow` (default 0.5, action units: the velocity command's norm below which the
+//! plan counts as slowing for contact), `margin` (whole number ≥ 0, default 1), `h_min`
+//! (optional), `h_max` (optional cap, whole number ≥ 1).
+
+use super::params::{count, real, reject_unknown, whole};
+use super::steady::clamp_with_cap;
+use super::{ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
+
+/// Default speed below which the plan counts as slowing for a contact.
+pub const DEFAULT_SLOW: f64 = 0.5;
+/// Default number of actions cut before the first contact event.
+pub const DEFAULT_MARGIN: usize = 1;
+
+/// The contact-aware policy.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ContactAware {
+    /// Speed (norm of the velocity dimensions) below which an action counts as slow.
+    pub slow: f64,
+    /// Actions cut before the first contact event.
+    pub margin: usize,
+    /// Lower bound on top of the robot's `h_min`.
+    pub h_min: Option<usize>,
+    /// Upper bound on top of the robot's `h_max`.
+    pub h_max: Option<usize>,
+}
+
+impl Default for ContactAware {
+    fn default() -> Self {
+        ContactAware {
+            slow: DEFAULT_SLOW,
+            margin: DEFAULT_MARGIN,
+            h_min: None,
+            h_max: None,
+        }
+    }
+}
+
+impl ContactAware {
+    /// Reads `slow`, `margin`, `h_min` and `h_max`; any other name is an error.
+    pub fn from_params(params: &PolicyParams) -> Result<Self, HorizonError> {
+        reject_unknown(params, &["slow", "margin", "h_min", "h_max"])?;
+        Ok(ContactAware {
+            margin: whole(params, "margin", DEFAULT_MARGIN)?,
+            slow: real(params, "slow", 0.0, Some(DEFAULT_SLOW))?.unwrap_or(DEFAULT_SLOW),
+            h_min: count(params, "h_min")?,
+            h_max: count(params, "h_max")?,
+        })
+    }
+}
+
+/// `speed_n` of step 1 of the module doc: the norm of action `n`'s velocity dimensions (all but
+/// the last) in sample 0.
+pub fn planned_speed(chunk: &ChunkView<'_>, n: usize) -> f64 {
+    let a = chunk.action(0, n);
+    let mut acc = 0.0f64;
+    for &x in &a[..a.len().saturating_sub(1)] {
+        let x = f64::from(x);
+        acc += x * x;
+    }
+    acc.sqrt()
+}
+
+/// Whether the gripper command (the last dimension) of action `n ≥ 1` of sample 0 differs in
+/// sign from action `n − 1`'s.
+pub fn gripper_switches(chunk: &ChunkView<'_>, n: usize) -> bool {
+    let d = chunk.action_dim;
+    let closed = |n: usize| chunk.action(0, n)[d - 1] > 0.0;
+    closed(n) != closed(n - 1)
+}
+
+/// `event` of step 2 of the module doc: the first action that is slow or switches the gripper,
+/// or `N`.
+pub fn first_contact(chunk: &ChunkView<'_>, slow: f64) -> usize {
+    (0..chunk.chunk_len)
+        .find(|&n| {
+            // Written so that a NaN speed counts as slow.
+            let fast = planned_speed(chunk, n) >= slow;
+            !fast || (n >= 1 && gripper_switches(chunk, n))
+        })
+        .unwrap_or(chunk.chunk_len)
+}
+
+impl HorizonPolicy for ContactAware {
+    fn name(&self) -> &str {
+        "contact"
+    }
+
+    fn choose(&mut self, input: &HorizonInput<'_>) -> Result<usize, HorizonError> {
+        let config = if input.params.is_empty() {
+            *self
+        } else {
+            ContactAware::from_params(input.params)?
+        };
+        if !input.chunk.is_consistent() {
+            return Err(HorizonError::Unsupported(
+                "chunk buffers do not match their dimensions".into(),
+            ));
+        }
+        let prefix = first_contact(&input.chunk, config.slow).saturating_sub(config.margin);
+        clamp_with_cap(prefix, config.h_min, config.h_max, input)
+    }
+}
