@@ -7,6 +7,10 @@
 //! step of `k`: 12 FMAs per 8 loads. Blocking: `KC` rows of a panel (16 KiB) stay in L1 while all
 //! row tiles of an `MC`-row block of `A` (in L2) pass over them.
 //!
+//! On CPUs with AVX-512F the same tile is `MR` 512-bit accumulators (one per row; a panel row
+//! is one vector), with `A` broadcast from memory inside each FMA: fewer instructions per FLOP,
+//! same packing and the same order of operations, so AVX-512 and AVX2 results are bit-identical.
+//!
 //! Every element of `C` accumulates its `k` products in increasing `k` order, one FMA each, in
 //! `KC`-sized blocks. That order depends on neither `m`, the row tile an element falls in, nor
 //! the thread split, so results do not depend on the batch size.
@@ -347,7 +351,7 @@ unsafe fn gemm_packed(
 #[inline(always)]
 fn prefetch_rows(isa: Isa, c: *const f32, ldc: usize, rows: usize) {
     #[cfg(target_arch = "x86_64")]
-    if isa == Isa::Avx2Fma {
+    if isa != Isa::Portable {
         for r in 0..rows {
             let row = c.wrapping_add(r * ldc);
             // SAFETY: prefetching never faults.
@@ -369,7 +373,7 @@ fn prefetch_rows(isa: Isa, c: *const f32, ldc: usize, rows: usize) {
 #[inline(always)]
 fn prefetch_lines(isa: Isa, panel: *const f32, from: usize, to: usize) {
     #[cfg(target_arch = "x86_64")]
-    if isa == Isa::Avx2Fma {
+    if isa != Isa::Portable {
         for line in from..to {
             // SAFETY: prefetching never faults; the address is inside the panel.
             unsafe {
@@ -459,6 +463,9 @@ unsafe fn tile(
         #[cfg(target_arch = "x86_64")]
         // SAFETY: Isa::Avx2Fma is only reported when the CPU has AVX2 and FMA.
         Isa::Avx2Fma => unsafe { dispatch!(kernel_avx2) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: Isa::Avx512 is only reported when the CPU has AVX-512F.
+        Isa::Avx512 => unsafe { dispatch!(kernel_avx512) },
         // SAFETY: same pointer contract.
         _ => unsafe { dispatch!(kernel_portable) },
     }
@@ -519,6 +526,60 @@ unsafe fn kernel_avx2<const R: usize>(
             _mm256_storeu_ps(c.add(r * ldc), row[0]);
             _mm256_storeu_ps(c.add(r * ldc + 8), row[1]);
         }
+    }
+}
+
+/// One panel row is one 512-bit vector, so the tile is `R` accumulators; each `A` value is
+/// broadcast straight from memory into its FMA (`{1to16}`). Same order of operations as
+/// [`kernel_avx2`]: one FMA per product, in increasing `k`.
+///
+/// # Safety
+/// See [`tile`]; requires AVX-512F.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn kernel_avx512<const R: usize>(
+    kc: usize,
+    a: *const f32,
+    b: *const f32,
+    c: *mut f32,
+    ldc: usize,
+    load: bool,
+) {
+    use std::arch::x86_64::*;
+    let mut acc = [_mm512_setzero_ps(); R];
+    if load {
+        for (r, row) in acc.iter_mut().enumerate() {
+            // SAFETY: row r of the C tile has NR values.
+            *row = unsafe { _mm512_loadu_ps(c.add(r * ldc)) };
+        }
+    }
+    macro_rules! step {
+        ($kk:expr) => {{
+            // SAFETY: $kk < kc: inside the panel (64-byte aligned rows) and the packed A tile.
+            unsafe {
+                let bv = _mm512_load_ps(b.add($kk * NR));
+                for r in 0..R {
+                    let av = _mm512_set1_ps(*a.add($kk * MR + r));
+                    acc[r] = _mm512_fmadd_ps(av, bv, acc[r]);
+                }
+            }
+        }};
+    }
+    let mut kk = 0;
+    while kk + 4 <= kc {
+        step!(kk);
+        step!(kk + 1);
+        step!(kk + 2);
+        step!(kk + 3);
+        kk += 4;
+    }
+    while kk < kc {
+        step!(kk);
+        kk += 1;
+    }
+    for (r, row) in acc.iter().enumerate() {
+        // SAFETY: row r of the C tile has NR values.
+        unsafe { _mm512_storeu_ps(c.add(r * ldc), *row) };
     }
 }
 
@@ -605,7 +666,7 @@ mod tests {
             let bias = data(n, 3);
             let packed = PackedMatrix::from_linear_weight(&w, n, k);
             let want = naive(&a, m, k, &w, n);
-            for isa in [Isa::Avx2Fma, Isa::Portable]
+            for isa in [Isa::Avx512, Isa::Avx2Fma, Isa::Portable]
                 .into_iter()
                 .filter(|i| i.available())
             {
@@ -656,6 +717,24 @@ mod tests {
             );
             assert_eq!(one, full[start * n..(start + 1) * n]);
         }
+    }
+
+    #[test]
+    fn avx512_and_avx2_kernels_agree_bit_for_bit() {
+        // Both run one FMA per product in increasing k order, so they round identically.
+        if !Isa::Avx512.available() {
+            eprintln!("no AVX-512F on this CPU: only the ragged-shape test covers the others");
+            return;
+        }
+        let (m, k, n) = (37, 300, 45);
+        let a = data(m * k, 7);
+        let w = data(n * k, 8);
+        let packed = PackedMatrix::from_linear_weight(&w, n, k);
+        let mut c512 = vec![0.0; m * n];
+        let mut c2 = vec![0.0; m * n];
+        gemm(Isa::Avx512, &a, k, m, &packed, &mut c512, n, Init::Zero);
+        gemm(Isa::Avx2Fma, &a, k, m, &packed, &mut c2, n, Init::Zero);
+        assert_eq!(c512, c2);
     }
 
     #[test]

@@ -7,8 +7,8 @@
 //! each GEMM's output columns across a fixed thread pool ([`Pool`]).
 //!
 //! Everything is exact IEEE f32 arithmetic (FMA accumulation in a fixed order); only the
-//! summation order differs from PyTorch's. The micro-kernels use AVX2+FMA when the CPU has them
-//! (runtime detection) and portable Rust otherwise; both give the same results up to rounding,
+//! summation order differs from PyTorch's. The micro-kernels use AVX-512F or AVX2+FMA when the
+//! CPU has them (runtime detection, best first) and portable Rust otherwise; both give the same results up to rounding,
 //! and each output element is computed in an order that does not depend on the batch size or the
 //! thread count, so a request gets bit-identical results alone or in a batch.
 
@@ -22,6 +22,8 @@ pub use gemm::{Init, PackedMatrix};
 /// Which instruction set the kernels use.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Isa {
+    /// x86-64 AVX-512F (512-bit vectors; one vector per packed panel row).
+    Avx512,
     /// x86-64 AVX2 with FMA (256-bit vectors).
     Avx2Fma,
     /// Portable Rust, any CPU.
@@ -29,9 +31,21 @@ pub enum Isa {
 }
 
 impl Isa {
-    /// The best instruction set this CPU supports.
+    /// The best instruction set this CPU supports, or the one `KAIROS_ISA` (`avx512`, `avx2`,
+    /// `portable`) names when this CPU has it (to compare kernels on one machine).
     pub fn detect() -> Isa {
-        if Isa::Avx2Fma.available() {
+        let forced = match std::env::var("KAIROS_ISA").as_deref() {
+            Ok("avx512") => Some(Isa::Avx512),
+            Ok("avx2") => Some(Isa::Avx2Fma),
+            Ok("portable") => Some(Isa::Portable),
+            _ => None,
+        };
+        if let Some(isa) = forced.filter(|i| i.available()) {
+            return isa;
+        }
+        if Isa::Avx512.available() {
+            Isa::Avx512
+        } else if Isa::Avx2Fma.available() {
             Isa::Avx2Fma
         } else {
             Isa::Portable
@@ -47,8 +61,13 @@ impl Isa {
                 std::arch::is_x86_feature_detected!("avx2")
                     && std::arch::is_x86_feature_detected!("fma")
             }
+            #[cfg(target_arch = "x86_64")]
+            // AVX2 and FMA too: the element-wise maths use their AVX2 build on this ISA.
+            Isa::Avx512 => {
+                std::arch::is_x86_feature_detected!("avx512f") && Isa::Avx2Fma.available()
+            }
             #[cfg(not(target_arch = "x86_64"))]
-            Isa::Avx2Fma => false,
+            Isa::Avx2Fma | Isa::Avx512 => false,
         }
     }
 }
