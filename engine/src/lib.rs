@@ -29,5 +29,6 @@ pub use image_features::ImageLimits;
 pub use model::{
     ActionModel, ActionRequest, ImageFormat, ImageInput, MAX_SAMPLES, ModelSpec, generate_isolated,
 };
+pub use kernels::Precision;
 pub use options::{DeviceKind, EngineOptions, Kernels};
 pub use profile::{EngineProfile, ProfilePoint};

@@ -14,7 +14,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use kairos_engine::{DeviceKind, EngineError, EngineOptions, Kernels};
+use kairos_engine::{DeviceKind, EngineError, EngineOptions, Kernels, Precision};
 use kairos_sdk::protocol::Limits;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -302,6 +302,9 @@ pub struct EngineConfig {
     /// CPU threads of each instance's kernels; 0 (default) = `KAIROS_ENGINE_THREADS`, else one
     /// per core.
     pub threads: usize,
+    /// `f32` (default, exact) or `bf16`: the number format of the fast kernels' weight GEMMs
+    /// (AVX512_BF16; a CPU without it runs f32 and logs a warning; see docs/ENGINE.md).
+    pub precision: String,
 }
 
 impl Default for EngineConfig {
@@ -317,6 +320,7 @@ impl Default for EngineConfig {
             device: "cpu".into(),
             kernels: "auto".into(),
             threads: 0,
+            precision: "f32".into(),
         }
     }
 }
@@ -334,6 +338,7 @@ impl EngineConfig {
             device: self.device.parse()?,
             kernels: self.kernels.parse()?,
             threads: self.threads,
+            precision: self.precision.parse()?,
         })
     }
 }
@@ -654,6 +659,9 @@ impl Config {
             if let Err(e) = engine.kernels.parse::<Kernels>() {
                 return Err(invalid(format!("engine[{i}].kernels"), e.to_string()));
             }
+            if let Err(e) = engine.precision.parse::<Precision>() {
+                return Err(invalid(format!("engine[{i}].precision"), e.to_string()));
+            }
             if !(engine.rtt_ms.is_finite() && engine.rtt_ms >= 0.0) {
                 return Err(invalid(
                     format!("engine[{i}].rtt_ms"),
@@ -952,7 +960,8 @@ mod tests {
             EngineOptions {
                 device: DeviceKind::Cpu,
                 kernels: Kernels::Portable,
-                threads: 1
+                threads: 1,
+                ..Default::default()
             }
         );
         assert_eq!(

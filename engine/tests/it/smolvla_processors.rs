@@ -68,6 +68,7 @@ fn cpu() -> EngineOptions {
         device: DeviceKind::Cpu,
         kernels: Kernels::Auto,
         threads: 2,
+        ..Default::default()
     }
 }
 
