@@ -107,7 +107,8 @@ impl Precision {
     /// only where the bf16 kernel is native (AVX-512 kernels on a CPU with AVX512_BF16, and
     /// `KAIROS_DISABLE_BF16` unset or `0`); otherwise `F32`, with a warning (once a process).
     pub fn resolve(self, isa: Isa) -> Precision {
-        let disabled = std::env::var("KAIROS_DISABLE_BF16").is_ok_and(|v| !v.is_empty() && v != "0");
+        let disabled =
+            std::env::var("KAIROS_DISABLE_BF16").is_ok_and(|v| !v.is_empty() && v != "0");
         self.resolve_for(isa == Isa::Avx512 && cpu_has_avx512_bf16() && !disabled)
     }
 

@@ -87,14 +87,12 @@ impl CpuExpert {
                         ],
                         h,
                     ),
-                    LayerKind::CrossAttention => {
-                        PackedMatrix::from_linear_weight_in(
-                            precision,
-                            &l.q_proj.weight,
-                            l.q_proj.out_dim,
-                            h,
-                        )
-                    }
+                    LayerKind::CrossAttention => PackedMatrix::from_linear_weight_in(
+                        precision,
+                        &l.q_proj.weight,
+                        l.q_proj.out_dim,
+                        h,
+                    ),
                 };
                 let kv_cross = (l.kind == LayerKind::CrossAttention).then(|| {
                     (
