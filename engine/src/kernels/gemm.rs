@@ -759,9 +759,9 @@ unsafe fn kernel_bf16_avx512<const R: usize>(
     if i < kp {
         step!(even, i);
     }
-    for r in 0..R {
+    for (r, (e, o)) in even.iter().zip(&odd).enumerate() {
         // SAFETY: row r of the C tile has NR values.
-        unsafe { _mm512_storeu_ps(c.add(r * ldc), _mm512_add_ps(even[r], odd[r])) };
+        unsafe { _mm512_storeu_ps(c.add(r * ldc), _mm512_add_ps(*e, *o)) };
     }
 }
 
@@ -813,10 +813,10 @@ unsafe fn kernel_bf16_portable<const R: usize>(
             }
         }
     }
-    for r in 0..R {
-        for j in 0..NR {
+    for (r, (e, o)) in acc[0].iter().zip(&acc[1]).enumerate() {
+        for (j, (x, y)) in e.iter().zip(o).enumerate() {
             // SAFETY: row r of the C tile has NR values.
-            unsafe { *c.add(r * ldc + j) = acc[0][r][j] + acc[1][r][j] };
+            unsafe { *c.add(r * ldc + j) = x + y };
         }
     }
 }

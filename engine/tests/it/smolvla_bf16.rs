@@ -4,10 +4,11 @@
 //!
 //! Bound: each bf16 GEMM output is off by at most about `2^-8 * sum |a||b|` (both operands
 //! rounded to 8 significand bits; see `kernels::gemm`'s `bf16_gemm_is_within_its_rounding_bound`),
-//! and those errors pass through 12 vision, 16 text and 16 expert layers and 10 Euler steps.
+//! and those errors pass through every vision, text and expert layer and 10 Euler steps.
 //! No useful worst case composes from that, so the bound is a relative one on the final
-//! actions, `BF16_BOUND x max |action|`, set at about 4x what was measured (2026-11-25, Zen 4:
-//! see docs/ENGINE.md "Precision"); an f32-only run would show 0, a broken kernel O(1).
+//! actions, `BF16_BOUND x max |action|`, about 4.6x the largest measured (2026-11-25, Zen 4:
+//! `pair` 2.6e-3, `missing` 4.3e-3 of max |action|; max abs 0.041 / 0.048 on actions up to
+//! 15.6 / 11.0); an f32 run shows ~1e-6, a broken kernel O(1).
 
 #![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
 
@@ -19,7 +20,7 @@ use crate::smolvla_goldens::{Goldens, fixture};
 use crate::smolvla_processors::{max_abs_diff, observations};
 
 /// Largest `|bf16 - LeRobot f32| / max |action|` accepted on the fixture's final actions.
-const BF16_BOUND: f32 = 0.05;
+const BF16_BOUND: f32 = 0.02;
 
 fn options(precision: Precision) -> EngineOptions {
     EngineOptions {
