@@ -478,14 +478,19 @@ fn pack_a_bf16(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
         let tile = &mut out[t * kp * MR..(t + 1) * kp * MR];
         for r in 0..MR {
             let row = t * MR + r;
-            for i in 0..kp {
-                tile[i * MR + r] = if row < rows {
-                    let src = &a[row * lda..];
-                    let hi = if 2 * i + 1 < kc { src[2 * i + 1] } else { 0.0 };
-                    bf16_pair(src[2 * i], hi)
-                } else {
-                    0.0
-                };
+            if row >= rows {
+                for i in 0..kp {
+                    tile[i * MR + r] = 0.0;
+                }
+                continue;
+            }
+            let src = &a[row * lda..row * lda + kc];
+            let pairs = src.chunks_exact(2);
+            if let [last] = pairs.remainder() {
+                tile[(kp - 1) * MR + r] = bf16_pair(*last, 0.0);
+            }
+            for (i, pair) in pairs.enumerate() {
+                tile[i * MR + r] = bf16_pair(pair[0], pair[1]);
             }
         }
     }
