@@ -928,6 +928,7 @@ mod tests {
             device = "cpu"
             kernels = "portable"
             threads = 1
+            precision = "bf16"
             [[engine]]
             model = "ckpt/model.safetensors"
             tier = "cloud"
@@ -961,7 +962,7 @@ mod tests {
                 device: DeviceKind::Cpu,
                 kernels: Kernels::Portable,
                 threads: 1,
-                ..Default::default()
+                precision: Precision::Bf16,
             }
         );
         assert_eq!(
@@ -1085,6 +1086,7 @@ mod tests {
             ("[[engine]]\ndevice = \"gpu\"\n", "engine[0].device"),
             ("[[engine]]\ndevice = \"cuda:x\"\n", "engine[0].device"),
             ("[[engine]]\nkernels = \"mkl\"\n", "engine[0].kernels"),
+            ("[[engine]]\nprecision = \"fp8\"\n", "engine[0].precision"),
         ];
         for (text, key) in cases {
             let err = Config::parse(text, Path::new("k.toml")).unwrap_err();
