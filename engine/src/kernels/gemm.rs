@@ -519,6 +519,24 @@ impl Kernel {
     }
 }
 
+/// `$step!(kk)` for `kk` in `0..$n`, in order, four per loop iteration (the f32 kernels' loop).
+macro_rules! unroll4 {
+    ($n:expr, $step:ident) => {{
+        let mut kk = 0;
+        while kk + 4 <= $n {
+            $step!(kk);
+            $step!(kk + 1);
+            $step!(kk + 2);
+            $step!(kk + 3);
+            kk += 4;
+        }
+        while kk < $n {
+            $step!(kk);
+            kk += 1;
+        }
+    }};
+}
+
 /// One `rows x w` tile (`rows <= MR`, `w <= NR`): `C = A · B` over `kc`, or `C += A · B` when
 /// `load`, with `A` packed by [`pack_a`].
 ///
@@ -624,18 +642,7 @@ unsafe fn kernel_avx2<const R: usize>(
             }
         }};
     }
-    let mut kk = 0;
-    while kk + 4 <= kc {
-        step!(kk);
-        step!(kk + 1);
-        step!(kk + 2);
-        step!(kk + 3);
-        kk += 4;
-    }
-    while kk < kc {
-        step!(kk);
-        kk += 1;
-    }
+    unroll4!(kc, step);
     for (r, row) in acc.iter().enumerate() {
         // SAFETY: row r of the C tile has NR values.
         unsafe {
@@ -681,18 +688,7 @@ unsafe fn kernel_avx512<const R: usize>(
             }
         }};
     }
-    let mut kk = 0;
-    while kk + 4 <= kc {
-        step!(kk);
-        step!(kk + 1);
-        step!(kk + 2);
-        step!(kk + 3);
-        kk += 4;
-    }
-    while kk < kc {
-        step!(kk);
-        kk += 1;
-    }
+    unroll4!(kc, step);
     for (r, row) in acc.iter().enumerate() {
         // SAFETY: row r of the C tile has NR values.
         unsafe { _mm512_storeu_ps(c.add(r * ldc), *row) };
@@ -939,26 +935,25 @@ mod tests {
 
     #[test]
     fn row_results_do_not_depend_on_m_or_threads() {
-        let (k, n) = (700, 70);
+        let (k, n) = (701, 70);
         let a = data(50 * k, 4);
         let w = data(n * k, 5);
-        let packed = PackedMatrix::from_linear_weight(&w, n, k);
-        let mut full = vec![0.0; 50 * n];
-        let pool = Pool::new(2).unwrap();
-        gemm_par(&pool, &a, k, 50, &packed, &mut full, n, Init::Zero);
-        for start in [0, 7, 49] {
-            let mut one = vec![0.0; n];
-            gemm(
-                pool.isa(),
-                &a[start * k..],
-                k,
-                1,
-                &packed,
-                &mut one,
-                n,
-                Init::Zero,
-            );
-            assert_eq!(one, full[start * n..(start + 1) * n]);
+        for precision in [Precision::F32, Precision::Bf16] {
+            let packed = PackedMatrix::from_linear_weight_in(precision, &w, n, k);
+            for isa in [Isa::Avx512, Isa::Avx2Fma, Isa::Portable]
+                .into_iter()
+                .filter(|i| i.available())
+            {
+                let pool = Pool::with_isa(2, isa).unwrap();
+                let mut full = vec![0.0; 50 * n];
+                gemm_par(&pool, &a, k, 50, &packed, &mut full, n, Init::Zero);
+                for start in [0, 7, 49] {
+                    let mut one = vec![0.0; n];
+                    gemm(isa, &a[start * k..], k, 1, &packed, &mut one, n, Init::Zero);
+                    let want = &full[start * n..(start + 1) * n];
+                    assert_eq!(one, want, "{precision:?} {isa:?} row {start}");
+                }
+            }
         }
     }
 
@@ -1039,27 +1034,6 @@ mod tests {
                     differs || k == 1,
                     "{m}x{k}x{n} {isa:?}: bf16 equals f32 everywhere"
                 );
-            }
-        }
-    }
-
-    #[test]
-    fn bf16_rows_do_not_depend_on_m_or_threads() {
-        let (k, n) = (301, 70);
-        let a = data(50 * k, 14);
-        let w = data(n * k, 15);
-        let packed = PackedMatrix::from_linear_weight_in(Precision::Bf16, &w, n, k);
-        for isa in [Isa::Avx512, Isa::Portable]
-            .into_iter()
-            .filter(|i| i.available())
-        {
-            let pool = Pool::with_isa(2, isa).unwrap();
-            let mut full = vec![0.0; 50 * n];
-            gemm_par(&pool, &a, k, 50, &packed, &mut full, n, Init::Zero);
-            for start in [0, 7, 49] {
-                let mut one = vec![0.0; n];
-                gemm(isa, &a[start * k..], k, 1, &packed, &mut one, n, Init::Zero);
-                assert_eq!(one, full[start * n..(start + 1) * n], "{isa:?} row {start}");
             }
         }
     }
