@@ -2,18 +2,21 @@
 //! peak measured in the same run. Single-threaded, and timed in this thread's CPU time (Linux
 //! /proc) as well as wall time, so that a shared machine's load cancels out.
 //!
-//! `cargo run --release -p kairos-engine --example gemm_timing -- [m=50]`
+//! `cargo run --release -p kairos-engine --example gemm_timing -- [m=50] [bf16]`
+//! (`bf16`: weights packed in [`Precision::Bf16`]; `KAIROS_ISA=avx2` picks the AVX2 kernel on
+//! an AVX-512 CPU)
 
 use std::time::Instant;
 
 use kairos_engine::kernels::gemm::gemm;
-use kairos_engine::kernels::{Init, Isa, PackedMatrix};
+use kairos_engine::kernels::{Init, Isa, PackedMatrix, Precision};
 
 fn main() {
     if std::env::args().any(|a| a == "--help" || a == "-h") {
         println!(
             "GEMM throughput of the fast kernels on the SmolVLA expert's shapes vs this core's FMA peak.\n\n\
-             Usage: gemm_timing [M]   (rows of the activation matrix, default 50)"
+             Usage: gemm_timing [M] [bf16]   (rows of the activation matrix, default 50; bf16 \
+             weights)"
         );
         return;
     }
@@ -23,6 +26,12 @@ fn main() {
         .collect();
     let m = args.first().copied().unwrap_or(50);
     let isa = Isa::detect();
+    let precision = if std::env::args().any(|a| a == "bf16") {
+        Precision::Bf16
+    } else {
+        Precision::F32
+    };
+    println!("{isa:?} kernels, {precision:?} weights");
     for &(k, n, what) in &[
         (720, 1600, "qkv"),
         (720, 960, "q"),
@@ -40,7 +49,7 @@ fn main() {
             16
         };
         let bs: Vec<PackedMatrix> = (0..copies)
-            .map(|_| PackedMatrix::from_linear_weight(&w, n, k))
+            .map(|_| PackedMatrix::from_linear_weight_in(precision, &w, n, k))
             .collect();
         let mut c = vec![0.0; m * n];
         let reps = (50e9 / (2.0 * (m * k * n) as f64)).ceil() as usize;

@@ -4,7 +4,8 @@
 //! tokens, state token, 16 SmolLM2 layers -> `PrefixKv`).
 //!
 //! `cargo run --release -p kairos-engine --example vision_timing -- [--cameras 1] [--iters 3]
-//! [--threads 2] [--kernels fast|portable] [--side 512] [--prefix]`
+//! [--threads 2] [--kernels fast|portable] [--side 512] [--prefix] [--precision f32|bf16]`
+//! (`KAIROS_ISA=avx2` runs the AVX2 kernels on an AVX-512 CPU, for comparison)
 //!
 //! Prints one JSON line: `{"what":..,"cameras":N,"median_ms":..,"min_ms":..,"gflop":..,
 //! "gflops":..,"runs":[..]}` (GFLOP counts the vision tower's multiply-adds x 2).
@@ -23,6 +24,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut kernels = Kernels::Fast;
     let mut side = 512usize;
     let mut prefix = false;
+    let mut precision = kairos_engine::Precision::F32;
     let mut args = std::env::args().skip(1);
     while let Some(flag) = args.next() {
         match flag.as_str() {
@@ -31,7 +33,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     "Times SmolVLA's vision tower (or, with --prefix, the whole VLM prefix) on \
                      smolvla_base shapes with seeded random weights.\n\n\
                      Usage: vision_timing [--cameras 1] [--iters 3] [--threads 2] \
-                     [--kernels fast|portable] [--side 512] [--prefix]"
+                     [--kernels fast|portable] [--side 512] [--prefix] [--precision f32|bf16]"
                 );
                 return Ok(());
             }
@@ -47,6 +49,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "--iters" => iters = value.parse()?,
             "--threads" => threads = value.parse()?,
             "--side" => side = value.parse()?,
+            "--precision" => precision = value.parse()?,
             "--kernels" => {
                 kernels = match value.as_str() {
                     "fast" => Kernels::Fast,
@@ -65,6 +68,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let options = EngineOptions {
         kernels,
         threads,
+        precision,
         ..Default::default()
     };
     let vlm = SmolVlaVlm::from_weights(&weights, &cfg, &options)?;

@@ -26,6 +26,7 @@ pub use builtin::{default_model, load_model, load_model_with, resolve_model};
 pub use chunk::ActionChunk;
 pub use error::{EngineError, InputError};
 pub use image_features::ImageLimits;
+pub use kernels::Precision;
 pub use model::{
     ActionModel, ActionRequest, ImageFormat, ImageInput, MAX_SAMPLES, ModelSpec, generate_isolated,
 };

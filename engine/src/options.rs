@@ -1,7 +1,7 @@
 //! Where and how a model runs: device, kernels, threads.
 
 use crate::EngineError;
-use crate::kernels::{Isa, Pool};
+use crate::kernels::{Isa, Pool, Precision};
 
 /// The device a model runs on.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -74,6 +74,10 @@ pub struct EngineOptions {
     pub kernels: Kernels,
     /// CPU threads for the fast kernels (0: one per core, or `KAIROS_ENGINE_THREADS`).
     pub threads: usize,
+    /// Number format of the fast kernels' weight GEMMs (SmolVLA's VLM and expert): `f32`
+    /// (default, exact) or `bf16` (AVX512_BF16; other CPUs fall back to f32 with a warning).
+    #[serde(default)]
+    pub precision: Precision,
 }
 
 /// A resolved execution target.

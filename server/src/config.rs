@@ -14,7 +14,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use kairos_engine::{DeviceKind, EngineError, EngineOptions, Kernels};
+use kairos_engine::{DeviceKind, EngineError, EngineOptions, Kernels, Precision};
 use kairos_sdk::protocol::Limits;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -312,6 +312,9 @@ pub struct EngineConfig {
     /// CPU threads of each instance's kernels; 0 (default) = `KAIROS_ENGINE_THREADS`, else one
     /// per core.
     pub threads: usize,
+    /// `f32` (default, exact) or `bf16`: the number format of the fast kernels' weight GEMMs
+    /// (AVX512_BF16; a CPU without it runs f32 and logs a warning; see docs/ENGINE.md).
+    pub precision: String,
 }
 
 impl Default for EngineConfig {
@@ -327,6 +330,7 @@ impl Default for EngineConfig {
             device: "cpu".into(),
             kernels: "auto".into(),
             threads: 0,
+            precision: "f32".into(),
         }
     }
 }
@@ -344,6 +348,7 @@ impl EngineConfig {
             device: self.device.parse()?,
             kernels: self.kernels.parse()?,
             threads: self.threads,
+            precision: self.precision.parse()?,
         })
     }
 }
@@ -669,6 +674,9 @@ impl Config {
             if let Err(e) = engine.kernels.parse::<Kernels>() {
                 return Err(invalid(format!("engine[{i}].kernels"), e.to_string()));
             }
+            if let Err(e) = engine.precision.parse::<Precision>() {
+                return Err(invalid(format!("engine[{i}].precision"), e.to_string()));
+            }
             if !(engine.rtt_ms.is_finite() && engine.rtt_ms >= 0.0) {
                 return Err(invalid(
                     format!("engine[{i}].rtt_ms"),
@@ -935,6 +943,7 @@ mod tests {
             device = "cpu"
             kernels = "portable"
             threads = 1
+            precision = "bf16"
             [[engine]]
             model = "ckpt/model.safetensors"
             tier = "cloud"
@@ -972,7 +981,8 @@ mod tests {
             EngineOptions {
                 device: DeviceKind::Cpu,
                 kernels: Kernels::Portable,
-                threads: 1
+                threads: 1,
+                precision: Precision::Bf16,
             }
         );
         assert_eq!(
@@ -1096,6 +1106,7 @@ mod tests {
             ("[[engine]]\ndevice = \"gpu\"\n", "engine[0].device"),
             ("[[engine]]\ndevice = \"cuda:x\"\n", "engine[0].device"),
             ("[[engine]]\nkernels = \"mkl\"\n", "engine[0].kernels"),
+            ("[[engine]]\nprecision = \"fp8\"\n", "engine[0].precision"),
         ];
         for (text, key) in cases {
             let err = Config::parse(text, Path::new("k.toml")).unwrap_err();

@@ -7,13 +7,25 @@
 //! step of `k`: 12 FMAs per 8 loads. Blocking: `KC` rows of a panel (16 KiB) stay in L1 while all
 //! row tiles of an `MC`-row block of `A` (in L2) pass over them.
 //!
+//! On CPUs with AVX-512F the same tile is `MR` 512-bit accumulators (one per row; a panel row
+//! is one vector), with `A` broadcast from memory inside each FMA: fewer instructions per FLOP,
+//! same packing and the same order of operations, so AVX-512 and AVX2 results are bit-identical.
+//!
+//! In [`Precision::Bf16`] the panels hold bf16 pairs instead: row `i` of a panel is the 32-bit
+//! lanes `(B[2i][j], B[2i+1][j])` for its `NR` columns (still one cache line, now covering two
+//! values of `k`), and `A` is rounded to bf16 (nearest, ties to even) when packed, as pairs
+//! `(A[r][2i], A[r][2i+1])`. The AVX512_BF16 kernel multiplies a pair by a pair and adds both
+//! products to an f32 accumulator in one `vdpbf16ps`; a portable kernel does the same in scalar
+//! code on other CPUs. The products of two bf16 values are exact in f32, so the error is the
+//! rounding of the operands (relative 2^-9 each) plus f32 accumulation.
+//!
 //! Every element of `C` accumulates its `k` products in increasing `k` order, one FMA each, in
 //! `KC`-sized blocks. That order depends on neither `m`, the row tile an element falls in, nor
 //! the thread split, so results do not depend on the batch size.
 
 use std::ops::Range;
 
-use super::{AlignedBuf, Isa, Pool, SharedMut};
+use super::{AlignedBuf, Isa, Pool, Precision, SharedMut};
 
 /// Columns per packed panel (two AVX2 vectors).
 pub const NR: usize = 16;
@@ -25,18 +37,54 @@ const KC: usize = 128;
 const MC: usize = 120;
 
 /// The right-hand operand of a GEMM, packed into `NR`-column panels.
+///
+/// Its [`Precision`] says how the values are stored: f32, or bf16 pairs (half the memory; the
+/// GEMM then rounds `A` to bf16 too). bf16 pairs live in the same 32-bit buffer, as raw bits.
 #[derive(Clone, Debug, Default)]
 pub struct PackedMatrix {
     k: usize,
     n: usize,
+    precision: Precision,
     buf: AlignedBuf,
+}
+
+/// Packed rows that `k` rows of a matrix take: one per row in f32, one per pair in bf16.
+fn depth(precision: Precision, k: usize) -> usize {
+    match precision {
+        Precision::F32 => k,
+        Precision::Bf16 => k.div_ceil(2),
+    }
+}
+
+/// `x` rounded to bf16 (nearest, ties to even; NaN stays NaN), as its 16 bits.
+pub fn to_bf16(x: f32) -> u16 {
+    let bits = x.to_bits();
+    if x.is_nan() {
+        return ((bits >> 16) | 0x40) as u16;
+    }
+    let round = 0x7fff + ((bits >> 16) & 1);
+    (bits.wrapping_add(round) >> 16) as u16
+}
+
+/// Two bf16 values in one 32-bit lane, `lo` in the low half (the element with the even `k`),
+/// stored as the bits of an f32 so that bf16 panels share the f32 buffer type.
+fn bf16_pair(lo: f32, hi: f32) -> f32 {
+    f32::from_bits(u32::from(to_bf16(lo)) | (u32::from(to_bf16(hi)) << 16))
 }
 
 impl PackedMatrix {
     /// Pack the weight of a PyTorch `Linear` (`w` is `[n][k]`, out x in, row-major) so that
     /// `A · B = A · wᵀ`, i.e. `y = x wᵀ`.
     pub fn from_linear_weight(w: &[f32], n: usize, k: usize) -> Self {
-        let mut p = PackedMatrix::default();
+        Self::from_linear_weight_in(Precision::F32, w, n, k)
+    }
+
+    /// [`Self::from_linear_weight`] stored in `precision` (bf16 values are rounded to nearest).
+    pub fn from_linear_weight_in(precision: Precision, w: &[f32], n: usize, k: usize) -> Self {
+        let mut p = PackedMatrix {
+            precision,
+            ..PackedMatrix::default()
+        };
         p.pack_transposed(w, k, n, k);
         p
     }
@@ -44,12 +92,22 @@ impl PackedMatrix {
     /// Pack several `Linear` weights with the same input size side by side (`[w0; w1; ..]` along
     /// the output dimension), e.g. the q, k and v projections into one GEMM.
     pub fn from_linear_weights(ws: &[(&[f32], usize)], k: usize) -> Self {
+        Self::from_linear_weights_in(Precision::F32, ws, k)
+    }
+
+    /// [`Self::from_linear_weights`] stored in `precision`.
+    pub fn from_linear_weights_in(precision: Precision, ws: &[(&[f32], usize)], k: usize) -> Self {
         let n: usize = ws.iter().map(|(_, n)| n).sum();
         let mut stacked = Vec::with_capacity(n * k);
         for (w, rows) in ws {
             stacked.extend_from_slice(&w[..rows * k]);
         }
-        Self::from_linear_weight(&stacked, n, k)
+        Self::from_linear_weight_in(precision, &stacked, n, k)
+    }
+
+    /// How the values are stored.
+    pub fn precision(&self) -> Precision {
+        self.precision
     }
 
     /// Depth (rows of `B`).
@@ -69,62 +127,67 @@ impl PackedMatrix {
     fn resize(&mut self, k: usize, n: usize) {
         self.k = k;
         self.n = n;
-        self.buf.ensure(n.div_ceil(NR) * NR * k);
+        self.buf
+            .ensure(n.div_ceil(NR) * NR * depth(self.precision, k));
     }
 
-    /// Pack `B` given as `k` rows of `n` values with row stride `ldb`. Reuses the allocation.
+    /// Pack `B` given as `k` rows of `n` values with row stride `ldb`, in the matrix's
+    /// precision. Reuses the allocation.
     pub fn pack_rows(&mut self, b: &[f32], ldb: usize, k: usize, n: usize) {
-        self.resize(k, n);
-        let panels = self.panels();
-        let dst = self.buf.as_mut_slice();
-        for kk in 0..k {
-            for p in 0..panels {
-                let c0 = p * NR;
-                let w = NR.min(n - c0);
-                let at = offset(k, panels, p, kk);
-                let row = &mut dst[at..at + NR];
-                row[..w].copy_from_slice(&b[kk * ldb + c0..kk * ldb + c0 + w]);
-                row[w..].fill(0.0);
-            }
-        }
+        self.pack_with(k, n, |kk, j| b[kk * ldb + j]);
     }
 
-    /// Pack `B = wᵀ` where `w` has `n` rows of `k` values with row stride `ldw`. Reuses the
-    /// allocation.
+    /// Pack `B = wᵀ` where `w` has `n` rows of `k` values with row stride `ldw`, in the
+    /// matrix's precision. Reuses the allocation.
     pub fn pack_transposed(&mut self, w: &[f32], ldw: usize, n: usize, k: usize) {
+        self.pack_with(k, n, |kk, j| w[j * ldw + kk]);
+    }
+
+    /// Pack the `k x n` matrix whose element `(kk, j)` is `at(kk, j)`.
+    fn pack_with(&mut self, k: usize, n: usize, at: impl Fn(usize, usize) -> f32) {
         self.resize(k, n);
         let panels = self.panels();
+        let precision = self.precision;
         let dst = self.buf.as_mut_slice();
         for p in 0..panels {
             let c0 = p * NR;
             let width = NR.min(n - c0);
-            for kk in 0..k {
-                let at = offset(k, panels, p, kk);
-                let row = &mut dst[at..at + NR];
+            // bf16 rows are pairs of `k`; blocks start at multiples of the even `KC`, so a
+            // pair never straddles two blocks.
+            let step = if precision == Precision::Bf16 { 2 } else { 1 };
+            for kk in (0..k).step_by(step) {
+                let start = offset(precision, k, panels, p, kk);
+                let row = &mut dst[start..start + NR];
                 for (j, v) in row.iter_mut().enumerate() {
-                    *v = if j < width {
-                        w[(c0 + j) * ldw + kk]
-                    } else {
-                        0.0
+                    *v = match (precision, j < width) {
+                        (_, false) => 0.0,
+                        (Precision::F32, true) => at(kk, c0 + j),
+                        (Precision::Bf16, true) => {
+                            let hi = if kk + 1 < k { at(kk + 1, c0 + j) } else { 0.0 };
+                            bf16_pair(at(kk, c0 + j), hi)
+                        }
                     };
                 }
             }
         }
     }
 
-    /// The `kc` rows of panel `p` from row `k0` (a multiple of `KC`), contiguous.
+    /// The rows of panel `p` from row `k0` (a multiple of `KC`) to the end of its block,
+    /// contiguous.
     fn panel_ptr(&self, p: usize, k0: usize) -> *const f32 {
-        self.buf.as_slice()[offset(self.k, self.panels(), p, k0)..].as_ptr()
+        self.buf.as_slice()[offset(self.precision, self.k, self.panels(), p, k0)..].as_ptr()
     }
 }
 
-/// Where row `kk` of panel `p` lives. The matrix is stored in `KC`-row blocks, each block all
-/// panels one after another, so the kernels' (block, panel) order reads memory sequentially
-/// and the hardware prefetcher streams the weights.
-fn offset(k: usize, panels: usize, p: usize, kk: usize) -> usize {
+/// Where row `kk` of panel `p` lives (`kk` even in bf16: the row of the pair it starts). The
+/// matrix is stored in `KC`-row blocks, each block all panels one after another, so the
+/// kernels' (block, panel) order reads memory sequentially and the hardware prefetcher streams
+/// the weights.
+fn offset(precision: Precision, k: usize, panels: usize, p: usize, kk: usize) -> usize {
     let block = kk / KC;
     let kc = KC.min(k - block * KC);
-    block * KC * panels * NR + p * kc * NR + (kk - block * KC) * NR
+    let d = |rows| depth(precision, rows);
+    block * d(KC) * panels * NR + p * d(kc) * NR + d(kk - block * KC) * NR
 }
 
 /// What `C` starts from.
@@ -159,7 +222,7 @@ pub fn gemm(
     // waits can never find its own buffer borrowed.
     A_PACK.with(|buf| {
         let mut buf = buf.borrow_mut();
-        let packed = pack_a_blocks(a, lda, m, b.k, &mut buf);
+        let packed = pack_a_blocks(b.precision, a, lda, m, b.k, &mut buf);
         // SAFETY: `check` verified the bounds of `c`; this thread owns all of it.
         unsafe { gemm_packed(isa, packed, m, b, 0..b.panels(), c.as_mut_ptr(), ldc, init) }
     });
@@ -185,7 +248,7 @@ pub fn gemm_par(
     let panels = b.panels();
     let parts = pool.parts(panels);
     let mut scratch = pool.take_scratch();
-    let packed = pack_a_blocks(a, lda, m, b.k, &mut scratch);
+    let packed = pack_a_blocks(b.precision, a, lda, m, b.k, &mut scratch);
     let out = SharedMut::new(c);
     pool.run(parts, |t| {
         let range = panels * t / parts..panels * (t + 1) / parts;
@@ -219,19 +282,21 @@ fn padded_rows(m: usize, m0: usize) -> usize {
 
 /// Where block `(m0, k0)` of packed `A` starts: blocks are stored `MC` rows at a time, each as
 /// its `KC`-deep slices one after another (see [`pack_a`] for one slice).
-fn a_block(k: usize, m: usize, m0: usize, k0: usize) -> usize {
-    m0 * k + k0 * padded_rows(m, m0)
+fn a_block(precision: Precision, k: usize, m: usize, m0: usize, k0: usize) -> usize {
+    m0 * depth(precision, k) + depth(precision, k0) * padded_rows(m, m0)
 }
 
-/// Pack all of `A` (`m x k`, row stride `lda`) into `buf` in [`a_block`] order.
+/// Pack all of `A` (`m x k`, row stride `lda`) into `buf` in [`a_block`] order, in
+/// `precision`.
 fn pack_a_blocks<'a>(
+    precision: Precision,
     a: &[f32],
     lda: usize,
     m: usize,
     k: usize,
     buf: &'a mut AlignedBuf,
 ) -> &'a [f32] {
-    let len = m.div_ceil(MR) * MR * k;
+    let len = m.div_ceil(MR) * MR * depth(precision, k);
     buf.ensure(len);
     let out = &mut buf.as_mut_slice()[..len];
     let mut m0 = 0;
@@ -240,13 +305,12 @@ fn pack_a_blocks<'a>(
         let mut k0 = 0;
         while k0 < k {
             let kc = KC.min(k - k0);
-            pack_a(
-                &a[m0 * lda + k0..],
-                lda,
-                mb,
-                kc,
-                &mut out[a_block(k, m, m0, k0)..],
-            );
+            let src = &a[m0 * lda + k0..];
+            let dst = &mut out[a_block(precision, k, m, m0, k0)..];
+            match precision {
+                Precision::F32 => pack_a(src, lda, mb, kc, dst),
+                Precision::Bf16 => pack_a_bf16(src, lda, mb, kc, dst),
+            }
             k0 += kc;
         }
         m0 += mb;
@@ -272,6 +336,8 @@ unsafe fn gemm_packed(
     if panels.is_empty() {
         return;
     }
+    let kernel = Kernel::choose(isa, b.precision);
+    let d = |rows| depth(b.precision, rows);
     // Zero-initialised outputs start from zero accumulators; a bias is written into C first.
     if let Init::Bias(bias) = init {
         for p in panels.clone() {
@@ -307,7 +373,7 @@ unsafe fn gemm_packed(
         while k0 < k {
             let kc = KC.min(k - k0);
             let load = k0 > 0 || !matches!(init, Init::Zero);
-            let block = &packed[a_block(k, m, m0, k0)..];
+            let block = &packed[a_block(b.precision, k, m, m0, k0)..];
             for p in panels.clone() {
                 let c0 = p * NR;
                 let w = NR.min(b.n - c0);
@@ -323,9 +389,9 @@ unsafe fn gemm_packed(
                     // Pull the next panel into L1 a slice per tile, spread over this panel's
                     // tiles so the misses overlap with computation instead of queueing.
                     if !next.is_null() {
-                        prefetch_lines(isa, next, kc * t / tiles, kc * (t + 1) / tiles);
+                        prefetch_lines(isa, next, d(kc) * t / tiles, d(kc) * (t + 1) / tiles);
                     }
-                    let ap = block[t * kc * MR..].as_ptr();
+                    let ap = block[t * d(kc) * MR..].as_ptr();
                     // SAFETY: the tile lies inside C (rows m0+r0.., columns c0..c0+w).
                     let cp = unsafe { c.add((m0 + r0) * ldc + c0) };
                     // The next tile's accumulators come from C: start fetching them now.
@@ -334,7 +400,7 @@ unsafe fn gemm_packed(
                         prefetch_rows(isa, cp.wrapping_add(MR * ldc), ldc, next_rows);
                     }
                     // SAFETY: the packed A tile and the panel hold kc rows; C as above.
-                    unsafe { tile(isa, rows, kc, ap, bp, cp, ldc, w, load) };
+                    unsafe { tile(kernel, rows, kc, ap, bp, cp, ldc, w, load) };
                 }
             }
             k0 += kc;
@@ -347,7 +413,7 @@ unsafe fn gemm_packed(
 #[inline(always)]
 fn prefetch_rows(isa: Isa, c: *const f32, ldc: usize, rows: usize) {
     #[cfg(target_arch = "x86_64")]
-    if isa == Isa::Avx2Fma {
+    if isa != Isa::Portable {
         for r in 0..rows {
             let row = c.wrapping_add(r * ldc);
             // SAFETY: prefetching never faults.
@@ -369,7 +435,7 @@ fn prefetch_rows(isa: Isa, c: *const f32, ldc: usize, rows: usize) {
 #[inline(always)]
 fn prefetch_lines(isa: Isa, panel: *const f32, from: usize, to: usize) {
     #[cfg(target_arch = "x86_64")]
-    if isa == Isa::Avx2Fma {
+    if isa != Isa::Portable {
         for line in from..to {
             // SAFETY: prefetching never faults; the address is inside the panel.
             unsafe {
@@ -404,6 +470,73 @@ fn pack_a(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
     }
 }
 
+/// Pack `rows x kc` of `A` like [`pack_a`], but as bf16 pairs: tile `t` is `ceil(kc / 2)`
+/// groups of `MR` pairs `(A[r][2i], A[r][2i+1])` (zero past `kc` and `rows`).
+fn pack_a_bf16(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
+    let kp = kc.div_ceil(2);
+    for t in 0..rows.div_ceil(MR) {
+        let tile = &mut out[t * kp * MR..(t + 1) * kp * MR];
+        for r in 0..MR {
+            let row = t * MR + r;
+            if row >= rows {
+                for i in 0..kp {
+                    tile[i * MR + r] = 0.0;
+                }
+                continue;
+            }
+            let src = &a[row * lda..row * lda + kc];
+            let pairs = src.chunks_exact(2);
+            if let [last] = pairs.remainder() {
+                tile[(kp - 1) * MR + r] = bf16_pair(*last, 0.0);
+            }
+            for (i, pair) in pairs.enumerate() {
+                tile[i * MR + r] = bf16_pair(pair[0], pair[1]);
+            }
+        }
+    }
+}
+
+/// Which micro-kernel multiplies a tile.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Kernel {
+    /// f32 panels with this instruction set's kernel.
+    F32(Isa),
+    /// bf16 panels with `vdpbf16ps` (AVX512_BF16).
+    Bf16Avx512,
+    /// bf16 panels in portable code.
+    Bf16Portable,
+}
+
+impl Kernel {
+    fn choose(isa: Isa, precision: Precision) -> Kernel {
+        match precision {
+            Precision::F32 => Kernel::F32(isa),
+            Precision::Bf16 if isa == Isa::Avx512 && super::cpu_has_avx512_bf16() => {
+                Kernel::Bf16Avx512
+            }
+            Precision::Bf16 => Kernel::Bf16Portable,
+        }
+    }
+}
+
+/// `$step!(kk)` for `kk` in `0..$n`, in order, four per loop iteration (the f32 kernels' loop).
+macro_rules! unroll4 {
+    ($n:expr, $step:ident) => {{
+        let mut kk = 0;
+        while kk + 4 <= $n {
+            $step!(kk);
+            $step!(kk + 1);
+            $step!(kk + 2);
+            $step!(kk + 3);
+            kk += 4;
+        }
+        while kk < $n {
+            $step!(kk);
+            kk += 1;
+        }
+    }};
+}
+
 /// One `rows x w` tile (`rows <= MR`, `w <= NR`): `C = A · B` over `kc`, or `C += A · B` when
 /// `load`, with `A` packed by [`pack_a`].
 ///
@@ -412,7 +545,7 @@ fn pack_a(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
 /// `ldc` with `w` values.
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile(
-    isa: Isa,
+    kernel: Kernel,
     rows: usize,
     kc: usize,
     a: *const f32,
@@ -434,7 +567,7 @@ unsafe fn tile(
             }
         }
         // SAFETY: scratch is a full MR x NR tile.
-        unsafe { tile(isa, rows, kc, a, b, scratch.as_mut_ptr(), NR, NR, load) };
+        unsafe { tile(kernel, rows, kc, a, b, scratch.as_mut_ptr(), NR, NR, load) };
         for r in 0..rows {
             for j in 0..w {
                 // SAFETY: inside the caller's C tile.
@@ -455,10 +588,18 @@ unsafe fn tile(
             }
         };
     }
-    match isa {
+    match kernel {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: Isa::Avx2Fma is only reported when the CPU has AVX2 and FMA.
-        Isa::Avx2Fma => unsafe { dispatch!(kernel_avx2) },
+        Kernel::F32(Isa::Avx2Fma) => unsafe { dispatch!(kernel_avx2) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: Isa::Avx512 is only reported when the CPU has AVX-512F.
+        Kernel::F32(Isa::Avx512) => unsafe { dispatch!(kernel_avx512) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: Kernel::choose picks it only on a CPU with AVX-512F and AVX512_BF16.
+        Kernel::Bf16Avx512 => unsafe { dispatch!(kernel_bf16_avx512) },
+        // SAFETY: same pointer contract (bf16 panels and tiles hold ceil(kc / 2) pair rows).
+        Kernel::Bf16Portable => unsafe { dispatch!(kernel_bf16_portable) },
         // SAFETY: same pointer contract.
         _ => unsafe { dispatch!(kernel_portable) },
     }
@@ -501,23 +642,185 @@ unsafe fn kernel_avx2<const R: usize>(
             }
         }};
     }
-    let mut kk = 0;
-    while kk + 4 <= kc {
-        step!(kk);
-        step!(kk + 1);
-        step!(kk + 2);
-        step!(kk + 3);
-        kk += 4;
-    }
-    while kk < kc {
-        step!(kk);
-        kk += 1;
-    }
+    unroll4!(kc, step);
     for (r, row) in acc.iter().enumerate() {
         // SAFETY: row r of the C tile has NR values.
         unsafe {
             _mm256_storeu_ps(c.add(r * ldc), row[0]);
             _mm256_storeu_ps(c.add(r * ldc + 8), row[1]);
+        }
+    }
+}
+
+/// One panel row is one 512-bit vector, so the tile is `R` accumulators; each `A` value is
+/// broadcast straight from memory into its FMA (`{1to16}`). Same order of operations as
+/// [`kernel_avx2`]: one FMA per product, in increasing `k`.
+///
+/// # Safety
+/// See [`tile`]; requires AVX-512F.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn kernel_avx512<const R: usize>(
+    kc: usize,
+    a: *const f32,
+    b: *const f32,
+    c: *mut f32,
+    ldc: usize,
+    load: bool,
+) {
+    use std::arch::x86_64::*;
+    let mut acc = [_mm512_setzero_ps(); R];
+    if load {
+        for (r, row) in acc.iter_mut().enumerate() {
+            // SAFETY: row r of the C tile has NR values.
+            *row = unsafe { _mm512_loadu_ps(c.add(r * ldc)) };
+        }
+    }
+    macro_rules! step {
+        ($kk:expr) => {{
+            // SAFETY: $kk < kc: inside the panel (64-byte aligned rows) and the packed A tile.
+            unsafe {
+                let bv = _mm512_load_ps(b.add($kk * NR));
+                for r in 0..R {
+                    let av = _mm512_set1_ps(*a.add($kk * MR + r));
+                    acc[r] = _mm512_fmadd_ps(av, bv, acc[r]);
+                }
+            }
+        }};
+    }
+    unroll4!(kc, step);
+    for (r, row) in acc.iter().enumerate() {
+        // SAFETY: row r of the C tile has NR values.
+        unsafe { _mm512_storeu_ps(c.add(r * ldc), *row) };
+    }
+}
+
+/// `ceil(kc / 2)` steps of one `vdpbf16ps` per row: the panel row (16 lanes of bf16 pairs) times
+/// the row's broadcast `A` pair, both products added to an f32 accumulator. Even and odd pairs
+/// go to two accumulators per row (summed at the end), so that 2R independent chains hide the
+/// instruction's latency (6 cycles on Zen 4, where R = 6 alone would stall).
+///
+/// # Safety
+/// See [`tile`], with bf16 pair rows; requires AVX-512F and AVX512_BF16.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bf16")]
+unsafe fn kernel_bf16_avx512<const R: usize>(
+    kc: usize,
+    a: *const f32,
+    b: *const f32,
+    c: *mut f32,
+    ldc: usize,
+    load: bool,
+) {
+    use std::arch::x86_64::*;
+    let mut even = [_mm512_setzero_ps(); R];
+    let mut odd = [_mm512_setzero_ps(); R];
+    if load {
+        for (r, row) in even.iter_mut().enumerate() {
+            // SAFETY: row r of the C tile has NR values.
+            *row = unsafe { _mm512_loadu_ps(c.add(r * ldc)) };
+        }
+    }
+    macro_rules! step {
+        ($acc:ident, $i:expr) => {{
+            // SAFETY: $i < ceil(kc / 2): inside the panel (64-byte aligned rows) and the A
+            // tile; the load moves raw bits (bf16 pairs stored as f32 bit patterns). The asm
+            // reads the 4-byte A pair of row r and writes only its accumulator register.
+            unsafe {
+                let bv = _mm512_load_ps(b.add($i * NR));
+                for r in 0..R {
+                    // The A pair is broadcast from memory inside the instruction (`{1to16}`):
+                    // LLVM emits a separate `vbroadcastss` for the intrinsic, which on Zen 4
+                    // costs a vector uop per product and 30% of the kernel's speed.
+                    std::arch::asm!(
+                        "vdpbf16ps {acc}, {b}, dword ptr [{p}]{{1to16}}",
+                        acc = inout(zmm_reg) $acc[r],
+                        b = in(zmm_reg) bv,
+                        p = in(reg) a.add($i * MR + r),
+                        options(nostack, readonly, preserves_flags),
+                    );
+                }
+            }
+        }};
+    }
+    let kp = kc.div_ceil(2);
+    let mut i = 0;
+    while i + 4 <= kp {
+        step!(even, i);
+        step!(odd, i + 1);
+        step!(even, i + 2);
+        step!(odd, i + 3);
+        i += 4;
+    }
+    while i + 2 <= kp {
+        step!(even, i);
+        step!(odd, i + 1);
+        i += 2;
+    }
+    if i < kp {
+        step!(even, i);
+    }
+    // Indexed, not zipped: borrowing the accumulator arrays as slices kept them in memory
+    // (a store after every `vdpbf16ps`) and cost a third of the kernel's speed.
+    #[allow(clippy::needless_range_loop)]
+    for r in 0..R {
+        // SAFETY: row r of the C tile has NR values.
+        unsafe { _mm512_storeu_ps(c.add(r * ldc), _mm512_add_ps(even[r], odd[r])) };
+    }
+}
+
+/// What [`kernel_bf16_avx512`] computes, in scalar code: per pair, the odd product then the
+/// even one added to the accumulator of the pair's parity (each product is exact in f32), the
+/// two accumulators summed at the end. Its rounding of the two additions may differ from a given
+/// CPU's `vdpbf16ps` by an ulp of the accumulator.
+///
+/// # Safety
+/// See [`tile`], with bf16 pair rows.
+unsafe fn kernel_bf16_portable<const R: usize>(
+    kc: usize,
+    a: *const f32,
+    b: *const f32,
+    c: *mut f32,
+    ldc: usize,
+    load: bool,
+) {
+    let widen = |pair: f32| {
+        let bits = pair.to_bits();
+        (
+            f32::from_bits(bits << 16),
+            f32::from_bits(bits & 0xffff_0000),
+        )
+    };
+    let mut acc = [[[0.0f32; NR]; R]; 2];
+    if load {
+        for (r, row) in acc[0].iter_mut().enumerate() {
+            for (j, v) in row.iter_mut().enumerate() {
+                // SAFETY: row r of the C tile has NR values.
+                *v = unsafe { *c.add(r * ldc + j) };
+            }
+        }
+    }
+    for i in 0..kc.div_ceil(2) {
+        // SAFETY: i < ceil(kc / 2): inside the panel and the packed A tile.
+        let (brow, arow) = unsafe {
+            (
+                std::slice::from_raw_parts(b.add(i * NR), NR),
+                std::slice::from_raw_parts(a.add(i * MR), R),
+            )
+        };
+        for (row, &ap) in acc[i % 2].iter_mut().zip(arow) {
+            let (a0, a1) = widen(ap);
+            for (v, &bp) in row.iter_mut().zip(brow) {
+                let (b0, b1) = widen(bp);
+                *v += a1 * b1;
+                *v += a0 * b0;
+            }
+        }
+    }
+    for (r, (e, o)) in acc[0].iter().zip(&acc[1]).enumerate() {
+        for (j, (x, y)) in e.iter().zip(o).enumerate() {
+            // SAFETY: row r of the C tile has NR values.
+            unsafe { *c.add(r * ldc + j) = x + y };
         }
     }
 }
@@ -605,7 +908,7 @@ mod tests {
             let bias = data(n, 3);
             let packed = PackedMatrix::from_linear_weight(&w, n, k);
             let want = naive(&a, m, k, &w, n);
-            for isa in [Isa::Avx2Fma, Isa::Portable]
+            for isa in [Isa::Avx512, Isa::Avx2Fma, Isa::Portable]
                 .into_iter()
                 .filter(|i| i.available())
             {
@@ -635,27 +938,118 @@ mod tests {
 
     #[test]
     fn row_results_do_not_depend_on_m_or_threads() {
-        let (k, n) = (700, 70);
+        let (k, n) = (701, 70);
         let a = data(50 * k, 4);
         let w = data(n * k, 5);
-        let packed = PackedMatrix::from_linear_weight(&w, n, k);
-        let mut full = vec![0.0; 50 * n];
-        let pool = Pool::new(2).unwrap();
-        gemm_par(&pool, &a, k, 50, &packed, &mut full, n, Init::Zero);
-        for start in [0, 7, 49] {
-            let mut one = vec![0.0; n];
-            gemm(
-                pool.isa(),
-                &a[start * k..],
-                k,
-                1,
-                &packed,
-                &mut one,
-                n,
-                Init::Zero,
-            );
-            assert_eq!(one, full[start * n..(start + 1) * n]);
+        for precision in [Precision::F32, Precision::Bf16] {
+            let packed = PackedMatrix::from_linear_weight_in(precision, &w, n, k);
+            for isa in [Isa::Avx512, Isa::Avx2Fma, Isa::Portable]
+                .into_iter()
+                .filter(|i| i.available())
+            {
+                let pool = Pool::with_isa(2, isa).unwrap();
+                let mut full = vec![0.0; 50 * n];
+                gemm_par(&pool, &a, k, 50, &packed, &mut full, n, Init::Zero);
+                for start in [0, 7, 49] {
+                    let mut one = vec![0.0; n];
+                    gemm(isa, &a[start * k..], k, 1, &packed, &mut one, n, Init::Zero);
+                    let want = &full[start * n..(start + 1) * n];
+                    assert_eq!(one, want, "{precision:?} {isa:?} row {start}");
+                }
+            }
         }
+    }
+
+    #[test]
+    fn avx512_and_avx2_kernels_agree_bit_for_bit() {
+        // Both run one FMA per product in increasing k order, so they round identically.
+        if !Isa::Avx512.available() {
+            eprintln!("no AVX-512F on this CPU: only the ragged-shape test covers the others");
+            return;
+        }
+        let (m, k, n) = (37, 300, 45);
+        let a = data(m * k, 7);
+        let w = data(n * k, 8);
+        let packed = PackedMatrix::from_linear_weight(&w, n, k);
+        let mut c512 = vec![0.0; m * n];
+        let mut c2 = vec![0.0; m * n];
+        gemm(Isa::Avx512, &a, k, m, &packed, &mut c512, n, Init::Zero);
+        gemm(Isa::Avx2Fma, &a, k, m, &packed, &mut c2, n, Init::Zero);
+        assert_eq!(c512, c2);
+    }
+
+    /// bf16 GEMM vs an f64 reference. Each operand is rounded to bf16 (relative error at most
+    /// u = 2^-9, round to nearest with 8 significand bits), the products of bf16 values are
+    /// exact in f32, and the f32 sum of k terms adds at most about k * 2^-24 of `sum |a||b|`:
+    /// so `|C - C_exact| <= (2u + u^2 + k 2^-24 (1 + 2u)) * sum_k |a_k||b_k|`, checked with a
+    /// 10% margin on the accumulation term. The result must also differ from the f32 GEMM (the
+    /// rounding happened) and the packed weights take half the f32 memory.
+    #[test]
+    fn bf16_gemm_is_within_its_rounding_bound_of_f64() {
+        let kernels: Vec<Isa> = [Isa::Avx512, Isa::Portable]
+            .into_iter()
+            .filter(|i| i.available())
+            .collect();
+        for &(m, k, n) in &[
+            (1, 1, 1),
+            (7, 301, 33),
+            (13, 5, 16),
+            (121, 257, 17),
+            (50, 720, 40),
+        ] {
+            let a = data(m * k, 11);
+            let w = data(n * k, 12);
+            let bias = data(n, 13);
+            let p32 = PackedMatrix::from_linear_weight(&w, n, k);
+            let p16 = PackedMatrix::from_linear_weight_in(Precision::Bf16, &w, n, k);
+            assert_eq!(p16.precision(), Precision::Bf16);
+            assert_eq!(
+                p16.buf.as_slice().len(),
+                n.div_ceil(NR) * NR * k.div_ceil(2)
+            );
+            let u = 2f64.powi(-9);
+            let rel = 2.0 * u + u * u + 1.1 * k as f64 * 2f64.powi(-24) * (1.0 + 2.0 * u);
+            for &isa in &kernels {
+                let mut c = vec![f32::NAN; m * n];
+                let pool = Pool::with_isa(2, isa).unwrap();
+                gemm_par(&pool, &a, k, m, &p16, &mut c, n, Init::Bias(&bias));
+                let mut c32 = vec![0.0; m * n];
+                gemm(isa, &a, k, m, &p32, &mut c32, n, Init::Bias(&bias));
+                let mut differs = false;
+                for i in 0..m {
+                    for j in 0..n {
+                        let (mut exact, mut mag) = (f64::from(bias[j]), f64::from(bias[j].abs()));
+                        for kk in 0..k {
+                            let p = f64::from(a[i * k + kk]) * f64::from(w[j * k + kk]);
+                            exact += p;
+                            mag += p.abs();
+                        }
+                        let got = f64::from(c[i * n + j]);
+                        assert!(
+                            (got - exact).abs() <= rel * mag + f64::from(f32::EPSILON) * mag,
+                            "{m}x{k}x{n} {isa:?} [{i},{j}]: {got} vs {exact} (bound {})",
+                            rel * mag
+                        );
+                        differs |= c[i * n + j] != c32[i * n + j];
+                    }
+                }
+                assert!(
+                    differs || k == 1,
+                    "{m}x{k}x{n} {isa:?}: bf16 equals f32 everywhere"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn to_bf16_rounds_to_nearest_even() {
+        assert_eq!(to_bf16(1.0), 0x3f80);
+        // 1 + 2^-8 is halfway between 1 and 1 + 2^-7: ties go to the even 1.0.
+        assert_eq!(to_bf16(1.0 + 2f32.powi(-8)), 0x3f80);
+        assert_eq!(to_bf16(1.0 + 3.0 * 2f32.powi(-8)), 0x3f82);
+        assert_eq!(to_bf16(-2.0), 0xc000);
+        assert!(f32::from_bits(u32::from(to_bf16(f32::NAN)) << 16).is_nan());
+        assert_eq!(to_bf16(f32::INFINITY), 0x7f80);
     }
 
     #[test]

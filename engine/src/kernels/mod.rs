@@ -7,8 +7,8 @@
 //! each GEMM's output columns across a fixed thread pool ([`Pool`]).
 //!
 //! Everything is exact IEEE f32 arithmetic (FMA accumulation in a fixed order); only the
-//! summation order differs from PyTorch's. The micro-kernels use AVX2+FMA when the CPU has them
-//! (runtime detection) and portable Rust otherwise; both give the same results up to rounding,
+//! summation order differs from PyTorch's. The micro-kernels use AVX-512F or AVX2+FMA when the
+//! CPU has them (runtime detection, best first) and portable Rust otherwise; both give the same results up to rounding,
 //! and each output element is computed in an order that does not depend on the batch size or the
 //! thread count, so a request gets bit-identical results alone or in a batch.
 
@@ -22,6 +22,8 @@ pub use gemm::{Init, PackedMatrix};
 /// Which instruction set the kernels use.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Isa {
+    /// x86-64 AVX-512F (512-bit vectors; one vector per packed panel row).
+    Avx512,
     /// x86-64 AVX2 with FMA (256-bit vectors).
     Avx2Fma,
     /// Portable Rust, any CPU.
@@ -29,9 +31,21 @@ pub enum Isa {
 }
 
 impl Isa {
-    /// The best instruction set this CPU supports.
+    /// The best instruction set this CPU supports, or the one `KAIROS_ISA` (`avx512`, `avx2`,
+    /// `portable`) names when this CPU has it (to compare kernels on one machine).
     pub fn detect() -> Isa {
-        if Isa::Avx2Fma.available() {
+        let forced = match std::env::var("KAIROS_ISA").as_deref() {
+            Ok("avx512") => Some(Isa::Avx512),
+            Ok("avx2") => Some(Isa::Avx2Fma),
+            Ok("portable") => Some(Isa::Portable),
+            _ => None,
+        };
+        if let Some(isa) = forced.filter(|i| i.available()) {
+            return isa;
+        }
+        if Isa::Avx512.available() {
+            Isa::Avx512
+        } else if Isa::Avx2Fma.available() {
             Isa::Avx2Fma
         } else {
             Isa::Portable
@@ -47,10 +61,84 @@ impl Isa {
                 std::arch::is_x86_feature_detected!("avx2")
                     && std::arch::is_x86_feature_detected!("fma")
             }
+            #[cfg(target_arch = "x86_64")]
+            // AVX2 and FMA too: the element-wise maths use their AVX2 build on this ISA.
+            Isa::Avx512 => {
+                std::arch::is_x86_feature_detected!("avx512f") && Isa::Avx2Fma.available()
+            }
             #[cfg(not(target_arch = "x86_64"))]
-            Isa::Avx2Fma => false,
+            Isa::Avx2Fma | Isa::Avx512 => false,
         }
     }
+}
+
+/// The number format of a model's weight GEMMs.
+///
+/// `F32` (default) is exact IEEE f32 throughout. `Bf16` stores the packed weights as bf16 (half
+/// the memory) and rounds each GEMM's activations to bf16, accumulating in f32 (AVX512_BF16's
+/// `vdpbf16ps`); everything else (norms, softmax, activations, RoPE, attention) stays f32.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Precision {
+    /// f32 weights and products.
+    #[default]
+    F32,
+    /// bf16 weights and GEMM inputs, f32 accumulation.
+    Bf16,
+}
+
+impl std::str::FromStr for Precision {
+    type Err = crate::EngineError;
+
+    /// `f32` or `bf16`.
+    fn from_str(s: &str) -> Result<Self, crate::EngineError> {
+        match s {
+            "f32" => Ok(Precision::F32),
+            "bf16" => Ok(Precision::Bf16),
+            _ => Err(crate::EngineError::InvalidInput(format!(
+                "unknown precision `{s}` (f32, bf16)"
+            ))),
+        }
+    }
+}
+
+impl Precision {
+    /// What a model asked to run in `self` runs in with kernels of `isa` on this CPU: `Bf16`
+    /// only where the bf16 kernel is native (AVX-512 kernels on a CPU with AVX512_BF16, and
+    /// `KAIROS_DISABLE_BF16` unset or `0`); otherwise `F32`, with a warning (once a process).
+    pub fn resolve(self, isa: Isa) -> Precision {
+        let disabled =
+            std::env::var("KAIROS_DISABLE_BF16").is_ok_and(|v| !v.is_empty() && v != "0");
+        self.resolve_for(isa == Isa::Avx512 && cpu_has_avx512_bf16() && !disabled)
+    }
+
+    /// [`Self::resolve`] given whether the native bf16 kernel can run.
+    pub fn resolve_for(self, bf16_native: bool) -> Precision {
+        match self {
+            Precision::Bf16 if !bf16_native => {
+                static WARNED: std::sync::Once = std::sync::Once::new();
+                WARNED.call_once(|| {
+                    tracing::warn!(
+                        "precision bf16 needs AVX-512 kernels on a CPU with AVX512_BF16 (and \
+                         KAIROS_DISABLE_BF16 unset); this one runs in f32"
+                    )
+                });
+                Precision::F32
+            }
+            p => p,
+        }
+    }
+}
+
+/// Whether this CPU has AVX-512F and AVX512_BF16 (`vdpbf16ps`).
+pub(crate) fn cpu_has_avx512_bf16() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512bf16")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
 }
 
 /// A fixed set of worker threads that run the parts of one kernel call.
@@ -272,5 +360,22 @@ impl AlignedBuf {
     /// The buffer, mutable.
     pub fn as_mut_slice(&mut self) -> &mut [f32] {
         &mut self.raw[self.offset..self.offset + self.len]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bf16_falls_back_to_f32_without_the_native_kernel() {
+        assert_eq!(Precision::Bf16.resolve_for(false), Precision::F32);
+        assert_eq!(Precision::Bf16.resolve_for(true), Precision::Bf16);
+        assert_eq!(Precision::F32.resolve_for(true), Precision::F32);
+        // Portable or AVX2 kernels never run the bf16 path natively.
+        assert_eq!(Precision::Bf16.resolve(Isa::Portable), Precision::F32);
+        assert_eq!(Precision::Bf16.resolve(Isa::Avx2Fma), Precision::F32);
+        assert_eq!("bf16".parse::<Precision>().unwrap(), Precision::Bf16);
+        assert!("fp16".parse::<Precision>().is_err());
     }
 }

@@ -23,8 +23,9 @@ macro_rules! multiversion {
             fn avx2($($arg: $ty),*) { body($($arg),*) }
             match isa {
                 #[cfg(target_arch = "x86_64")]
-                // SAFETY: `Isa::Avx2Fma` is only constructed on CPUs with AVX2 and FMA.
-                Isa::Avx2Fma => unsafe { avx2($($arg),*) },
+                // SAFETY: `Isa::Avx2Fma` and `Isa::Avx512` are only constructed on CPUs with
+                // AVX2 and FMA.
+                Isa::Avx2Fma | Isa::Avx512 => unsafe { avx2($($arg),*) },
                 _ => body($($arg),*),
             }
         }
@@ -240,7 +241,7 @@ mod tests {
             .map(|i| ((i * 7919) % 1000) as f32 / 37.0 - 13.0)
             .collect();
         let w: Vec<f32> = (0..111).map(|i| 0.5 + i as f32 / 100.0).collect();
-        for isa in [Isa::Avx2Fma, Isa::Portable]
+        for isa in [Isa::Avx512, Isa::Avx2Fma, Isa::Portable]
             .into_iter()
             .filter(|i| i.available())
         {
@@ -287,7 +288,7 @@ mod tests {
             [0.5f32, 1.0, 2.0, -1.0, 1.5, 0.25],
             [0.1f32, 0.0, -0.2, 0.3, 0.0, 1.0],
         );
-        for isa in [Isa::Avx2Fma, Isa::Portable]
+        for isa in [Isa::Avx512, Isa::Avx2Fma, Isa::Portable]
             .into_iter()
             .filter(|i| i.available())
         {

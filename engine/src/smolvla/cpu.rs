@@ -10,7 +10,7 @@ use super::weights::{ExpertWeights, LinearWeights, time_embedding};
 use crate::EngineError;
 use crate::kernels::attention::{KvSegment, QueryPositions, attend};
 use crate::kernels::gemm::{gemm, gemm_par};
-use crate::kernels::{Init, PackedMatrix, Pool, SharedMut, vecmath};
+use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 
 /// A `Linear` layer packed for the GEMM, with its bias.
 pub(crate) struct Linear {
@@ -19,9 +19,9 @@ pub(crate) struct Linear {
 }
 
 impl Linear {
-    pub(crate) fn new(l: &LinearWeights) -> Self {
+    pub(crate) fn new(l: &LinearWeights, precision: Precision) -> Self {
         Linear {
-            w: PackedMatrix::from_linear_weight(&l.weight, l.out_dim, l.in_dim),
+            w: PackedMatrix::from_linear_weight_in(precision, &l.weight, l.out_dim, l.in_dim),
             bias: l.bias.clone(),
         }
     }
@@ -70,14 +70,16 @@ struct PreparedPrefix {
 }
 
 impl CpuExpert {
-    pub(crate) fn new(w: &ExpertWeights) -> Self {
+    /// Pack `w`, the weight GEMMs in `precision` (already resolved for this CPU).
+    pub(crate) fn new(w: &ExpertWeights, precision: Precision) -> Self {
         let h = w.dims.hidden;
         let layers = w
             .layers
             .iter()
             .map(|l| {
                 let qkv = match l.kind {
-                    LayerKind::SelfAttention => PackedMatrix::from_linear_weights(
+                    LayerKind::SelfAttention => PackedMatrix::from_linear_weights_in(
+                        precision,
                         &[
                             (&l.q_proj.weight, l.q_proj.out_dim),
                             (&l.k_proj.weight, l.k_proj.out_dim),
@@ -85,18 +87,23 @@ impl CpuExpert {
                         ],
                         h,
                     ),
-                    LayerKind::CrossAttention => {
-                        PackedMatrix::from_linear_weight(&l.q_proj.weight, l.q_proj.out_dim, h)
-                    }
+                    LayerKind::CrossAttention => PackedMatrix::from_linear_weight_in(
+                        precision,
+                        &l.q_proj.weight,
+                        l.q_proj.out_dim,
+                        h,
+                    ),
                 };
                 let kv_cross = (l.kind == LayerKind::CrossAttention).then(|| {
                     (
-                        PackedMatrix::from_linear_weight(
+                        PackedMatrix::from_linear_weight_in(
+                            precision,
                             &l.k_proj.weight,
                             l.k_proj.out_dim,
                             l.k_proj.in_dim,
                         ),
-                        PackedMatrix::from_linear_weight(
+                        PackedMatrix::from_linear_weight_in(
+                            precision,
                             &l.v_proj.weight,
                             l.v_proj.out_dim,
                             l.v_proj.in_dim,
@@ -109,19 +116,22 @@ impl CpuExpert {
                     post_norm: l.post_norm.clone(),
                     qkv,
                     kv_cross,
-                    o: PackedMatrix::from_linear_weight(
+                    o: PackedMatrix::from_linear_weight_in(
+                        precision,
                         &l.o_proj.weight,
                         l.o_proj.out_dim,
                         l.o_proj.in_dim,
                     ),
-                    gate_up: PackedMatrix::from_linear_weights(
+                    gate_up: PackedMatrix::from_linear_weights_in(
+                        precision,
                         &[
                             (&l.gate_proj.weight, l.gate_proj.out_dim),
                             (&l.up_proj.weight, l.up_proj.out_dim),
                         ],
                         h,
                     ),
-                    down: PackedMatrix::from_linear_weight(
+                    down: PackedMatrix::from_linear_weight_in(
+                        precision,
                         &l.down_proj.weight,
                         l.down_proj.out_dim,
                         l.down_proj.in_dim,
@@ -139,15 +149,15 @@ impl CpuExpert {
             dims: w.dims.clone(),
             layers,
             final_norm: w.final_norm.clone(),
-            action_in: Linear::new(&w.action_in_proj),
-            time_in_action: PackedMatrix::from_linear_weight(&wa, h, h),
+            action_in: Linear::new(&w.action_in_proj, precision),
+            time_in_action: PackedMatrix::from_linear_weight_in(precision, &wa, h, h),
             time_in_time: Linear {
-                w: PackedMatrix::from_linear_weight(&wt, h, h),
+                w: PackedMatrix::from_linear_weight_in(precision, &wt, h, h),
                 bias: mlp_in.bias.clone(),
             },
-            time_out: Linear::new(&w.action_time_mlp_out),
-            out: Linear::new(&w.action_out_proj),
-            state: Linear::new(&w.state_proj),
+            time_out: Linear::new(&w.action_time_mlp_out, precision),
+            out: Linear::new(&w.action_out_proj, precision),
+            state: Linear::new(&w.state_proj, precision),
         }
     }
 

@@ -116,7 +116,10 @@ impl SmolVlaExpert {
         let description = target.describe();
         let backend = match target {
             Target::Fast(pool) => Backend::Fast {
-                model: Box::new(cpu::CpuExpert::new(weights)),
+                model: Box::new(cpu::CpuExpert::new(
+                    weights,
+                    options.precision.resolve(pool.isa()),
+                )),
                 pool,
             },
             Target::Candle(device) => Backend::Candle(Box::new(candle_backend::CandleExpert::new(

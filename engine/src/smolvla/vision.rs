@@ -16,7 +16,7 @@ use super::vlm_weights::{NormWeights, VlmWeights};
 use crate::EngineError;
 use crate::kernels::attention::{KvSegment, QueryPositions, attend};
 use crate::kernels::gemm::gemm_par;
-use crate::kernels::{Init, PackedMatrix, Pool, SharedMut, vecmath};
+use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 
 /// A view of one prepared camera image: `channels x side x side` floats, row-major, in `[-1, 1]`
 /// (after LeRobot's `resize_with_pad` and `x * 2 - 1`).
@@ -59,7 +59,8 @@ pub(crate) struct CpuVision {
 }
 
 impl CpuVision {
-    pub(crate) fn new(w: &VlmWeights) -> Self {
+    /// Pack `w`, the weight GEMMs in `precision` (already resolved for this CPU).
+    pub(crate) fn new(w: &VlmWeights, precision: Precision) -> Self {
         let vh = w.config.vision_config.hidden_size;
         let layers = w
             .vision_layers
@@ -72,7 +73,8 @@ impl CpuVision {
                 VisionLayer {
                     norm1: l.norm1.clone(),
                     qkv: Linear {
-                        w: PackedMatrix::from_linear_weights(
+                        w: PackedMatrix::from_linear_weights_in(
+                            precision,
                             &[
                                 (&l.q_proj.weight, vh),
                                 (&l.k_proj.weight, vh),
@@ -82,20 +84,21 @@ impl CpuVision {
                         ),
                         bias: Some(bias),
                     },
-                    out: Linear::new(&l.out_proj),
+                    out: Linear::new(&l.out_proj, precision),
                     norm2: l.norm2.clone(),
-                    fc1: Linear::new(&l.fc1),
-                    fc2: Linear::new(&l.fc2),
+                    fc1: Linear::new(&l.fc1, precision),
+                    fc2: Linear::new(&l.fc2, precision),
                 }
             })
             .collect();
         CpuVision {
             config: w.config.clone(),
-            patch: Linear::new(&w.patch_embedding),
+            patch: Linear::new(&w.patch_embedding, precision),
             positions: w.position_embedding.clone(),
             layers,
             post: w.post_layernorm.clone(),
-            connector: PackedMatrix::from_linear_weight(
+            connector: PackedMatrix::from_linear_weight_in(
+                precision,
                 &w.connector.weight,
                 w.connector.out_dim,
                 w.connector.in_dim,

@@ -125,11 +125,12 @@ impl SmolVlaVlm {
                 )));
             }
         };
+        let precision = options.precision.resolve(pool.isa());
         Ok(SmolVlaVlm {
             config: weights.config.clone(),
             prefix_length: usize::try_from(cfg.prefix_length).unwrap_or(0),
-            vision: CpuVision::new(weights),
-            text: CpuText::new(&weights.config.text_config, &weights.layers),
+            vision: CpuVision::new(weights, precision),
+            text: CpuText::new(&weights.config.text_config, &weights.layers, precision),
             embed_tokens,
             pool,
         })

@@ -20,7 +20,7 @@ use super::cpu::{Linear, rms_norm_par};
 use super::weights::LayerWeights;
 use crate::kernels::attention::{KvSegment, QueryPositions, attend};
 use crate::kernels::gemm::gemm_par;
-use crate::kernels::{Init, PackedMatrix, Pool, SharedMut, vecmath};
+use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 
 struct TextLayer {
     input_norm: Vec<f32>,
@@ -53,14 +53,20 @@ pub(crate) struct ValidKv {
 }
 
 impl CpuText {
-    pub(crate) fn new(config: &VlmTextConfig, layers: &[LayerWeights]) -> Self {
+    /// Pack `layers`, the weight GEMMs in `precision` (already resolved for this CPU).
+    pub(crate) fn new(
+        config: &VlmTextConfig,
+        layers: &[LayerWeights],
+        precision: Precision,
+    ) -> Self {
         let h = config.hidden_size;
         let layers = layers
             .iter()
             .map(|l| TextLayer {
                 input_norm: l.input_norm.clone(),
                 post_norm: l.post_norm.clone(),
-                qkv: PackedMatrix::from_linear_weights(
+                qkv: PackedMatrix::from_linear_weights_in(
+                    precision,
                     &[
                         (&l.q_proj.weight, l.q_proj.out_dim),
                         (&l.k_proj.weight, l.k_proj.out_dim),
@@ -68,15 +74,16 @@ impl CpuText {
                     ],
                     h,
                 ),
-                o: Linear::new(&l.o_proj).w,
-                gate_up: PackedMatrix::from_linear_weights(
+                o: Linear::new(&l.o_proj, precision).w,
+                gate_up: PackedMatrix::from_linear_weights_in(
+                    precision,
                     &[
                         (&l.gate_proj.weight, l.gate_proj.out_dim),
                         (&l.up_proj.weight, l.up_proj.out_dim),
                     ],
                     h,
                 ),
-                down: Linear::new(&l.down_proj).w,
+                down: Linear::new(&l.down_proj, precision).w,
             })
             .collect();
         CpuText {

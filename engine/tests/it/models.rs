@@ -176,6 +176,7 @@ fn flow_head_on_cuda_matches_the_cpu() {
         device: kairos_engine::DeviceKind::Cuda(0),
         kernels: Kernels::Auto,
         threads: 0,
+        ..Default::default()
     });
     let reqs = requests(8);
     let on_gpu = cuda.generate(&reqs).unwrap();

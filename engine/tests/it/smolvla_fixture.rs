@@ -378,6 +378,7 @@ fn expert_reproduces_lerobot_from_the_golden_prefix() {
         device: DeviceKind::Cpu,
         kernels: Kernels::Fast,
         threads: 2,
+        ..Default::default()
     };
     let expert = SmolVlaExpert::load(&fixture(), &options).unwrap();
     let d = expert.dims().clone();

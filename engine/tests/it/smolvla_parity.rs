@@ -137,6 +137,7 @@ fn cpu(kernels: Kernels) -> EngineOptions {
         device: DeviceKind::Cpu,
         kernels,
         threads: 2,
+        ..Default::default()
     }
 }
 
@@ -147,6 +148,7 @@ fn cuda() -> EngineOptions {
         device: DeviceKind::Cuda(0),
         kernels: Kernels::Candle,
         threads: 0,
+        ..Default::default()
     }
 }
 

@@ -27,7 +27,7 @@ use kairos_engine::weights::Checkpoint;
 use kairos_engine::{DeviceKind, EngineError, EngineOptions, ImageFormat, ImageInput, Kernels};
 
 /// The raw observations of case `name`, keyed as the robot sends them.
-fn observations(g: &Goldens, name: &str) -> Vec<Observation> {
+pub(crate) fn observations(g: &Goldens, name: &str) -> Vec<Observation> {
     let case = &g.meta["cases"][name];
     let batch = case["batch"].as_u64().unwrap() as usize;
     let state = g.f32(&format!("{name}.raw.state"));
@@ -68,10 +68,11 @@ fn cpu() -> EngineOptions {
         device: DeviceKind::Cpu,
         kernels: Kernels::Auto,
         threads: 2,
+        ..Default::default()
     }
 }
 
-fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+pub(crate) fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
     a.iter()
         .zip(b)

@@ -35,6 +35,7 @@ fn cpu(kernels: Kernels) -> EngineOptions {
         device: DeviceKind::Cpu,
         kernels,
         threads: 2,
+        ..Default::default()
     }
 }
 

@@ -18,7 +18,7 @@ use kairos_engine::smolvla::SmolVlaPipeline;
 use kairos_engine::smolvla::checkpoint::Observation;
 use kairos_engine::smolvla::images::image_file;
 use kairos_engine::smolvla::pipeline::StageTimes;
-use kairos_engine::{DeviceKind, EngineOptions, Kernels};
+use kairos_engine::{DeviceKind, EngineOptions, Kernels, Precision};
 
 /// Arguments of `kairos predict`.
 #[derive(clap::Args, Debug, Clone)]
@@ -55,6 +55,9 @@ pub struct PredictArgs {
     /// CPU threads for the engine (0: one per core).
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
+    /// Weight GEMMs in `f32` (exact) or `bf16` (AVX512_BF16; falls back to f32 elsewhere).
+    #[arg(long, default_value = "f32")]
+    pub precision: String,
 }
 
 /// What `kairos predict` prints.
@@ -68,10 +71,19 @@ struct Output {
 
 /// Run `kairos predict`.
 pub fn run(args: PredictArgs) -> anyhow::Result<()> {
+    // Warnings (a bf16 fallback, a feature without stats) go to stderr; stdout stays JSON.
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .with_writer(std::io::stderr)
+        .try_init();
     let options = EngineOptions {
         device: args.device.parse::<DeviceKind>().context("--device")?,
         kernels: args.kernels.parse::<Kernels>().context("--kernels")?,
         threads: args.threads,
+        precision: args.precision.parse::<Precision>().context("--precision")?,
     };
     let pipeline = SmolVlaPipeline::load(&args.model, args.tokenizer.as_deref(), &options)
         .with_context(|| format!("loading {}", args.model.display()))?;

@@ -52,6 +52,7 @@ pub fn run(args: ProfileArgs) -> anyhow::Result<()> {
         device,
         kernels,
         threads: args.threads,
+        ..Default::default()
     };
     anyhow::ensure!(
         !args.batches.is_empty() && !args.batches.contains(&0),

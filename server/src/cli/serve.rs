@@ -47,6 +47,10 @@ pub struct ServeArgs {
     /// `--model`. CUDA needs a `kairos` built with `--features cuda`.
     #[arg(long)]
     pub device: Option<String>,
+    /// The engine's weight GEMMs: `f32` or `bf16` (AVX512_BF16; falls back to f32 elsewhere),
+    /// overriding the file's `precision`; same rules as `--model`.
+    #[arg(long)]
+    pub precision: Option<String>,
     /// Local engine instances of the model (default: the file's `instances`, else 1). `0` runs a
     /// scheduler with no local engine, served only by remote workers (`kairos worker`); the
     /// model then only fixes the shapes workers must match.
@@ -94,7 +98,7 @@ pub fn config(args: &ServeArgs) -> anyhow::Result<Config> {
     if let Some(dir) = &args.data_dir {
         config.data_dir = dir.clone();
     }
-    if args.model.is_some() || args.device.is_some() {
+    if args.model.is_some() || args.device.is_some() || args.precision.is_some() {
         if config.engines.len() > 1 {
             anyhow::bail!(
                 "--model and --device configure the one engine, but the file lists {} \
@@ -111,6 +115,9 @@ pub fn config(args: &ServeArgs) -> anyhow::Result<Config> {
         }
         if let Some(device) = &args.device {
             engine.device = device.clone();
+        }
+        if let Some(precision) = &args.precision {
+            engine.precision = precision.clone();
         }
         // A profile file describes one model on one device.
         engine.profile = None;

@@ -148,3 +148,27 @@ fn bad_inputs_fail_with_the_field_named() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("observation.state has 2 values"), "{err}");
 }
+
+/// `--precision bf16` where the native bf16 kernel may not run (forced here with
+/// `KAIROS_DISABLE_BF16`) runs the exact f32 model and says so once on stderr.
+#[test]
+fn precision_bf16_falls_back_to_f32_with_a_warning() {
+    let out = Command::new(env!("CARGO_BIN_EXE_kairos"))
+        .env("KAIROS_DISABLE_BF16", "1")
+        .arg("predict")
+        .arg("--model")
+        .arg(fixture())
+        .args(["--threads", "2", "--precision", "bf16"])
+        .output()
+        .unwrap();
+    let v = parse(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.matches("precision bf16").count(), 1, "{err}");
+    assert!(err.contains("runs in f32"), "{err}");
+    let pipeline = SmolVlaPipeline::load(&fixture(), None, &EngineOptions::default()).unwrap();
+    let obs = pipeline.checkpoint().synthetic_observation();
+    assert_eq!(actions(&v), library(&obs, 0));
+    let bad = predict(&["--precision", "fp8"]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("--precision"));
+}
