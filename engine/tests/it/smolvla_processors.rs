@@ -565,6 +565,7 @@ fn the_checkpoint_serves_as_an_action_model() {
     );
     let obs = observations(&g, "missing").remove(0);
     let request = kairos_engine::ActionRequest {
+        cameras: Vec::new(),
         state: obs.state.clone(),
         images: obs.images.values().cloned().collect(),
         instruction: obs.task.clone(),

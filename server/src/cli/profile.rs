@@ -21,6 +21,9 @@ pub struct ProfileArgs {
     /// Model: `builtin:flow-head-small`, `builtin:smolvla-random`, or a checkpoint directory.
     #[arg(long, default_value = builtin::DEFAULT_MODEL)]
     pub model: String,
+    /// The task tokenizer of a whole SmolVLA checkpoint [default: `tokenizer.json` beside it].
+    #[arg(long)]
+    pub tokenizer: Option<PathBuf>,
     /// Batch sizes to measure.
     #[arg(long, value_delimiter = ',', default_value = "1,2,4,8,16,32")]
     pub batches: Vec<u32>,
@@ -62,7 +65,7 @@ pub fn run(args: ProfileArgs) -> anyhow::Result<()> {
         PathBuf::from("profiles").join(format!("{}.json", builtin::model_slug(&args.model)))
     });
 
-    let model = builtin::resolve_model(&args.model, &options)
+    let model = builtin::resolve_model_with(&args.model, args.tokenizer.as_deref(), &options)
         .with_context(|| format!("loading model `{}`", args.model))?;
     let device_desc = match device {
         DeviceKind::Cpu => format!("{} ({})", cpu_name(), options.describe()?),
@@ -140,6 +143,7 @@ mod tests {
         let out = dir.path().join("nested/flow.json");
         run(ProfileArgs {
             model: builtin::DEFAULT_MODEL.into(),
+            tokenizer: None,
             batches: vec![2, 1],
             iterations: 1,
             device: "cpu".into(),
@@ -165,6 +169,7 @@ mod tests {
     fn bad_arguments_are_errors() {
         let args = ProfileArgs {
             model: "builtin:nope".into(),
+            tokenizer: None,
             batches: vec![1],
             iterations: 1,
             device: "cpu".into(),

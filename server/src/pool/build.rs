@@ -111,9 +111,10 @@ pub fn build_pool(
             source,
         };
         let options = config.options().map_err(failed)?;
-        let model: Arc<dyn ActionModel> = kairos_engine::resolve_model(&config.model, &options)
-            .map_err(failed)?
-            .into();
+        let model: Arc<dyn ActionModel> =
+            kairos_engine::resolve_model_with(&config.model, config.tokenizer.as_deref(), &options)
+                .map_err(failed)?
+                .into();
         site_spec.get_or_insert_with(|| model.spec().clone());
         if config.instances == 0 {
             continue;
