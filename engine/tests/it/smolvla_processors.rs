@@ -666,3 +666,57 @@ fn named_cameras_match_in_any_order() {
     );
     assert!(model.generate(&[unknown]).is_err());
 }
+
+/// `model.safetensors` rewritten with `edit` applied to its (raw, mixed bf16/f32) tensors.
+fn edit_weights(
+    dir: &Path,
+    edit: impl FnOnce(&mut Vec<(String, safetensors::Dtype, Vec<usize>, Vec<u8>)>),
+) {
+    let path = dir.join("model.safetensors");
+    let bytes = std::fs::read(&path).unwrap();
+    let file = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let mut tensors: Vec<(String, safetensors::Dtype, Vec<usize>, Vec<u8>)> = file
+        .tensors()
+        .into_iter()
+        .map(|(k, v)| (k, v.dtype(), v.shape().to_vec(), v.data().to_vec()))
+        .collect();
+    edit(&mut tensors);
+    let views: std::collections::BTreeMap<String, safetensors::tensor::TensorView<'_>> = tensors
+        .iter()
+        .map(|(k, d, s, b)| {
+            (
+                k.clone(),
+                safetensors::tensor::TensorView::new(*d, s.clone(), b).unwrap(),
+            )
+        })
+        .collect();
+    std::fs::write(&path, safetensors::serialize(views, None).unwrap()).unwrap();
+}
+
+/// A VLM tensor missing from the whole checkpoint, or of the wrong shape, fails the load with
+/// its key named (the expert's are covered by `loader_errors`); nothing panics.
+#[test]
+fn a_missing_or_misshapen_vlm_tensor_is_named() {
+    const CONNECTOR: &str =
+        "model.vlm_with_expert.vlm.model.connector.modality_projection.proj.weight";
+    const PATCH: &str =
+        "model.vlm_with_expert.vlm.model.vision_model.embeddings.patch_embedding.bias";
+    let load = |dir: &Path| SmolVlaPipeline::load(dir, None, &cpu()).unwrap_err();
+    let dir = copy_fixture();
+    edit_weights(dir.path(), |t| t.retain(|(k, ..)| k != PATCH));
+    let err = load(dir.path());
+    assert!(err.to_string().contains(PATCH), "{err}");
+    let dir = copy_fixture();
+    edit_weights(dir.path(), |t| {
+        for (k, _, shape, _) in t.iter_mut() {
+            if k == CONNECTOR {
+                shape.reverse();
+            }
+        }
+    });
+    let err = load(dir.path());
+    assert!(
+        matches!(&err, EngineError::ShapeMismatch { key, .. } if key.contains(CONNECTOR)),
+        "{err}"
+    );
+}

@@ -213,7 +213,10 @@ mod tests {
             ..args
         })
         .unwrap_err();
-        assert!(format!("{builtin:#}").contains("reads no text"), "{builtin:#}");
+        assert!(
+            format!("{builtin:#}").contains("reads no text"),
+            "{builtin:#}"
+        );
     }
 
     #[test]

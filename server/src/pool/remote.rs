@@ -592,7 +592,13 @@ mod tests {
         // A request without camera names (built in-process) travels with positional ones.
         let back = request_from_wire(request_to_wire(&req).unwrap()).unwrap();
         assert_eq!(back.cameras, ["camera0", "camera1"]);
-        assert_eq!(ActionRequest { cameras: Vec::new(), ..back }, req);
+        assert_eq!(
+            ActionRequest {
+                cameras: Vec::new(),
+                ..back
+            },
+            req
+        );
         // A robot's names (every validated request has them) travel as they are.
         req.cameras = vec!["top".into(), "observation.images.wrist".into()];
         let back = request_from_wire(request_to_wire(&req).unwrap()).unwrap();

@@ -2,6 +2,8 @@
 //! `smolvla_tiny` fixture: VLM, expert, processors, tokenizer.json), answering a robot over QUIC
 //! that sends camera images and an instruction.
 
+#![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
+
 use std::path::{Path, PathBuf};
 
 use kairos_engine::{ActionRequest, EngineOptions, ImageFormat, ImageInput};
