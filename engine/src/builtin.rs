@@ -6,9 +6,10 @@
 //! | `builtin:smolvla-random` | the full-size SmolVLA expert (`lerobot/smolvla_base` shapes) with seeded random weights, fed by the labelled stand-in prefix ([`SmolVlaStandIn`]) |
 //! | a directory (or its `config.json`) | a checkpoint: `"type": "kairos_flow_head"` or LeRobot's `"type": "smolvla"` |
 //!
-//! A LeRobot SmolVLA directory with its processors (`policy_preprocessor.json`) and a
-//! `tokenizer.json` beside them is served as the whole policy ([`SmolVlaPipeline`]: VLM, expert,
-//! processors); one with only `config.json` and weights gets the expert with the stand-in prefix.
+//! A LeRobot SmolVLA directory with its processors (`policy_preprocessor.json`) is served as the
+//! whole policy ([`SmolVlaPipeline`]: VLM, expert, processors), with the task tokenizer given
+//! (`--tokenizer`) or beside it (`tokenizer.json`), and an error naming both places when there
+//! is neither; one with only `config.json` and weights gets the expert with the stand-in prefix.
 
 use std::path::{Path, PathBuf};
 
@@ -20,6 +21,8 @@ use crate::{ActionModel, EngineError, EngineOptions};
 
 /// Seed of the built-in models' random weights.
 pub const DEFAULT_SEED: u64 = 0x4B41_4952_4F53;
+/// The preprocessor file that marks a whole LeRobot SmolVLA checkpoint.
+const PREPROCESSOR_FILE: &str = "policy_preprocessor.json";
 /// Name of the default model.
 pub const DEFAULT_MODEL: &str = "builtin:flow-head-small";
 
@@ -42,6 +45,16 @@ pub fn load_model_with(
     path: &Path,
     options: &EngineOptions,
 ) -> Result<Box<dyn ActionModel>, EngineError> {
+    load_checkpoint(path, None, options)
+}
+
+/// [`load_model_with`], with the task tokenizer of a whole SmolVLA checkpoint (`None`: the
+/// `tokenizer.json` beside it; see [`tokenizer_path`]).
+fn load_checkpoint(
+    path: &Path,
+    tokenizer: Option<&Path>,
+    options: &EngineOptions,
+) -> Result<Box<dyn ActionModel>, EngineError> {
     let dir: PathBuf = if path.is_file() {
         path.parent().map(Path::to_path_buf).unwrap_or_default()
     } else {
@@ -56,14 +69,22 @@ pub fn load_model_with(
     }
     let probe: Probe = read_json(&dir.join("config.json"))?;
     match probe.model_type.as_deref() {
-        Some(FLOW_HEAD_TYPE) => Ok(Box::new(FlowHead::load(&dir, options)?)),
-        // A whole LeRobot checkpoint (processors and a tokenizer beside it): the real policy.
-        Some("smolvla")
-            if dir.join("policy_preprocessor.json").exists()
-                && dir.join("tokenizer.json").exists() =>
-        {
-            Ok(Box::new(SmolVlaPipeline::load(&dir, None, options)?))
+        _ if tokenizer.is_some() && !dir.join(PREPROCESSOR_FILE).exists() => {
+            Err(EngineError::Load {
+                path: dir.display().to_string(),
+                reason: format!(
+                    "a tokenizer was given, but this is not a whole SmolVLA checkpoint \
+                     (no {PREPROCESSOR_FILE}): nothing would read it"
+                ),
+            })
         }
+        Some(FLOW_HEAD_TYPE) => Ok(Box::new(FlowHead::load(&dir, options)?)),
+        // A whole LeRobot checkpoint (with its processors): the real policy, which needs the
+        // task tokenizer, given or beside it.
+        Some("smolvla") if dir.join(PREPROCESSOR_FILE).exists() => {
+            Ok(Box::new(SmolVlaPipeline::load(&dir, tokenizer, options)?))
+        }
+        // Only the config and the weights: the expert behind the labelled stand-in prefix.
         Some("smolvla") => {
             let cameras = probe
                 .input_features
@@ -90,6 +111,25 @@ pub fn resolve_model(
     name: &str,
     options: &EngineOptions,
 ) -> Result<Box<dyn ActionModel>, EngineError> {
+    resolve_model_with(name, None, options)
+}
+
+/// [`resolve_model`] with a `--tokenizer` argument: the task tokenizer of a whole SmolVLA
+/// checkpoint (`None`: the `tokenizer.json` beside it). Any other model refuses a tokenizer
+/// rather than ignore it.
+pub fn resolve_model_with(
+    name: &str,
+    tokenizer: Option<&Path>,
+    options: &EngineOptions,
+) -> Result<Box<dyn ActionModel>, EngineError> {
+    if let Some(file) = tokenizer
+        && name.starts_with("builtin")
+    {
+        return Err(EngineError::InvalidInput(format!(
+            "a tokenizer ({}) was given, but `{name}` reads no text",
+            file.display()
+        )));
+    }
     match name {
         "builtin" | DEFAULT_MODEL => default_model(options),
         "builtin:smolvla-random" => {
@@ -101,7 +141,7 @@ pub fn resolve_model(
         other if other.starts_with("builtin:") => Err(EngineError::InvalidInput(format!(
             "unknown built-in model `{other}` (builtin:flow-head-small, builtin:smolvla-random)"
         ))),
-        path => load_model_with(Path::new(path), options),
+        path => load_checkpoint(Path::new(path), tokenizer, options),
     }
 }
 

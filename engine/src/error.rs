@@ -46,6 +46,16 @@ pub enum EngineError {
         /// The file looked for.
         path: String,
     },
+    /// A SmolVLA checkpoint's task tokenizer was neither given nor found beside it.
+    #[error(
+        "missing file {beside}: SmolVLA needs its task tokenizer (SmolVLM2's tokenizer.json); \
+         none was given (`--tokenizer FILE`, or `tokenizer` in an [[engine]] table) and there is \
+         none beside the checkpoint"
+    )]
+    NoTokenizer {
+        /// Where it was looked for beside the checkpoint.
+        beside: String,
+    },
     /// A processor names a normalisation mode this engine does not implement.
     #[error("{file}: unknown normalisation mode `{mode}` for `{feature}`")]
     UnknownNormMode {

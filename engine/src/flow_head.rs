@@ -199,6 +199,8 @@ impl FlowHead {
     ) -> Result<Self, EngineError> {
         let expert = SmolVlaExpert::from_weights(&weights, options)?;
         let spec = ModelSpec {
+            cameras: Vec::new(),
+            camera_aliases: Default::default(),
             name: config.name.clone(),
             chunk_len: config.chunk_size,
             action_dim: config.action_dim,

@@ -22,7 +22,7 @@ pub mod sampler;
 pub mod smolvla;
 pub mod weights;
 
-pub use builtin::{default_model, load_model, load_model_with, resolve_model};
+pub use builtin::{default_model, load_model, load_model_with, resolve_model, resolve_model_with};
 pub use chunk::ActionChunk;
 pub use error::{EngineError, InputError};
 pub use image_features::ImageLimits;

@@ -1,5 +1,7 @@
 //! The interface between the server and every model.
 
+use std::collections::BTreeMap;
+
 use crate::error::InputError;
 use crate::image_features::{ImageLimits, check_image};
 use crate::{ActionChunk, EngineError};
@@ -19,6 +21,14 @@ pub struct ModelSpec {
     pub steps: usize,
     /// Most camera images one observation may carry.
     pub max_images: usize,
+    /// The model's cameras in its order, when it matches a request's images to them by name
+    /// ([`ActionRequest::cameras`]); empty: images are matched by position.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub cameras: Vec<String>,
+    /// Other names a robot may give a camera (`top` for `observation.images.top`, a rename-map
+    /// source, ...) -> the camera in [`ModelSpec::cameras`] it means.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub camera_aliases: BTreeMap<String, String>,
 }
 
 /// Most samples one request may ask for.
@@ -68,6 +78,42 @@ impl ModelSpec {
                 return fail(format!("images[{i}]"), reason);
             }
         }
+        if !request.cameras.is_empty() {
+            if request.cameras.len() != request.images.len() {
+                return fail(
+                    "images".into(),
+                    format!(
+                        "{} camera names for {} images",
+                        request.cameras.len(),
+                        request.images.len()
+                    ),
+                );
+            }
+            if !self.cameras.is_empty() {
+                let mut seen: Vec<&str> = Vec::with_capacity(request.cameras.len());
+                for (i, name) in request.cameras.iter().enumerate() {
+                    let Some(camera) = self.camera(name) else {
+                        return fail(
+                            format!("images[{i}].camera"),
+                            format!(
+                                "model `{}` has no camera `{name}`; its cameras are {}",
+                                self.name,
+                                self.cameras.join(", ")
+                            ),
+                        );
+                    };
+                    if seen.contains(&camera) {
+                        return fail(
+                            format!("images[{i}].camera"),
+                            format!(
+                                "`{name}` is camera `{camera}`, which another image already is"
+                            ),
+                        );
+                    }
+                    seen.push(camera);
+                }
+            }
+        }
         if request.samples == 0 || request.samples > MAX_SAMPLES {
             return fail(
                 "samples".into(),
@@ -75,6 +121,19 @@ impl ModelSpec {
             );
         }
         Ok(())
+    }
+
+    /// The model camera a robot's camera `name` means: `name` itself if it is one of
+    /// [`ModelSpec::cameras`], else its alias. `None` when the model has no such camera (or
+    /// matches images by position).
+    pub fn camera(&self, name: &str) -> Option<&str> {
+        if let Some(own) = self.cameras.iter().find(|c| *c == name) {
+            return Some(own);
+        }
+        self.camera_aliases
+            .get(name)
+            .map(String::as_str)
+            .filter(|c| self.cameras.iter().any(|own| own == c))
     }
 
     /// Checks every request of `batch` with [`ModelSpec::check_request`] and the default
@@ -195,6 +254,10 @@ pub struct ActionRequest {
     pub state: Vec<f32>,
     /// Camera images, at most `ModelSpec::max_images`.
     pub images: Vec<ImageInput>,
+    /// What the robot calls each image's camera, parallel to `images`, or empty: the images
+    /// are then the model's cameras in order. A model with [`ModelSpec::cameras`] matches
+    /// named images to its cameras by name; other models ignore the names.
+    pub cameras: Vec<String>,
     /// The task instruction (models without a language backbone may ignore it).
     pub instruction: String,
     /// Samples `S` to draw for this observation (1 = the usual single chunk).
@@ -242,6 +305,7 @@ mod tests {
 
     fn request(k: f32, seed: u64) -> ActionRequest {
         ActionRequest {
+            cameras: Vec::new(),
             state: (0..8).map(|i| (i as f32 * 0.4 + k).sin()).collect(),
             images: vec![ImageInput::RawU8 {
                 height: 4,

@@ -111,6 +111,7 @@ pub fn synthetic_batch(model: &dyn ActionModel, batch: usize) -> Vec<ActionReque
     let spec = model.spec();
     (0..batch)
         .map(|i| ActionRequest {
+            cameras: Vec::new(),
             state: (0..spec.state_dim)
                 .map(|j| ((i * 31 + j) as f32 * 0.1).sin())
                 .collect(),
@@ -199,6 +200,18 @@ fn lerp(a: ProfilePoint, b: ProfilePoint, batch: u32) -> f64 {
 /// machine wall time includes waiting for a core, CPU time does not.
 pub fn process_cpu_ms() -> f64 {
     stat_cpu_ms("/proc/self/stat")
+}
+
+/// Peak resident set size of this process in MB (`VmHWM` from /proc, Linux); 0 elsewhere.
+pub fn peak_rss_mb() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("VmHWM:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        })
+        .map_or(0.0, |kb| kb / 1024.0)
 }
 
 /// CPU time of the calling thread in ms, from /proc (Linux, 10 ms resolution); 0 elsewhere.

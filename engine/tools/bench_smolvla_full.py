@@ -3,7 +3,13 @@
 `lerobot/smolvla_base` shapes, and the Kairos full pipeline on the same checkpoint, side by side.
 
     python3 engine/tools/bench_smolvla_full.py [--batch 1,4] [--threads 2] [--iters 3] [--rounds 1]
-        [--write-checkpoint DIR] [--kairos 'CMD']
+        [--write-checkpoint DIR | --checkpoint DIR] [--kairos 'CMD' | --kairos-bin target/debug/kairos]
+        [--kairos-args '--precision bf16'] [--serve-rss]
+
+The whole table in one command (what docs/BENCHMARKS.md records):
+
+    python3 engine/tools/bench_smolvla_full.py --batch 1,4 --iters 2 --checkpoint /tmp/smolvla_base_random \
+        --kairos-bin target/debug/kairos --serve-rss
 
 Shapes: SmolVLM2-500M (SigLIP 12 layers of 768 on 512x512 images, patch 16, pixel shuffle 4 ->
 64 tokens per camera; 16 of the 32 SmolLM2 text layers, hidden 960, 15/5 heads of 64), expert
@@ -22,9 +28,21 @@ Kairos side: `--kairos 'CMD'` is a shell command template run once per batch siz
 with PyTorch, with `{model}`, `{batch}`, `{threads}` and `{iters}` substituted; its last stdout
 line must be JSON with `median_ms` (and optionally `cpu_ms_per_run`, `rss_mb`), as
 `examples/expert_timing.rs` prints (the template is a Python format string: write literal braces
-as `{{` `}}`). The checkpoint it gets is the one `--write-checkpoint`
-wrote (default: a temporary directory). Until the Kairos full pipeline exists, leave `--kairos`
-out and only the PyTorch side runs.
+as `{{` `}}`), or the JSON `kairos predict --repeat` prints (`runs_ms`, `cpu_ms_per_run`,
+`peak_rss_mb`). The checkpoint it gets is `--checkpoint DIR` (an existing one), else the one
+`--write-checkpoint` wrote (default: a temporary directory).
+
+`--kairos-bin BIN` is the usual template: `BIN predict --model {model} --batch {batch} --threads
+{threads} --repeat {iters} KAIROS_ARGS`, i.e. the whole Kairos pipeline (preprocessing, vision
+tower, prefix, expert, postprocessing) on `batch` copies of the synthetic observation (two
+mid-grey 512x512 cameras, a zero state, "pick up the cube") in one batch, after one warm-up in
+the same process; `--kairos-args '...'` appends flags (e.g. `--precision bf16`). PyTorch and
+Kairos alternate batch size by batch size, `--rounds` times.
+
+`--serve-rss` (needs `--kairos-bin`): after the timings, starts `BIN serve --model CKPT` (a
+config with `profile_max_batch = 1`, so the start-up profile is one batch size), runs one
+`BIN robot` round with two 512x512 cameras, and reads the server's VmRSS and VmHWM from
+/proc/PID/status: the memory of a served smolvla_base-shaped model.
 
 `--write-checkpoint DIR` writes the random model as a smolvla_base-shaped checkpoint directory:
 `SmolVLAPolicy.save_pretrained` (`config.json`, `model.safetensors` with the VLM's tensors in
@@ -174,7 +192,68 @@ def time_torch(policy, cfg, batch, iters):
 def time_kairos(template, model, batch, threads, iters):
     cmd = template.format(model=shlex.quote(str(model)), batch=batch, threads=threads, iters=iters)
     out = subprocess.run(cmd, shell=True, cwd=REPO, check=True, capture_output=True, text=True)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    if "runs_ms" in result:  # `kairos predict --repeat`: keep the timings, not the actions
+        runs = result["runs_ms"]
+        result = {
+            "median_ms": round(statistics.median(runs), 1),
+            "runs": [round(r) for r in runs],
+            "cpu_ms_per_run": round(result["cpu_ms_per_run"]),
+            "rss_mb": round(result["peak_rss_mb"]),
+            "stages_ms_last": {k: round(v) for k, v in result["timing_ms"].items()},
+        }
+    return result
+
+
+def status_of(pid):
+    fields = {}
+    for line in open(f"/proc/{pid}/status"):
+        key, _, value = line.partition(":")
+        if key in ("VmRSS", "VmHWM"):
+            fields[key] = int(value.split()[0]) / 1024
+    return fields
+
+
+def serve_rss(kairos_bin, model, threads):
+    """RSS of `kairos serve --model model` after it has served one robot round."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    work = Path(tempfile.mkdtemp(prefix="kairos_serve_rss_"))
+    config = work / "kairos.toml"
+    config.write_text(
+        f'listen = "127.0.0.1:{port}"\ndata_dir = "{work / "data"}"\n\n'
+        f'[[engine]]\nmodel = "{model}"\nthreads = {threads}\nprofile_max_batch = 1\n'
+    )
+    log = open(work / "serve.log", "w")
+    serve = subprocess.Popen([str(kairos_bin), "serve", "--config", str(config)], cwd=REPO,
+                             stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.time() + 1800
+        while "listening on" not in (work / "serve.log").read_text():
+            if serve.poll() is not None or time.time() > deadline:
+                raise RuntimeError(f"kairos serve did not start: {(work / 'serve.log').read_text()[-2000:]}")
+            time.sleep(1)
+        started = status_of(serve.pid)
+        robot = subprocess.run(
+            [str(kairos_bin), "robot", "--server", f"127.0.0.1:{port}", "--data-dir", str(work / "data"),
+             "--rounds", "1", "--cameras", "2", "--image", "512x512"],
+            cwd=REPO, capture_output=True, text=True, timeout=1800)
+        if robot.returncode != 0:
+            raise RuntimeError(f"kairos robot failed: {robot.stdout[-2000:]} {robot.stderr[-2000:]}")
+        served = status_of(serve.pid)
+        return started, served
+    finally:
+        serve.terminate()
+        try:
+            serve.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            serve.kill()
+            serve.wait()
+        log.close()
+        shutil.rmtree(work, ignore_errors=True)
 
 
 def main():
@@ -184,11 +263,23 @@ def main():
     ap.add_argument("--iters", type=int, default=3)
     ap.add_argument("--rounds", type=int, default=1)
     ap.add_argument("--write-checkpoint", type=Path, help="write the random model here (about 1.2 GB)")
+    ap.add_argument("--checkpoint", type=Path, help="an already written checkpoint for the Kairos side")
     ap.add_argument("--kairos", help="Kairos command template, e.g. 'target/release/kairos profile --model {model} ...'")
+    ap.add_argument("--kairos-bin", type=Path, help="the kairos binary: the Kairos side is `kairos predict --repeat`")
+    ap.add_argument("--kairos-args", default="", help="more flags for `kairos predict`, e.g. '--precision bf16'")
+    ap.add_argument("--serve-rss", action="store_true", help="also the RSS of `kairos serve` after one robot round")
     ap.add_argument("--no-bench", action="store_true", help="only write the checkpoint")
     args = ap.parse_args()
     batches = [int(b) for b in args.batch.split(",")]
     torch.set_num_threads(args.threads)
+    if args.kairos_bin and not args.kairos:
+        bin_ = shlex.quote(str(args.kairos_bin.resolve()))
+        args.kairos = (f"{bin_} predict --model {{model}} --batch {{batch}} --threads {{threads}} "
+                       f"--repeat {{iters}} {args.kairos_args}")
+    elif args.kairos_args:
+        ap.error("--kairos-args needs --kairos-bin")
+    if args.serve_rss and not args.kairos_bin:
+        ap.error("--serve-rss needs --kairos-bin")
 
     rss0 = status_kb("VmRSS")
     policy, cfg, vlm_config = build()
@@ -196,7 +287,10 @@ def main():
     params = sum(p.numel() for p in policy.parameters())
     ckpt = args.write_checkpoint
     tmp = None
-    if ckpt is None and args.kairos:
+    if args.checkpoint is not None:
+        if ckpt is not None:
+            ap.error("--checkpoint and --write-checkpoint exclude each other")
+    elif ckpt is None and args.kairos:
         tmp = tempfile.mkdtemp(prefix="smolvla_base_random_")
         ckpt = Path(tmp)
     if ckpt is not None:
@@ -205,6 +299,8 @@ def main():
         print(f"# wrote {ckpt} ({size:.2f} GB): {sorted(p.name for p in ckpt.iterdir())}", flush=True)
     if args.no_bench:
         return
+    if args.checkpoint is not None:
+        ckpt = args.checkpoint.resolve()
 
     cpu = next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")), "?")
     flags = next((ln.split(":", 1)[1].split() for ln in open("/proc/cpuinfo") if ln.startswith("flags")), [])
@@ -230,17 +326,33 @@ def main():
                 ratio = ka["median_ms"] / pt if ka else 0.0
                 if kept is None or (ratio > kept[2] if ka else pt < kept[0]):  # conservative for Kairos
                     results[b] = (pt, pt_cpu, ratio, ka)
+        served = None
+        if args.serve_rss:
+            print(f"# serving {ckpt} to one `kairos robot` round ...", flush=True)
+            try:
+                served = serve_rss(args.kairos_bin.resolve(), ckpt, args.threads)
+            except (RuntimeError, OSError, subprocess.SubprocessError) as e:
+                print(f"# serve RSS not measured: {e}", flush=True)
     finally:
         if tmp:
             shutil.rmtree(tmp, ignore_errors=True)
-    print(f"# peak RSS (VmHWM) {status_kb('VmHWM') / 1024:.0f} MB")
-    print("| batch | PyTorch (LeRobot) ms | PyTorch CPU ms/run | Kairos ms | Kairos / PyTorch |")
-    print("|---:|---:|---:|---:|---:|")
+    print(f"# PyTorch process peak RSS (VmHWM) {status_kb('VmHWM') / 1024:.0f} MB")
+    print("| batch | PyTorch (LeRobot) ms | PyTorch CPU ms/run | Kairos ms | Kairos CPU ms/run "
+          "| Kairos / PyTorch (wall) | Kairos / PyTorch (CPU) | Kairos peak RSS MB |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     for b in batches:
         pt, pt_cpu, ratio, ka = results[b]
         kcell = f"{ka['median_ms']:.0f}" if ka else "n/a"
+        kcpu = ka.get("cpu_ms_per_run") if ka else None
         rcell = f"{ratio:.2f}" if ka else "n/a"
-        print(f"| {b} | {pt:.0f} | {pt_cpu:.0f} | {kcell} | {rcell} |")
+        rcpu = f"{kcpu / pt_cpu:.2f}" if kcpu else "n/a"
+        rss = ka.get("rss_mb", "n/a") if ka else "n/a"
+        print(f"| {b} | {pt:.0f} | {pt_cpu:.0f} | {kcell} | {kcpu if kcpu else 'n/a'} | {rcell} | {rcpu} | {rss} |")
+    if served is not None:
+        started, after = served
+        print(f"# kairos serve --model {ckpt}: VmRSS {started['VmRSS']:.0f} MB after start-up "
+              f"(model loaded, batch 1 profiled), VmRSS {after['VmRSS']:.0f} MB and peak VmHWM "
+              f"{after['VmHWM']:.0f} MB after one robot round (2 cameras 512x512)")
 
 
 if __name__ == "__main__":

@@ -944,6 +944,15 @@ impl SimulatedRobot {
         }
     }
 
+    /// Names the cameras as `names` does, in order (the model's names from `Welcome`, for a
+    /// model that matches images by name); cameras beyond `names` keep their names.
+    pub fn with_camera_names(mut self, names: &[String]) -> SimulatedRobot {
+        for ((camera, _, _), name) in self.cameras.iter_mut().zip(names) {
+            camera.clone_from(name);
+        }
+        self
+    }
+
     /// Actions executed so far.
     pub fn executed(&self) -> u64 {
         self.executed

@@ -165,6 +165,8 @@ fn driver(c: &mut Criterion) {
     let mut group = c.benchmark_group("driver");
     let rt = runtime();
     let spec = ModelSpec {
+        cameras: Vec::new(),
+        camera_aliases: Default::default(),
         name: "instant".into(),
         chunk_len: 8,
         action_dim: 2,

@@ -288,6 +288,9 @@ pub struct EngineConfig {
     /// `builtin` (the engine crate's default built-in model), `builtin:<preset>`, a path to a
     /// checkpoint, or `horizon-flow:DIR` (`kairos bench horizon`'s policy, saved in `DIR`).
     pub model: String,
+    /// The task tokenizer (`tokenizer.json`) of a whole LeRobot SmolVLA checkpoint; absent: the
+    /// `tokenizer.json` beside the checkpoint. Any other model refuses one.
+    pub tokenizer: Option<PathBuf>,
     /// Edge (co-located) or cloud.
     pub tier: Tier,
     /// Identical instances to run, each on its own OS thread. 0: the model only fixes the
@@ -321,6 +324,7 @@ impl Default for EngineConfig {
     fn default() -> Self {
         EngineConfig {
             model: "builtin".into(),
+            tokenizer: None,
             tier: Tier::Edge,
             instances: 1,
             profile: None,
@@ -609,6 +613,9 @@ impl Config {
         }
         for engine in &mut self.engines {
             if let Some(p) = engine.profile.as_mut() {
+                resolve(p);
+            }
+            if let Some(p) = engine.tokenizer.as_mut() {
                 resolve(p);
             }
             let prefix = crate::horizon_bench::served::HORIZON_FLOW_PREFIX;

@@ -53,6 +53,8 @@ fn validator() -> &'static Validator {
     static VALIDATOR: OnceLock<Validator> = OnceLock::new();
     VALIDATOR.get_or_init(|| Validator {
         spec: ModelSpec {
+            cameras: Vec::new(),
+            camera_aliases: Default::default(),
             name: "fuzz".into(),
             chunk_len: 16,
             action_dim: 4,

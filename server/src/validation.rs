@@ -438,10 +438,13 @@ impl Validator {
             .to_f32()
             .map_err(|e| observation_error("observation.state", e.to_string()))?;
         let mut images = Vec::with_capacity(observation.images.len());
+        let mut cameras = Vec::with_capacity(observation.images.len());
         for (i, image) in observation.images.into_iter().enumerate() {
             images.push(image_input(i, image.payload)?);
+            cameras.push(image.camera);
         }
         let request = ActionRequest {
+            cameras,
             state,
             images,
             instruction: observation.instruction,
@@ -619,6 +622,8 @@ mod tests {
     fn validator() -> Validator {
         Validator {
             spec: ModelSpec {
+                cameras: Vec::new(),
+                camera_aliases: Default::default(),
                 name: "m".into(),
                 chunk_len: 8,
                 action_dim: 2,

@@ -90,6 +90,8 @@ impl TestFlow {
     pub fn new() -> TestFlow {
         TestFlow {
             spec: ModelSpec {
+                cameras: Vec::new(),
+                camera_aliases: Default::default(),
                 name: "test-flow".into(),
                 chunk_len: 16,
                 action_dim: 4,
@@ -197,6 +199,7 @@ mod tests {
     fn updates_sum_to_the_chunk_and_seeds_reproduce() {
         let model = TestFlow::new();
         let request = ActionRequest {
+            cameras: Vec::new(),
             state: vec![0.5, 0.2, 0.0, 0.0, 0.0, 0.0],
             images: Vec::new(),
             instruction: String::new(),

@@ -120,6 +120,32 @@ pub struct PreparedObservation {
     pub state: Vec<f32>,
 }
 
+/// The task tokenizer of the checkpoint in `dir`: `explicit` (`--tokenizer FILE`) when given,
+/// else `tokenizer.json` beside the checkpoint (LeRobot loads it from the SmolVLM2 hub repo;
+/// Kairos downloads nothing). Errors name the file looked for, and both places when the
+/// tokenizer was not given and is not beside the checkpoint.
+pub fn tokenizer_path(dir: &Path, explicit: Option<&Path>) -> Result<PathBuf, EngineError> {
+    match explicit {
+        Some(path) if path.is_file() => Ok(path.to_path_buf()),
+        Some(path) => Err(EngineError::MissingFile {
+            path: format!("{} (the tokenizer given)", path.display()),
+        }),
+        None => {
+            let beside = dir.join(TOKENIZER_FILE);
+            if beside.is_file() {
+                Ok(beside)
+            } else {
+                Err(EngineError::NoTokenizer {
+                    beside: beside.display().to_string(),
+                })
+            }
+        }
+    }
+}
+
+/// The tokenizer's file name beside a checkpoint.
+pub const TOKENIZER_FILE: &str = "tokenizer.json";
+
 /// A checkpoint's config and processors, loaded once.
 #[derive(Debug)]
 pub struct SmolVlaCheckpoint {
@@ -157,10 +183,7 @@ impl SmolVlaCheckpoint {
             path: dir.join("policy_preprocessor.json").display().to_string(),
             reason: "no `tokenizer_processor` step".into(),
         })?;
-        let tokenizer_path = tokenizer
-            .map(Path::to_path_buf)
-            .unwrap_or_else(|| dir.join("tokenizer.json"));
-        let tokenizer = TaskTokenizer::load(&tokenizer_path, step)?;
+        let tokenizer = TaskTokenizer::load(&tokenizer_path(dir, tokenizer)?, step)?;
         if config.image_keys().is_empty() {
             return Err(EngineError::Load {
                 path: config_path.display().to_string(),
@@ -260,6 +283,28 @@ impl SmolVlaCheckpoint {
             camera: name.to_owned(),
             known: keys.join(", "),
         })
+    }
+
+    /// Every other name [`SmolVlaCheckpoint::resolve_camera`] accepts for one of
+    /// [`SmolVlaCheckpoint::camera_keys`] (the part after `observation.images.`, rename-map
+    /// sources and their short forms) -> that key: the server's
+    /// [`ModelSpec::camera_aliases`](crate::ModelSpec::camera_aliases), so it can refuse an
+    /// unknown camera before a batch.
+    pub fn camera_aliases(&self) -> BTreeMap<String, String> {
+        let keys = self.camera_keys();
+        let short = |k: &str| k.strip_prefix(IMAGE_PREFIX).map(str::to_owned);
+        let candidates = keys
+            .iter()
+            .cloned()
+            .chain(self.pre.rename_map.keys().cloned())
+            .flat_map(|k| [short(&k), Some(k)])
+            .flatten();
+        candidates
+            .filter_map(|name| {
+                let key = self.resolve_camera(&name).ok()?;
+                (key != name && keys.contains(&key)).then_some((name, key))
+            })
+            .collect()
     }
 
     /// The synthetic observation of `kairos predict` with no inputs: a mid-grey (`0.5`) image

@@ -87,6 +87,8 @@ impl SmolVlaPipeline {
         let expert = SmolVlaExpert::from_weights(&ExpertWeights::load(&ckpt, &dims)?, options)?;
         let vlm = SmolVlaVlm::load_from(&ckpt, cfg, &vlm_config, options)?;
         let spec = ModelSpec {
+            cameras: checkpoint.camera_keys(),
+            camera_aliases: checkpoint.camera_aliases(),
             name: "smolvla".into(),
             chunk_len: dims.chunk,
             action_dim: checkpoint.action_dim(),
@@ -237,9 +239,12 @@ impl SmolVlaPipeline {
     }
 }
 
-/// The whole policy behind the server's model interface: a request's images are the model's
-/// cameras in order ([`SmolVlaCheckpoint::camera_keys`]; fewer images leave the last cameras
-/// missing), its instruction is the task, its state the raw state. Samples of one request share
+/// The whole policy behind the server's model interface: a request's images are matched to the
+/// model's cameras by their names ([`ActionRequest::cameras`], resolved as
+/// [`SmolVlaCheckpoint::resolve_camera`] does: the key, its rename-map source, or the part after
+/// `observation.images.`), or, for a request without names, are the model's cameras in order
+/// ([`SmolVlaCheckpoint::camera_keys`]); cameras not given are missing and follow
+/// `empty_cameras`. Its instruction is the task, its state the raw state. Samples of one request share
 /// the prefix. The chunk is in the robot's units: actions exactly as LeRobot's postprocessor
 /// gives them, and the noise and per-step updates mapped by the same affine unnormalisation
 /// (updates by its scale only), so `noise + sum(updates)` is the actions up to rounding.
@@ -254,8 +259,17 @@ impl ActionModel for SmolVlaPipeline {
         let prepared = batch
             .iter()
             .map(|r| {
+                let names = if r.cameras.is_empty() {
+                    &keys
+                } else {
+                    &r.cameras
+                };
                 let obs = Observation {
-                    images: keys.iter().cloned().zip(r.images.iter().cloned()).collect(),
+                    images: names
+                        .iter()
+                        .cloned()
+                        .zip(r.images.iter().cloned())
+                        .collect(),
                     state: r.state.clone(),
                     task: r.instruction.clone(),
                 };

@@ -76,6 +76,8 @@ impl SmolVlaStandIn {
                 .collect()
         };
         let spec = ModelSpec {
+            cameras: Vec::new(),
+            camera_aliases: Default::default(),
             name: "smolvla-expert+stand-in-prefix".into(),
             chunk_len: d.chunk,
             action_dim: d.action_dim,

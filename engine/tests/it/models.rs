@@ -66,6 +66,7 @@ fn requests(state_dim: usize) -> Vec<ActionRequest> {
     };
     vec![
         ActionRequest {
+            cameras: Vec::new(),
             state: state(0.0),
             images: vec![image(3, 20), png(5)],
             instruction: "pick".into(),
@@ -73,6 +74,7 @@ fn requests(state_dim: usize) -> Vec<ActionRequest> {
             seed: 11,
         },
         ActionRequest {
+            cameras: Vec::new(),
             state: state(1.0),
             images: vec![],
             instruction: "place the cube".into(),
@@ -80,6 +82,7 @@ fn requests(state_dim: usize) -> Vec<ActionRequest> {
             seed: 12,
         },
         ActionRequest {
+            cameras: Vec::new(),
             state: state(2.0),
             images: vec![image(9, 7)],
             instruction: String::new(),

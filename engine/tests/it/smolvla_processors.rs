@@ -566,6 +566,7 @@ fn the_checkpoint_serves_as_an_action_model() {
     );
     let obs = observations(&g, "missing").remove(0);
     let request = kairos_engine::ActionRequest {
+        cameras: Vec::new(),
         state: obs.state.clone(),
         images: obs.images.values().cloned().collect(),
         instruction: obs.task.clone(),
@@ -600,4 +601,123 @@ fn the_checkpoint_serves_as_an_action_model() {
     three.images.push(three.images[0].clone());
     three.images.push(three.images[0].clone());
     assert!(model.generate(&[three]).is_err());
+}
+
+/// The served policy matches a request's images to its cameras by name: the spec lists the
+/// cameras and every other name a robot may use (the rename map's `top`, the short `camera2`),
+/// and a named request in any order gets the chunk of the positional one in the model's order.
+/// A name the model lacks is refused by the spec, naming it and the model's cameras.
+#[test]
+fn named_cameras_match_in_any_order() {
+    let g = Goldens::open();
+    let model = kairos_engine::load_model_with(&fixture(), &cpu()).unwrap();
+    let spec = model.spec().clone();
+    assert_eq!(
+        spec.cameras,
+        ["observation.images.camera1", "observation.images.camera2"]
+    );
+    for (alias, camera) in [
+        ("top", "observation.images.camera1"),
+        ("observation.images.top", "observation.images.camera1"),
+        ("camera2", "observation.images.camera2"),
+        ("observation.images.camera1", "observation.images.camera1"),
+    ] {
+        assert_eq!(spec.camera(alias), Some(camera), "{alias}");
+    }
+    assert_eq!(spec.camera("wrist"), None);
+    let obs = observations(&g, "pair").remove(0);
+    let keys: Vec<String> = obs.images.keys().cloned().collect();
+    assert_eq!(keys.len(), 2);
+    let positional = kairos_engine::ActionRequest {
+        cameras: Vec::new(),
+        state: obs.state.clone(),
+        images: spec
+            .cameras
+            .iter()
+            .map(|c| {
+                let key = keys.iter().find(|k| spec.camera(k) == Some(c)).unwrap();
+                obs.images[key].clone()
+            })
+            .collect(),
+        instruction: obs.task.clone(),
+        samples: 1,
+        seed: 9,
+    };
+    let reversed = kairos_engine::ActionRequest {
+        cameras: keys.iter().rev().cloned().collect(),
+        images: keys.iter().rev().map(|k| obs.images[k].clone()).collect(),
+        ..positional.clone()
+    };
+    let chunks = model.generate(&[positional.clone(), reversed]).unwrap();
+    assert_eq!(chunks[0], chunks[1]);
+    let unknown = kairos_engine::ActionRequest {
+        cameras: vec![keys[0].clone(), "wrist".into()],
+        images: positional.images.clone(),
+        ..positional
+    };
+    let err = spec
+        .check_request(&unknown, &Default::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("images[1].camera")
+            && err.contains("`wrist`")
+            && err.contains("observation.images.camera1, observation.images.camera2"),
+        "{err}"
+    );
+    assert!(model.generate(&[unknown]).is_err());
+}
+
+/// `model.safetensors` rewritten with `edit` applied to its (raw, mixed bf16/f32) tensors.
+fn edit_weights(
+    dir: &Path,
+    edit: impl FnOnce(&mut Vec<(String, safetensors::Dtype, Vec<usize>, Vec<u8>)>),
+) {
+    let path = dir.join("model.safetensors");
+    let bytes = std::fs::read(&path).unwrap();
+    let file = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let mut tensors: Vec<(String, safetensors::Dtype, Vec<usize>, Vec<u8>)> = file
+        .tensors()
+        .into_iter()
+        .map(|(k, v)| (k, v.dtype(), v.shape().to_vec(), v.data().to_vec()))
+        .collect();
+    edit(&mut tensors);
+    let views: std::collections::BTreeMap<String, safetensors::tensor::TensorView<'_>> = tensors
+        .iter()
+        .map(|(k, d, s, b)| {
+            (
+                k.clone(),
+                safetensors::tensor::TensorView::new(*d, s.clone(), b).unwrap(),
+            )
+        })
+        .collect();
+    std::fs::write(&path, safetensors::serialize(views, None).unwrap()).unwrap();
+}
+
+/// A VLM tensor missing from the whole checkpoint, or of the wrong shape, fails the load with
+/// its key named (the expert's are covered by `loader_errors`); nothing panics.
+#[test]
+fn a_missing_or_misshapen_vlm_tensor_is_named() {
+    const CONNECTOR: &str =
+        "model.vlm_with_expert.vlm.model.connector.modality_projection.proj.weight";
+    const PATCH: &str =
+        "model.vlm_with_expert.vlm.model.vision_model.embeddings.patch_embedding.bias";
+    let load = |dir: &Path| SmolVlaPipeline::load(dir, None, &cpu()).unwrap_err();
+    let dir = copy_fixture();
+    edit_weights(dir.path(), |t| t.retain(|(k, ..)| k != PATCH));
+    let err = load(dir.path());
+    assert!(err.to_string().contains(PATCH), "{err}");
+    let dir = copy_fixture();
+    edit_weights(dir.path(), |t| {
+        for (k, _, shape, _) in t.iter_mut() {
+            if k == CONNECTOR {
+                shape.reverse();
+            }
+        }
+    });
+    let err = load(dir.path());
+    assert!(
+        matches!(&err, EngineError::ShapeMismatch { key, .. } if key.contains(CONNECTOR)),
+        "{err}"
+    );
 }

@@ -320,6 +320,11 @@ pub struct ModelInfo {
     pub steps: u32,
     /// Most images per observation.
     pub max_images: u32,
+    /// The model's camera names, in its order, when it matches images by name
+    /// (`Image::camera`; a robot should name its cameras so); absent or empty: images are
+    /// matched by position and their names are not read.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub cameras: Vec<String>,
 }
 
 /// C→S: a round request.

@@ -321,6 +321,7 @@ mod tests {
             state_dim: 3,
             steps: 2,
             max_images: 1,
+            cameras: Vec::new(),
         }
     }
 

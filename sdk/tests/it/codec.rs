@@ -146,6 +146,7 @@ fn message() -> impl Strategy<Value = Message> {
         state_dim: v[2],
         steps: v[3],
         max_images: v[4],
+        cameras: Vec::new(),
     });
     let welcome = (any::<u32>(), name(), name(), model, limits()).prop_map(
         |(protocol, server, robot, model, limits)| {

@@ -18,7 +18,7 @@ use kairos_engine::smolvla::SmolVlaPipeline;
 use kairos_engine::smolvla::checkpoint::Observation;
 use kairos_engine::smolvla::images::image_file;
 use kairos_engine::smolvla::pipeline::StageTimes;
-use kairos_engine::{DeviceKind, EngineOptions, Kernels, Precision};
+use kairos_engine::{DeviceKind, EngineOptions, Kernels, Precision, profile};
 
 /// Arguments of `kairos predict`.
 #[derive(clap::Args, Debug, Clone)]
@@ -58,6 +58,15 @@ pub struct PredictArgs {
     /// Weight GEMMs in `f32` (exact) or `bf16` (AVX512_BF16; falls back to f32 elsewhere).
     #[arg(long, default_value = "f32")]
     pub precision: String,
+    /// Predict this many copies of the observation in one batch (as a server batches robots),
+    /// copy `i` with noise seed `seed + i`; `actions` is copy 0's chunk, `batch_actions` all.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub batch: u32,
+    /// Run the prediction this many times after one untimed warm-up (a benchmark:
+    /// `engine/tools/bench_smolvla_full.py`); `timing_ms` is the last run's, `runs_ms` every
+    /// run's total, `cpu_ms_per_run` the process CPU time per run. 0: no warm-up, one run.
+    #[arg(long, default_value_t = 0)]
+    pub repeat: u32,
 }
 
 /// What `kairos predict` prints.
@@ -67,6 +76,21 @@ struct Output {
     chunk: usize,
     action_dim: usize,
     timing_ms: StageTimes,
+    /// With `--batch N > 1`: every copy's chunk.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    batch_actions: Option<Vec<Vec<Vec<f32>>>>,
+    /// With `--repeat`: the batch size, each run's total, CPU per run, peak RSS.
+    #[serde(skip_serializing_if = "Option::is_none", flatten)]
+    bench: Option<Bench>,
+}
+
+/// `--repeat`'s measurements.
+#[derive(serde::Serialize)]
+struct Bench {
+    batch: u32,
+    runs_ms: Vec<f64>,
+    cpu_ms_per_run: f64,
+    peak_rss_mb: f64,
 }
 
 /// Run `kairos predict`.
@@ -107,13 +131,41 @@ pub fn run(args: PredictArgs) -> anyhow::Result<()> {
     if let Some(task) = args.task {
         obs.task = task;
     }
-    let (mut predictions, timing) = pipeline.predict(std::slice::from_ref(&obs), &[args.seed])?;
-    let prediction = predictions.pop().context("no prediction")?;
+    let batch = args.batch as usize;
+    let observations = vec![obs; batch];
+    let seeds: Vec<u64> = (0..args.batch)
+        .map(|i| args.seed.wrapping_add(u64::from(i)))
+        .collect();
+    let mut bench = None;
+    if args.repeat > 0 {
+        pipeline.predict(&observations, &seeds)?;
+        let cpu0 = profile::process_cpu_ms();
+        let mut runs_ms = Vec::new();
+        for _ in 1..args.repeat {
+            runs_ms.push(pipeline.predict(&observations, &seeds)?.1.total);
+        }
+        bench = Some((cpu0, runs_ms));
+    }
+    let (predictions, timing) = pipeline.predict(&observations, &seeds)?;
+    let bench = bench.map(|(cpu0, mut runs_ms)| {
+        runs_ms.push(timing.total);
+        Bench {
+            batch: args.batch,
+            cpu_ms_per_run: (profile::process_cpu_ms() - cpu0) / runs_ms.len() as f64,
+            runs_ms,
+            peak_rss_mb: profile::peak_rss_mb(),
+        }
+    });
+    let mut chunks: Vec<Vec<Vec<f32>>> = predictions.into_iter().map(|p| p.actions).collect();
+    let batch_actions = (batch > 1).then(|| chunks.clone());
+    let actions = chunks.drain(..).next().context("no prediction")?;
     let out = Output {
-        chunk: prediction.actions.len(),
+        chunk: actions.len(),
         action_dim: pipeline.action_dim(),
-        actions: prediction.actions,
+        actions,
         timing_ms: timing,
+        batch_actions,
+        bench,
     };
     println!("{}", serde_json::to_string(&out)?);
     Ok(())

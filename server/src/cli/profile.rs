@@ -21,6 +21,9 @@ pub struct ProfileArgs {
     /// Model: `builtin:flow-head-small`, `builtin:smolvla-random`, or a checkpoint directory.
     #[arg(long, default_value = builtin::DEFAULT_MODEL)]
     pub model: String,
+    /// The task tokenizer of a whole SmolVLA checkpoint [default: `tokenizer.json` beside it].
+    #[arg(long)]
+    pub tokenizer: Option<PathBuf>,
     /// Batch sizes to measure.
     #[arg(long, value_delimiter = ',', default_value = "1,2,4,8,16,32")]
     pub batches: Vec<u32>,
@@ -63,7 +66,7 @@ pub fn run(args: ProfileArgs) -> anyhow::Result<()> {
         PathBuf::from("profiles").join(format!("{}.json", builtin::model_slug(&args.model)))
     });
 
-    let model = crate::pool::resolve_model(&args.model, &options)
+    let model = crate::pool::resolve_model(&args.model, args.tokenizer.as_deref(), &options)
         .with_context(|| format!("loading model `{}`", args.model))?;
     let device_desc = match device {
         DeviceKind::Cpu => format!("{} ({})", cpu_name(), options.describe()?),
@@ -141,6 +144,7 @@ mod tests {
         let out = dir.path().join("nested/flow.json");
         run(ProfileArgs {
             model: builtin::DEFAULT_MODEL.into(),
+            tokenizer: None,
             batches: vec![2, 1],
             iterations: 1,
             device: "cpu".into(),
@@ -162,10 +166,65 @@ mod tests {
         assert!(profile.device.contains("threads"));
     }
 
+    /// A whole SmolVLA checkpoint is profiled with its task tokenizer, from `--tokenizer` or
+    /// beside it; with neither, the error names both.
+    #[test]
+    fn a_smolvla_checkpoint_is_profiled_with_its_tokenizer() {
+        let fixture = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../engine/tests/fixtures/smolvla_tiny");
+        let dir = tempfile::tempdir().unwrap();
+        let model = dir.path().join("my_smolvla");
+        std::fs::create_dir(&model).unwrap();
+        for entry in std::fs::read_dir(&fixture).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_file() && path.file_name().is_some_and(|n| n != "tokenizer.json") {
+                std::fs::copy(&path, model.join(path.file_name().unwrap())).unwrap();
+            }
+        }
+        let out = dir.path().join("smolvla.json");
+        let args = ProfileArgs {
+            model: model.display().to_string(),
+            tokenizer: None,
+            batches: vec![1],
+            iterations: 1,
+            device: "cpu".into(),
+            kernels: "auto".into(),
+            threads: 1,
+            min_gain: 0.05,
+            out: Some(out.clone()),
+        };
+        let error = format!("{:#}", run(args.clone()).unwrap_err());
+        assert!(
+            error.contains(&model.join("tokenizer.json").display().to_string())
+                && error.contains("--tokenizer"),
+            "{error}"
+        );
+        run(ProfileArgs {
+            tokenizer: Some(fixture.join("tokenizer.json")),
+            ..args.clone()
+        })
+        .unwrap();
+        let profile: EngineProfile =
+            serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+        assert_eq!(profile.model, "smolvla");
+        // A model that reads no text refuses a tokenizer rather than ignore it.
+        let builtin = run(ProfileArgs {
+            model: builtin::DEFAULT_MODEL.into(),
+            tokenizer: Some(fixture.join("tokenizer.json")),
+            ..args
+        })
+        .unwrap_err();
+        assert!(
+            format!("{builtin:#}").contains("reads no text"),
+            "{builtin:#}"
+        );
+    }
+
     #[test]
     fn bad_arguments_are_errors() {
         let args = ProfileArgs {
             model: "builtin:nope".into(),
+            tokenizer: None,
             batches: vec![1],
             iterations: 1,
             device: "cpu".into(),

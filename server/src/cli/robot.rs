@@ -290,6 +290,8 @@ async fn run_fleet(args: &RobotArgs) -> anyhow::Result<FleetOutcome> {
     });
     let cameras = args.cameras.min(welcome.model.max_images) as usize;
     let state_dim = welcome.model.state_dim as usize;
+    // A model that matches images by name gets its own camera names.
+    let camera_names = welcome.model.cameras.clone();
     let (height, width) = args.image;
     let recorder = match &args.record {
         Some(path) => {
@@ -312,12 +314,14 @@ async fn run_fleet(args: &RobotArgs) -> anyhow::Result<FleetOutcome> {
     let outcomes = fleet::run_from(Instant::now(), &starts, |index| {
         let (config, runner, progress) = (config.clone(), runner.clone(), progress.clone());
         let recorder = recorder.clone();
+        let camera_names = camera_names.clone();
         async move {
             // Each robot connects at its start, so a large fleet does not handshake all at once.
             let client = Client::connect(config)
                 .await
                 .with_context(|| format!("robot {index}: cannot connect"))?;
-            let mut robot = SimulatedRobot::new(state_dim, cameras, height, width);
+            let mut robot = SimulatedRobot::new(state_dim, cameras, height, width)
+                .with_camera_names(&camera_names);
             let task = client.task(rand::random());
             let summary = runner
                 .run(&mut robot, task, |event| {

@@ -43,6 +43,10 @@ pub struct ServeArgs {
     /// tables in the file, set it there instead.
     #[arg(long)]
     pub model: Option<String>,
+    /// The task tokenizer (`tokenizer.json`) of a whole SmolVLA checkpoint, overriding the
+    /// file's; same rules as `--model` [default: `tokenizer.json` beside the checkpoint].
+    #[arg(long)]
+    pub tokenizer: Option<PathBuf>,
     /// The engine's device (`cpu`, `cuda`, `cuda:N`), overriding the file's; same rules as
     /// `--model`. CUDA needs a `kairos` built with `--features cuda`.
     #[arg(long)]
@@ -98,11 +102,16 @@ pub fn config(args: &ServeArgs) -> anyhow::Result<Config> {
     if let Some(dir) = &args.data_dir {
         config.data_dir = dir.clone();
     }
-    if args.model.is_some() || args.device.is_some() || args.precision.is_some() {
+    if args.model.is_some()
+        || args.device.is_some()
+        || args.precision.is_some()
+        || args.tokenizer.is_some()
+    {
         if config.engines.len() > 1 {
             anyhow::bail!(
-                "--model and --device configure the one engine, but the file lists {} \
-                 [[engine]] tables: set `model` and `device` in each of them instead",
+                "--model, --tokenizer and --device configure the one engine, but the file lists \
+                 {} [[engine]] tables: set `model`, `tokenizer` and `device` in each of them \
+                 instead",
                 config.engines.len()
             );
         }
@@ -112,6 +121,11 @@ pub fn config(args: &ServeArgs) -> anyhow::Result<Config> {
         let engine = &mut config.engines[0];
         if let Some(model) = &args.model {
             engine.model = model.clone();
+            // The file's tokenizer belongs to the file's model.
+            engine.tokenizer = None;
+        }
+        if let Some(tokenizer) = &args.tokenizer {
+            engine.tokenizer = Some(tokenizer.clone());
         }
         if let Some(device) = &args.device {
             engine.device = device.clone();

@@ -37,6 +37,9 @@ pub struct WorkerArgs {
     /// the site's.
     #[arg(long, default_value = "builtin")]
     pub model: String,
+    /// The task tokenizer of a whole SmolVLA checkpoint [default: `tokenizer.json` beside it].
+    #[arg(long)]
+    pub tokenizer: Option<PathBuf>,
     /// The device (`cpu`, `cuda`, `cuda:N`).
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -98,6 +101,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
     };
     let engine_config = EngineConfig {
         model: args.model.clone(),
+        tokenizer: args.tokenizer.clone(),
         device: args.device.clone(),
         tier: Tier::Edge,
         instances: 1,

@@ -48,6 +48,8 @@ impl HorizonFlowModel {
             state_dim: OBS_DIM,
             steps: cfg.steps,
             max_images: 0,
+            cameras: Vec::new(),
+            camera_aliases: Default::default(),
         };
         HorizonFlowModel { policy, spec }
     }
@@ -104,6 +106,7 @@ mod tests {
         ActionRequest {
             state: obs.to_vec(),
             images: Vec::new(),
+            cameras: Vec::new(),
             instruction: String::new(),
             samples,
             seed,

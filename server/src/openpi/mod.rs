@@ -430,7 +430,14 @@ impl Session {
                     reason: e.to_string(),
                 })
             })?;
-            observation::observation(&dict, &self.config, at_us).map_err(|e| End::refused(&e))?
+            let mut observation = observation::observation(&dict, &self.config, at_us)
+                .map_err(|e| End::refused(&e))?;
+            observation::name_cameras(
+                &mut observation,
+                &self.config,
+                &self.context.validator.spec.cameras,
+            );
+            observation
         };
         let round = self.next_round;
         let submit = Submit {

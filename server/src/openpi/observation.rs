@@ -126,6 +126,27 @@ fn image_tensor(array: &NdArray<'_>) -> Result<Tensor, String> {
     })
 }
 
+/// The key map's `cameras` are the model's cameras in order. For a model that matches images
+/// by name (`model_cameras` not empty), each image is renamed from its openpi key to the model
+/// camera at that key's position, so a missing key leaves its own camera missing rather than
+/// shifting the others; an image whose key has no model camera keeps its key, which the
+/// validator then refuses by name.
+pub fn name_cameras(
+    observation: &mut Observation,
+    config: &OpenpiConfig,
+    model_cameras: &[String],
+) {
+    if model_cameras.is_empty() {
+        return;
+    }
+    for image in &mut observation.images {
+        let position = config.cameras.iter().position(|k| *k == image.camera);
+        if let Some(name) = position.and_then(|i| model_cameras.get(i)) {
+            image.camera.clone_from(name);
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -162,6 +183,24 @@ mod tests {
             }
             other => panic!("{other:?}"),
         }
+    }
+
+    #[test]
+    fn images_take_the_model_camera_names_by_key_position() {
+        let pixels: Vec<u8> = (0..2 * 2 * 3).collect();
+        let frame = libero_like(&[0.5, -1.0], (&[2, 2, 3], &pixels));
+        let config = OpenpiConfig {
+            cameras: vec!["observation/wrist_image".into(), "observation/image".into()],
+            ..OpenpiConfig::default()
+        };
+        let mut obs = observation(&decode(&frame, 1000).unwrap(), &config, 7).unwrap();
+        let unnamed = obs.clone();
+        name_cameras(&mut obs, &config, &[]);
+        assert_eq!(obs, unnamed, "a positional model keeps the keys");
+        // The only image is the second key's: it is the model's second camera, not its first.
+        name_cameras(&mut obs, &config, &["top".into(), "side".into()]);
+        assert_eq!(obs.images.len(), 1);
+        assert_eq!(obs.images[0].camera, "side");
     }
 
     #[test]

@@ -111,9 +111,10 @@ pub fn build_pool(
             source,
         };
         let options = config.options().map_err(failed)?;
-        let model: Arc<dyn ActionModel> = resolve_model(&config.model, &options)
-            .map_err(failed)?
-            .into();
+        let model: Arc<dyn ActionModel> =
+            resolve_model(&config.model, config.tokenizer.as_deref(), &options)
+                .map_err(failed)?
+                .into();
         site_spec.get_or_insert_with(|| model.spec().clone());
         if config.instances == 0 {
             continue;
@@ -145,14 +146,20 @@ pub fn build_pool(
 
 /// Loads the model a `model` spec names: `horizon-flow:DIR`, the closed-loop bench's policy
 /// ([`crate::horizon_bench::served`], on the CPU whatever `options` say), or anything the engine
-/// crate resolves (`builtin`, `builtin:<preset>`, a checkpoint path).
+/// crate resolves (`builtin`, `builtin:<preset>`, a checkpoint path), with `tokenizer` for a
+/// SmolVLA checkpoint (`None`: the `tokenizer.json` beside it; a model that reads no text
+/// refuses one).
 pub fn resolve_model(
     name: &str,
+    tokenizer: Option<&std::path::Path>,
     options: &EngineOptions,
 ) -> Result<Box<dyn ActionModel>, EngineError> {
     match crate::horizon_bench::served::resolve(name) {
+        Some(_) if tokenizer.is_some() => Err(EngineError::InvalidInput(format!(
+            "a tokenizer was given, but `{name}` reads no text"
+        ))),
         Some(model) => Ok(Box::new(model?)),
-        None => kairos_engine::resolve_model(name, options),
+        None => kairos_engine::resolve_model_with(name, tokenizer, options),
     }
 }
 

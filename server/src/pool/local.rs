@@ -210,6 +210,7 @@ mod tests {
         assert!(matches!(err, PoolError::Panicked { .. }), "{err}");
         let mut answer = engine
             .run(vec![kairos_engine::ActionRequest {
+                cameras: Vec::new(),
                 state: vec![1.0],
                 ..request(0.0, 0)
             }])
@@ -265,6 +266,7 @@ mod tests {
         batch.insert(
             0,
             ActionRequest {
+                cameras: Vec::new(),
                 state: vec![f32::NAN, 0.0, 0.0],
                 ..request(0.0, 5)
             },

@@ -298,6 +298,7 @@ pub fn same_shapes(a: &ModelSpec, b: &ModelSpec) -> bool {
         && a.state_dim == b.state_dim
         && a.steps == b.steps
         && a.max_images == b.max_images
+        && a.cameras == b.cameras
 }
 
 /// Checks a model's answer against the batch it was given, so a buggy model cannot make the
@@ -367,6 +368,8 @@ pub(crate) mod test_model {
         pub fn new() -> Self {
             LinearFlow {
                 spec: ModelSpec {
+                    cameras: Vec::new(),
+                    camera_aliases: Default::default(),
                     name: "linear-flow".into(),
                     chunk_len: 4,
                     action_dim: 2,
@@ -434,6 +437,7 @@ pub(crate) mod test_model {
 
     pub fn request(first: f32, seed: u64) -> ActionRequest {
         ActionRequest {
+            cameras: Vec::new(),
             state: vec![first, 0.0, 0.0],
             images: Vec::new(),
             instruction: String::new(),

@@ -362,7 +362,8 @@ fn usize_u32(value: usize) -> u32 {
     u32::try_from(value).unwrap_or(u32::MAX)
 }
 
-/// A model request in its wire form (camera names are positional: the engine has none).
+/// A model request in its wire form (a request without camera names names its images
+/// `camera0`, `camera1`, ... by position).
 pub fn request_to_wire(request: &ActionRequest) -> Result<WorkRequest, String> {
     let state = Tensor::from_f32(vec![usize_u32(request.state.len())], &request.state)
         .map_err(|e| e.to_string())?;
@@ -410,7 +411,11 @@ pub fn request_to_wire(request: &ActionRequest) -> Result<WorkRequest, String> {
                 },
             };
             Ok(Image {
-                camera: format!("camera{i}"),
+                camera: request
+                    .cameras
+                    .get(i)
+                    .cloned()
+                    .unwrap_or_else(|| format!("camera{i}")),
                 payload,
             })
         })
@@ -428,6 +433,7 @@ pub fn request_to_wire(request: &ActionRequest) -> Result<WorkRequest, String> {
 /// `check_request` still refuses what it cannot serve, one request at a time.
 pub fn request_from_wire(request: WorkRequest) -> Result<ActionRequest, String> {
     let state = request.state.to_f32().map_err(|e| e.to_string())?;
+    let cameras = request.images.iter().map(|i| i.camera.clone()).collect();
     let images = request
         .images
         .into_iter()
@@ -465,6 +471,7 @@ pub fn request_from_wire(request: WorkRequest) -> Result<ActionRequest, String> 
         })
         .collect::<Result<Vec<_>, String>>()?;
     Ok(ActionRequest {
+        cameras,
         state,
         images,
         instruction: request.instruction,
@@ -566,12 +573,15 @@ pub fn model_info(spec: &ModelSpec) -> ModelInfo {
         state_dim: usize_u32(spec.state_dim),
         steps: usize_u32(spec.steps),
         max_images: usize_u32(spec.max_images),
+        cameras: spec.cameras.clone(),
     }
 }
 
 /// The wire's `ModelInfo` as a model spec.
 pub fn model_spec(info: &ModelInfo) -> ModelSpec {
     ModelSpec {
+        cameras: info.cameras.clone(),
+        camera_aliases: Default::default(),
         name: info.name.clone(),
         chunk_len: info.chunk_len as usize,
         action_dim: info.action_dim as usize,
@@ -678,6 +688,18 @@ mod tests {
             },
         ];
         req.samples = 2;
+        // A request without camera names (built in-process) travels with positional ones.
+        let back = request_from_wire(request_to_wire(&req).unwrap()).unwrap();
+        assert_eq!(back.cameras, ["camera0", "camera1"]);
+        assert_eq!(
+            ActionRequest {
+                cameras: Vec::new(),
+                ..back
+            },
+            req
+        );
+        // A robot's names (every validated request has them) travel as they are.
+        req.cameras = vec!["top".into(), "observation.images.wrist".into()];
         let back = request_from_wire(request_to_wire(&req).unwrap()).unwrap();
         assert_eq!(back, req);
         let chunk = model

@@ -49,6 +49,8 @@ impl TraceReplayModel {
         }
         Ok(TraceReplayModel {
             spec: ModelSpec {
+                cameras: Vec::new(),
+                camera_aliases: Default::default(),
                 name: REPLAY_MODEL.to_string(),
                 chunk_len,
                 action_dim: 1,
@@ -168,6 +170,7 @@ mod tests {
 
     fn request(state: Vec<f32>) -> ActionRequest {
         ActionRequest {
+            cameras: Vec::new(),
             state,
             images: Vec::new(),
             instruction: String::new(),

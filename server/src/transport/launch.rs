@@ -273,6 +273,7 @@ pub async fn start(
         state_dim,
         steps: u32::try_from(spec.steps).unwrap_or(u32::MAX),
         max_images: limits.max_images,
+        cameras: spec.cameras.clone(),
     };
     let context = Arc::new(ServerContext {
         robots: RobotTable::new(&robots),

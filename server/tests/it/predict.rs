@@ -172,3 +172,26 @@ fn precision_bf16_falls_back_to_f32_with_a_warning() {
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("--precision"));
 }
+
+/// `--batch N` predicts N copies of the observation in one batch, copy `i` with seed `seed + i`,
+/// each exactly as alone; `--repeat R` adds its timings without changing the actions.
+#[test]
+fn a_batch_of_copies_and_repeated_timings() {
+    let v = parse(&predict(&["--batch", "2", "--seed", "3", "--repeat", "2"]));
+    let options = EngineOptions::default();
+    let pipeline = SmolVlaPipeline::load(&fixture(), None, &options).unwrap();
+    let obs = pipeline.checkpoint().synthetic_observation();
+    let batch = v["batch_actions"].as_array().unwrap();
+    assert_eq!(batch.len(), 2);
+    let chunk = |i: usize| actions(&serde_json::json!({ "actions": batch[i] }));
+    assert_eq!(chunk(0), actions(&v));
+    assert_eq!(chunk(0), library(&obs, 3));
+    assert_eq!(chunk(1), library(&obs, 4));
+    assert_eq!(v["batch"], 2);
+    assert_eq!(v["runs_ms"].as_array().unwrap().len(), 2);
+    assert!(v["cpu_ms_per_run"].as_f64().unwrap() >= 0.0);
+    assert!(v["peak_rss_mb"].as_f64().unwrap() > 0.0);
+    // Without --batch/--repeat the output keeps its shape.
+    let plain = parse(&predict(&[]));
+    assert!(plain.get("batch_actions").is_none() && plain.get("runs_ms").is_none());
+}

@@ -219,6 +219,7 @@ fn wire_messages() -> Vec<(&'static str, Message)> {
                     state_dim: 4,
                     steps: 4,
                     max_images: 2,
+                    cameras: Vec::new(),
                 },
                 limits,
             }),

@@ -156,6 +156,7 @@ async fn each_malformed_input_class_gets_its_error_and_the_server_keeps_serving(
             state_dim: 1,
             steps: 1,
             max_images: 0,
+            cameras: Vec::new(),
         },
         limits: limits.clone(),
     }));

@@ -183,6 +183,7 @@ async fn serve_connection(
             state_dim: 2,
             steps: 10,
             max_images: 2,
+            cameras: Vec::new(),
         },
         limits: limits.clone(),
     };
