@@ -14,8 +14,8 @@ use crate::horizon_bench::live::{LiveSetup, remove_scratch, run_live_bench, scra
 use crate::horizon_bench::model::{FlowPolicy, TrainConfig, train};
 use crate::horizon_bench::signals;
 use crate::horizon_bench::{
-    BenchPlan, PolicyPoint, action_manager, builtin_points, contact_points, episodes_csv, markdown_table,
-    pareto_csv, run_bench,
+    BenchPlan, PolicyPoint, action_manager, builtin_points, contact_points, episodes_csv,
+    markdown_table, pareto_csv, run_bench,
 };
 use crate::plot::{ParetoSeries, pareto};
 use crate::sim::plugins::{PluginRole, load_user_plugins, plugin_cache_dir};
