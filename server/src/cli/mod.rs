@@ -37,3 +37,15 @@ pub(crate) fn parse_finite_param(text: &str) -> Result<(String, f64), String> {
     }
     Ok((name, value))
 }
+
+/// Logs to stderr (stdout stays free for a command's output), at `RUST_LOG`'s filter or else
+/// `default_filter`. A second call is a no-op, so tests may run several commands in one process.
+pub(crate) fn init_logging(default_filter: &str) {
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_filter)),
+        )
+        .with_writer(std::io::stderr)
+        .try_init();
+}

@@ -96,13 +96,7 @@ struct Bench {
 /// Run `kairos predict`.
 pub fn run(args: PredictArgs) -> anyhow::Result<()> {
     // Warnings (a bf16 fallback, a feature without stats) go to stderr; stdout stays JSON.
-    let _ = tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
-        )
-        .with_writer(std::io::stderr)
-        .try_init();
+    super::init_logging("warn");
     let options = EngineOptions {
         device: args.device.parse::<DeviceKind>().context("--device")?,
         kernels: args.kernels.parse::<Kernels>().context("--kernels")?,

@@ -181,13 +181,7 @@ pub fn config(args: &ServeArgs) -> anyhow::Result<Config> {
 
 /// Runs `kairos serve` until Ctrl-C.
 pub fn run(args: ServeArgs) -> anyhow::Result<()> {
-    let _ = tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .with_writer(std::io::stderr)
-        .try_init();
+    super::init_logging("info");
     let config = config(&args)?;
     let pool = start_engines(&config)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()

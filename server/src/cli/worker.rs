@@ -79,13 +79,7 @@ pub enum TierArg {
 /// dialled again with backoff (`crate::worker::run`); a refusal or a first connection that
 /// fails ends it with an error.
 pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
-    let _ = tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .with_writer(std::io::stderr)
-        .try_init();
+    super::init_logging("info");
     let data_dir = DataDir::new(&args.data_dir);
     let pin = match args.pin {
         Some(pin) => pin,
