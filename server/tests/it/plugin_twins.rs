@@ -271,38 +271,54 @@ fn steady_inputs(seed: u64, count: usize) -> Vec<(HorizonCase, PolicyParams)> {
                 let at = rng.random_range(0..n * d);
                 case.actions[at] = f32::NAN;
             }
-            let mut params = PolicyParams::new();
-            match rng.random_range(0..12) {
-                0 => {}
-                1 => {
-                    params.insert("margin".into(), 1.5);
-                }
-                2 => {
-                    params.insert("delta".into(), -0.1);
-                }
-                3 => {
-                    params.insert("h_max".into(), 0.0);
-                }
-                4 => {
-                    params.insert("jump".into(), 0.3);
-                }
-                _ => {
-                    params.insert("delta".into(), delta);
-                    params.insert("margin".into(), rng.random_range(0..=3) as f64);
-                    if rng.random_bool(0.4) {
-                        params.insert("h_min".into(), rng.random_range(1..=n + 2) as f64);
-                    }
-                    if rng.random_bool(0.5) {
-                        params.insert("h_max".into(), rng.random_range(1..=n + 2) as f64);
-                    }
-                }
-            }
+            let params = cut_rule_params(
+                &mut rng,
+                n,
+                ("delta", delta),
+                [
+                    ("margin", 1.5),
+                    ("delta", -0.1),
+                    ("h_max", 0.0),
+                    ("jump", 0.3),
+                ],
+            );
             if rng.random_bool(0.7) {
                 case.bounds = (1, n);
             }
             (case, params)
         })
         .collect()
+}
+
+/// Parameters for a "cut before an event" rule (`steady`, `contact`) with chunks of `n` actions:
+/// none (1 in 12), one of the four `invalid` settings alone (1 in 12 each: a fractional margin,
+/// a negative real parameter, a zero count, an unknown name), or else the rule's `real`
+/// parameter with a random margin and, sometimes, `h_min` and `h_max` (possibly beyond `n`).
+fn cut_rule_params(
+    rng: &mut StdRng,
+    n: usize,
+    real: (&str, f64),
+    invalid: [(&str, f64); 4],
+) -> PolicyParams {
+    let mut params = PolicyParams::new();
+    match rng.random_range(0..12) {
+        0 => {}
+        i @ 1..=4 => {
+            let (name, value) = invalid[i - 1];
+            params.insert(name.into(), value);
+        }
+        _ => {
+            params.insert(real.0.into(), real.1);
+            params.insert("margin".into(), rng.random_range(0..=3) as f64);
+            if rng.random_bool(0.4) {
+                params.insert("h_min".into(), rng.random_range(1..=n + 2) as f64);
+            }
+            if rng.random_bool(0.5) {
+                params.insert("h_max".into(), rng.random_range(1..=n + 2) as f64);
+            }
+        }
+    }
+    params
 }
 
 /// Asserts that the shipped plugin `name` answers every input as `native` does, with enough
@@ -382,32 +398,17 @@ fn contact_inputs(seed: u64, count: usize) -> Vec<(HorizonCase, PolicyParams)> {
                 let at = rng.random_range(0..n * d);
                 case.actions[at] = f32::NAN;
             }
-            let mut params = PolicyParams::new();
-            match rng.random_range(0..12) {
-                0 => {}
-                1 => {
-                    params.insert("margin".into(), 0.5);
-                }
-                2 => {
-                    params.insert("slow".into(), -0.1);
-                }
-                3 => {
-                    params.insert("h_min".into(), 0.0);
-                }
-                4 => {
-                    params.insert("delta".into(), 0.3);
-                }
-                _ => {
-                    params.insert("slow".into(), slow);
-                    params.insert("margin".into(), rng.random_range(0..=3) as f64);
-                    if rng.random_bool(0.4) {
-                        params.insert("h_min".into(), rng.random_range(1..=n + 2) as f64);
-                    }
-                    if rng.random_bool(0.5) {
-                        params.insert("h_max".into(), rng.random_range(1..=n + 2) as f64);
-                    }
-                }
-            }
+            let params = cut_rule_params(
+                &mut rng,
+                n,
+                ("slow", slow),
+                [
+                    ("margin", 0.5),
+                    ("slow", -0.1),
+                    ("h_min", 0.0),
+                    ("delta", 0.3),
+                ],
+            );
             if rng.random_bool(0.7) {
                 case.bounds = (1, n);
             }
