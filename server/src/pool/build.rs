@@ -154,10 +154,14 @@ pub fn resolve_model(
     tokenizer: Option<&std::path::Path>,
     options: &EngineOptions,
 ) -> Result<Box<dyn ActionModel>, EngineError> {
-    match crate::horizon_bench::served::resolve(name) {
-        Some(_) if tokenizer.is_some() => Err(EngineError::InvalidInput(format!(
+    use crate::horizon_bench::served;
+    // Refused before the policy is loaded, as the engine crate refuses a built-in's tokenizer.
+    if tokenizer.is_some() && name.starts_with(served::HORIZON_FLOW_PREFIX) {
+        return Err(EngineError::InvalidInput(format!(
             "a tokenizer was given, but `{name}` reads no text"
-        ))),
+        )));
+    }
+    match served::resolve(name) {
         Some(model) => Ok(Box::new(model?)),
         None => kairos_engine::resolve_model_with(name, tokenizer, options),
     }
@@ -258,6 +262,19 @@ fn measure_at_start(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_horizon_flow_model_refuses_a_tokenizer_before_loading() {
+        // The directory does not exist: the tokenizer is refused without trying to load it.
+        let error = resolve_model(
+            "horizon-flow:/nonexistent/horizon-model",
+            Some(std::path::Path::new("tokenizer.json")),
+            &EngineOptions::default(),
+        )
+        .err()
+        .expect("a tokenizer for a model that reads no text is refused");
+        assert!(error.to_string().contains("reads no text"), "{error}");
+    }
 
     #[test]
     fn start_batches_are_powers_of_two_up_to_the_maximum() {
