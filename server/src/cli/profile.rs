@@ -13,7 +13,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use kairos_engine::profile::{DEFAULT_MIN_GAIN, MeasureEvent, MeasureOptions, measure};
-use kairos_engine::{DeviceKind, EngineOptions, Kernels, builtin};
+use kairos_engine::{DeviceKind, EngineOptions, Kernels, Precision, builtin};
 
 /// Arguments of `kairos profile`.
 #[derive(clap::Args, Debug, Clone)]
@@ -39,6 +39,10 @@ pub struct ProfileArgs {
     /// CPU threads for the engine (0: one per core).
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
+    /// The weight GEMMs' number format: `f32` (exact) or `bf16` (AVX512_BF16; falls back to
+    /// f32 with a warning elsewhere). Profile with the precision you serve with.
+    #[arg(long, default_value = "f32")]
+    pub precision: String,
     /// A batch is worth forming only if it raises throughput by more than this fraction.
     #[arg(long, default_value_t = DEFAULT_MIN_GAIN)]
     pub min_gain: f64,
@@ -55,7 +59,7 @@ pub fn run(args: ProfileArgs) -> anyhow::Result<()> {
         device,
         kernels,
         threads: args.threads,
-        ..Default::default()
+        precision: args.precision.parse::<Precision>().context("--precision")?,
     };
     anyhow::ensure!(
         !args.batches.is_empty() && !args.batches.contains(&0),
@@ -150,6 +154,7 @@ mod tests {
             device: "cpu".into(),
             kernels: "fast".into(),
             threads: 2,
+            precision: "f32".into(),
             min_gain: 0.05,
             out: Some(out.clone()),
         })
@@ -190,6 +195,7 @@ mod tests {
             device: "cpu".into(),
             kernels: "auto".into(),
             threads: 1,
+            precision: "f32".into(),
             min_gain: 0.05,
             out: Some(out.clone()),
         };
@@ -207,6 +213,21 @@ mod tests {
         let profile: EngineProfile =
             serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
         assert_eq!(profile.model, "smolvla");
+        // `--precision bf16` profiles the bf16 weight GEMMs (f32 with a warning on a CPU
+        // without AVX512_BF16); an unknown format is an error that names the flag.
+        run(ProfileArgs {
+            tokenizer: Some(fixture.join("tokenizer.json")),
+            precision: "bf16".into(),
+            ..args.clone()
+        })
+        .unwrap();
+        let bad = run(ProfileArgs {
+            tokenizer: Some(fixture.join("tokenizer.json")),
+            precision: "fp8".into(),
+            ..args.clone()
+        })
+        .unwrap_err();
+        assert!(format!("{bad:#}").contains("--precision"), "{bad:#}");
         // A model that reads no text refuses a tokenizer rather than ignore it.
         let builtin = run(ProfileArgs {
             model: builtin::DEFAULT_MODEL.into(),
@@ -230,6 +251,7 @@ mod tests {
             device: "cpu".into(),
             kernels: "auto".into(),
             threads: 1,
+            precision: "f32".into(),
             min_gain: 0.05,
             out: None,
         };

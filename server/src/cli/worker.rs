@@ -43,6 +43,10 @@ pub struct WorkerArgs {
     /// The device (`cpu`, `cuda`, `cuda:N`).
     #[arg(long, default_value = "cpu")]
     pub device: String,
+    /// The weight GEMMs' number format: `f32` (exact) or `bf16` (AVX512_BF16; falls back to
+    /// f32 with a warning elsewhere).
+    #[arg(long, default_value = "f32")]
+    pub precision: String,
     /// Edge or cloud; `auto`: the scheduler classifies the worker from its measured round
     /// trip (`[workers] cloud_rtt_ms`), and re-classifies it as that moves.
     #[arg(long, value_enum, default_value = "edge")]
@@ -97,6 +101,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         model: args.model.clone(),
         tokenizer: args.tokenizer.clone(),
         device: args.device.clone(),
+        precision: args.precision.clone(),
         tier: Tier::Edge,
         instances: 1,
         max_batch: args.max_batch,

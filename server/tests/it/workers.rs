@@ -273,3 +273,116 @@ async fn a_sigterm_drains_the_worker_without_failing_a_round() {
     drop(procs);
     server.shutdown().await;
 }
+
+/// `kairos worker --model DIR --tokenizer FILE` serves a whole SmolVLA checkpoint saved the way
+/// LeRobot saves one, without the task tokenizer beside it (the engine's `smolvla_tiny` fixture,
+/// copied without its `tokenizer.json`), here in bf16 (f32 with a warning on a CPU without
+/// AVX512_BF16). Without `--tokenizer` the worker refuses to start, naming the file it looked
+/// for and the flag; with it, it registers and a `kairos robot` fleet sending two cameras gets
+/// every round answered by it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_serves_a_smolvla_checkpoint_with_a_tokenizer_from_elsewhere() {
+    let dir = tempfile::tempdir().unwrap();
+    let fixture =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../engine/tests/fixtures/smolvla_tiny");
+    let model = dir.path().join("my_smolvla");
+    std::fs::create_dir(&model).unwrap();
+    for entry in std::fs::read_dir(&fixture).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_file() && path.file_name().is_some_and(|n| n != "tokenizer.json") {
+            std::fs::copy(&path, model.join(path.file_name().unwrap())).unwrap();
+        }
+    }
+    // The scheduler serves the checkpoint's shapes with no local engine.
+    let spec = kairos_engine::resolve_model(fixture.to_str().unwrap(), &EngineOptions::default())
+        .unwrap()
+        .spec()
+        .clone();
+    assert_eq!(spec.name, "smolvla");
+    let config = Config {
+        listen: "127.0.0.1:0".parse().unwrap(),
+        data_dir: dir.path().join("data"),
+        ..Config::default()
+    };
+    let pool = EnginePool::with_spec(spec, Vec::new()).unwrap();
+    let server = LocalServer::start(&config, pool, Policies::default())
+        .await
+        .unwrap();
+    let profile = dir.path().join("profile.json");
+    std::fs::write(
+        &profile,
+        r#"{"model":"smolvla","device":"cpu (test profile)","points":[{"batch":1,"latency_ms":30.0},{"batch":2,"latency_ms":50.0}],"max_batch":2}"#,
+    )
+    .unwrap();
+    let worker = |tokenizer: Option<&Path>| {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_kairos"));
+        command
+            .args(["worker", "--server"])
+            .arg(server.addr().to_string())
+            .arg("--data-dir")
+            .arg(dir.path().join("data"))
+            .arg("--profile")
+            .arg(&profile)
+            .arg("--model")
+            .arg(&model)
+            .args(["--precision", "bf16", "--worker-id", "vla"])
+            .env("KAIROS_ENGINE_THREADS", "1")
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped());
+        if let Some(file) = tokenizer {
+            command.arg("--tokenizer").arg(file);
+        }
+        command
+    };
+
+    let refused = tokio::task::spawn_blocking({
+        let mut command = worker(None);
+        move || command.output().unwrap()
+    })
+    .await
+    .unwrap();
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success(), "{stderr}");
+    assert!(
+        stderr.contains(&model.join("tokenizer.json").display().to_string())
+            && stderr.contains("--tokenizer"),
+        "{stderr}"
+    );
+
+    let procs = Procs(vec![
+        worker(Some(&fixture.join("tokenizer.json")))
+            .spawn()
+            .unwrap(),
+    ]);
+    wait_engines(&server, "the SmolVLA worker", |e| {
+        e.iter()
+            .any(|e| e.live && e.name.starts_with("worker:vla@"))
+    })
+    .await;
+    let mut fleet = Command::new(env!("CARGO_BIN_EXE_kairos"))
+        .args(["robot", "--server"])
+        .arg(server.addr().to_string())
+        .arg("--data-dir")
+        .arg(dir.path().join("data"))
+        .args([
+            "--robots",
+            "2",
+            "--rounds",
+            "3",
+            "--cameras",
+            "2",
+            "--image",
+            "40x56",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let (status, out) = wait_exit(&mut fleet).await;
+    assert!(status.success(), "{out}");
+    assert_eq!(account(&out), (6, 6, 0, 0, 0), "{out}");
+    let stats = server.server.driver.stats().await.unwrap();
+    assert_eq!(stats.failed, 0, "{stats:?}");
+    drop(procs);
+    server.shutdown().await;
+}
