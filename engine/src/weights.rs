@@ -160,7 +160,8 @@ impl Checkpoint {
         // Checked above: at most MAX_HEADER, so it fits a usize.
         let header_len = n as usize;
         let mut header = vec![0u8; header_len];
-        file.read_exact(&mut header).map_err(|e| load(e.to_string()))?;
+        file.read_exact(&mut header)
+            .map_err(|e| load(e.to_string()))?;
         let header = std::str::from_utf8(&header).map_err(|e| invalid(&e.to_string()))?;
         let metadata: Metadata =
             serde_json::from_str(header).map_err(|e| invalid(&e.to_string()))?;
@@ -377,13 +378,38 @@ mod tests {
     /// A file with every dtype the loaders read, one tensor larger than a read chunk (so it is
     /// decoded in several pieces), and an I32 one no loader accepts.
     fn sample() -> Vec<u8> {
-        let big: Vec<f32> = (0..(READ_CHUNK / 4 + 1001)).map(|i| i as f32 * 0.25 - 7.0).collect();
+        let big: Vec<f32> = (0..(READ_CHUNK / 4 + 1001))
+            .map(|i| i as f32 * 0.25 - 7.0)
+            .collect();
         let bf16: Vec<u16> = (0..(READ_CHUNK / 2 + 3)).map(bf16_sample).collect();
         let tensors: Vec<(&str, Dtype, Vec<usize>, Vec<u8>)> = vec![
-            ("big", Dtype::F32, vec![big.len()], big.iter().flat_map(|v| v.to_le_bytes()).collect()),
-            ("bf16", Dtype::BF16, vec![bf16.len()], bf16.iter().flat_map(|v| v.to_le_bytes()).collect()),
-            ("f16", Dtype::F16, vec![2], [half::f16::from_f32(1.5), half::f16::from_f32(-2.0)].iter().flat_map(|v| v.to_le_bytes()).collect()),
-            ("f64", Dtype::F64, vec![1, 2], [0.1f64, 3.0].iter().flat_map(|v| v.to_le_bytes()).collect()),
+            (
+                "big",
+                Dtype::F32,
+                vec![big.len()],
+                big.iter().flat_map(|v| v.to_le_bytes()).collect(),
+            ),
+            (
+                "bf16",
+                Dtype::BF16,
+                vec![bf16.len()],
+                bf16.iter().flat_map(|v| v.to_le_bytes()).collect(),
+            ),
+            (
+                "f16",
+                Dtype::F16,
+                vec![2],
+                [half::f16::from_f32(1.5), half::f16::from_f32(-2.0)]
+                    .iter()
+                    .flat_map(|v| v.to_le_bytes())
+                    .collect(),
+            ),
+            (
+                "f64",
+                Dtype::F64,
+                vec![1, 2],
+                [0.1f64, 3.0].iter().flat_map(|v| v.to_le_bytes()).collect(),
+            ),
             ("mask", Dtype::U8, vec![3], vec![1, 0, 1]),
             ("ints", Dtype::I32, vec![2], vec![0; 8]),
         ];
@@ -421,7 +447,10 @@ mod tests {
             assert_eq!(stored.widened(1..a.len()).as_ref(), &a[1..]);
         }
         let n = READ_CHUNK / 4 + 1001;
-        assert_eq!(file.tensor("big", &[n]).unwrap()[n - 1], (n - 1) as f32 * 0.25 - 7.0);
+        assert_eq!(
+            file.tensor("big", &[n]).unwrap()[n - 1],
+            (n - 1) as f32 * 0.25 - 7.0
+        );
         match file.tensor_stored("bf16", &[READ_CHUNK / 2 + 3]).unwrap() {
             StoredTensor::Bf16(bits) => {
                 assert_eq!(bits.len(), READ_CHUNK / 2 + 3);
@@ -429,7 +458,9 @@ mod tests {
             }
             other => panic!("bf16 must stay bf16, got {:?}", other.len()),
         }
-        assert!(matches!(file.tensor_stored("f16", &[2]).unwrap(), StoredTensor::F32(v) if v == [1.5, -2.0]));
+        assert!(
+            matches!(file.tensor_stored("f16", &[2]).unwrap(), StoredTensor::F32(v) if v == [1.5, -2.0])
+        );
         assert_eq!(file.tensor_u8("mask", &[3]).unwrap(), [1, 0, 1]);
         assert_eq!(memory.tensor_u8("mask", &[3]).unwrap(), [1, 0, 1]);
     }
@@ -439,7 +470,10 @@ mod tests {
     fn stored_tensors_name_wrong_dtypes_shapes_and_keys() {
         let (_dir, path) = on_disk(&sample());
         let c = Checkpoint::open(&path).unwrap();
-        for e in [c.tensor_stored("ints", &[2]).unwrap_err(), c.tensor("ints", &[2]).unwrap_err()] {
+        for e in [
+            c.tensor_stored("ints", &[2]).unwrap_err(),
+            c.tensor("ints", &[2]).unwrap_err(),
+        ] {
             assert!(
                 matches!(&e, EngineError::DtypeMismatch { key, found, .. } if key == "ints" && found == "I32"),
                 "{e:?}"
@@ -451,9 +485,15 @@ mod tests {
             "{e:?}"
         );
         let e = c.tensor_stored("nope", &[1]).unwrap_err();
-        assert!(matches!(&e, EngineError::MissingTensor { key } if key == "nope"), "{e:?}");
+        assert!(
+            matches!(&e, EngineError::MissingTensor { key } if key == "nope"),
+            "{e:?}"
+        );
         let e = c.tensor_u8("f16", &[2]).unwrap_err();
-        assert!(matches!(&e, EngineError::DtypeMismatch { key, .. } if key == "f16"), "{e:?}");
+        assert!(
+            matches!(&e, EngineError::DtypeMismatch { key, .. } if key == "f16"),
+            "{e:?}"
+        );
     }
 
     /// A file cut short, or with a header longer than the file, or garbage, is a load error that
@@ -470,7 +510,10 @@ mod tests {
                 b[..8].copy_from_slice(&1000u64.to_le_bytes());
                 b
             }),
-            ("not json", [8u64.to_le_bytes().as_slice(), b"notjson!"].concat()),
+            (
+                "not json",
+                [8u64.to_le_bytes().as_slice(), b"notjson!"].concat(),
+            ),
         ];
         for (what, b) in cases {
             let (_dir, path) = on_disk(&b);

@@ -18,10 +18,10 @@
 use super::config::VlmTextConfig;
 use super::cpu::rms_norm_par;
 use super::weights::{LayerWeights, LinearWeights};
-use crate::weights::StoredTensor;
 use crate::kernels::attention::{KvSegment, QueryPositions, attend};
 use crate::kernels::gemm::gemm_par;
 use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
+use crate::weights::StoredTensor;
 
 struct TextLayer {
     input_norm: Vec<f32>,

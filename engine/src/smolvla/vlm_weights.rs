@@ -188,7 +188,9 @@ impl VlmWeights {
             .collect();
         let shape = text_shape(config);
         let layers = (0..text_layers)
-            .map(|_| LayerWeights::random_llama(next(), LayerKind::SelfAttention, shape).into_stored())
+            .map(|_| {
+                LayerWeights::random_llama(next(), LayerKind::SelfAttention, shape).into_stored()
+            })
             .collect();
         let s2 = config.scale_factor * config.scale_factor;
         Ok(VlmWeights {

@@ -107,7 +107,11 @@ impl LinearWeights<StoredTensor> {
     /// The panels equal [`PackedMatrix::from_linear_weights_in`]'s of the widened weights.
     pub(crate) fn pack_stacked(precision: Precision, parts: &[&Self]) -> PackedMatrix {
         let k = parts.first().map_or(0, |p| p.in_dim);
-        debug_assert!(parts.iter().all(|p| p.in_dim == k && p.weight.len() == p.out_dim * k));
+        debug_assert!(
+            parts
+                .iter()
+                .all(|p| p.in_dim == k && p.weight.len() == p.out_dim * k)
+        );
         // Output row -> (part, offset of that row in the part's weight).
         let rows: Vec<(usize, usize)> = parts
             .iter()
@@ -124,10 +128,7 @@ impl LinearWeights<StoredTensor> {
     /// weight is dropped.
     pub(crate) fn into_linear(self, precision: Precision) -> Linear {
         let w = Self::pack_stacked(precision, &[&self]);
-        Linear {
-            w,
-            bias: self.bias,
-        }
+        Linear { w, bias: self.bias }
     }
 }
 
@@ -206,7 +207,6 @@ impl<W: WeightData> LayerWeights<W> {
 }
 
 impl LayerWeights {
-
     /// Seeded random layer of the given shape (norm weights near 1).
     pub(crate) fn random_llama(seed: u64, kind: LayerKind, s: LlamaShape) -> Self {
         let mut k = seed.wrapping_mul(16);
@@ -552,17 +552,13 @@ mod tests {
             lin(StoredTensor::F32(kf.clone()), 3),
             lin(StoredTensor::Bf16(v.clone()), 5),
         ];
-        let widen = |b: &[u16]| -> Vec<f32> {
-            b.iter().map(|&x| crate::weights::bf16_to_f32(x)).collect()
-        };
+        let widen =
+            |b: &[u16]| -> Vec<f32> { b.iter().map(|&x| crate::weights::bf16_to_f32(x)).collect() };
         let (qw, vw) = (widen(&q), widen(&v));
         for precision in [Precision::F32, Precision::Bf16] {
             let ours = LinearWeights::pack_stacked(precision, &[&parts[0], &parts[1], &parts[2]]);
-            let old = PackedMatrix::from_linear_weights_in(
-                precision,
-                &[(&qw, 7), (&kf, 3), (&vw, 5)],
-                k,
-            );
+            let old =
+                PackedMatrix::from_linear_weights_in(precision, &[(&qw, 7), (&kf, 3), (&vw, 5)], k);
             assert_eq!(unpack(&ours), unpack(&old), "stacked {precision:?}");
         }
     }

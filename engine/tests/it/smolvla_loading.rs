@@ -6,23 +6,14 @@
 
 #![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
 
+use kairos_engine::Precision;
 use kairos_engine::smolvla::{SmolVlaExpert, SmolVlaVlm, VisionImage, VlmObservation};
 use kairos_engine::weights::{Checkpoint, StoredTensor, serialize_f32};
-use kairos_engine::{DeviceKind, EngineOptions, Kernels, Precision};
 
+use super::smolvla_bf16::options;
 use super::smolvla_goldens::{Goldens, fixture};
 
 const EMBED: &str = "model.vlm_with_expert.vlm.model.text_model.embed_tokens.weight";
-
-fn options(precision: Precision) -> EngineOptions {
-    EngineOptions {
-        device: DeviceKind::Cpu,
-        kernels: Kernels::Fast,
-        threads: 2,
-        precision,
-        ..Default::default()
-    }
-}
 
 /// `smolvla_tiny` with every tensor stored as f32, in a temp dir.
 fn widened_copy() -> tempfile::TempDir {
@@ -57,12 +48,18 @@ fn bf16_checkpoint_gives_the_prefix_of_its_f32_widening_bit_for_bit() {
     let ckpt = Checkpoint::open(&fixture().join("model.safetensors")).unwrap();
     let shape = ckpt.shape(EMBED).unwrap().to_vec();
     assert!(
-        matches!(ckpt.tensor_stored(EMBED, &shape).unwrap(), StoredTensor::Bf16(_)),
+        matches!(
+            ckpt.tensor_stored(EMBED, &shape).unwrap(),
+            StoredTensor::Bf16(_)
+        ),
         "the fixture's VLM must be bf16 on disk for this test to test anything"
     );
     let widened = widened_copy();
     let wide = Checkpoint::open(&widened.path().join("model.safetensors")).unwrap();
-    assert!(matches!(wide.tensor_stored(EMBED, &shape).unwrap(), StoredTensor::F32(_)));
+    assert!(matches!(
+        wide.tensor_stored(EMBED, &shape).unwrap(),
+        StoredTensor::F32(_)
+    ));
 
     // LeRobot's prepared `pair` case: two observations, two cameras each, real tokens.
     let g = Goldens::open();
@@ -112,7 +109,11 @@ fn bf16_checkpoint_gives_the_prefix_of_its_f32_widening_bit_for_bit() {
             assert_eq!(p.valid(), q.valid());
             for l in 0..d.layers.len() {
                 assert_eq!(p.keys(l), q.keys(l), "{precision:?} obs {o} layer {l} keys");
-                assert_eq!(p.values(l), q.values(l), "{precision:?} obs {o} layer {l} values");
+                assert_eq!(
+                    p.values(l),
+                    q.values(l),
+                    "{precision:?} obs {o} layer {l} values"
+                );
             }
         }
     }
