@@ -78,8 +78,9 @@ impl SmolVlaVlm {
     }
 
     /// Load from an open checkpoint (shared with the expert's loader). The weight matrices are
-    /// read as stored (bf16 stays bf16) and packed one layer at a time, each layer's stored
-    /// tensors dropped once packed, so the peak memory is about the packed model's.
+    /// read as stored (bf16 stays bf16: half their f32 size, and at most the packed model's
+    /// size), then packed one layer at a time, each layer's stored tensors dropped once packed,
+    /// so loading needs about the packed model's memory and no more.
     pub fn load_from(
         ckpt: &Checkpoint,
         cfg: &SmolVlaConfig,
