@@ -149,8 +149,10 @@ impl Checkpoint {
         let mut file = File::open(path).map_err(|e| load(e.to_string()))?;
         let file_len = file.metadata().map_err(|e| load(e.to_string()))?.len();
         let mut n = [0u8; 8];
-        file.read_exact(&mut n)
-            .map_err(|_| invalid("shorter than its 8-byte header length"))?;
+        file.read_exact(&mut n).map_err(|e| match e.kind() {
+            std::io::ErrorKind::UnexpectedEof => invalid("shorter than its 8-byte header length"),
+            _ => load(e.to_string()),
+        })?;
         let n = u64::from_le_bytes(n);
         if n > MAX_HEADER || 8 + n > file_len {
             return Err(invalid(&format!(
@@ -166,7 +168,7 @@ impl Checkpoint {
         let metadata: Metadata =
             serde_json::from_str(header).map_err(|e| invalid(&e.to_string()))?;
         let data_len = metadata.data_len() as u64;
-        if 8 + n + data_len != file_len {
+        if (8 + n).checked_add(data_len) != Some(file_len) {
             return Err(invalid(&format!(
                 "the header describes {data_len} bytes of tensors but {} follow it",
                 file_len - 8 - n
@@ -526,5 +528,8 @@ mod tests {
         }
         let e = Checkpoint::open(Path::new("/nonexistent/model.safetensors")).unwrap_err();
         assert!(matches!(e, EngineError::Load { .. }), "{e:?}");
+        let dir = tempfile::tempdir().unwrap();
+        let e = Checkpoint::open(dir.path()).unwrap_err();
+        assert!(matches!(e, EngineError::Load { .. }), "a directory: {e:?}");
     }
 }
