@@ -177,6 +177,25 @@ impl PackedMatrix {
     fn panel_ptr(&self, p: usize, k0: usize) -> *const f32 {
         self.buf.as_slice()[offset(self.precision, self.k, self.panels(), p, k0)..].as_ptr()
     }
+
+    /// Pack a `Linear` weight of `n` rows (outputs) of `k` (inputs) whose element `(row, col)`
+    /// is `w(row, col)`, as [`Self::from_linear_weight_in`] packs the same values, but without a
+    /// row-major `f32` copy of the weight: a loader reads each element straight from the stored
+    /// tensor (a checkpoint's bf16 bits widen to `f32` exactly, and rounding them back to bf16
+    /// is the identity, so bf16 panels hold the file's bits).
+    pub fn from_linear_fn_in(
+        precision: Precision,
+        n: usize,
+        k: usize,
+        w: impl Fn(usize, usize) -> f32,
+    ) -> Self {
+        let mut p = PackedMatrix {
+            precision,
+            ..PackedMatrix::default()
+        };
+        p.pack_with(k, n, |kk, j| w(j, kk));
+        p
+    }
 }
 
 /// Where row `kk` of panel `p` lives (`kk` even in bf16: the row of the pair it starts). The

@@ -13,6 +13,7 @@
 use super::config::VlmConfig;
 use super::cpu::Linear;
 use super::vlm_weights::{NormWeights, VlmWeights};
+use super::weights::LinearWeights;
 use crate::EngineError;
 use crate::kernels::attention::{KvSegment, QueryPositions, attend};
 use crate::kernels::gemm::gemm_par;
@@ -59,50 +60,40 @@ pub(crate) struct CpuVision {
 }
 
 impl CpuVision {
-    /// Pack `w`, the weight GEMMs in `precision` (already resolved for this CPU).
-    pub(crate) fn new(w: &VlmWeights, precision: Precision) -> Self {
-        let vh = w.config.vision_config.hidden_size;
+    /// Pack `w`, the weight GEMMs in `precision` (already resolved for this CPU), straight from
+    /// the stored tensors; each layer's are dropped once packed.
+    pub(crate) fn new(w: VlmWeights, precision: Precision) -> Self {
         let layers = w
             .vision_layers
-            .iter()
+            .into_iter()
             .map(|l| {
                 let bias: Vec<f32> = [&l.q_proj, &l.k_proj, &l.v_proj]
                     .iter()
                     .flat_map(|p| p.bias.iter().flatten().copied())
                     .collect();
                 VisionLayer {
-                    norm1: l.norm1.clone(),
                     qkv: Linear {
-                        w: PackedMatrix::from_linear_weights_in(
+                        w: LinearWeights::pack_stacked(
                             precision,
-                            &[
-                                (&l.q_proj.weight, vh),
-                                (&l.k_proj.weight, vh),
-                                (&l.v_proj.weight, vh),
-                            ],
-                            vh,
+                            &[&l.q_proj, &l.k_proj, &l.v_proj],
                         ),
                         bias: Some(bias),
                     },
-                    out: Linear::new(&l.out_proj, precision),
-                    norm2: l.norm2.clone(),
-                    fc1: Linear::new(&l.fc1, precision),
-                    fc2: Linear::new(&l.fc2, precision),
+                    norm1: l.norm1,
+                    out: l.out_proj.into_linear(precision),
+                    norm2: l.norm2,
+                    fc1: l.fc1.into_linear(precision),
+                    fc2: l.fc2.into_linear(precision),
                 }
             })
             .collect();
         CpuVision {
-            config: w.config.clone(),
-            patch: Linear::new(&w.patch_embedding, precision),
-            positions: w.position_embedding.clone(),
+            patch: w.patch_embedding.into_linear(precision),
+            positions: w.position_embedding,
             layers,
-            post: w.post_layernorm.clone(),
-            connector: PackedMatrix::from_linear_weight_in(
-                precision,
-                &w.connector.weight,
-                w.connector.out_dim,
-                w.connector.in_dim,
-            ),
+            post: w.post_layernorm,
+            connector: w.connector.into_linear(precision).w,
+            config: w.config,
         }
     }
 

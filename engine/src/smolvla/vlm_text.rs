@@ -16,11 +16,12 @@
 //! it, so its attention output and MLP are skipped; `text_model.norm` is never needed.
 
 use super::config::VlmTextConfig;
-use super::cpu::{Linear, rms_norm_par};
-use super::weights::LayerWeights;
+use super::cpu::rms_norm_par;
+use super::weights::{LayerWeights, LinearWeights};
 use crate::kernels::attention::{KvSegment, QueryPositions, attend};
 use crate::kernels::gemm::gemm_par;
 use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
+use crate::weights::StoredTensor;
 
 struct TextLayer {
     input_norm: Vec<f32>,
@@ -53,37 +54,22 @@ pub(crate) struct ValidKv {
 }
 
 impl CpuText {
-    /// Pack `layers`, the weight GEMMs in `precision` (already resolved for this CPU).
+    /// Pack `layers`, the weight GEMMs in `precision` (already resolved for this CPU), straight
+    /// from the stored tensors; each layer's are dropped once packed.
     pub(crate) fn new(
         config: &VlmTextConfig,
-        layers: &[LayerWeights],
+        layers: Vec<LayerWeights<StoredTensor>>,
         precision: Precision,
     ) -> Self {
-        let h = config.hidden_size;
         let layers = layers
-            .iter()
+            .into_iter()
             .map(|l| TextLayer {
-                input_norm: l.input_norm.clone(),
-                post_norm: l.post_norm.clone(),
-                qkv: PackedMatrix::from_linear_weights_in(
-                    precision,
-                    &[
-                        (&l.q_proj.weight, l.q_proj.out_dim),
-                        (&l.k_proj.weight, l.k_proj.out_dim),
-                        (&l.v_proj.weight, l.v_proj.out_dim),
-                    ],
-                    h,
-                ),
-                o: Linear::new(&l.o_proj, precision).w,
-                gate_up: PackedMatrix::from_linear_weights_in(
-                    precision,
-                    &[
-                        (&l.gate_proj.weight, l.gate_proj.out_dim),
-                        (&l.up_proj.weight, l.up_proj.out_dim),
-                    ],
-                    h,
-                ),
-                down: Linear::new(&l.down_proj, precision).w,
+                qkv: LinearWeights::pack_stacked(precision, &[&l.q_proj, &l.k_proj, &l.v_proj]),
+                gate_up: LinearWeights::pack_stacked(precision, &[&l.gate_proj, &l.up_proj]),
+                input_norm: l.input_norm,
+                post_norm: l.post_norm,
+                o: l.o_proj.into_linear(precision).w,
+                down: l.down_proj.into_linear(precision).w,
             })
             .collect();
         CpuText {

@@ -1,10 +1,12 @@
 //! The VLM's tensors (SigLIP vision tower, connector, SmolLM2 text layers) under LeRobot's
-//! parameter names, as host `f32` (bf16 and f16 checkpoints are widened exactly).
+//! parameter names. Weight matrices and the token embeddings stay as the checkpoint stores them
+//! ([`StoredTensor`]: a bf16 checkpoint's bits, half the memory of `f32`) until they are packed;
+//! norms, biases and the position embedding (small) are widened to `f32` (exactly).
 
 use super::config::{LayerKind, VlmConfig};
 use super::weights::{LayerWeights, LinearWeights, LlamaShape};
 use crate::EngineError;
-use crate::weights::Checkpoint;
+use crate::weights::{Checkpoint, StoredTensor};
 
 /// Prefix of the VLM's parameters in a SmolVLA checkpoint.
 pub const VLM_PREFIX: &str = "model.vlm_with_expert.vlm.model";
@@ -41,19 +43,19 @@ pub struct VisionLayerWeights {
     /// `layer_norm1`.
     pub norm1: NormWeights,
     /// `self_attn.q_proj`.
-    pub q_proj: LinearWeights,
+    pub q_proj: LinearWeights<StoredTensor>,
     /// `self_attn.k_proj`.
-    pub k_proj: LinearWeights,
+    pub k_proj: LinearWeights<StoredTensor>,
     /// `self_attn.v_proj`.
-    pub v_proj: LinearWeights,
+    pub v_proj: LinearWeights<StoredTensor>,
     /// `self_attn.out_proj`.
-    pub out_proj: LinearWeights,
+    pub out_proj: LinearWeights<StoredTensor>,
     /// `layer_norm2`.
     pub norm2: NormWeights,
     /// `mlp.fc1`: hidden -> intermediate.
-    pub fc1: LinearWeights,
+    pub fc1: LinearWeights<StoredTensor>,
     /// `mlp.fc2`: intermediate -> hidden.
-    pub fc2: LinearWeights,
+    pub fc2: LinearWeights<StoredTensor>,
 }
 
 /// Every VLM tensor the prefix needs.
@@ -65,7 +67,7 @@ pub struct VlmWeights {
     pub text_layers: usize,
     /// `embeddings.patch_embedding` as a linear layer over unfolded patches: `[hidden][C*p*p]`
     /// (PyTorch's conv weight `[hidden][C][p][p]`, flattened), with its bias.
-    pub patch_embedding: LinearWeights,
+    pub patch_embedding: LinearWeights<StoredTensor>,
     /// `embeddings.position_embedding.weight`: `[(image_size/patch)^2][hidden]`.
     pub position_embedding: Vec<f32>,
     /// Encoder layers.
@@ -73,11 +75,12 @@ pub struct VlmWeights {
     /// `post_layernorm`.
     pub post_layernorm: NormWeights,
     /// `connector.modality_projection.proj`: `vision_hidden * scale^2 -> text hidden`, no bias.
-    pub connector: LinearWeights,
-    /// `text_model.embed_tokens.weight`: `[vocab][text hidden]`.
-    pub embed_tokens: Vec<f32>,
+    pub connector: LinearWeights<StoredTensor>,
+    /// `text_model.embed_tokens.weight`: `[vocab][text hidden]`, as stored (rows are widened
+    /// when looked up; widening bf16 is exact).
+    pub embed_tokens: StoredTensor,
     /// Text decoder layers (`kind` is always self-attention).
-    pub layers: Vec<LayerWeights>,
+    pub layers: Vec<LayerWeights<StoredTensor>>,
 }
 
 impl VlmWeights {
@@ -92,7 +95,7 @@ impl VlmWeights {
         check_config(config, text_layers)?;
         let vp = format!("{VLM_PREFIX}.vision_model");
         let (vh, p, c) = (v.hidden_size, v.patch_size, v.num_channels);
-        let conv = ckpt.tensor(
+        let conv = ckpt.tensor_stored(
             &format!("{vp}.embeddings.patch_embedding.weight"),
             &[vh, c, p, p],
         )?;
@@ -151,7 +154,7 @@ impl VlmWeights {
                 vh * s2,
                 false,
             )?,
-            embed_tokens: ckpt.tensor(
+            embed_tokens: ckpt.tensor_stored(
                 &format!("{VLM_PREFIX}.text_model.embed_tokens.weight"),
                 &[t.vocab_size, t.hidden_size],
             )?,
@@ -174,32 +177,36 @@ impl VlmWeights {
         let vision_layers = (0..v.num_hidden_layers)
             .map(|_| VisionLayerWeights {
                 norm1: NormWeights::random(next(), vh),
-                q_proj: LinearWeights::random(next(), vh, vh, true),
-                k_proj: LinearWeights::random(next(), vh, vh, true),
-                v_proj: LinearWeights::random(next(), vh, vh, true),
-                out_proj: LinearWeights::random(next(), vh, vh, true),
+                q_proj: LinearWeights::random(next(), vh, vh, true).into_stored(),
+                k_proj: LinearWeights::random(next(), vh, vh, true).into_stored(),
+                v_proj: LinearWeights::random(next(), vh, vh, true).into_stored(),
+                out_proj: LinearWeights::random(next(), vh, vh, true).into_stored(),
                 norm2: NormWeights::random(next(), vh),
-                fc1: LinearWeights::random(next(), v.intermediate_size, vh, true),
-                fc2: LinearWeights::random(next(), vh, v.intermediate_size, true),
+                fc1: LinearWeights::random(next(), v.intermediate_size, vh, true).into_stored(),
+                fc2: LinearWeights::random(next(), vh, v.intermediate_size, true).into_stored(),
             })
             .collect();
         let shape = text_shape(config);
         let layers = (0..text_layers)
-            .map(|_| LayerWeights::random_llama(next(), LayerKind::SelfAttention, shape))
+            .map(|_| {
+                LayerWeights::random_llama(next(), LayerKind::SelfAttention, shape).into_stored()
+            })
             .collect();
         let s2 = config.scale_factor * config.scale_factor;
         Ok(VlmWeights {
             config: config.clone(),
             text_layers,
-            patch_embedding: LinearWeights::random(next(), vh, c * p * p, true),
+            patch_embedding: LinearWeights::random(next(), vh, c * p * p, true).into_stored(),
             position_embedding: crate::sampler::gaussian_noise(next(), 0, side * side * vh),
             vision_layers,
             post_layernorm: NormWeights::random(next(), vh),
-            connector: LinearWeights::random(next(), t.hidden_size, vh * s2, false),
-            embed_tokens: crate::sampler::gaussian_noise(next(), 0, t.vocab_size * t.hidden_size)
-                .into_iter()
-                .map(|x| x / (t.hidden_size as f32).sqrt())
-                .collect(),
+            connector: LinearWeights::random(next(), t.hidden_size, vh * s2, false).into_stored(),
+            embed_tokens: StoredTensor::F32(
+                crate::sampler::gaussian_noise(next(), 0, t.vocab_size * t.hidden_size)
+                    .into_iter()
+                    .map(|x| x / (t.hidden_size as f32).sqrt())
+                    .collect(),
+            ),
             layers,
         })
     }

@@ -1,17 +1,41 @@
-//! The expert's tensors under LeRobot's parameter names, as host `f32`.
+//! The expert's tensors under LeRobot's parameter names, as host `f32`, and the `Linear` and
+//! Llama-layer weights the VLM shares with it (the VLM keeps its matrices as stored, see
+//! [`StoredTensor`]).
 
 use super::config::{ExpertDims, LayerKind};
+use super::cpu::Linear;
 use crate::EngineError;
-use crate::weights::Checkpoint;
+use crate::kernels::{PackedMatrix, Precision};
+use crate::weights::{Checkpoint, StoredTensor};
 
 /// Prefix of the expert transformer's parameters in a SmolVLA checkpoint.
 pub const EXPERT_PREFIX: &str = "model.vlm_with_expert.lm_expert";
 
-/// A `Linear` layer: `weight` is `[out][in]`, PyTorch's layout.
+/// How a weight matrix is held after loading: widened to `f32` (`Vec<f32>`, what the expert
+/// and the Candle backend read), or as the checkpoint stores it ([`StoredTensor`]: bf16 bits
+/// stay bf16 until they are packed).
+pub trait WeightData: Sized {
+    /// Read tensor `key` with `shape`; errors name the key.
+    fn read(ckpt: &Checkpoint, key: &str, shape: &[usize]) -> Result<Self, EngineError>;
+}
+
+impl WeightData for Vec<f32> {
+    fn read(ckpt: &Checkpoint, key: &str, shape: &[usize]) -> Result<Self, EngineError> {
+        ckpt.tensor(key, shape)
+    }
+}
+
+impl WeightData for StoredTensor {
+    fn read(ckpt: &Checkpoint, key: &str, shape: &[usize]) -> Result<Self, EngineError> {
+        ckpt.tensor_stored(key, shape)
+    }
+}
+
+/// A `Linear` layer: `weight` is `[out][in]`, PyTorch's layout (as `f32`, or as stored).
 #[derive(Clone, Debug)]
-pub struct LinearWeights {
+pub struct LinearWeights<W = Vec<f32>> {
     /// `[out][in]`.
-    pub weight: Vec<f32>,
+    pub weight: W,
     /// `[out]`, if the layer has a bias.
     pub bias: Option<Vec<f32>>,
     /// Output features.
@@ -20,7 +44,7 @@ pub struct LinearWeights {
     pub in_dim: usize,
 }
 
-impl LinearWeights {
+impl<W: WeightData> LinearWeights<W> {
     pub(crate) fn load(
         ckpt: &Checkpoint,
         key: &str,
@@ -28,7 +52,7 @@ impl LinearWeights {
         in_dim: usize,
         bias: bool,
     ) -> Result<Self, EngineError> {
-        let weight = ckpt.tensor(&format!("{key}.weight"), &[out_dim, in_dim])?;
+        let weight = W::read(ckpt, &format!("{key}.weight"), &[out_dim, in_dim])?;
         let bias = if bias {
             Some(ckpt.tensor(&format!("{key}.bias"), &[out_dim])?)
         } else {
@@ -41,7 +65,9 @@ impl LinearWeights {
             in_dim,
         })
     }
+}
 
+impl LinearWeights {
     /// Seeded random weights (uniform, scaled by `1/sqrt(in)`), for benches and the stand-in.
     pub fn random(seed: u64, out_dim: usize, in_dim: usize, bias: bool) -> Self {
         let scale = 1.0 / (in_dim as f32).sqrt();
@@ -62,11 +88,53 @@ impl LinearWeights {
             in_dim,
         }
     }
+
+    /// The same layer with its weight held as a [`StoredTensor`] (`f32`).
+    pub fn into_stored(self) -> LinearWeights<StoredTensor> {
+        LinearWeights {
+            weight: StoredTensor::F32(self.weight),
+            bias: self.bias,
+            out_dim: self.out_dim,
+            in_dim: self.in_dim,
+        }
+    }
+}
+
+impl LinearWeights<StoredTensor> {
+    /// Pack layers with the same input width side by side (`[w0; w1; ..]` along the output
+    /// dimension, e.g. q, k and v into one GEMM) in `precision`, reading each element from the
+    /// stored tensor: no `f32` copy of a bf16 weight is made, and bf16 panels hold its bits.
+    /// The panels equal [`PackedMatrix::from_linear_weights_in`]'s of the widened weights.
+    pub(crate) fn pack_stacked(precision: Precision, parts: &[&Self]) -> PackedMatrix {
+        let k = parts.first().map_or(0, |p| p.in_dim);
+        debug_assert!(
+            parts
+                .iter()
+                .all(|p| p.in_dim == k && p.weight.len() == p.out_dim * k)
+        );
+        // Output row -> (part, offset of that row in the part's weight).
+        let rows: Vec<(usize, usize)> = parts
+            .iter()
+            .enumerate()
+            .flat_map(|(i, p)| (0..p.out_dim).map(move |r| (i, r * k)))
+            .collect();
+        PackedMatrix::from_linear_fn_in(precision, rows.len(), k, |j, kk| {
+            let (part, row) = rows[j];
+            parts[part].weight.get(row + kk)
+        })
+    }
+
+    /// The layer packed for the GEMM in `precision` (see [`Self::pack_stacked`]); the stored
+    /// weight is dropped.
+    pub(crate) fn into_linear(self, precision: Precision) -> Linear {
+        let w = Self::pack_stacked(precision, &[&self]);
+        Linear { w, bias: self.bias }
+    }
 }
 
 /// One expert decoder layer (a Llama layer; no biases).
 #[derive(Clone, Debug)]
-pub struct LayerWeights {
+pub struct LayerWeights<W = Vec<f32>> {
     /// Self- or cross-attention.
     pub kind: LayerKind,
     /// `input_layernorm.weight`.
@@ -74,19 +142,19 @@ pub struct LayerWeights {
     /// `post_attention_layernorm.weight`.
     pub post_norm: Vec<f32>,
     /// `self_attn.q_proj`: hidden -> heads*head_dim.
-    pub q_proj: LinearWeights,
+    pub q_proj: LinearWeights<W>,
     /// `self_attn.k_proj`: hidden -> kv (self) or VLM kv -> kv (cross).
-    pub k_proj: LinearWeights,
+    pub k_proj: LinearWeights<W>,
     /// `self_attn.v_proj`, like `k_proj`.
-    pub v_proj: LinearWeights,
+    pub v_proj: LinearWeights<W>,
     /// `self_attn.o_proj`: heads*head_dim -> hidden.
-    pub o_proj: LinearWeights,
+    pub o_proj: LinearWeights<W>,
     /// `mlp.gate_proj`: hidden -> intermediate.
-    pub gate_proj: LinearWeights,
+    pub gate_proj: LinearWeights<W>,
     /// `mlp.up_proj`: hidden -> intermediate.
-    pub up_proj: LinearWeights,
+    pub up_proj: LinearWeights<W>,
     /// `mlp.down_proj`: intermediate -> hidden.
-    pub down_proj: LinearWeights,
+    pub down_proj: LinearWeights<W>,
 }
 
 /// Shapes of one Llama decoder layer.
@@ -104,7 +172,7 @@ pub(crate) struct LlamaShape {
     pub intermediate: usize,
 }
 
-impl LayerWeights {
+impl<W: WeightData> LayerWeights<W> {
     /// Read one Llama decoder layer under `p` (`{p}.input_layernorm.weight`, `{p}.self_attn.*`,
     /// `{p}.mlp.*`): the expert's layers and the VLM's text layers have the same tensors.
     pub(crate) fn load_llama(
@@ -136,7 +204,9 @@ impl LayerWeights {
             down_proj: lin("mlp.down_proj", h, i)?,
         })
     }
+}
 
+impl LayerWeights {
     /// Seeded random layer of the given shape (norm weights near 1).
     pub(crate) fn random_llama(seed: u64, kind: LayerKind, s: LlamaShape) -> Self {
         let mut k = seed.wrapping_mul(16);
@@ -161,6 +231,22 @@ impl LayerWeights {
             gate_proj: LinearWeights::random(next(), s.intermediate, s.hidden, false),
             up_proj: LinearWeights::random(next(), s.intermediate, s.hidden, false),
             down_proj: LinearWeights::random(next(), s.hidden, s.intermediate, false),
+        }
+    }
+
+    /// The same layer with its matrices held as [`StoredTensor`]s (`f32`).
+    pub fn into_stored(self) -> LayerWeights<StoredTensor> {
+        LayerWeights {
+            kind: self.kind,
+            input_norm: self.input_norm,
+            post_norm: self.post_norm,
+            q_proj: self.q_proj.into_stored(),
+            k_proj: self.k_proj.into_stored(),
+            v_proj: self.v_proj.into_stored(),
+            o_proj: self.o_proj.into_stored(),
+            gate_proj: self.gate_proj.into_stored(),
+            up_proj: self.up_proj.into_stored(),
+            down_proj: self.down_proj.into_stored(),
         }
     }
 }
@@ -387,4 +473,119 @@ pub fn time_embedding(t: f32, dim: usize, min_period: f64, max_period: f64) -> V
     }
     sin.extend(cos);
     sin
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kernels::gemm::gemm;
+    use crate::kernels::{Init, Isa};
+
+    /// `A · B` for an `m x k` `A`.
+    fn product(p: &PackedMatrix, a: &[f32], m: usize) -> Vec<f32> {
+        let mut c = vec![f32::NAN; m * p.n()];
+        gemm(Isa::detect(), a, p.k(), m, p, &mut c, p.n(), Init::Zero);
+        c
+    }
+
+    /// The packed matrix's values, `B[kk][j]`, as `I_k · B` (exact in both precisions: every
+    /// product is a value times 1 or 0).
+    fn unpack(p: &PackedMatrix) -> Vec<f32> {
+        let k = p.k();
+        let mut eye = vec![0.0f32; k * k];
+        for i in 0..k {
+            eye[i * k + i] = 1.0;
+        }
+        product(p, &eye, k)
+    }
+
+    fn bits(len: usize, seed: u64) -> Vec<u16> {
+        crate::sampler::gaussian_noise(seed, 0, len)
+            .into_iter()
+            .map(|v| half::bf16::from_f32(v).to_bits())
+            .collect()
+    }
+
+    /// Packing bf16 bits straight from a stored tensor gives exactly the panels of packing the
+    /// widened `f32` weight (the old path), in f32 and bf16 panels, for odd shapes, a depth that
+    /// spans two cache blocks, and stacked layers of mixed dtypes.
+    #[test]
+    fn packing_from_bf16_bits_equals_packing_the_widened_f32() {
+        for &(n, k) in &[(1, 1), (21, 37), (33, 259), (17, 128)] {
+            let w = bits(n * k, n as u64 * 1000 + k as u64);
+            let widened: Vec<f32> = w.iter().map(|&b| crate::weights::bf16_to_f32(b)).collect();
+            let stored = LinearWeights {
+                weight: StoredTensor::Bf16(w),
+                bias: None,
+                out_dim: n,
+                in_dim: k,
+            };
+            let a = crate::sampler::gaussian_noise(7, 0, 5 * k);
+            for precision in [Precision::F32, Precision::Bf16] {
+                let ours = LinearWeights::pack_stacked(precision, &[&stored]);
+                let old = PackedMatrix::from_linear_weight_in(precision, &widened, n, k);
+                assert_eq!((ours.n(), ours.k(), ours.precision()), (n, k, precision));
+                let values = unpack(&ours);
+                assert_eq!(values, unpack(&old), "{n}x{k} {precision:?}");
+                // ...and they are the file's values: B[kk][j] = w[j][kk].
+                for kk in 0..k {
+                    for j in 0..n {
+                        assert_eq!(values[kk * n + j], widened[j * k + kk]);
+                    }
+                }
+                assert_eq!(product(&ours, &a, 5), product(&old, &a, 5));
+            }
+        }
+        // q (bf16), k (f32) and v (bf16) stacked, odd widths.
+        let k = 45;
+        let q = bits(7 * k, 1);
+        let kf = crate::sampler::gaussian_noise(2, 0, 3 * k);
+        let v = bits(5 * k, 3);
+        let lin = |weight: StoredTensor, n: usize| LinearWeights {
+            weight,
+            bias: None,
+            out_dim: n,
+            in_dim: k,
+        };
+        let parts = [
+            lin(StoredTensor::Bf16(q.clone()), 7),
+            lin(StoredTensor::F32(kf.clone()), 3),
+            lin(StoredTensor::Bf16(v.clone()), 5),
+        ];
+        let widen =
+            |b: &[u16]| -> Vec<f32> { b.iter().map(|&x| crate::weights::bf16_to_f32(x)).collect() };
+        let (qw, vw) = (widen(&q), widen(&v));
+        for precision in [Precision::F32, Precision::Bf16] {
+            let ours = LinearWeights::pack_stacked(precision, &[&parts[0], &parts[1], &parts[2]]);
+            let old =
+                PackedMatrix::from_linear_weights_in(precision, &[(&qw, 7), (&kf, 3), (&vw, 5)], k);
+            assert_eq!(unpack(&ours), unpack(&old), "stacked {precision:?}");
+        }
+    }
+
+    /// `into_linear` keeps the bias and packs like `Linear::new` on the widened weight.
+    #[test]
+    fn into_linear_matches_linear_new_on_the_widened_weight() {
+        let (n, k) = (19, 31);
+        let w = bits(n * k, 9);
+        let bias = Some(crate::sampler::gaussian_noise(10, 0, n));
+        let f32_weights = LinearWeights {
+            weight: w.iter().map(|&b| crate::weights::bf16_to_f32(b)).collect(),
+            bias: bias.clone(),
+            out_dim: n,
+            in_dim: k,
+        };
+        let stored = LinearWeights {
+            weight: StoredTensor::Bf16(w),
+            bias,
+            out_dim: n,
+            in_dim: k,
+        };
+        for precision in [Precision::F32, Precision::Bf16] {
+            let old = Linear::new(&f32_weights, precision);
+            let ours = stored.clone().into_linear(precision);
+            assert_eq!(ours.bias, old.bias);
+            assert_eq!(unpack(&ours.w), unpack(&old.w), "{precision:?}");
+        }
+    }
 }

@@ -10,6 +10,7 @@ mod models;
 mod smolvla_bf16;
 mod smolvla_fixture;
 mod smolvla_goldens;
+mod smolvla_loading;
 mod smolvla_parity;
 mod smolvla_processors;
 mod smolvla_vlm;

@@ -22,7 +22,8 @@ use crate::smolvla_processors::{max_abs_diff, observations};
 /// Largest `|bf16 - LeRobot f32| / max |action|` accepted on the fixture's final actions.
 const BF16_BOUND: f32 = 0.02;
 
-fn options(precision: Precision) -> EngineOptions {
+/// The fast CPU kernels on 2 threads, in `precision`.
+pub(crate) fn options(precision: Precision) -> EngineOptions {
     EngineOptions {
         kernels: Kernels::Fast,
         threads: 2,
