@@ -166,10 +166,10 @@ impl HorizonPolicy for ContactAware {
             ));
         }
         let mut prefix = first_contact(&input.chunk, config.slow).saturating_sub(config.margin);
-        if let Some(release) = config.release {
-            if planned_releases(&input.chunk, release) >= config.quorum {
-                prefix = prefix.max(release);
-            }
+        if let Some(release) = config.release
+            && planned_releases(&input.chunk, release) >= config.quorum
+        {
+            prefix = prefix.max(release);
         }
         clamp_with_cap(prefix, config.h_min, config.h_max, input)
     }

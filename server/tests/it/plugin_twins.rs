@@ -435,7 +435,7 @@ fn contact_release_inputs(seed: u64, count: usize) -> Vec<(HorizonCase, PolicyPa
             let (samples, _, n, d) = dims;
             let mut case = horizon_case(
                 &mut rng,
-                &format!("release case {i}"),
+                format!("release case {i}"),
                 "random",
                 dims,
                 UpdateShape::Realistic,
