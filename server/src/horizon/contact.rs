@@ -16,8 +16,9 @@
 //! release keeps being postponed while the object may slip (`docs/EVALUATION.md`, "A second
 //! task"). With parameter `release` = `R`, when enough of the `S` samples drawn for the
 //! observation (`quorum` of them) agree that the plan holds the object now and opens the
-//! gripper within the next `R` actions, the rule executes `R` actions: through the release. A
-//! single sample is a noisy reading of the plan (the model's chunks at a grasp also open and
+//! gripper at one of its actions 1..=`R` (0-based), the rule executes `R` actions: through the
+//! release, or up to it when it is action `R` itself (then the next plan starts at the release).
+//! A single sample is a noisy reading of the plan (the model's chunks at a grasp also open and
 //! close again at times); several samples that agree are not.
 //!
 //! Exact semantics (a plugin twin must reproduce them bit for bit), over the final actions
