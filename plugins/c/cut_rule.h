@@ -2,7 +2,9 @@
  * Steps 3-4 of the "cut before an event" horizon rules (server/src/horizon/steady.rs and
  * contact.rs, `clamp_with_cap`), with their parameter checks: shared by steady.c and contact.c.
  * A rule supplies its event (the first action of the chunk that changes course, or plans a
- * contact) and its real parameter; this cuts `margin` actions before the event and clamps to
+ * contact), its real parameter and optionally a floor on the prefix with its own parameters
+ * (contact's `release`); this cuts `margin` actions before the event, raises the result to the
+ * floor and clamps to
  * [max(context h-min, param h_min), min(context h-max, N, param h_max)] (a param h_max below
  * h_min is raised to it). Include after the world's generated header and kairos_policy.h.
  */
@@ -18,6 +20,11 @@ typedef struct {
     const char *const *known;   /* every parameter name, NULL-terminated */
     const char *unknown;        /* the error reason for an unknown name */
     uint32_t (*event)(const exports_kairos_policy_horizon_chunk_t *c, double real);
+    /* Optional (NULL: none): checks the rule's own parameters, after the shared ones, and sets
+     * *lower, a lower bound on the prefix (0: none); false after setting *err. */
+    bool (*floor)(const exports_kairos_policy_horizon_chunk_t *c,
+                  const exports_kairos_policy_horizon_list_param_t *params, uint32_t *lower,
+                  horizon_error_t *err);
 } cut_rule_t;
 
 static void param_error(horizon_error_t *err, const kairos_policy_types_param_t *p, const char *reason) {
@@ -70,9 +77,10 @@ static bool cut_decide(const cut_rule_t *rule, exports_kairos_policy_horizon_chu
         }
         real = p->value;
     }
-    uint32_t extra_min, cap;
+    uint32_t extra_min, cap, lower = 0;
     if (!count_param(params, "h_min", &extra_min, err)) return false;
     if (!count_param(params, "h_max", &cap, err)) return false;
+    if (rule->floor && !rule->floor(chunk, params, &lower, err)) return false;
     uint32_t h_max = ctx->h_max;
     if (cap != 0) {
         uint32_t floor = ctx->h_min > extra_min ? ctx->h_min : extra_min;
@@ -89,6 +97,7 @@ static bool cut_decide(const cut_rule_t *rule, exports_kairos_policy_horizon_chu
     if (h_min > h_max) h_min = h_max;
     uint32_t event = rule->event(chunk, real);
     uint32_t h = event > margin ? event - margin : 0;
+    if (h < lower) h = lower;
     if (h < h_min) h = h_min;
     if (h > h_max) h = h_max;
     *ret = h;

@@ -36,7 +36,7 @@ static uint32_t first_change(const exports_kairos_policy_horizon_chunk_t *c, dou
 }
 
 static const char *const KNOWN[] = {"delta", "h_max", "h_min", "margin", NULL};
-static const cut_rule_t RULE = {"delta", DEFAULT_DELTA, DEFAULT_MARGIN, KNOWN, "unknown parameter (expected one of: delta, margin, h_min, h_max)", first_change};
+static const cut_rule_t RULE = {"delta", DEFAULT_DELTA, DEFAULT_MARGIN, KNOWN, "unknown parameter (expected one of: delta, margin, h_min, h_max)", first_change, NULL};
 
 bool exports_kairos_policy_horizon_choose(exports_kairos_policy_horizon_chunk_t *chunk,
                                           exports_kairos_policy_horizon_horizon_context_t *ctx,

@@ -12,7 +12,8 @@
 //! - [`steady`]: execute while the chunk's actions stay steady, cut before the chunk changes
 //!   course (the closed-loop bench's best trade-off, `docs/eval/horizon/`).
 //! - [`contact`]: execute through transit, cut before the chunk's planned contact (slows down
-//!   or switches the gripper; the contact task's policy, `docs/eval/horizon-contact/`);
+//!   or switches the gripper), but run through a release that several samples agree on (the
+//!   contact task's policy, `docs/eval/horizon-contact/`);
 //! - [`load_aware`]: the threshold rule, lengthened by the server's backlog (reads
 //!   [`HorizonInput::load`]).
 //!
@@ -193,7 +194,7 @@ pub const NATIVE_POLICIES: &[Native<HorizonKind>] = &[
     },
     Native {
         name: "contact",
-        summary: "execute until the chunk plans a contact (speed of the velocity dims < slow, or the last dim, the gripper, switches sign), cut margin actions before; params slow (0.5), margin (1), h_min, h_max",
+        summary: "execute until the chunk plans a contact (speed of the velocity dims < slow, or the last dim, the gripper, switches sign), cut margin actions before, but execute release actions when quorum samples plan to open the held gripper within them; params slow (0.5), margin (1), h_min, h_max, release, quorum (1)",
         build: build_contact,
     },
     Native {

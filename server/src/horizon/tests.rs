@@ -489,3 +489,81 @@ fn contact_cuts_margin_actions_before_the_plan_slows_or_switches_the_gripper() {
         ("h_max", 8.0)
     ]));
 }
+
+/// `samples` samples of a placement: slow (0.3) and holding from action 0, and sample `s`
+/// opening the gripper at `opens[s]` (`None`: it keeps holding).
+fn placement_chunk(n: usize, opens: &[Option<usize>]) -> Chunk {
+    let mut c = Chunk::zeros(opens.len(), 1, n, 3);
+    for (s, open) in opens.iter().enumerate() {
+        for i in 0..n {
+            let gripper = if open.is_some_and(|o| i >= o) {
+                -1.0
+            } else {
+                1.0
+            };
+            c.set_action(s, i, &[0.18, -0.24, gripper]);
+        }
+    }
+    c
+}
+
+#[test]
+fn contact_executes_through_a_release_the_samples_agree_on() {
+    // Three of four samples release at action 3, one keeps holding.
+    let mut c = placement_chunk(12, &[Some(3), Some(3), Some(3), None]);
+    let v = c.view();
+    assert_eq!(contact::first_contact(&v, 0.5), 0, "slow from action 0");
+    assert_eq!(contact::planned_releases(&v, 4), 3);
+    assert_eq!(
+        contact::planned_releases(&v, 3),
+        3,
+        "the window includes action R"
+    );
+    assert_eq!(
+        contact::planned_releases(&v, 2),
+        0,
+        "the release is outside the window"
+    );
+    assert_eq!(
+        choose("contact", &[], &c, 1, 12),
+        Ok(1),
+        "release off: h_min"
+    );
+    let with = |release: f64, quorum: f64| {
+        choose(
+            "contact",
+            &[("release", release), ("quorum", quorum)],
+            &c,
+            1,
+            12,
+        )
+    };
+    assert_eq!(with(4.0, 3.0), Ok(4), "through the release");
+    assert_eq!(with(4.0, 4.0), Ok(1), "not enough samples agree");
+    assert_eq!(with(2.0, 1.0), Ok(1), "no release within 2 actions");
+    // The default quorum is one sample; the robot's and the param's caps still apply.
+    assert_eq!(choose("contact", &[("release", 5.0)], &c, 1, 12), Ok(5));
+    assert_eq!(choose("contact", &[("release", 5.0)], &c, 1, 3), Ok(3));
+    assert_eq!(
+        choose("contact", &[("release", 5.0), ("h_max", 2.0)], &c, 1, 12),
+        Ok(2)
+    );
+    // A release never shortens what the cut rule already executes (a fast chunk: 11).
+    let transit = approach_chunk(12, 12, 12, 0.3);
+    assert_eq!(
+        choose("contact", &[("release", 4.0)], &transit, 1, 12),
+        Ok(11)
+    );
+    // A sample that is open at action 0 is not holding: it plans no release; a NaN gripper
+    // command counts as open.
+    c.set_action(0, 0, &[0.18, -0.24, -1.0]);
+    assert_eq!(contact::planned_releases(&c.view(), 4), 2);
+    c.set_action(3, 2, &[0.18, -0.24, f32::NAN]);
+    assert_eq!(contact::planned_releases(&c.view(), 4), 3);
+    // Parameters are checked.
+    let bad = |p: &[(&str, f64)]| builtin("contact", &params(p)).is_err();
+    assert!(bad(&[("release", 0.0)]));
+    assert!(bad(&[("release", 2.5)]));
+    assert!(bad(&[("release", 4.0), ("quorum", 0.0)]));
+    assert!(!bad(&[("release", 4.0), ("quorum", 6.0)]));
+}

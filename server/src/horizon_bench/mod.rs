@@ -149,15 +149,21 @@ pub const CONTACT_GRID: [(f64, f64, f64); 4] = [
     (0.7, 1.0, 2.0),
 ];
 
+/// `contact` settings `(slow, margin)` that execute through a release 8 samples agree on
+/// (`release` [`CONTACT_RELEASE`], `quorum` [`CONTACT_QUORUM`]), in the contact task's full grid.
+/// Chosen on held-out seeds (10001..10200, 20001..20200, 30001..30200).
+pub const CONTACT_RELEASE_GRID: [(f64, f64); 2] = [(0.8, 0.0), (0.7, 1.0)];
+/// Actions executed through a planned release in [`CONTACT_RELEASE_GRID`].
+pub const CONTACT_RELEASE: f64 = 4.0;
+/// Samples drawn per request in [`CONTACT_RELEASE_GRID`], and how many must plan the release.
+pub const CONTACT_SAMPLES: (usize, f64) = (8, 6.0);
+
 /// The contact-aware policy's points, run on the contact task beside [`builtin_points`]
-/// (`quick`: the first setting).
+/// (`quick`: the first setting of each grid).
 pub fn contact_points(quick: bool) -> Vec<PolicyPoint> {
-    let grid = if quick {
-        &CONTACT_GRID[..1]
-    } else {
-        &CONTACT_GRID[..]
-    };
-    grid.iter()
+    let take = |len: usize| if quick { 1 } else { len };
+    let mut points: Vec<PolicyPoint> = CONTACT_GRID[..take(CONTACT_GRID.len())]
+        .iter()
         .map(|&(slow, margin, floor)| {
             let mut p = PolicyPoint::new("contact", &[("slow", slow), ("margin", margin)]);
             if floor > 0.0 {
@@ -165,7 +171,26 @@ pub fn contact_points(quick: bool) -> Vec<PolicyPoint> {
             }
             p
         })
-        .collect()
+        .collect();
+    let (samples, quorum) = CONTACT_SAMPLES;
+    points.extend(
+        CONTACT_RELEASE_GRID[..take(CONTACT_RELEASE_GRID.len())]
+            .iter()
+            .map(|&(slow, margin)| PolicyPoint {
+                family: format!("contact S={samples}"),
+                samples,
+                ..PolicyPoint::new(
+                    "contact",
+                    &[
+                        ("slow", slow),
+                        ("margin", margin),
+                        ("release", CONTACT_RELEASE),
+                        ("quorum", quorum),
+                    ],
+                )
+            }),
+    );
+    points
 }
 
 /// The built-in policies of a run: static H over a grid, the §3.1 threshold rule at several

@@ -216,16 +216,22 @@ fn the_contact_task_runs_quick_with_its_own_model_and_refuses_the_other_tasks() 
     );
     assert!(stdout.contains("--task contact --quick"), "{stdout}");
     let csv = std::fs::read_to_string(out.path().join("pareto.csv")).unwrap();
-    // --quick's built-in rows and the contact-aware rule, all on the contact model.
+    // --quick's built-in rows and the contact-aware rule (alone, and through releases 8
+    // samples agree on), all on the contact model.
     let rows: Vec<Vec<&str>> = csv
         .lines()
         .skip(1)
         .map(|l| l.split(',').collect())
         .collect();
-    assert_eq!(rows.len(), 8, "{csv}");
+    assert_eq!(rows.len(), 9, "{csv}");
     assert!(
         rows.iter()
             .any(|r| r[0] == "contact" && r[1] == "margin=1;slow=0.7"),
+        "{csv}"
+    );
+    assert!(
+        rows.iter()
+            .any(|r| r[0] == "contact S=8" && r[1] == "margin=0;quorum=6;release=4;slow=0.8"),
         "{csv}"
     );
     // A model trained on the uniform task is refused for the contact task.

@@ -417,13 +417,99 @@ fn contact_inputs(seed: u64, count: usize) -> Vec<(HorizonCase, PolicyParams)> {
         .collect()
 }
 
+/// Multi-sample chunks for `contact`'s step 4 (execute through a release the samples agree on):
+/// `S` = 1..=8 samples whose gripper (the last dimension) is closed or open at action 0 and
+/// opens, or not, at a random action — now and then exactly 0 or NaN — with speeds around
+/// `slow`; parameters `release` and `quorum` around the chunk's and the samples' counts, or one
+/// of them invalid.
+fn contact_release_inputs(seed: u64, count: usize) -> Vec<(HorizonCase, PolicyParams)> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    (0..count)
+        .map(|i| {
+            let dims = (
+                rng.random_range(1..=8),
+                rng.random_range(1..=3),
+                rng.random_range(1..=16),
+                rng.random_range(1..=4),
+            );
+            let (samples, _, n, d) = dims;
+            let mut case = horizon_case(
+                &mut rng,
+                format!("release case {i}"),
+                "random",
+                dims,
+                UpdateShape::Realistic,
+            );
+            let slow: f64 = rng.random_range(0.0..1.0);
+            for s in 0..samples {
+                let closed = rng.random_bool(0.7);
+                let opens = rng.random_range(1..=n + 2);
+                for action in 0..n {
+                    let row = &mut case.actions[(s * n + action) * d..(s * n + action + 1) * d];
+                    let speed = slow * rng.random_range(0.2..1.5);
+                    for x in row[..d - 1].iter_mut() {
+                        *x = speed as f32;
+                    }
+                    row[d - 1] = match rng.random_range(0..40) {
+                        0 => 0.0,
+                        1 => f32::NAN,
+                        _ if closed && action < opens => 1.0,
+                        _ => -1.0,
+                    };
+                }
+            }
+            let mut params = PolicyParams::new();
+            params.insert("slow".into(), slow);
+            params.insert("margin".into(), rng.random_range(0..=2) as f64);
+            match rng.random_range(0..10) {
+                0 => {
+                    params.insert("release".into(), 0.0);
+                }
+                1 => {
+                    params.insert("release".into(), 2.0);
+                    params.insert("quorum".into(), 1.5);
+                }
+                2 => {
+                    params.insert("quorum".into(), 2.0);
+                }
+                _ => {
+                    params.insert("release".into(), rng.random_range(1..=n + 2) as f64);
+                    if rng.random_bool(0.8) {
+                        params.insert("quorum".into(), rng.random_range(1..=samples + 1) as f64);
+                    }
+                    if rng.random_bool(0.3) {
+                        params.insert("h_max".into(), rng.random_range(1..=n + 2) as f64);
+                    }
+                }
+            }
+            if rng.random_bool(0.7) {
+                case.bounds = (1, n);
+            }
+            (case, params)
+        })
+        .collect()
+}
+
 #[test]
 fn contact_plugin_matches_its_native_twin() {
-    assert_twins(
-        "contact",
-        &mut ContactAware::default(),
-        contact_inputs(23, 600),
-    );
+    let release = contact_release_inputs(29, 600);
+    // Step 4 decides often enough that a twin ignoring it would fail: the answer with
+    // `release` differs from the one without in many cases.
+    let raised = release
+        .iter()
+        .filter(|(case, params)| {
+            let mut without = params.clone();
+            without.remove("release");
+            without.remove("quorum");
+            let mut native = ContactAware::default();
+            let with = native.choose(&case.input(params));
+            with.is_ok() && with != native.choose(&case.input(&without))
+        })
+        .count();
+    assert!(raised > 50, "the release raised only {raised} answers");
+    let mut inputs = contact_inputs(23, 600);
+    inputs.extend(release);
+    assert_twins("contact", &mut ContactAware::default(), inputs);
 }
 
 /// Pending lists with many ties: arrival times, waits and executions drawn from small sets, so
