@@ -58,6 +58,8 @@ static bool release_floor(const exports_kairos_policy_horizon_chunk_t *c,
     if (release == 0) return true;
     if (quorum == 0) quorum = DEFAULT_QUORUM;
     uint32_t n_len = c->chunk_len, d = c->action_dim;
+    /* An empty chunk plans nothing (and the host refuses it after this, as the native does). */
+    if (n_len == 0 || d == 0) return true;
     uint32_t last = release < n_len - 1 ? release : n_len - 1;
     uint32_t votes = 0;
     for (uint32_t s = 0; s < c->samples; s++) {

@@ -60,7 +60,7 @@ fn color(key: &str, fallback: usize) -> RGBColor {
         "cloud" | "intra-fifo" => RGBColor(214, 39, 40),
         _ => {
             // Series 0–3 of most plots take the named colours above, so from index 4 on the
-            // fallbacks differ from them and from each other.
+            // fallbacks differ from them and from each other (all ten entries are distinct).
             const PALETTE: [RGBColor; 10] = [
                 RGBColor(23, 190, 207),
                 RGBColor(188, 189, 34),
@@ -69,9 +69,9 @@ fn color(key: &str, fallback: usize) -> RGBColor {
                 RGBColor(214, 39, 40),
                 RGBColor(148, 103, 189),
                 RGBColor(0, 0, 0),
-                RGBColor(227, 119, 194),
-                RGBColor(23, 190, 207),
-                RGBColor(188, 189, 34),
+                RGBColor(255, 152, 150),
+                RGBColor(0, 128, 128),
+                RGBColor(255, 187, 120),
             ];
             PALETTE[fallback % PALETTE.len()]
         }

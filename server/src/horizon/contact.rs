@@ -140,6 +140,10 @@ pub fn first_contact(chunk: &ChunkView<'_>, slow: f64) -> usize {
 /// `> 0`) and open the gripper within actions `1..=min(within, N − 1)`.
 pub fn planned_releases(chunk: &ChunkView<'_>, within: usize) -> usize {
     let d = chunk.action_dim;
+    if d == 0 {
+        // No gripper dimension: nothing can be released.
+        return 0;
+    }
     let last = within.min(chunk.chunk_len.saturating_sub(1));
     (0..chunk.samples)
         .filter(|&s| {
