@@ -559,7 +559,9 @@ pub fn pareto(
             })
             .collect(),
         y_range: Some((0.0, 1.0)),
-        legend: SeriesLabelPosition::LowerLeft,
+        // Success falls as the horizon grows, so the upper right (long horizons at high
+        // success, where no policy gets) is the one corner that no family's points reach.
+        legend: SeriesLabelPosition::UpperRight,
     };
     render(out, name, &[panel])?;
     Ok(out.join(format!("{name}.png")))
