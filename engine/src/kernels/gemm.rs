@@ -31,8 +31,20 @@ use super::{AlignedBuf, Isa, Pool, Precision, SharedMut};
 pub const NR: usize = 16;
 /// Rows per micro-kernel tile.
 pub const MR: usize = 6;
-/// Depth of one cache block.
+/// Depth of one cache block in f32 (`KC` rows of a 64-byte panel row: 8 KiB).
 const KC: usize = 128;
+/// Depth of one cache block in bf16: `KC_BF16 / 2` pair rows (8 KiB of panel, as in f32), so
+/// that a micro-kernel call runs as many `vdpbf16ps` steps per load and store of its `C` tile as
+/// the f32 kernel runs FMAs. Even, so a pair never straddles two blocks.
+const KC_BF16: usize = 256;
+
+/// The depth of one cache block of a matrix stored in `precision`.
+fn kc_of(precision: Precision) -> usize {
+    match precision {
+        Precision::F32 => KC,
+        Precision::Bf16 => KC_BF16,
+    }
+}
 /// Rows of `A` per cache block (a multiple of `MR`).
 const MC: usize = 120;
 
@@ -111,6 +123,15 @@ impl PackedMatrix {
         Self::from_linear_weight_in(precision, &stacked, n, k)
     }
 
+    /// An empty matrix that [`Self::pack_rows`] and [`Self::pack_transposed`] fill in
+    /// `precision` (e.g. attention keys and values packed per request).
+    pub fn empty_in(precision: Precision) -> Self {
+        PackedMatrix {
+            precision,
+            ..PackedMatrix::default()
+        }
+    }
+
     /// How the values are stored.
     pub fn precision(&self) -> Precision {
         self.precision
@@ -171,7 +192,7 @@ impl PackedMatrix {
                         row[width..].fill(0.0);
                     }
                 }
-                // bf16 rows are pairs of `k`; blocks start at multiples of the even `KC`, so a
+                // bf16 rows are pairs of `k`; blocks start at multiples of the even `KC_BF16`, so a
                 // pair never straddles two blocks.
                 Precision::Bf16 => {
                     for kk in (0..k).step_by(2) {
@@ -200,10 +221,11 @@ impl PackedMatrix {
 /// kernels' (block, panel) order reads memory sequentially and the hardware prefetcher streams
 /// the weights.
 fn offset(precision: Precision, k: usize, panels: usize, p: usize, kk: usize) -> usize {
-    let block = kk / KC;
-    let kc = KC.min(k - block * KC);
+    let kcb = kc_of(precision);
+    let block = kk / kcb;
+    let kc = kcb.min(k - block * kcb);
     let d = |rows| depth(precision, rows);
-    block * d(KC) * panels * NR + p * d(kc) * NR + d(kk - block * KC) * NR
+    block * d(kcb) * panels * NR + p * d(kc) * NR + d(kk - block * kcb) * NR
 }
 
 /// What `C` starts from.
@@ -316,7 +338,7 @@ fn pack_a_blocks<'a>(
     let len = m.div_ceil(MR) * MR * depth(precision, k);
     buf.ensure(len);
     let out = &mut buf.as_mut_slice()[..len];
-    for unit in 0..m.div_ceil(MC) * k.div_ceil(KC) {
+    for unit in 0..m.div_ceil(MC) * k.div_ceil(kc_of(precision)) {
         let (start, size) = a_unit(precision, m, k, unit);
         pack_a_unit(precision, a, lda, m, k, unit, &mut out[start..start + size]);
     }
@@ -338,7 +360,7 @@ fn pack_a_blocks_par<'a>(
     k: usize,
     buf: &'a mut AlignedBuf,
 ) -> &'a [f32] {
-    let units = m.div_ceil(MC) * k.div_ceil(KC);
+    let units = m.div_ceil(MC) * k.div_ceil(kc_of(precision));
     if m * k < PAR_PACK_MIN || units == 1 || pool.threads() == 1 {
         return pack_a_blocks(precision, a, lda, m, k, buf);
     }
@@ -361,9 +383,10 @@ fn pack_a_blocks_par<'a>(
 /// Where packing unit `unit` (block `(m0, k0)`, `k`-blocks fastest) starts in packed `A`, and
 /// how many values it takes.
 fn a_unit(precision: Precision, m: usize, k: usize, unit: usize) -> (usize, usize) {
-    let kblocks = k.div_ceil(KC);
-    let (m0, k0) = ((unit / kblocks) * MC, (unit % kblocks) * KC);
-    let kc = KC.min(k - k0);
+    let kcb = kc_of(precision);
+    let kblocks = k.div_ceil(kcb);
+    let (m0, k0) = ((unit / kblocks) * MC, (unit % kblocks) * kcb);
+    let kc = kcb.min(k - k0);
     (
         a_block(precision, k, m, m0, k0),
         padded_rows(m, m0) * depth(precision, kc),
@@ -380,9 +403,10 @@ fn pack_a_unit(
     unit: usize,
     dst: &mut [f32],
 ) {
-    let kblocks = k.div_ceil(KC);
-    let (m0, k0) = ((unit / kblocks) * MC, (unit % kblocks) * KC);
-    let (mb, kc) = (MC.min(m - m0), KC.min(k - k0));
+    let kcb = kc_of(precision);
+    let kblocks = k.div_ceil(kcb);
+    let (m0, k0) = ((unit / kblocks) * MC, (unit % kblocks) * kcb);
+    let (mb, kc) = (MC.min(m - m0), kcb.min(k - k0));
     let src = &a[m0 * lda + k0..];
     match precision {
         Precision::F32 => pack_a(src, lda, mb, kc, dst),
@@ -443,7 +467,7 @@ unsafe fn gemm_packed(
         let tiles = mb.div_ceil(MR);
         let mut k0 = 0;
         while k0 < k {
-            let kc = KC.min(k - k0);
+            let kc = kc_of(b.precision).min(k - k0);
             let load = k0 > 0 || !matches!(init, Init::Zero);
             let block = &packed[a_block(b.precision, k, m, m0, k0)..];
             for p in panels.clone() {
@@ -547,9 +571,9 @@ fn pack_a(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
 /// rounded into a buffer of pairs first (16 values per instruction with AVX-512F), then
 /// scattered into its tile.
 fn pack_a_bf16(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
-    debug_assert!(kc <= KC);
+    debug_assert!(kc <= KC_BF16);
     let kp = kc.div_ceil(2);
-    let mut pairs = [0u32; KC / 2];
+    let mut pairs = [0u32; KC_BF16 / 2];
     for t in 0..rows.div_ceil(MR) {
         let tile = &mut out[t * kp * MR..(t + 1) * kp * MR];
         for r in 0..MR {

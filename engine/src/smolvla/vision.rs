@@ -56,6 +56,9 @@ pub(crate) struct CpuVision {
     layers: Vec<VisionLayer>,
     post: NormWeights,
     connector: PackedMatrix,
+    /// The precision of the weight GEMMs, also used for attention's `q kᵀ` and `p v` GEMMs
+    /// (keys and values packed in it per request).
+    precision: Precision,
 }
 
 impl CpuVision {
@@ -103,6 +106,7 @@ impl CpuVision {
                 w.connector.out_dim,
                 w.connector.in_dim,
             ),
+            precision,
         }
     }
 
@@ -327,7 +331,10 @@ impl CpuVision {
         let isa = pool.isa();
         pool.run(parts, |part| {
             let (mut q, mut scores, mut tmp) = (Vec::new(), Vec::new(), Vec::new());
-            let (mut kt, mut vv) = (PackedMatrix::default(), PackedMatrix::default());
+            let (mut kt, mut vv) = (
+                PackedMatrix::empty_in(self.precision),
+                PackedMatrix::empty_in(self.precision),
+            );
             for task in tasks * part / parts..tasks * (part + 1) / parts {
                 let (img, head) = (task / heads, task % heads);
                 let (n, start) = (counts[img], starts[img]);
