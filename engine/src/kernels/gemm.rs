@@ -4,8 +4,9 @@
 //! right operand cut into panels of [`NR`] columns, each stored as rows of `NR` contiguous
 //! floats (64 bytes: one cache line), in blocks of `KC` rows (see [`offset`]). The micro-kernel keeps an `MR x NR` block of `C` in 12
 //! AVX2 registers and streams one panel row (two vector loads) and `MR` broadcasts of `A` per
-//! step of `k`: 12 FMAs per 8 loads. Blocking: `KC` rows of a panel (16 KiB) stay in L1 while all
-//! row tiles of an `MC`-row block of `A` (in L2) pass over them.
+//! step of `k`: 12 FMAs per 8 loads. Blocking: `KC` rows of a panel (8 KiB) stay in L1 while all
+//! row tiles of an `MC`-row block of `A` (in L2) pass over them. [`gemm_par`] packs `A` on the
+//! pool's threads, one `MC x KC` block per unit.
 //!
 //! On CPUs with AVX-512F the same tile is `MR` 512-bit accumulators (one per row; a panel row
 //! is one vector), with `A` broadcast from memory inside each FMA: fewer instructions per FLOP,
@@ -17,10 +18,12 @@
 //! `(A[r][2i], A[r][2i+1])`. The AVX512_BF16 kernel multiplies a pair by a pair and adds both
 //! products to an f32 accumulator in one `vdpbf16ps`; a portable kernel does the same in scalar
 //! code on other CPUs. The products of two bf16 values are exact in f32, so the error is the
-//! rounding of the operands (relative 2^-9 each) plus f32 accumulation.
+//! rounding of the operands (relative 2^-9 each) plus f32 accumulation. A bf16 block is
+//! `KC_BF16 = 2 KC` values of `k` deep (the same 8 KiB of panel), so a micro-kernel call runs as
+//! many `vdpbf16ps` per load and store of its `C` tile as the f32 kernel runs FMAs.
 //!
 //! Every element of `C` accumulates its `k` products in increasing `k` order, one FMA each, in
-//! `KC`-sized blocks. That order depends on neither `m`, the row tile an element falls in, nor
+//! `KC`-sized blocks (`KC_BF16` in bf16). That order depends on neither `m`, the row tile an element falls in, nor
 //! the thread split, so results do not depend on the batch size.
 
 use std::ops::Range;
@@ -198,9 +201,16 @@ impl PackedMatrix {
                     for kk in (0..k).step_by(2) {
                         let start = offset(precision, k, panels, p, kk);
                         let row = &mut dst[start..start + NR];
-                        for (j, v) in row[..width].iter_mut().enumerate() {
-                            let hi = if kk + 1 < k { at(kk + 1, c0 + j) } else { 0.0 };
-                            *v = bf16_pair(at(kk, c0 + j), hi);
+                        // A ragged `k` pairs its last row with zeros; decided per row, so the
+                        // inner loop is branch-free.
+                        if kk + 1 < k {
+                            for (j, v) in row[..width].iter_mut().enumerate() {
+                                *v = bf16_pair(at(kk, c0 + j), at(kk + 1, c0 + j));
+                            }
+                        } else {
+                            for (j, v) in row[..width].iter_mut().enumerate() {
+                                *v = bf16_pair(at(kk, c0 + j), 0.0);
+                            }
                         }
                         row[width..].fill(0.0);
                     }
