@@ -345,12 +345,12 @@ fn pack_a_blocks<'a>(
     k: usize,
     buf: &'a mut AlignedBuf,
 ) -> &'a [f32] {
-    let len = m.div_ceil(MR) * MR * depth(precision, k);
+    let (units, len) = a_layout(precision, m, k);
     buf.ensure(len);
     let out = &mut buf.as_mut_slice()[..len];
-    for unit in 0..m.div_ceil(MC) * k.div_ceil(kc_of(precision)) {
-        let (start, size) = a_unit(precision, m, k, unit);
-        pack_a_unit(precision, a, lda, m, k, unit, &mut out[start..start + size]);
+    for unit in 0..units {
+        let u = AUnit::new(precision, m, k, unit);
+        pack_a_unit(precision, a, lda, &u, &mut out[u.start..u.start + u.size]);
     }
     &buf.as_slice()[..len]
 }
@@ -370,57 +370,68 @@ fn pack_a_blocks_par<'a>(
     k: usize,
     buf: &'a mut AlignedBuf,
 ) -> &'a [f32] {
-    let units = m.div_ceil(MC) * k.div_ceil(kc_of(precision));
+    let (units, len) = a_layout(precision, m, k);
     if m * k < PAR_PACK_MIN || units == 1 || pool.threads() == 1 {
         return pack_a_blocks(precision, a, lda, m, k, buf);
     }
-    let len = m.div_ceil(MR) * MR * depth(precision, k);
     buf.ensure(len);
     let out = SharedMut::new(&mut buf.as_mut_slice()[..len]);
     let parts = pool.parts(units);
     pool.run(parts, |t| {
         for unit in units * t / parts..units * (t + 1) / parts {
-            let (start, size) = a_unit(precision, m, k, unit);
+            let u = AUnit::new(precision, m, k, unit);
             // SAFETY: the units' ranges are disjoint and inside the `len` values of `out`
-            // (see `a_unit`); each is written by the one part that owns the unit.
-            let dst = unsafe { std::slice::from_raw_parts_mut(out.ptr().add(start), size) };
-            pack_a_unit(precision, a, lda, m, k, unit, dst);
+            // (see `AUnit`); each is written by the one part that owns the unit.
+            let dst = unsafe { std::slice::from_raw_parts_mut(out.ptr().add(u.start), u.size) };
+            pack_a_unit(precision, a, lda, &u, dst);
         }
     });
     &buf.as_slice()[..len]
 }
 
-/// Where packing unit `unit` (block `(m0, k0)`, `k`-blocks fastest) starts in packed `A`, and
-/// how many values it takes.
-fn a_unit(precision: Precision, m: usize, k: usize, unit: usize) -> (usize, usize) {
-    let kcb = kc_of(precision);
-    let kblocks = k.div_ceil(kcb);
-    let (m0, k0) = ((unit / kblocks) * MC, (unit % kblocks) * kcb);
-    let kc = kcb.min(k - k0);
+/// How many `(MC, KC)` blocks packed `A` has, and how many values it takes.
+fn a_layout(precision: Precision, m: usize, k: usize) -> (usize, usize) {
     (
-        a_block(precision, k, m, m0, k0),
-        padded_rows(m, m0) * depth(precision, kc),
+        m.div_ceil(MC) * k.div_ceil(kc_of(precision)),
+        m.div_ceil(MR) * MR * depth(precision, k),
     )
 }
 
-/// Pack block `unit` of `A` (see [`a_unit`]) into `dst`, which holds exactly that block.
-fn pack_a_unit(
-    precision: Precision,
-    a: &[f32],
-    lda: usize,
-    m: usize,
-    k: usize,
-    unit: usize,
-    dst: &mut [f32],
-) {
-    let kcb = kc_of(precision);
-    let kblocks = k.div_ceil(kcb);
-    let (m0, k0) = ((unit / kblocks) * MC, (unit % kblocks) * kcb);
-    let (mb, kc) = (MC.min(m - m0), kcb.min(k - k0));
-    let src = &a[m0 * lda + k0..];
+/// One block of packed `A`: rows `m0..m0 + mb`, columns `k0..k0 + kc`, stored at
+/// `start..start + size` (see [`a_block`]).
+struct AUnit {
+    m0: usize,
+    k0: usize,
+    mb: usize,
+    kc: usize,
+    start: usize,
+    size: usize,
+}
+
+impl AUnit {
+    /// Block number `unit`, `k`-blocks fastest.
+    fn new(precision: Precision, m: usize, k: usize, unit: usize) -> Self {
+        let kcb = kc_of(precision);
+        let kblocks = k.div_ceil(kcb);
+        let (m0, k0) = ((unit / kblocks) * MC, (unit % kblocks) * kcb);
+        let (mb, kc) = (MC.min(m - m0), kcb.min(k - k0));
+        AUnit {
+            m0,
+            k0,
+            mb,
+            kc,
+            start: a_block(precision, k, m, m0, k0),
+            size: padded_rows(m, m0) * depth(precision, kc),
+        }
+    }
+}
+
+/// Pack block `u` of `A` into `dst`, which holds exactly that block.
+fn pack_a_unit(precision: Precision, a: &[f32], lda: usize, u: &AUnit, dst: &mut [f32]) {
+    let src = &a[u.m0 * lda + u.k0..];
     match precision {
-        Precision::F32 => pack_a(src, lda, mb, kc, dst),
-        Precision::Bf16 => pack_a_bf16(src, lda, mb, kc, dst),
+        Precision::F32 => pack_a(src, lda, u.mb, u.kc, dst),
+        Precision::Bf16 => pack_a_bf16(src, lda, u.mb, u.kc, dst),
     }
 }
 
