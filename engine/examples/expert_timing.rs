@@ -2,7 +2,7 @@
 //! 720, 16 layers, prefix 177 tokens, chunk 50, 10 steps) with seeded random weights.
 //!
 //! `cargo run --release -p kairos-engine --example expert_timing -- [--batch 1,4,16]
-//! [--iters 5] [--threads 2] [--kernels fast|portable|candle] [--prefix 177]`
+//! [--iters 5] [--threads 2] [--kernels fast|portable|candle] [--prefix 177] [--precision f32|bf16]`
 //!
 //! Prints one JSON line per batch size: `{"batch":B,"median_ms":..,"min_ms":..,"runs":[..]}`.
 //! `engine/tools/bench_vs_pytorch.py` runs it next to LeRobot's PyTorch denoise.
@@ -18,13 +18,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut threads = 0usize;
     let mut kernels = Kernels::Fast;
     let mut prefix_len = 177usize;
+    let mut precision = kairos_engine::Precision::F32;
     let mut args = std::env::args().skip(1);
     while let Some(flag) = args.next() {
         if flag == "--help" || flag == "-h" {
             println!(
                 "Times the SmolVLA expert's denoise loop with seeded random weights.\n\n\
                  Usage: expert_timing [--batch 1,4,16] [--iters 5] [--threads 2] \
-                 [--kernels fast|portable|candle] [--prefix 177]"
+                 [--kernels fast|portable|candle] [--prefix 177] [--precision f32|bf16]"
             );
             return Ok(());
         }
@@ -34,6 +35,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "--iters" => iters = value.parse()?,
             "--threads" => threads = value.parse()?,
             "--prefix" => prefix_len = value.parse()?,
+            "--precision" => precision = value.parse()?,
             "--kernels" => {
                 kernels = match value.as_str() {
                     "fast" => Kernels::Fast,
@@ -52,6 +54,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         &EngineOptions {
             kernels,
             threads,
+            precision,
             ..Default::default()
         },
     )?;

@@ -1,9 +1,10 @@
 //! Element-wise maths of the fast path: exp, softmax, SiLU, RMSNorm, RoPE.
 //!
-//! Each function body is written once in plain Rust and compiled twice: for the baseline target
-//! and, via `#[target_feature(enable = "avx2,fma")]`, for AVX2, where LLVM vectorises it 8 lanes
-//! wide. Rust never contracts `a * b + c` into an FMA on its own, so both builds round identically
-//! and give bit-identical results.
+//! Each function body is written once in plain Rust and compiled three times: for the baseline
+//! target, via `#[target_feature(enable = "avx2,fma")]` for AVX2, where LLVM vectorises it 8
+//! lanes wide, and with AVX-512F added for [`Isa::Avx512`], 16 lanes wide. Rust never contracts
+//! `a * b + c` into an FMA on its own, and the reductions fix their own lane structure
+//! ([`sum_lanes`]), so all builds round identically and give bit-identical results.
 
 use super::Isa;
 
@@ -21,11 +22,20 @@ macro_rules! multiversion {
             #[cfg(target_arch = "x86_64")]
             #[target_feature(enable = "avx2,fma")]
             fn avx2($($arg: $ty),*) { body($($arg),*) }
+            /// `body` compiled for AVX-512F (and AVX2, FMA).
+            ///
+            /// # Safety
+            /// Call only on a CPU with AVX-512F, AVX2 and FMA (`Isa::Avx512`).
+            #[cfg(target_arch = "x86_64")]
+            #[target_feature(enable = "avx512f,avx2,fma")]
+            fn avx512($($arg: $ty),*) { body($($arg),*) }
             match isa {
                 #[cfg(target_arch = "x86_64")]
-                // SAFETY: `Isa::Avx2Fma` and `Isa::Avx512` are only constructed on CPUs with
-                // AVX2 and FMA.
-                Isa::Avx2Fma | Isa::Avx512 => unsafe { avx2($($arg),*) },
+                // SAFETY: `Isa::Avx512` is only constructed on CPUs with AVX-512F, AVX2 and FMA.
+                Isa::Avx512 => unsafe { avx512($($arg),*) },
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: `Isa::Avx2Fma` is only constructed on CPUs with AVX2 and FMA.
+                Isa::Avx2Fma => unsafe { avx2($($arg),*) },
                 _ => body($($arg),*),
             }
         }
@@ -261,6 +271,27 @@ mod tests {
             rms_norm(isa, &data, &w, 1e-5, &mut r1);
             rms_norm(Isa::Portable, &data, &w, 1e-5, &mut r2);
             assert_eq!(r1, r2);
+            let (mut g1, mut g2) = (data.clone(), data.clone());
+            gelu_tanh_inplace(isa, &mut g1);
+            gelu_tanh_inplace(Isa::Portable, &mut g2);
+            assert_eq!(g1, g2);
+            let mut s3 = data.clone();
+            let mut s4 = data.clone();
+            silu_inplace(isa, &mut s3);
+            silu_inplace(Isa::Portable, &mut s4);
+            assert_eq!(s3, s4);
+            let bias: Vec<f32> = w.iter().map(|v| v - 1.0).collect();
+            let (mut l1, mut l2) = (vec![0.0; 999], vec![0.0; 999]);
+            layer_norm(isa, &data, &w, &bias, 1e-6, &mut l1);
+            layer_norm(Isa::Portable, &data, &w, &bias, 1e-6, &mut l2);
+            assert_eq!(l1, l2);
+            let (cos, sin): (Vec<f32>, Vec<f32>) = (0..32)
+                .map(|i| ((i as f32 * 0.3).cos(), (i as f32 * 0.3).sin()))
+                .unzip();
+            let (mut q1, mut q2) = (data[..64].to_vec(), data[..64].to_vec());
+            rope(isa, &mut q1, &cos, &sin);
+            rope(Isa::Portable, &mut q2, &cos, &sin);
+            assert_eq!(q1, q2);
         }
     }
 

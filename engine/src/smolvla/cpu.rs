@@ -58,6 +58,9 @@ pub(crate) struct CpuExpert {
     time_out: Linear,
     out: Linear,
     state: Linear,
+    /// The precision of the weight GEMMs, also that of the attention GEMMs (keys and values
+    /// packed in it).
+    precision: Precision,
 }
 
 /// One request's prefix, prepared for the attention kernels.
@@ -158,6 +161,7 @@ impl CpuExpert {
             time_out: Linear::new(&w.action_time_mlp_out, precision),
             out: Linear::new(&w.action_out_proj, precision),
             state: Linear::new(&w.state_proj, precision),
+            precision,
         }
     }
 
@@ -195,9 +199,9 @@ impl CpuExpert {
                 }
                 (0..d.kv_heads)
                     .map(|g| {
-                        let mut kt = PackedMatrix::default();
+                        let mut kt = PackedMatrix::empty_in(self.precision);
                         kt.pack_transposed(&k[g * hd..], kvw, tokens, hd);
-                        let mut vv = PackedMatrix::default();
+                        let mut vv = PackedMatrix::empty_in(self.precision);
                         vv.pack_rows(&v[g * hd..], kvw, tokens, hd);
                         (kt, vv)
                     })
@@ -226,7 +230,7 @@ impl CpuExpert {
         let rows = row_prefix.len();
         let prepared: Vec<PreparedPrefix> =
             prefixes.iter().map(|p| self.prepare(pool, p)).collect();
-        let mut ws = Workspace::new(d, rows, pool.threads());
+        let mut ws = Workspace::new(d, rows, pool.threads(), self.precision);
         // RoPE tables: self-attention positions continue after each prefix; cross-attention
         // positions restart at 0 (LeRobot subtracts the minimum position).
         let half = d.head_dim / 2;
@@ -563,7 +567,7 @@ struct Workspace {
 }
 
 impl Workspace {
-    fn new(d: &ExpertDims, rows: usize, threads: usize) -> Self {
+    fn new(d: &ExpertDims, rows: usize, threads: usize, precision: Precision) -> Self {
         let tokens = rows * d.chunk;
         Workspace {
             tokens,
@@ -575,7 +579,14 @@ impl Workspace {
             attn: vec![0.0; tokens * d.q_width()],
             gate_up: vec![0.0; tokens * 2 * d.intermediate],
             act: vec![0.0; tokens * d.intermediate],
-            suffix_kv: (0..rows * d.kv_heads).map(|_| Default::default()).collect(),
+            suffix_kv: (0..rows * d.kv_heads)
+                .map(|_| {
+                    (
+                        PackedMatrix::empty_in(precision),
+                        PackedMatrix::empty_in(precision),
+                    )
+                })
+                .collect(),
             scores: (0..4 * threads.max(1))
                 .map(|_| Mutex::new((Vec::new(), Vec::new())))
                 .collect(),

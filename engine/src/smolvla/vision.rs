@@ -57,6 +57,9 @@ pub(crate) struct CpuVision {
     layers: Vec<VisionLayer>,
     post: NormWeights,
     connector: PackedMatrix,
+    /// The precision of the weight GEMMs, also used for attention's `q kᵀ` and `p v` GEMMs
+    /// (keys and values packed in it per request).
+    precision: Precision,
 }
 
 impl CpuVision {
@@ -94,6 +97,7 @@ impl CpuVision {
             post: w.post_layernorm,
             connector: w.connector.into_linear(precision).w,
             config: w.config,
+            precision,
         }
     }
 
@@ -318,7 +322,10 @@ impl CpuVision {
         let isa = pool.isa();
         pool.run(parts, |part| {
             let (mut q, mut scores, mut tmp) = (Vec::new(), Vec::new(), Vec::new());
-            let (mut kt, mut vv) = (PackedMatrix::default(), PackedMatrix::default());
+            let (mut kt, mut vv) = (
+                PackedMatrix::empty_in(self.precision),
+                PackedMatrix::empty_in(self.precision),
+            );
             for task in tasks * part / parts..tasks * (part + 1) / parts {
                 let (img, head) = (task / heads, task % heads);
                 let (n, start) = (counts[img], starts[img]);

@@ -38,6 +38,8 @@ struct TextLayer {
 pub(crate) struct CpuText {
     config: VlmTextConfig,
     layers: Vec<TextLayer>,
+    /// The precision of the weight GEMMs, also that of the attention GEMMs.
+    precision: Precision,
 }
 
 /// The valid tokens of one observation's prefix: `[tokens][hidden]` embeddings, the last being
@@ -75,6 +77,7 @@ impl CpuText {
         CpuText {
             config: config.clone(),
             layers,
+            precision,
         }
     }
 
@@ -205,7 +208,8 @@ impl CpuText {
         let isa = pool.isa();
         pool.run(parts, |part| {
             let (mut q, mut scores, mut tmp) = (Vec::new(), Vec::new(), Vec::new());
-            let mut packed: [PackedMatrix; 4] = Default::default();
+            let mut packed: [PackedMatrix; 4] =
+                std::array::from_fn(|_| PackedMatrix::empty_in(self.precision));
             for task in tasks * part / parts..tasks * (part + 1) / parts {
                 let (obs, g) = (task / kv_heads, task % kv_heads);
                 let (n, start) = (counts[obs], starts[obs]);
