@@ -102,12 +102,7 @@ impl PackedMatrix {
 
     /// [`Self::from_linear_weight`] stored in `precision` (bf16 values are rounded to nearest).
     pub fn from_linear_weight_in(precision: Precision, w: &[f32], n: usize, k: usize) -> Self {
-        let mut p = PackedMatrix {
-            precision,
-            ..PackedMatrix::default()
-        };
-        p.pack_transposed(w, k, n, k);
-        p
+        Self::from_linear_fn_in(precision, n, k, |row, col| w[row * k + col])
     }
 
     /// Pack several `Linear` weights with the same input size side by side (`[w0; w1; ..]` along
@@ -236,10 +231,7 @@ impl PackedMatrix {
         k: usize,
         w: impl Fn(usize, usize) -> f32,
     ) -> Self {
-        let mut p = PackedMatrix {
-            precision,
-            ..PackedMatrix::default()
-        };
+        let mut p = Self::empty_in(precision);
         p.pack_with(k, n, |kk, j| w(j, kk));
         p
     }
@@ -289,7 +281,7 @@ pub fn gemm(
     // waits can never find its own buffer borrowed.
     A_PACK.with(|buf| {
         let mut buf = buf.borrow_mut();
-        let packed = pack_a_blocks(b.precision, a, lda, m, b.k, &mut buf);
+        let packed = pack_a_blocks(isa, b.precision, a, lda, m, b.k, &mut buf);
         // SAFETY: `check` verified the bounds of `c`; this thread owns all of it.
         unsafe { gemm_packed(isa, packed, m, b, 0..b.panels(), c.as_mut_ptr(), ldc, init) }
     });
@@ -357,6 +349,7 @@ fn a_block(precision: Precision, k: usize, m: usize, m0: usize, k0: usize) -> us
 /// Pack all of `A` (`m x k`, row stride `lda`) into `buf` in [`a_block`] order, in
 /// `precision`.
 fn pack_a_blocks<'a>(
+    isa: Isa,
     precision: Precision,
     a: &[f32],
     lda: usize,
@@ -369,7 +362,14 @@ fn pack_a_blocks<'a>(
     let out = &mut buf.as_mut_slice()[..len];
     for unit in 0..units {
         let u = AUnit::new(precision, m, k, unit);
-        pack_a_unit(precision, a, lda, &u, &mut out[u.start..u.start + u.size]);
+        pack_a_unit(
+            isa,
+            precision,
+            a,
+            lda,
+            &u,
+            &mut out[u.start..u.start + u.size],
+        );
     }
     &buf.as_slice()[..len]
 }
@@ -391,7 +391,7 @@ fn pack_a_blocks_par<'a>(
 ) -> &'a [f32] {
     let (units, len) = a_layout(precision, m, k);
     if m * k < PAR_PACK_MIN || units == 1 || pool.threads() == 1 {
-        return pack_a_blocks(precision, a, lda, m, k, buf);
+        return pack_a_blocks(pool.isa(), precision, a, lda, m, k, buf);
     }
     buf.ensure(len);
     let out = SharedMut::new(&mut buf.as_mut_slice()[..len]);
@@ -402,7 +402,7 @@ fn pack_a_blocks_par<'a>(
             // SAFETY: the units' ranges are disjoint and inside the `len` values of `out`
             // (see `AUnit`); each is written by the one part that owns the unit.
             let dst = unsafe { std::slice::from_raw_parts_mut(out.ptr().add(u.start), u.size) };
-            pack_a_unit(precision, a, lda, &u, dst);
+            pack_a_unit(pool.isa(), precision, a, lda, &u, dst);
         }
     });
     &buf.as_slice()[..len]
@@ -446,11 +446,11 @@ impl AUnit {
 }
 
 /// Pack block `u` of `A` into `dst`, which holds exactly that block.
-fn pack_a_unit(precision: Precision, a: &[f32], lda: usize, u: &AUnit, dst: &mut [f32]) {
+fn pack_a_unit(isa: Isa, precision: Precision, a: &[f32], lda: usize, u: &AUnit, dst: &mut [f32]) {
     let src = &a[u.m0 * lda + u.k0..];
     match precision {
         Precision::F32 => pack_a(src, lda, u.mb, u.kc, dst),
-        Precision::Bf16 => pack_a_bf16(src, lda, u.mb, u.kc, dst),
+        Precision::Bf16 => pack_a_bf16(isa, src, lda, u.mb, u.kc, dst),
     }
 }
 
@@ -610,7 +610,7 @@ fn pack_a(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
 /// groups of `MR` pairs `(A[r][2i], A[r][2i+1])` (zero past `kc` and `rows`). Each row is
 /// rounded into a buffer of pairs first (16 values per instruction with AVX-512F), then
 /// scattered into its tile.
-fn pack_a_bf16(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
+fn pack_a_bf16(isa: Isa, a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
     debug_assert!(kc <= KC_BF16);
     let kp = kc.div_ceil(2);
     let mut pairs = [0u32; KC_BF16 / 2];
@@ -624,7 +624,7 @@ fn pack_a_bf16(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
                 }
                 continue;
             }
-            round_pairs(&a[row * lda..row * lda + kc], &mut pairs[..kp]);
+            round_pairs(isa, &a[row * lda..row * lda + kc], &mut pairs[..kp]);
             for (i, &pair) in pairs[..kp].iter().enumerate() {
                 tile[i * MR + r] = f32::from_bits(pair);
             }
@@ -633,15 +633,18 @@ fn pack_a_bf16(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
 }
 
 /// `pairs[i] = bf16(src[2i]) | bf16(src[2i + 1]) << 16` ([`to_bf16`] rounding; a missing last
-/// odd value is 0). `pairs` holds `ceil(src.len() / 2)` values.
-fn round_pairs(src: &[f32], pairs: &mut [u32]) {
+/// odd value is 0). `pairs` holds `ceil(src.len() / 2)` values. The vector path runs with
+/// `isa`'s kernels (the same bits either way).
+fn round_pairs(isa: Isa, src: &[f32], pairs: &mut [u32]) {
     debug_assert_eq!(pairs.len(), src.len().div_ceil(2));
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx512f") {
-        // SAFETY: AVX-512F was just detected.
+    if isa == Isa::Avx512 {
+        // SAFETY: `Isa::Avx512` is only chosen on a CPU with AVX-512F.
         done = unsafe { round_pairs_avx512(src, pairs) };
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = isa;
     let (src, pairs) = (&src[2 * done..], &mut pairs[done..]);
     let whole = src.chunks_exact(2);
     let last = whole.remainder().first().copied();
@@ -1272,16 +1275,19 @@ mod tests {
         ];
         vals.extend(data(77, 9).iter().map(|v| v * 1e-39));
         vals.extend(data(64, 10));
-        for len in [0, 1, 15, 16, 17, 31, 32, 33, vals.len()] {
+        for (isa, len) in [Isa::detect(), Isa::Portable]
+            .into_iter()
+            .flat_map(|isa| [0, 1, 15, 16, 17, 31, 32, 33, vals.len()].map(|len| (isa, len)))
+        {
             let src = &vals[..len];
             let mut pairs = vec![0u32; len.div_ceil(2)];
-            round_pairs(src, &mut pairs);
+            round_pairs(isa, src, &mut pairs);
             for (i, &x) in src.iter().enumerate() {
                 let got = (pairs[i / 2] >> (16 * (i % 2))) as u16;
                 assert_eq!(
                     got,
                     to_bf16(x),
-                    "len {len} [{i}] {x:e} ({:#x})",
+                    "{isa:?} len {len} [{i}] {x:e} ({:#x})",
                     x.to_bits()
                 );
             }
@@ -1289,7 +1295,7 @@ mod tests {
                 assert_eq!(
                     pairs[len / 2] >> 16,
                     0,
-                    "len {len}: the missing odd value is 0"
+                    "{isa:?} len {len}: the missing odd value is 0"
                 );
             }
         }
