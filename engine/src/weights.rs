@@ -80,14 +80,6 @@ impl StoredTensor {
         self.len() == 0
     }
 
-    /// Bytes the values take in memory.
-    pub fn size_bytes(&self) -> usize {
-        match self {
-            StoredTensor::F32(v) => v.len() * 4,
-            StoredTensor::Bf16(v) => v.len() * 2,
-        }
-    }
-
     /// Value `i` as `f32` (exact: bf16 widens without rounding). Panics if `i` is out of range,
     /// like indexing a slice.
     #[inline]
