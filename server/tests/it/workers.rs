@@ -35,7 +35,12 @@ impl Drop for Procs {
 
 /// A scheduler serving the built-in model's shapes with no local engine.
 async fn scheduler(dir: &Path) -> LocalServer {
-    let model = kairos_engine::resolve_model("builtin", &EngineOptions::default()).unwrap();
+    scheduler_for(dir, "builtin").await
+}
+
+/// A scheduler serving model `model`'s shapes with no local engine, data in `dir/data`.
+async fn scheduler_for(dir: &Path, model: &str) -> LocalServer {
+    let model = kairos_engine::resolve_model(model, &EngineOptions::default()).unwrap();
     let config = Config {
         listen: "127.0.0.1:0".parse().unwrap(),
         data_dir: dir.join("data"),
@@ -294,20 +299,8 @@ async fn a_worker_serves_a_smolvla_checkpoint_with_a_tokenizer_from_elsewhere() 
         }
     }
     // The scheduler serves the checkpoint's shapes with no local engine.
-    let spec = kairos_engine::resolve_model(fixture.to_str().unwrap(), &EngineOptions::default())
-        .unwrap()
-        .spec()
-        .clone();
-    assert_eq!(spec.name, "smolvla");
-    let config = Config {
-        listen: "127.0.0.1:0".parse().unwrap(),
-        data_dir: dir.path().join("data"),
-        ..Config::default()
-    };
-    let pool = EnginePool::with_spec(spec, Vec::new()).unwrap();
-    let server = LocalServer::start(&config, pool, Policies::default())
-        .await
-        .unwrap();
+    let server = scheduler_for(dir.path(), fixture.to_str().unwrap()).await;
+    assert_eq!(server.server.model.name, "smolvla");
     let profile = dir.path().join("profile.json");
     std::fs::write(
         &profile,
