@@ -11,6 +11,11 @@
 //! On CPUs with AVX-512F the same tile is `MR` 512-bit accumulators (one per row; a panel row
 //! is one vector), with `A` broadcast from memory inside each FMA: fewer instructions per FLOP,
 //! same packing and the same order of operations, so AVX-512 and AVX2 results are bit-identical.
+//! Two full panels side by side run together in one call ([`tile_pair`], `MR x 2 NR`): each
+//! broadcast `A` value then feeds two products and twice as many chains hide the latency
+//! (measured: the bf16 prefix 15% faster than one panel per call); the order of operations per
+//! element is unchanged, so the pairing, which depends on where a thread's panels start,
+//! changes no bit.
 //!
 //! In [`Precision::Bf16`] the panels hold bf16 pairs instead: row `i` of a panel is the 32-bit
 //! lanes `(B[2i][j], B[2i+1][j])` for its `NR` columns (still one cache line, now covering two
@@ -48,8 +53,10 @@ fn kc_of(precision: Precision) -> usize {
         Precision::Bf16 => KC_BF16,
     }
 }
-/// Rows of `A` per cache block (a multiple of `MR`).
-const MC: usize = 120;
+/// Rows of `A` per cache block (a multiple of `MR`): 240 x `KC` f32 values (120 KiB, 240 x
+/// `KC_BF16` in bf16) stay in L2, and a batch of four expert requests (200 rows) is one block,
+/// so each weight panel streams from memory once per GEMM.
+const MC: usize = 240;
 
 /// The right-hand operand of a GEMM, packed into `NR`-column panels.
 ///
@@ -510,34 +517,49 @@ unsafe fn gemm_packed(
             let kc = kc_of(b.precision).min(k - k0);
             let load = k0 > 0 || !matches!(init, Init::Zero);
             let block = &packed[a_block(b.precision, k, m, m0, k0)..];
-            for p in panels.clone() {
+            let mut p = panels.start;
+            while p < panels.end {
                 let c0 = p * NR;
                 let w = NR.min(b.n - c0);
+                // Two full panels side by side go to the paired kernel where there is one.
+                let pair = kernel.pairs() && p + 1 < panels.end && c0 + 2 * NR <= b.n;
+                let step = if pair { 2 } else { 1 };
                 let bp = b.panel_ptr(p, k0);
-                let next = if p + 1 < panels.end {
-                    b.panel_ptr(p + 1, k0)
-                } else {
-                    std::ptr::null()
-                };
+                let bp2 = if pair { b.panel_ptr(p + 1, k0) } else { bp };
+                let next = p + step;
+                let (next1, next2) = (
+                    (next < panels.end).then(|| b.panel_ptr(next, k0)),
+                    (pair && next + 1 < panels.end).then(|| b.panel_ptr(next + 1, k0)),
+                );
                 for t in 0..tiles {
                     let r0 = t * MR;
                     let rows = MR.min(mb - r0);
-                    // Pull the next panel into L1 a slice per tile, spread over this panel's
+                    // Pull the next panels into L1 a slice per tile, spread over these panels'
                     // tiles so the misses overlap with computation instead of queueing.
-                    if !next.is_null() {
-                        prefetch_lines(isa, next, d(kc) * t / tiles, d(kc) * (t + 1) / tiles);
+                    let (from, to) = (d(kc) * t / tiles, d(kc) * (t + 1) / tiles);
+                    for next in [next1, next2].into_iter().flatten() {
+                        prefetch_lines(isa, next, from, to);
                     }
                     let ap = block[t * d(kc) * MR..].as_ptr();
-                    // SAFETY: the tile lies inside C (rows m0+r0.., columns c0..c0+w).
+                    // SAFETY: the tile lies inside C (rows m0+r0.., columns c0..c0+step*w).
                     let cp = unsafe { c.add((m0 + r0) * ldc + c0) };
                     // The next tile's accumulators come from C: start fetching them now.
                     if load && t + 1 < tiles {
                         let next_rows = MR.min(mb - r0 - MR);
-                        prefetch_rows(isa, cp.wrapping_add(MR * ldc), ldc, next_rows);
+                        for s in 0..step {
+                            let cs = cp.wrapping_add(MR * ldc + s * NR);
+                            prefetch_rows(isa, cs, ldc, next_rows);
+                        }
                     }
-                    // SAFETY: the packed A tile and the panel hold kc rows; C as above.
-                    unsafe { tile(kernel, rows, kc, ap, bp, cp, ldc, w, load) };
+                    if pair {
+                        // SAFETY: both panels hold kc rows and are full width; C as above.
+                        unsafe { tile_pair(kernel, rows, kc, ap, bp, bp2, cp, ldc, load) };
+                    } else {
+                        // SAFETY: the packed A tile and the panel hold kc rows; C as above.
+                        unsafe { tile(kernel, rows, kc, ap, bp, cp, ldc, w, load) };
+                    }
                 }
+                p += step;
             }
             k0 += kc;
         }
@@ -714,6 +736,16 @@ impl Kernel {
     }
 }
 
+impl Kernel {
+    /// Whether [`tile_pair`] has a kernel for two panels at once. With AVX-512 one panel row
+    /// is a single register, so a one-panel tile has only `MR` accumulators and spends a load
+    /// of `A` on every product; two panels share each broadcast `A` value between two
+    /// products and double the independent chains.
+    fn pairs(self) -> bool {
+        matches!(self, Kernel::F32(Isa::Avx512) | Kernel::Bf16Avx512)
+    }
+}
+
 /// `$step!(kk)` for `kk` in `0..$n`, in order, four per loop iteration (the f32 kernels' loop).
 macro_rules! unroll4 {
     ($n:expr, $step:ident) => {{
@@ -797,6 +829,53 @@ unsafe fn tile(
         Kernel::Bf16Portable => unsafe { dispatch!(kernel_bf16_portable) },
         // SAFETY: same pointer contract.
         _ => unsafe { dispatch!(kernel_portable) },
+    }
+}
+
+/// Two full-width panels side by side (`C` columns `0..2 * NR`), `rows <= MR` rows: the same
+/// products in the same order per output value as two [`tile`] calls, so the same bits.
+///
+/// # Safety
+/// As [`tile`] for each panel (`b` and `b2` each hold `kc` rows of `NR` values), `c` has
+/// `rows` rows of `2 * NR` values; `kernel.pairs()`.
+#[allow(clippy::too_many_arguments)]
+unsafe fn tile_pair(
+    kernel: Kernel,
+    rows: usize,
+    kc: usize,
+    a: *const f32,
+    b: *const f32,
+    b2: *const f32,
+    c: *mut f32,
+    ldc: usize,
+    load: bool,
+) {
+    macro_rules! dispatch {
+        ($f:ident) => {
+            match rows {
+                6 => $f::<6>(kc, a, b, b2, c, ldc, load),
+                5 => $f::<5>(kc, a, b, b2, c, ldc, load),
+                4 => $f::<4>(kc, a, b, b2, c, ldc, load),
+                3 => $f::<3>(kc, a, b, b2, c, ldc, load),
+                2 => $f::<2>(kc, a, b, b2, c, ldc, load),
+                _ => $f::<1>(kc, a, b, b2, c, ldc, load),
+            }
+        };
+    }
+    match kernel {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: Isa::Avx512 is only reported when the CPU has AVX-512F.
+        Kernel::F32(Isa::Avx512) => unsafe { dispatch!(kernel_avx512_pair) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: Kernel::choose picks it only on a CPU with AVX-512F and AVX512_BF16.
+        Kernel::Bf16Avx512 => unsafe { dispatch!(kernel_bf16_avx512_pair) },
+        _ => {
+            // SAFETY: the caller's contract, one panel at a time.
+            unsafe {
+                tile(kernel, rows, kc, a, b, c, ldc, NR, load);
+                tile(kernel, rows, kc, a, b2, c.add(NR), ldc, NR, load);
+            }
+        }
     }
 }
 
@@ -887,6 +966,132 @@ unsafe fn kernel_avx512<const R: usize>(
     for (r, row) in acc.iter().enumerate() {
         // SAFETY: row r of the C tile has NR values.
         unsafe { _mm512_storeu_ps(c.add(r * ldc), *row) };
+    }
+}
+
+/// [`kernel_avx512`] over two panels: `2R` accumulators, each `A` value broadcast once into a
+/// register and used for both panels.
+///
+/// # Safety
+/// See [`tile_pair`]; requires AVX-512F.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn kernel_avx512_pair<const R: usize>(
+    kc: usize,
+    a: *const f32,
+    b: *const f32,
+    b2: *const f32,
+    c: *mut f32,
+    ldc: usize,
+    load: bool,
+) {
+    use std::arch::x86_64::*;
+    let mut left = [_mm512_setzero_ps(); R];
+    let mut right = [_mm512_setzero_ps(); R];
+    if load {
+        for r in 0..R {
+            // SAFETY: row r of the C tile has 2 * NR values.
+            unsafe {
+                left[r] = _mm512_loadu_ps(c.add(r * ldc));
+                right[r] = _mm512_loadu_ps(c.add(r * ldc + NR));
+            }
+        }
+    }
+    macro_rules! step {
+        ($kk:expr) => {{
+            // SAFETY: $kk < kc: inside both panels (64-byte aligned rows) and the A tile.
+            unsafe {
+                let bl = _mm512_load_ps(b.add($kk * NR));
+                let br = _mm512_load_ps(b2.add($kk * NR));
+                for r in 0..R {
+                    let av = _mm512_set1_ps(*a.add($kk * MR + r));
+                    left[r] = _mm512_fmadd_ps(av, bl, left[r]);
+                    right[r] = _mm512_fmadd_ps(av, br, right[r]);
+                }
+            }
+        }};
+    }
+    unroll4!(kc, step);
+    for r in 0..R {
+        // SAFETY: row r of the C tile has 2 * NR values.
+        unsafe {
+            _mm512_storeu_ps(c.add(r * ldc), left[r]);
+            _mm512_storeu_ps(c.add(r * ldc + NR), right[r]);
+        }
+    }
+}
+
+/// [`kernel_bf16_avx512`] over two panels: even and odd accumulators for each (`4R` in all,
+/// the same pairing as the one-panel kernel, so the same bits), each `A` pair broadcast from
+/// memory into both panels' instructions.
+///
+/// # Safety
+/// See [`tile_pair`], with bf16 pair rows; requires AVX-512F and AVX512_BF16.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bf16")]
+unsafe fn kernel_bf16_avx512_pair<const R: usize>(
+    kc: usize,
+    a: *const f32,
+    b: *const f32,
+    b2: *const f32,
+    c: *mut f32,
+    ldc: usize,
+    load: bool,
+) {
+    use std::arch::x86_64::*;
+    let mut even = [_mm512_setzero_ps(); R];
+    let mut odd = [_mm512_setzero_ps(); R];
+    let mut even2 = [_mm512_setzero_ps(); R];
+    let mut odd2 = [_mm512_setzero_ps(); R];
+    if load {
+        for r in 0..R {
+            // SAFETY: row r of the C tile has 2 * NR values.
+            unsafe {
+                even[r] = _mm512_loadu_ps(c.add(r * ldc));
+                even2[r] = _mm512_loadu_ps(c.add(r * ldc + NR));
+            }
+        }
+    }
+    macro_rules! step {
+        ($acc:ident, $acc2:ident, $i:expr) => {{
+            // SAFETY: $i < ceil(kc / 2): inside both panels (64-byte aligned rows) and the A
+            // tile; raw bits as in the one-panel kernel. The asm reads the 4-byte A pair of
+            // row r and writes only its two accumulator registers.
+            unsafe {
+                let bl = _mm512_load_ps(b.add($i * NR));
+                let br = _mm512_load_ps(b2.add($i * NR));
+                for r in 0..R {
+                    std::arch::asm!(
+                        "vdpbf16ps {acc}, {b}, dword ptr [{p}]{{1to16}}",
+                        "vdpbf16ps {acc2}, {b2}, dword ptr [{p}]{{1to16}}",
+                        acc = inout(zmm_reg) $acc[r],
+                        acc2 = inout(zmm_reg) $acc2[r],
+                        b = in(zmm_reg) bl,
+                        b2 = in(zmm_reg) br,
+                        p = in(reg) a.add($i * MR + r),
+                        options(nostack, readonly, preserves_flags),
+                    );
+                }
+            }
+        }};
+    }
+    let kp = kc.div_ceil(2);
+    let mut i = 0;
+    while i + 2 <= kp {
+        step!(even, even2, i);
+        step!(odd, odd2, i + 1);
+        i += 2;
+    }
+    if i < kp {
+        step!(even, even2, i);
+    }
+    // Indexed, not zipped: see the one-panel kernel.
+    for r in 0..R {
+        // SAFETY: row r of the C tile has 2 * NR values.
+        unsafe {
+            _mm512_storeu_ps(c.add(r * ldc), _mm512_add_ps(even[r], odd[r]));
+            _mm512_storeu_ps(c.add(r * ldc + NR), _mm512_add_ps(even2[r], odd2[r]));
+        }
     }
 }
 
@@ -1127,6 +1332,61 @@ mod tests {
                         "bias+acc {m}x{k}x{n} [{i}]"
                     );
                 }
+            }
+        }
+    }
+
+    /// Which panels the paired kernel takes together depends on where a thread's panel range
+    /// starts; a range starting at an odd panel pairs them differently (and leaves panel 0 to
+    /// the one-panel kernel), so equal results mean the two kernels agree bit for bit.
+    #[test]
+    fn paired_and_single_panel_kernels_agree_bit_for_bit() {
+        let (m, k, n) = (13, 300, 5 * NR + 3);
+        let a = data(m * k, 11);
+        let w = data(n * k, 12);
+        for precision in [Precision::F32, Precision::Bf16] {
+            let packed = PackedMatrix::from_linear_weight_in(precision, &w, n, k);
+            for isa in [Isa::Avx512, Isa::Avx2Fma, Isa::Portable]
+                .into_iter()
+                .filter(|i| i.available())
+            {
+                let mut pack_buf = AlignedBuf::default();
+                let pa = pack_a_blocks(isa, precision, &a, k, m, k, &mut pack_buf);
+                let panels = packed.panels();
+                let mut whole = vec![0.0; m * n];
+                let mut split = vec![0.0; m * n];
+                // SAFETY: both outputs hold m rows of n values; one thread writes each.
+                unsafe {
+                    gemm_packed(
+                        isa,
+                        pa,
+                        m,
+                        &packed,
+                        0..panels,
+                        whole.as_mut_ptr(),
+                        n,
+                        Init::Zero,
+                    );
+                    gemm_packed(isa, pa, m, &packed, 0..1, split.as_mut_ptr(), n, Init::Zero);
+                    gemm_packed(
+                        isa,
+                        pa,
+                        m,
+                        &packed,
+                        1..panels,
+                        split.as_mut_ptr(),
+                        n,
+                        Init::Zero,
+                    );
+                }
+                assert_eq!(whole, split, "{precision:?} {isa:?}");
+                let reference = naive(&a, m, k, &w, n);
+                let worst = whole
+                    .iter()
+                    .zip(&reference)
+                    .map(|(x, y)| (x - y).abs())
+                    .fold(0.0f32, f32::max);
+                assert!(worst < 0.1, "{precision:?} {isa:?}: off by {worst}");
             }
         }
     }
