@@ -5,17 +5,20 @@
 //! floats (64 bytes: one cache line), in blocks of `KC` rows (see [`offset`]). The micro-kernel keeps an `MR x NR` block of `C` in 12
 //! AVX2 registers and streams one panel row (two vector loads) and `MR` broadcasts of `A` per
 //! step of `k`: 12 FMAs per 8 loads. Blocking: `KC` rows of a panel (8 KiB) stay in L1 while all
-//! row tiles of an `MC`-row block of `A` (in L2) pass over them. [`gemm_par`] packs `A` on the
+//! row tiles of an `MC`-row block of `A` (in L2) pass over them. `A` is packed per block into
+//! tiles of `MR` rows, each row contiguous (a plain copy in f32, a rounding pass in bf16; an
+//! interleaved layout cost a scalar scatter of 4-5% of the vision tower), and the kernel reads
+//! the tile's rows through pointers that advance together. [`gemm_par`] packs `A` on the
 //! pool's threads, one `MC x KC` block per unit.
 //!
 //! On CPUs with AVX-512F the same tile is `MR` 512-bit accumulators (one per row; a panel row
 //! is one vector), with `A` broadcast from memory inside each FMA: fewer instructions per FLOP,
 //! same packing and the same order of operations, so AVX-512 and AVX2 results are bit-identical.
-//! Two full panels side by side run together in one call ([`tile_pair`], `MR x 2 NR`): each
-//! broadcast `A` value then feeds two products and twice as many chains hide the latency
-//! (measured: the bf16 prefix 15% faster than one panel per call); the order of operations per
-//! element is unchanged, so the pairing, which depends on where a thread's panels start,
-//! changes no bit.
+//! In bf16, two full panels side by side run together in one call ([`tile_pair`],
+//! `MR x 2 NR`): each broadcast `A` pair then feeds two products and twice as many chains hide
+//! the latency (measured: the bf16 prefix 15% faster than one panel per call); the order of
+//! operations per element is unchanged, so the pairing, which depends on where a thread's
+//! panels start, changes no bit.
 //!
 //! In [`Precision::Bf16`] the panels hold bf16 pairs instead: row `i` of a panel is the 32-bit
 //! lanes `(B[2i][j], B[2i+1][j])` for its `NR` columns (still one cache line, now covering two
@@ -482,15 +485,14 @@ unsafe fn gemm_packed(
     let kernel = Kernel::choose(isa, b.precision);
     let d = |rows| depth(b.precision, rows);
     // Zero-initialised outputs start from zero accumulators; a bias is written into C first.
+    // One copy per row for all of this call's panels (a copy per panel, 64 bytes, cost 3% of
+    // the vision tower in call overhead).
     if let Init::Bias(bias) = init {
-        for p in panels.clone() {
-            let c0 = p * NR;
-            let w = NR.min(b.n - c0);
-            for r in 0..m {
-                // SAFETY: row r, columns c0..c0+w are inside C and owned by this call.
-                let row = unsafe { std::slice::from_raw_parts_mut(c.add(r * ldc + c0), w) };
-                row.copy_from_slice(&bias[c0..c0 + w]);
-            }
+        let (c0, c1) = (panels.start * NR, (panels.end * NR).min(b.n));
+        for r in 0..m {
+            // SAFETY: row r, columns c0..c1 are inside C and owned by this call.
+            let row = unsafe { std::slice::from_raw_parts_mut(c.add(r * ldc + c0), c1 - c0) };
+            row.copy_from_slice(&bias[c0..c1]);
         }
     }
     if k == 0 {
@@ -607,51 +609,47 @@ fn prefetch_lines(isa: Isa, panel: *const f32, from: usize, to: usize) {
     let _ = (isa, panel, from, to);
 }
 
-/// Pack `rows x kc` of `A` into row tiles of `MR`: tile `t` is `kc` groups of `MR` values (rows
-/// `t*MR..`), zero-padded past `rows`. The kernel then broadcasts from one moving pointer.
+/// Pack `rows x kc` of `A` into row tiles of `MR`: tile `t` holds rows `t*MR..` one after
+/// another, `kc` values each (zero rows past `rows`). Each row is one contiguous copy; the
+/// kernel reads its rows through `MR` pointers that move together.
 fn pack_a(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
     for t in 0..rows.div_ceil(MR) {
         let tile = &mut out[t * kc * MR..(t + 1) * kc * MR];
-        for r in 0..MR {
+        for (r, dst) in tile.chunks_exact_mut(kc).enumerate() {
             let row = t * MR + r;
             if row < rows {
-                let src = &a[row * lda..row * lda + kc];
-                for (kk, &v) in src.iter().enumerate() {
-                    tile[kk * MR + r] = v;
-                }
+                dst.copy_from_slice(&a[row * lda..row * lda + kc]);
             } else {
-                for kk in 0..kc {
-                    tile[kk * MR + r] = 0.0;
-                }
+                dst.fill(0.0);
             }
         }
     }
 }
 
-/// Pack `rows x kc` of `A` like [`pack_a`], but as bf16 pairs: tile `t` is `ceil(kc / 2)`
-/// groups of `MR` pairs `(A[r][2i], A[r][2i+1])` (zero past `kc` and `rows`). Each row is
-/// rounded into a buffer of pairs first (16 values per instruction with AVX-512F), then
-/// scattered into its tile.
+/// Pack `rows x kc` of `A` like [`pack_a`], but as bf16 pairs: row `r` of tile `t` is the
+/// `ceil(kc / 2)` pairs `(A[r][2i], A[r][2i+1])` (zero past `kc` and `rows`), rounded straight
+/// into place (16 values per instruction with AVX-512F).
 fn pack_a_bf16(isa: Isa, a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
     debug_assert!(kc <= KC_BF16);
     let kp = kc.div_ceil(2);
-    let mut pairs = [0u32; KC_BF16 / 2];
     for t in 0..rows.div_ceil(MR) {
         let tile = &mut out[t * kp * MR..(t + 1) * kp * MR];
-        for r in 0..MR {
+        for (r, dst) in tile.chunks_exact_mut(kp).enumerate() {
             let row = t * MR + r;
-            if row >= rows {
-                for i in 0..kp {
-                    tile[i * MR + r] = 0.0;
-                }
-                continue;
-            }
-            round_pairs(isa, &a[row * lda..row * lda + kc], &mut pairs[..kp]);
-            for (i, &pair) in pairs[..kp].iter().enumerate() {
-                tile[i * MR + r] = f32::from_bits(pair);
+            if row < rows {
+                round_pairs(isa, &a[row * lda..row * lda + kc], as_pair_bits(dst));
+            } else {
+                dst.fill(0.0);
             }
         }
     }
+}
+
+/// The packed bf16 pairs of a tile row as the `u32` bit patterns [`round_pairs`] writes.
+fn as_pair_bits(values: &mut [f32]) -> &mut [u32] {
+    // SAFETY: f32 and u32 have the same size and alignment, and every bit pattern is valid for
+    // both; the returned slice borrows `values` exclusively for its lifetime.
+    unsafe { std::slice::from_raw_parts_mut(values.as_mut_ptr().cast::<u32>(), values.len()) }
 }
 
 /// `pairs[i] = bf16(src[2i]) | bf16(src[2i + 1]) << 16` ([`to_bf16`] rounding; a missing last
@@ -737,12 +735,14 @@ impl Kernel {
 }
 
 impl Kernel {
-    /// Whether [`tile_pair`] has a kernel for two panels at once. With AVX-512 one panel row
-    /// is a single register, so a one-panel tile has only `MR` accumulators and spends a load
-    /// of `A` on every product; two panels share each broadcast `A` value between two
-    /// products and double the independent chains.
+    /// Whether [`tile_pair`] has a kernel for two panels at once: the AVX512_BF16 one. There
+    /// one panel row is a single register, so a one-panel tile has only `MR` (x 2 for even and
+    /// odd pairs) accumulators and spends a load of `A` on every product; two panels share
+    /// each broadcast `A` pair between two products and double the independent chains. An f32
+    /// AVX-512 pair kernel measured no faster at M = 1024 and ~5% slower at the expert's
+    /// M = 50 (`gemm_timing`), so f32 keeps one panel per call.
     fn pairs(self) -> bool {
-        matches!(self, Kernel::F32(Isa::Avx512) | Kernel::Bf16Avx512)
+        matches!(self, Kernel::Bf16Avx512)
     }
 }
 
@@ -864,9 +864,6 @@ unsafe fn tile_pair(
     }
     match kernel {
         #[cfg(target_arch = "x86_64")]
-        // SAFETY: Isa::Avx512 is only reported when the CPU has AVX-512F.
-        Kernel::F32(Isa::Avx512) => unsafe { dispatch!(kernel_avx512_pair) },
-        #[cfg(target_arch = "x86_64")]
         // SAFETY: Kernel::choose picks it only on a CPU with AVX-512F and AVX512_BF16.
         Kernel::Bf16Avx512 => unsafe { dispatch!(kernel_bf16_avx512_pair) },
         _ => {
@@ -909,7 +906,7 @@ unsafe fn kernel_avx2<const R: usize>(
                 let b0 = _mm256_load_ps(b.add($kk * NR));
                 let b1 = _mm256_load_ps(b.add($kk * NR + 8));
                 for r in 0..R {
-                    let av = _mm256_broadcast_ss(&*a.add($kk * MR + r));
+                    let av = _mm256_broadcast_ss(&*a.add(r * kc + $kk));
                     acc[r][0] = _mm256_fmadd_ps(av, b0, acc[r][0]);
                     acc[r][1] = _mm256_fmadd_ps(av, b1, acc[r][1]);
                 }
@@ -956,7 +953,7 @@ unsafe fn kernel_avx512<const R: usize>(
             unsafe {
                 let bv = _mm512_load_ps(b.add($kk * NR));
                 for r in 0..R {
-                    let av = _mm512_set1_ps(*a.add($kk * MR + r));
+                    let av = _mm512_set1_ps(*a.add(r * kc + $kk));
                     acc[r] = _mm512_fmadd_ps(av, bv, acc[r]);
                 }
             }
@@ -966,58 +963,6 @@ unsafe fn kernel_avx512<const R: usize>(
     for (r, row) in acc.iter().enumerate() {
         // SAFETY: row r of the C tile has NR values.
         unsafe { _mm512_storeu_ps(c.add(r * ldc), *row) };
-    }
-}
-
-/// [`kernel_avx512`] over two panels: `2R` accumulators, each `A` value broadcast once into a
-/// register and used for both panels.
-///
-/// # Safety
-/// See [`tile_pair`]; requires AVX-512F.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-unsafe fn kernel_avx512_pair<const R: usize>(
-    kc: usize,
-    a: *const f32,
-    b: *const f32,
-    b2: *const f32,
-    c: *mut f32,
-    ldc: usize,
-    load: bool,
-) {
-    use std::arch::x86_64::*;
-    let mut left = [_mm512_setzero_ps(); R];
-    let mut right = [_mm512_setzero_ps(); R];
-    if load {
-        for r in 0..R {
-            // SAFETY: row r of the C tile has 2 * NR values.
-            unsafe {
-                left[r] = _mm512_loadu_ps(c.add(r * ldc));
-                right[r] = _mm512_loadu_ps(c.add(r * ldc + NR));
-            }
-        }
-    }
-    macro_rules! step {
-        ($kk:expr) => {{
-            // SAFETY: $kk < kc: inside both panels (64-byte aligned rows) and the A tile.
-            unsafe {
-                let bl = _mm512_load_ps(b.add($kk * NR));
-                let br = _mm512_load_ps(b2.add($kk * NR));
-                for r in 0..R {
-                    let av = _mm512_set1_ps(*a.add($kk * MR + r));
-                    left[r] = _mm512_fmadd_ps(av, bl, left[r]);
-                    right[r] = _mm512_fmadd_ps(av, br, right[r]);
-                }
-            }
-        }};
-    }
-    unroll4!(kc, step);
-    for r in 0..R {
-        // SAFETY: row r of the C tile has 2 * NR values.
-        unsafe {
-            _mm512_storeu_ps(c.add(r * ldc), left[r]);
-            _mm512_storeu_ps(c.add(r * ldc + NR), right[r]);
-        }
     }
 }
 
@@ -1052,6 +997,8 @@ unsafe fn kernel_bf16_avx512_pair<const R: usize>(
             }
         }
     }
+    // Row r of the packed A tile starts kp pairs after row r - 1.
+    let kp = kc.div_ceil(2);
     macro_rules! step {
         ($acc:ident, $acc2:ident, $i:expr) => {{
             // SAFETY: $i < ceil(kc / 2): inside both panels (64-byte aligned rows) and the A
@@ -1068,14 +1015,13 @@ unsafe fn kernel_bf16_avx512_pair<const R: usize>(
                         acc2 = inout(zmm_reg) $acc2[r],
                         b = in(zmm_reg) bl,
                         b2 = in(zmm_reg) br,
-                        p = in(reg) a.add($i * MR + r),
+                        p = in(reg) a.add(r * kp + $i),
                         options(nostack, readonly, preserves_flags),
                     );
                 }
             }
         }};
     }
-    let kp = kc.div_ceil(2);
     let mut i = 0;
     while i + 2 <= kp {
         step!(even, even2, i);
@@ -1121,6 +1067,8 @@ unsafe fn kernel_bf16_avx512<const R: usize>(
             *row = unsafe { _mm512_loadu_ps(c.add(r * ldc)) };
         }
     }
+    // Row r of the packed A tile starts kp pairs after row r - 1.
+    let kp = kc.div_ceil(2);
     macro_rules! step {
         ($acc:ident, $i:expr) => {{
             // SAFETY: $i < ceil(kc / 2): inside the panel (64-byte aligned rows) and the A
@@ -1136,14 +1084,13 @@ unsafe fn kernel_bf16_avx512<const R: usize>(
                         "vdpbf16ps {acc}, {b}, dword ptr [{p}]{{1to16}}",
                         acc = inout(zmm_reg) $acc[r],
                         b = in(zmm_reg) bv,
-                        p = in(reg) a.add($i * MR + r),
+                        p = in(reg) a.add(r * kp + $i),
                         options(nostack, readonly, preserves_flags),
                     );
                 }
             }
         }};
     }
-    let kp = kc.div_ceil(2);
     let mut i = 0;
     while i + 4 <= kp {
         step!(even, i);
@@ -1200,15 +1147,16 @@ unsafe fn kernel_bf16_portable<const R: usize>(
             }
         }
     }
-    for i in 0..kc.div_ceil(2) {
-        // SAFETY: i < ceil(kc / 2): inside the panel and the packed A tile.
+    let kp = kc.div_ceil(2);
+    for i in 0..kp {
+        // SAFETY: i < ceil(kc / 2): inside the panel and each row of the packed A tile.
         let (brow, arow) = unsafe {
             (
                 std::slice::from_raw_parts(b.add(i * NR), NR),
-                std::slice::from_raw_parts(a.add(i * MR), R),
+                std::array::from_fn::<f32, R, _>(|r| *a.add(r * kp + i)),
             )
         };
-        for (row, &ap) in acc[i % 2].iter_mut().zip(arow) {
+        for (row, &ap) in acc[i % 2].iter_mut().zip(&arow) {
             let (a0, a1) = widen(ap);
             for (v, &bp) in row.iter_mut().zip(brow) {
                 let (b0, b1) = widen(bp);
@@ -1249,10 +1197,10 @@ unsafe fn kernel_portable<const R: usize>(
         let (brow, arow) = unsafe {
             (
                 std::slice::from_raw_parts(b.add(kk * NR), NR),
-                std::slice::from_raw_parts(a.add(kk * MR), R),
+                std::array::from_fn::<f32, R, _>(|r| *a.add(r * kc + kk)),
             )
         };
-        for (row, &av) in acc.iter_mut().zip(arow) {
+        for (row, &av) in acc.iter_mut().zip(&arow) {
             for (v, &bv) in row.iter_mut().zip(brow) {
                 *v += av * bv;
             }
