@@ -130,7 +130,7 @@ impl CpuVision {
         images: &[VisionImage<'_>],
     ) -> Result<VisionOutput, EngineError> {
         let v = &self.config.vision_config;
-        let (vh, p, c) = (v.hidden_size, v.patch_size, v.num_channels);
+        let c = v.num_channels;
         let grids = images
             .iter()
             .enumerate()
@@ -147,20 +147,50 @@ impl CpuVision {
                 Ok(g)
             })
             .collect::<Result<Vec<_>, EngineError>>()?;
+        let mut out = VisionOutput {
+            hidden: Vec::with_capacity(images.len()),
+            embeddings: Vec::with_capacity(images.len()),
+        };
+        let mut first = 0;
+        while first < images.len() {
+            let mut end = first + 1;
+            let mut rows = grids[first] * grids[first];
+            while end < images.len() && rows + grids[end] * grids[end] <= GROUP_ROWS {
+                rows += grids[end] * grids[end];
+                end += 1;
+            }
+            self.forward_group(pool, &images[first..end], &grids[first..end], &mut out);
+            first = end;
+        }
+        Ok(out)
+    }
+
+    /// Run the tower and the connector on `images` (validated, `grids` patches per side) as one
+    /// batch, appending each image's outputs to `out`.
+    fn forward_group(
+        &self,
+        pool: &Pool,
+        images: &[VisionImage<'_>],
+        grids: &[usize],
+        out: &mut VisionOutput,
+    ) {
+        let v = &self.config.vision_config;
+        let (vh, p, c) = (v.hidden_size, v.patch_size, v.num_channels);
         let counts: Vec<usize> = grids.iter().map(|g| g * g).collect();
         let starts = starts(&counts);
         let rows: usize = counts.iter().sum();
         if rows == 0 {
-            return Ok(VisionOutput {
-                hidden: Vec::new(),
-                embeddings: Vec::new(),
-            });
+            for _ in images {
+                out.hidden.push(Vec::new());
+                out.embeddings.push(Vec::new());
+            }
+            return;
         }
 
         // Patch conv: unfold every patch to `[C][p][p]` (the conv weight's order), one GEMM.
         let kdim = c * p * p;
         let mut unfolded = vec![0.0f32; rows * kdim];
-        for ((im, &g), &start) in images.iter().zip(&grids).zip(&starts) {
+        for ((im, &g), &start) in images.iter().zip(grids).zip(&starts) {
             for py in 0..g {
                 for px in 0..g {
                     let row = &mut unfolded[(start + py * g + px) * kdim..][..kdim];
@@ -290,15 +320,12 @@ impl CpuVision {
             th,
             Init::Zero,
         );
-        let mut hidden = Vec::with_capacity(images.len());
-        let mut embeddings = Vec::with_capacity(images.len());
         let mut t0 = 0;
         for ((&n, &start), &tk) in counts.iter().zip(&starts).zip(&tokens) {
-            hidden.push(h[start * vh..(start + n) * vh].to_vec());
-            embeddings.push(emb[t0 * th..(t0 + tk) * th].to_vec());
+            out.hidden.push(h[start * vh..(start + n) * vh].to_vec());
+            out.embeddings.push(emb[t0 * th..(t0 + tk) * th].to_vec());
             t0 += tk;
         }
-        Ok(VisionOutput { hidden, embeddings })
     }
 
     /// Bidirectional multi-head attention within each image: `attn = softmax(q kᵀ / sqrt(d)) v`
@@ -369,6 +396,13 @@ impl CpuVision {
     }
 }
 
+/// Images run through the tower together while their patches add up to at most this many
+/// rows (a single larger image runs alone). Every operation of the tower is per row or per
+/// image, so the grouping changes no result; it bounds the activations (a group of one
+/// 512 x 512 camera keeps its ~25 MB in the last-level cache), where stacking the eight cameras of
+/// four requests made each image 13% slower (measured with `vision_timing --cameras 1|8`).
+const GROUP_ROWS: usize = 1024;
+
 /// Where each of several blocks of `counts[i]` rows starts when they are stacked.
 pub(crate) fn starts(counts: &[usize]) -> Vec<usize> {
     counts
@@ -437,6 +471,65 @@ fn position_ids(g: usize, per_side: usize) -> Vec<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::kernels::Isa;
+    use crate::smolvla::config::{VlmConfig, VlmTextConfig, VlmVisionConfig};
+    use crate::smolvla::vlm_weights::VlmWeights;
+
+    /// Images of 1024 patch rows run alone and four of 256 rows run together (see
+    /// [`GROUP_ROWS`]); each image's outputs must be exactly those of running it by itself.
+    #[test]
+    fn grouping_images_changes_no_bit() {
+        let config = VlmConfig {
+            text_config: VlmTextConfig {
+                hidden_size: 16,
+                num_attention_heads: 2,
+                num_key_value_heads: 1,
+                head_dim: 8,
+                rms_norm_eps: 1e-5,
+                num_hidden_layers: 1,
+                intermediate_size: 32,
+                vocab_size: 64,
+            },
+            vision_config: VlmVisionConfig {
+                hidden_size: 16,
+                intermediate_size: 32,
+                num_hidden_layers: 2,
+                num_attention_heads: 2,
+                num_channels: 3,
+                image_size: 128,
+                patch_size: 4,
+                hidden_act: "gelu_pytorch_tanh".into(),
+                layer_norm_eps: 1e-6,
+            },
+            scale_factor: 2,
+        };
+        let sides = [128usize, 64, 64, 64, 64, 128, 64];
+        let pixels: Vec<Vec<f32>> = sides
+            .iter()
+            .enumerate()
+            .map(|(i, &side)| crate::sampler::gaussian_noise(50 + i as u64, 0, 3 * side * side))
+            .collect();
+        let images: Vec<VisionImage<'_>> = sides
+            .iter()
+            .zip(&pixels)
+            .map(|(&side, pixels)| VisionImage { side, pixels })
+            .collect();
+        for precision in [Precision::F32, Precision::Bf16] {
+            let weights = VlmWeights::random(&config, 1, 3).unwrap();
+            let vision = CpuVision::new(weights, precision);
+            let pool = Pool::with_isa(2, Isa::detect()).unwrap();
+            let all = vision.forward(&pool, &images).unwrap();
+            assert_eq!(all.hidden.len(), images.len());
+            for (i, image) in images.iter().enumerate() {
+                let alone = vision.forward(&pool, std::slice::from_ref(image)).unwrap();
+                assert_eq!(alone.hidden[0], all.hidden[i], "{precision:?} image {i}");
+                assert_eq!(
+                    alone.embeddings[0], all.embeddings[i],
+                    "{precision:?} image {i}"
+                );
+            }
+        }
+    }
 
     #[test]
     fn position_ids_are_the_grid_at_native_size_and_buckets_otherwise() {
