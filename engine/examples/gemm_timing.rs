@@ -4,7 +4,7 @@
 //!
 //! `cargo run --release -p kairos-engine --example gemm_timing -- [m=50] [bf16]`
 //! (`bf16`: weights packed in [`Precision::Bf16`]; `KAIROS_ISA=avx2` picks the AVX2 kernel on
-//! an AVX-512 CPU)
+//! an AVX-512 CPU; `HOT=1`: one weight copy, cache-resident; `SHAPE=K,N`: that shape only)
 
 use std::time::Instant;
 
@@ -32,13 +32,22 @@ fn main() {
         Precision::F32
     };
     println!("{isa:?} kernels, {precision:?} weights");
-    for &(k, n, what) in &[
-        (720, 1600, "qkv"),
-        (720, 960, "q"),
-        (960, 720, "o"),
-        (720, 4096, "gate_up"),
-        (2048, 720, "down"),
-    ] {
+    // `SHAPE=K,N` times that one shape instead of the expert's five.
+    let custom: Option<(usize, usize)> = std::env::var("SHAPE").ok().and_then(|s| {
+        let (k, n) = s.split_once(',')?;
+        Some((k.parse().ok()?, n.parse().ok()?))
+    });
+    let shapes: Vec<(usize, usize, &str)> = match custom {
+        Some((k, n)) => vec![(k, n, "SHAPE")],
+        None => vec![
+            (720, 1600, "qkv"),
+            (720, 960, "q"),
+            (960, 720, "o"),
+            (720, 4096, "gate_up"),
+            (2048, 720, "down"),
+        ],
+    };
+    for &(k, n, what) in &shapes {
         let a: Vec<f32> = (0..m * k).map(|i| (i % 97) as f32 / 97.0).collect();
         let w: Vec<f32> = (0..n * k).map(|i| (i % 89) as f32 / 89.0).collect();
         // 16 copies (one per expert layer), cycled, so the weights stream from DRAM as in the

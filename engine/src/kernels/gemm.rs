@@ -268,6 +268,10 @@ pub enum Init<'a> {
     Accumulate,
     /// `C = bias + A · B`, `bias` broadcast over rows (`n` values).
     Bias(&'a [f32]),
+    /// `C += bias + A · B`: `bias` (`n` values) added to each row of `C` first, then the
+    /// products accumulated, as a separate bias pass followed by [`Init::Accumulate`] would,
+    /// but on the threads that own each part of `C`.
+    AccumulateBias(&'a [f32]),
 }
 
 /// `C[..m][..n] = init + A[..m][..k] · B` on the calling thread, with `isa`'s kernels. `A` has
@@ -335,7 +339,7 @@ fn check(a: &[f32], lda: usize, m: usize, b: &PackedMatrix, c: &[f32], ldc: usiz
     assert!(lda >= b.k && ldc >= b.n, "gemm strides too small");
     assert!(a.len() >= (m - 1) * lda + b.k, "gemm: A too short");
     assert!(c.len() >= (m - 1) * ldc + b.n, "gemm: C too short");
-    if let Init::Bias(bias) = init {
+    if let Init::Bias(bias) | Init::AccumulateBias(bias) = init {
         assert!(bias.len() >= b.n, "gemm: bias too short");
     }
 }
@@ -487,12 +491,18 @@ unsafe fn gemm_packed(
     // Zero-initialised outputs start from zero accumulators; a bias is written into C first.
     // One copy per row for all of this call's panels (a copy per panel, 64 bytes, cost 3% of
     // the vision tower in call overhead).
-    if let Init::Bias(bias) = init {
+    if let Init::Bias(bias) | Init::AccumulateBias(bias) = init {
         let (c0, c1) = (panels.start * NR, (panels.end * NR).min(b.n));
         for r in 0..m {
             // SAFETY: row r, columns c0..c1 are inside C and owned by this call.
             let row = unsafe { std::slice::from_raw_parts_mut(c.add(r * ldc + c0), c1 - c0) };
-            row.copy_from_slice(&bias[c0..c1]);
+            if let Init::Bias(_) = init {
+                row.copy_from_slice(&bias[c0..c1]);
+            } else {
+                for (v, &add) in row.iter_mut().zip(&bias[c0..c1]) {
+                    *v += add;
+                }
+            }
         }
     }
     if k == 0 {
@@ -1266,6 +1276,17 @@ mod tests {
                 let mut cb = vec![0.0; m * n];
                 gemm(isa, &a, k, m, &packed, &mut cb, n, Init::Bias(&bias));
                 gemm(isa, &a, k, m, &packed, &mut cb, n, Init::Accumulate);
+                let mut cab = cb.clone();
+                gemm_par(
+                    &pool,
+                    &a,
+                    k,
+                    m,
+                    &packed,
+                    &mut cab,
+                    n,
+                    Init::AccumulateBias(&bias),
+                );
                 for i in 0..m * n {
                     let tol = 1e-5 * (k as f32).sqrt();
                     assert!(
@@ -1278,6 +1299,11 @@ mod tests {
                     assert!(
                         (cb[i] - wb).abs() <= 2.0 * tol,
                         "bias+acc {m}x{k}x{n} [{i}]"
+                    );
+                    let wab = 2.0 * bias[i % n] + 3.0 * want[i];
+                    assert!(
+                        (cab[i] - wab).abs() <= 3.0 * tol,
+                        "acc+bias {m}x{k}x{n} [{i}]"
                     );
                 }
             }

@@ -222,6 +222,18 @@ impl Pool {
         }
     }
 
+    /// [`Pool::parts`] for units of equal, sizeable cost (an attention head): one part per
+    /// unit, so that threads claiming them one at a time end at most one unit apart. Cutting 12
+    /// heads into `parts(12)` = 8 parts of one or two heads could leave one thread two heads
+    /// behind the other.
+    pub fn parts_per_unit(&self, units: usize) -> usize {
+        if self.threads == 1 {
+            1
+        } else {
+            units.clamp(1, 64)
+        }
+    }
+
     /// Number of worker threads.
     pub fn threads(&self) -> usize {
         self.threads

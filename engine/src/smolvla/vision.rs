@@ -245,7 +245,6 @@ impl CpuVision {
                 layer.qkv.init(),
             );
             self.attention(pool, &qkv, &counts, &starts, &mut attn);
-            add_bias_rows(&mut x, layer.out.bias.as_deref());
             gemm_par(
                 pool,
                 &attn,
@@ -254,7 +253,7 @@ impl CpuVision {
                 &layer.out.w,
                 &mut x,
                 vh,
-                Init::Accumulate,
+                accumulate_bias(layer.out.bias.as_deref()),
             );
             layer_norm_par(pool, &x, &layer.norm2, eps, &mut h);
             let inter = v.intermediate_size;
@@ -271,7 +270,6 @@ impl CpuVision {
             pool.for_row_chunks(&mut mlp, inter, |_, chunk| {
                 vecmath::gelu_tanh_inplace(pool.isa(), chunk);
             });
-            add_bias_rows(&mut x, layer.fc2.bias.as_deref());
             gemm_par(
                 pool,
                 &mlp,
@@ -280,7 +278,7 @@ impl CpuVision {
                 &layer.fc2.w,
                 &mut x,
                 vh,
-                Init::Accumulate,
+                accumulate_bias(layer.fc2.bias.as_deref()),
             );
         }
         layer_norm_par(pool, &x, &self.post, eps, &mut h);
@@ -344,7 +342,7 @@ impl CpuVision {
         let scale = (hd as f64).powf(-0.5) as f32;
         let ld = 3 * vh;
         let tasks = counts.len() * heads;
-        let parts = pool.parts(tasks);
+        let parts = pool.parts_per_unit(tasks);
         let out = SharedMut::new(attn);
         let isa = pool.isa();
         pool.run(parts, |part| {
@@ -418,15 +416,10 @@ pub(crate) fn starts(counts: &[usize]) -> Vec<usize> {
 /// Query rows per attention call: 96 x 1024 scores = 384 KiB.
 const QUERY_BLOCK: usize = 96;
 
-/// `x[r] += bias` for every row (before a GEMM that accumulates onto the residual).
-fn add_bias_rows(x: &mut [f32], bias: Option<&[f32]>) {
-    if let Some(b) = bias {
-        for row in x.chunks_exact_mut(b.len()) {
-            for (a, &c) in row.iter_mut().zip(b) {
-                *a += c;
-            }
-        }
-    }
+/// How a residual GEMM starts: `x += bias + A · B` (the bias added to `x` first, then the
+/// products, by the threads that own each part of `x`), or plain accumulation without a bias.
+fn accumulate_bias(bias: Option<&[f32]>) -> Init<'_> {
+    bias.map_or(Init::Accumulate, Init::AccumulateBias)
 }
 
 fn layer_norm_par(pool: &Pool, x: &[f32], norm: &NormWeights, eps: f32, out: &mut [f32]) {

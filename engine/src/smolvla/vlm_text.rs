@@ -203,7 +203,7 @@ impl CpuText {
         let groups = heads / kv_heads;
         let scale = (hd as f64).powf(-0.5) as f32;
         let tasks = counts.len() * kv_heads;
-        let parts = pool.parts(tasks);
+        let parts = pool.parts_per_unit(tasks);
         let out = SharedMut::new(attn);
         let isa = pool.isa();
         pool.run(parts, |part| {
