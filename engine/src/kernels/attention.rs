@@ -122,13 +122,13 @@ mod tests {
         let ks = data(nq * d, 4);
         let vs = data(nq * d, 5);
         let mut pk = PackedMatrix::default();
-        pk.pack_transposed(&kp, d, lp, d);
+        pk.pack_transposed(Isa::detect(), &kp, d, lp, d);
         let mut pv = PackedMatrix::default();
-        pv.pack_rows(&vp, d, lp, d);
+        pv.pack_rows(Isa::detect(), &vp, d, lp, d);
         let mut sk = PackedMatrix::default();
-        sk.pack_transposed(&ks, d, nq, d);
+        sk.pack_transposed(Isa::detect(), &ks, d, nq, d);
         let mut sv = PackedMatrix::default();
-        sv.pack_rows(&vs, d, nq, d);
+        sv.pack_rows(Isa::detect(), &vs, d, nq, d);
         let segs = [
             KvSegment {
                 keys_t: &pk,

@@ -200,9 +200,9 @@ impl CpuExpert {
                 (0..d.kv_heads)
                     .map(|g| {
                         let mut kt = PackedMatrix::empty_in(self.precision);
-                        kt.pack_transposed(&k[g * hd..], kvw, tokens, hd);
+                        kt.pack_transposed(pool.isa(), &k[g * hd..], kvw, tokens, hd);
                         let mut vv = PackedMatrix::empty_in(self.precision);
-                        vv.pack_rows(&v[g * hd..], kvw, tokens, hd);
+                        vv.pack_rows(pool.isa(), &v[g * hd..], kvw, tokens, hd);
                         (kt, vv)
                     })
                     .collect()
@@ -424,8 +424,8 @@ impl CpuExpert {
                 let base = r * n * ld;
                 for g in 0..d.kv_heads {
                     let (kt, vv) = &mut ws.suffix_kv[r * d.kv_heads + g];
-                    kt.pack_transposed(&ws.qkv[base + qw + g * hd..], ld, n, hd);
-                    vv.pack_rows(&ws.qkv[base + qw + kvw + g * hd..], ld, n, hd);
+                    kt.pack_transposed(isa, &ws.qkv[base + qw + g * hd..], ld, n, hd);
+                    vv.pack_rows(isa, &ws.qkv[base + qw + kvw + g * hd..], ld, n, hd);
                 }
             }
         }

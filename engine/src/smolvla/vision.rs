@@ -359,8 +359,8 @@ impl CpuVision {
                 for row in base.chunks_exact(ld) {
                     q.extend_from_slice(&row[head * hd..(head + 1) * hd]);
                 }
-                kt.pack_transposed(&base[vh + head * hd..], ld, n, hd);
-                vv.pack_rows(&base[2 * vh + head * hd..], ld, n, hd);
+                kt.pack_transposed(isa, &base[vh + head * hd..], ld, n, hd);
+                vv.pack_rows(isa, &base[2 * vh + head * hd..], ld, n, hd);
                 tmp.resize(n * hd, 0.0);
                 let segment = KvSegment {
                     keys_t: &kt,

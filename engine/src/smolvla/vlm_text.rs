@@ -221,10 +221,10 @@ impl CpuText {
                 let [mk, mv, sk, sv] = &mut packed;
                 let k0 = qw + g * hd;
                 let v0 = qw + kvw + g * hd;
-                mk.pack_transposed(&base[k0..], ld, main, hd);
-                mv.pack_rows(&base[v0..], ld, main, hd);
-                sk.pack_transposed(&base[main * ld + k0..], ld, 1, hd);
-                sv.pack_rows(&base[main * ld + v0..], ld, 1, hd);
+                mk.pack_transposed(isa, &base[k0..], ld, main, hd);
+                mv.pack_rows(isa, &base[v0..], ld, main, hd);
+                sk.pack_transposed(isa, &base[main * ld + k0..], ld, 1, hd);
+                sv.pack_rows(isa, &base[main * ld + v0..], ld, 1, hd);
                 let main_seg = KvSegment {
                     keys_t: mk,
                     values: mv,
