@@ -5,11 +5,11 @@
 //! floats (64 bytes: one cache line), in blocks of `KC` rows (see [`offset`]). The micro-kernel keeps an `MR x NR` block of `C` in 12
 //! AVX2 registers and streams one panel row (two vector loads) and `MR` broadcasts of `A` per
 //! step of `k`: 12 FMAs per 8 loads. Blocking: `KC` rows of a panel (8 KiB) stay in L1 while all
-//! row tiles of an `MC`-row block of `A` (in L2) pass over them. `A` is packed per block into
-//! tiles of `MR` rows, each row contiguous (a plain copy in f32, a rounding pass in bf16; an
-//! interleaved layout cost a scalar scatter of 4-5% of the vision tower), and the kernel reads
-//! the tile's rows through pointers that advance together. [`gemm_par`] packs `A` on the
-//! pool's threads, one `MC x KC` block per unit.
+//! row tiles of an `MC`-row block of `A` (in L2) pass over them. The kernel reads a tile's `MR`
+//! rows of `A` through pointers that advance together: f32 rows straight from the caller's
+//! matrix, bf16 rows from a packed copy (rounded into pairs per `MC x KC_BF16` block, each row
+//! contiguous; an interleaved layout cost a scalar scatter of 4-5% of the vision tower).
+//! [`gemm_par`] packs a bf16 `A` on the pool's threads, one block per unit.
 //!
 //! On CPUs with AVX-512F the same tile is `MR` 512-bit accumulators (one per row; a panel row
 //! is one vector), with `A` broadcast from memory inside each FMA: fewer instructions per FLOP,
@@ -367,19 +367,35 @@ pub fn gemm(
     if m == 0 || b.n == 0 {
         return;
     }
+    if b.precision == Precision::F32 {
+        let src = ASource::Rows(a, lda);
+        // SAFETY: `check` verified the bounds of `a` and `c`; this thread owns all of `c`.
+        unsafe { gemm_packed(isa, src, m, b, 0..b.panels(), c.as_mut_ptr(), ldc, init) };
+        return;
+    }
     // The borrow never spans a wait on other threads, so a worker that steals work while it
     // waits can never find its own buffer borrowed.
     A_PACK.with(|buf| {
         let mut buf = buf.borrow_mut();
-        let packed = pack_a_blocks(isa, b.precision, a, lda, m, b.k, &mut buf);
+        let packed = ASource::Packed(pack_a_blocks(isa, a, lda, m, b.k, &mut buf));
         // SAFETY: `check` verified the bounds of `c`; this thread owns all of it.
         unsafe { gemm_packed(isa, packed, m, b, 0..b.panels(), c.as_mut_ptr(), ldc, init) }
     });
 }
 
+/// Where the micro-kernels read `A`.
+#[derive(Clone, Copy)]
+enum ASource<'a> {
+    /// Packed by [`pack_a_blocks`] (bf16: rounded into pairs).
+    Packed(&'a [f32]),
+    /// f32 rows read in place, `A[r][kk]` at `a[r * lda + kk]`: packing them would only copy
+    /// each row (~3% of the f32 vision tower, plus a parallel region per GEMM to do it in).
+    Rows(&'a [f32], usize),
+}
+
 /// [`gemm`] with the output columns split into [`Pool::parts`] parts run by the pool's threads.
-/// `A` is packed once, by the pool's threads too (see [`pack_a_blocks_par`]), and shared by all
-/// parts.
+/// A bf16 `A` is packed once, by the pool's threads too (see [`pack_a_blocks_par`]), and shared
+/// by all parts; an f32 `A` is read in place.
 #[allow(clippy::too_many_arguments)]
 pub fn gemm_par(
     pool: &Pool,
@@ -398,12 +414,15 @@ pub fn gemm_par(
     let panels = b.panels();
     let parts = pool.parts(panels);
     let mut scratch = pool.take_scratch();
-    let packed = pack_a_blocks_par(pool, b.precision, a, lda, m, b.k, &mut scratch);
+    let src = match b.precision {
+        Precision::F32 => ASource::Rows(a, lda),
+        Precision::Bf16 => ASource::Packed(pack_a_blocks_par(pool, a, lda, m, b.k, &mut scratch)),
+    };
     let out = SharedMut::new(c);
     pool.run(parts, |t| {
         let range = panels * t / parts..panels * (t + 1) / parts;
         // SAFETY: `check` verified the bounds; part `t` writes only the columns of its panels.
-        unsafe { gemm_packed(pool.isa(), packed, m, b, range, out.ptr(), ldc, init) }
+        unsafe { gemm_packed(pool.isa(), src, m, b, range, out.ptr(), ldc, init) }
     });
     pool.put_scratch(scratch);
 }
@@ -432,36 +451,29 @@ fn padded_rows(m: usize, m0: usize) -> usize {
     MC.min(m - m0).div_ceil(MR) * MR
 }
 
-/// Where block `(m0, k0)` of packed `A` starts: blocks are stored `MC` rows at a time, each as
-/// its `KC`-deep slices one after another (see [`pack_a`] for one slice).
-fn a_block(precision: Precision, k: usize, m: usize, m0: usize, k0: usize) -> usize {
-    m0 * depth(precision, k) + depth(precision, k0) * padded_rows(m, m0)
+/// Where block `(m0, k0)` of packed (bf16) `A` starts: blocks are stored `MC` rows at a time,
+/// each as its `KC_BF16`-deep slices one after another (see [`pack_a_bf16`] for one slice).
+/// Only bf16 `A` is packed: f32 rows are read in place ([`ASource::Rows`]).
+fn a_block(k: usize, m: usize, m0: usize, k0: usize) -> usize {
+    m0 * depth(Precision::Bf16, k) + depth(Precision::Bf16, k0) * padded_rows(m, m0)
 }
 
-/// Pack all of `A` (`m x k`, row stride `lda`) into `buf` in [`a_block`] order, in
-/// `precision`.
+/// Pack all of `A` (`m x k`, row stride `lda`) into `buf` in [`a_block`] order, as bf16
+/// pairs.
 fn pack_a_blocks<'a>(
     isa: Isa,
-    precision: Precision,
     a: &[f32],
     lda: usize,
     m: usize,
     k: usize,
     buf: &'a mut AlignedBuf,
 ) -> &'a [f32] {
-    let (units, len) = a_layout(precision, m, k);
+    let (units, len) = a_layout(m, k);
     buf.ensure(len);
     let out = &mut buf.as_mut_slice()[..len];
     for unit in 0..units {
-        let u = AUnit::new(precision, m, k, unit);
-        pack_a_unit(
-            isa,
-            precision,
-            a,
-            lda,
-            &u,
-            &mut out[u.start..u.start + u.size],
-        );
+        let u = AUnit::new(m, k, unit);
+        pack_a_unit(isa, a, lda, &u, &mut out[u.start..u.start + u.size]);
     }
     &buf.as_slice()[..len]
 }
@@ -474,37 +486,36 @@ const PAR_PACK_MIN: usize = 32 * 1024;
 /// written by one part, the same way as on one thread, so the result is identical.
 fn pack_a_blocks_par<'a>(
     pool: &Pool,
-    precision: Precision,
     a: &[f32],
     lda: usize,
     m: usize,
     k: usize,
     buf: &'a mut AlignedBuf,
 ) -> &'a [f32] {
-    let (units, len) = a_layout(precision, m, k);
+    let (units, len) = a_layout(m, k);
     if m * k < PAR_PACK_MIN || units == 1 || pool.threads() == 1 {
-        return pack_a_blocks(pool.isa(), precision, a, lda, m, k, buf);
+        return pack_a_blocks(pool.isa(), a, lda, m, k, buf);
     }
     buf.ensure(len);
     let out = SharedMut::new(&mut buf.as_mut_slice()[..len]);
     let parts = pool.parts(units);
     pool.run(parts, |t| {
         for unit in units * t / parts..units * (t + 1) / parts {
-            let u = AUnit::new(precision, m, k, unit);
+            let u = AUnit::new(m, k, unit);
             // SAFETY: the units' ranges are disjoint and inside the `len` values of `out`
             // (see `AUnit`); each is written by the one part that owns the unit.
             let dst = unsafe { std::slice::from_raw_parts_mut(out.ptr().add(u.start), u.size) };
-            pack_a_unit(pool.isa(), precision, a, lda, &u, dst);
+            pack_a_unit(pool.isa(), a, lda, &u, dst);
         }
     });
     &buf.as_slice()[..len]
 }
 
-/// How many `(MC, KC)` blocks packed `A` has, and how many values it takes.
-fn a_layout(precision: Precision, m: usize, k: usize) -> (usize, usize) {
+/// How many `(MC, KC_BF16)` blocks packed `A` has, and how many values it takes.
+fn a_layout(m: usize, k: usize) -> (usize, usize) {
     (
-        m.div_ceil(MC) * k.div_ceil(kc_of(precision)),
-        m.div_ceil(MR) * MR * depth(precision, k),
+        m.div_ceil(MC) * k.div_ceil(KC_BF16),
+        m.div_ceil(MR) * MR * depth(Precision::Bf16, k),
     )
 }
 
@@ -521,8 +532,8 @@ struct AUnit {
 
 impl AUnit {
     /// Block number `unit`, `k`-blocks fastest.
-    fn new(precision: Precision, m: usize, k: usize, unit: usize) -> Self {
-        let kcb = kc_of(precision);
+    fn new(m: usize, k: usize, unit: usize) -> Self {
+        let kcb = KC_BF16;
         let kblocks = k.div_ceil(kcb);
         let (m0, k0) = ((unit / kblocks) * MC, (unit % kblocks) * kcb);
         let (mb, kc) = (MC.min(m - m0), kcb.min(k - k0));
@@ -531,28 +542,25 @@ impl AUnit {
             k0,
             mb,
             kc,
-            start: a_block(precision, k, m, m0, k0),
-            size: padded_rows(m, m0) * depth(precision, kc),
+            start: a_block(k, m, m0, k0),
+            size: padded_rows(m, m0) * depth(Precision::Bf16, kc),
         }
     }
 }
 
 /// Pack block `u` of `A` into `dst`, which holds exactly that block.
-fn pack_a_unit(isa: Isa, precision: Precision, a: &[f32], lda: usize, u: &AUnit, dst: &mut [f32]) {
-    let src = &a[u.m0 * lda + u.k0..];
-    match precision {
-        Precision::F32 => pack_a(src, lda, u.mb, u.kc, dst),
-        Precision::Bf16 => pack_a_bf16(isa, src, lda, u.mb, u.kc, dst),
-    }
+fn pack_a_unit(isa: Isa, a: &[f32], lda: usize, u: &AUnit, dst: &mut [f32]) {
+    pack_a_bf16(isa, &a[u.m0 * lda + u.k0..], lda, u.mb, u.kc, dst);
 }
 
 /// # Safety
 /// `c` points to `m` rows of stride `ldc` with at least `b.n` values each, and no other thread
-/// touches the columns of `panels` in those rows; `packed` is `A` packed by [`pack_a_blocks`].
+/// touches the columns of `panels` in those rows; `a` holds `m` rows of `b.k` values (packed by
+/// [`pack_a_blocks`] in `b`'s precision, or f32 rows in place).
 #[allow(clippy::too_many_arguments)]
 unsafe fn gemm_packed(
     isa: Isa,
-    packed: &[f32],
+    a: ASource<'_>,
     m: usize,
     b: &PackedMatrix,
     panels: Range<usize>,
@@ -606,7 +614,6 @@ unsafe fn gemm_packed(
         while k0 < k {
             let kc = kc_of(b.precision).min(k - k0);
             let load = k0 > 0 || !matches!(init, Init::Zero);
-            let block = &packed[a_block(b.precision, k, m, m0, k0)..];
             let mut p = panels.start;
             while p < panels.end {
                 let c0 = p * NR;
@@ -630,7 +637,14 @@ unsafe fn gemm_packed(
                     for next in [next1, next2].into_iter().flatten() {
                         prefetch_lines(isa, next, from, to);
                     }
-                    let ap = block[t * d(kc) * MR..].as_ptr();
+                    // Tile t's first row, and how far apart its rows are.
+                    let (ap, ars) = match a {
+                        ASource::Packed(packed) => {
+                            let start = a_block(k, m, m0, k0) + t * d(kc) * MR;
+                            (packed[start..].as_ptr(), d(kc))
+                        }
+                        ASource::Rows(rows, lda) => (rows[(m0 + r0) * lda + k0..].as_ptr(), lda),
+                    };
                     // SAFETY: the tile lies inside C (rows m0+r0.., columns c0..c0+step*w).
                     let cp = unsafe { c.add((m0 + r0) * ldc + c0) };
                     // The next tile's accumulators come from C: start fetching them now.
@@ -643,10 +657,10 @@ unsafe fn gemm_packed(
                     }
                     if pair {
                         // SAFETY: both panels hold kc rows and are full width; C as above.
-                        unsafe { tile_pair(kernel, rows, kc, ap, bp, bp2, cp, ldc, load) };
+                        unsafe { tile_pair(kernel, rows, kc, ap, ars, bp, bp2, cp, ldc, load) };
                     } else {
                         // SAFETY: the packed A tile and the panel hold kc rows; C as above.
-                        unsafe { tile(kernel, rows, kc, ap, bp, cp, ldc, w, load) };
+                        unsafe { tile(kernel, rows, kc, ap, ars, bp, cp, ldc, w, load) };
                     }
                 }
                 p += step;
@@ -697,26 +711,10 @@ fn prefetch_lines(isa: Isa, panel: *const f32, from: usize, to: usize) {
     let _ = (isa, panel, from, to);
 }
 
-/// Pack `rows x kc` of `A` into row tiles of `MR`: tile `t` holds rows `t*MR..` one after
-/// another, `kc` values each (zero rows past `rows`). Each row is one contiguous copy; the
-/// kernel reads its rows through `MR` pointers that move together.
-fn pack_a(a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
-    for t in 0..rows.div_ceil(MR) {
-        let tile = &mut out[t * kc * MR..(t + 1) * kc * MR];
-        for (r, dst) in tile.chunks_exact_mut(kc).enumerate() {
-            let row = t * MR + r;
-            if row < rows {
-                dst.copy_from_slice(&a[row * lda..row * lda + kc]);
-            } else {
-                dst.fill(0.0);
-            }
-        }
-    }
-}
-
-/// Pack `rows x kc` of `A` like [`pack_a`], but as bf16 pairs: row `r` of tile `t` is the
-/// `ceil(kc / 2)` pairs `(A[r][2i], A[r][2i+1])` (zero past `kc` and `rows`), rounded straight
-/// into place (16 values per instruction with AVX-512F).
+/// Pack `rows x kc` of `A` into row tiles of `MR` bf16 pairs: row `r` of tile `t` (row
+/// `t*MR + r` of `A`) is the `ceil(kc / 2)` pairs `(A[r][2i], A[r][2i+1])`, contiguous, rounded
+/// straight into place (16 values per instruction with AVX-512F); zero rows past `rows`. The
+/// kernel reads a tile's rows through pointers that move together.
 fn pack_a_bf16(isa: Isa, a: &[f32], lda: usize, rows: usize, kc: usize, out: &mut [f32]) {
     debug_assert!(kc <= KC_BF16);
     let kp = kc.div_ceil(2);
@@ -853,17 +851,20 @@ macro_rules! unroll4 {
 }
 
 /// One `rows x w` tile (`rows <= MR`, `w <= NR`): `C = A · B` over `kc`, or `C += A · B` when
-/// `load`, with `A` packed by [`pack_a`].
+/// `load`. Row `r` of the tile's `A` starts at `a + r * ars`: f32 rows in place, or bf16 pair
+/// rows packed by [`pack_a_bf16`].
 ///
 /// # Safety
-/// `a` has `kc * MR` values, `b` has `kc` rows of `NR` values, `c` has `rows` rows of stride
-/// `ldc` with `w` values.
+/// `a` has `rows` rows `ars` apart of `kc` values (bf16: `ceil(kc / 2)` pairs), `b` has `kc`
+/// rows of `NR` values (pair rows in bf16), `c` has `rows` rows of stride `ldc` with `w`
+/// values.
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile(
     kernel: Kernel,
     rows: usize,
     kc: usize,
     a: *const f32,
+    ars: usize,
     b: *const f32,
     c: *mut f32,
     ldc: usize,
@@ -882,7 +883,20 @@ unsafe fn tile(
             }
         }
         // SAFETY: scratch is a full MR x NR tile.
-        unsafe { tile(kernel, rows, kc, a, b, scratch.as_mut_ptr(), NR, NR, load) };
+        unsafe {
+            tile(
+                kernel,
+                rows,
+                kc,
+                a,
+                ars,
+                b,
+                scratch.as_mut_ptr(),
+                NR,
+                NR,
+                load,
+            )
+        };
         for r in 0..rows {
             for j in 0..w {
                 // SAFETY: inside the caller's C tile.
@@ -894,12 +908,12 @@ unsafe fn tile(
     macro_rules! dispatch {
         ($f:ident) => {
             match rows {
-                6 => $f::<6>(kc, a, b, c, ldc, load),
-                5 => $f::<5>(kc, a, b, c, ldc, load),
-                4 => $f::<4>(kc, a, b, c, ldc, load),
-                3 => $f::<3>(kc, a, b, c, ldc, load),
-                2 => $f::<2>(kc, a, b, c, ldc, load),
-                _ => $f::<1>(kc, a, b, c, ldc, load),
+                6 => $f::<6>(kc, a, ars, b, c, ldc, load),
+                5 => $f::<5>(kc, a, ars, b, c, ldc, load),
+                4 => $f::<4>(kc, a, ars, b, c, ldc, load),
+                3 => $f::<3>(kc, a, ars, b, c, ldc, load),
+                2 => $f::<2>(kc, a, ars, b, c, ldc, load),
+                _ => $f::<1>(kc, a, ars, b, c, ldc, load),
             }
         };
     }
@@ -932,6 +946,7 @@ unsafe fn tile_pair(
     rows: usize,
     kc: usize,
     a: *const f32,
+    ars: usize,
     b: *const f32,
     b2: *const f32,
     c: *mut f32,
@@ -941,12 +956,12 @@ unsafe fn tile_pair(
     macro_rules! dispatch {
         ($f:ident) => {
             match rows {
-                6 => $f::<6>(kc, a, b, b2, c, ldc, load),
-                5 => $f::<5>(kc, a, b, b2, c, ldc, load),
-                4 => $f::<4>(kc, a, b, b2, c, ldc, load),
-                3 => $f::<3>(kc, a, b, b2, c, ldc, load),
-                2 => $f::<2>(kc, a, b, b2, c, ldc, load),
-                _ => $f::<1>(kc, a, b, b2, c, ldc, load),
+                6 => $f::<6>(kc, a, ars, b, b2, c, ldc, load),
+                5 => $f::<5>(kc, a, ars, b, b2, c, ldc, load),
+                4 => $f::<4>(kc, a, ars, b, b2, c, ldc, load),
+                3 => $f::<3>(kc, a, ars, b, b2, c, ldc, load),
+                2 => $f::<2>(kc, a, ars, b, b2, c, ldc, load),
+                _ => $f::<1>(kc, a, ars, b, b2, c, ldc, load),
             }
         };
     }
@@ -957,8 +972,8 @@ unsafe fn tile_pair(
         _ => {
             // SAFETY: the caller's contract, one panel at a time.
             unsafe {
-                tile(kernel, rows, kc, a, b, c, ldc, NR, load);
-                tile(kernel, rows, kc, a, b2, c.add(NR), ldc, NR, load);
+                tile(kernel, rows, kc, a, ars, b, c, ldc, NR, load);
+                tile(kernel, rows, kc, a, ars, b2, c.add(NR), ldc, NR, load);
             }
         }
     }
@@ -971,6 +986,7 @@ unsafe fn tile_pair(
 unsafe fn kernel_avx2<const R: usize>(
     kc: usize,
     a: *const f32,
+    ars: usize,
     b: *const f32,
     c: *mut f32,
     ldc: usize,
@@ -994,7 +1010,7 @@ unsafe fn kernel_avx2<const R: usize>(
                 let b0 = _mm256_load_ps(b.add($kk * NR));
                 let b1 = _mm256_load_ps(b.add($kk * NR + 8));
                 for r in 0..R {
-                    let av = _mm256_broadcast_ss(&*a.add(r * kc + $kk));
+                    let av = _mm256_broadcast_ss(&*a.add(r * ars + $kk));
                     acc[r][0] = _mm256_fmadd_ps(av, b0, acc[r][0]);
                     acc[r][1] = _mm256_fmadd_ps(av, b1, acc[r][1]);
                 }
@@ -1022,6 +1038,7 @@ unsafe fn kernel_avx2<const R: usize>(
 unsafe fn kernel_avx512<const R: usize>(
     kc: usize,
     a: *const f32,
+    ars: usize,
     b: *const f32,
     c: *mut f32,
     ldc: usize,
@@ -1041,7 +1058,7 @@ unsafe fn kernel_avx512<const R: usize>(
             unsafe {
                 let bv = _mm512_load_ps(b.add($kk * NR));
                 for r in 0..R {
-                    let av = _mm512_set1_ps(*a.add(r * kc + $kk));
+                    let av = _mm512_set1_ps(*a.add(r * ars + $kk));
                     acc[r] = _mm512_fmadd_ps(av, bv, acc[r]);
                 }
             }
@@ -1065,6 +1082,7 @@ unsafe fn kernel_avx512<const R: usize>(
 unsafe fn kernel_bf16_avx512_pair<const R: usize>(
     kc: usize,
     a: *const f32,
+    ars: usize,
     b: *const f32,
     b2: *const f32,
     c: *mut f32,
@@ -1085,7 +1103,6 @@ unsafe fn kernel_bf16_avx512_pair<const R: usize>(
             }
         }
     }
-    // Row r of the packed A tile starts kp pairs after row r - 1.
     let kp = kc.div_ceil(2);
     macro_rules! step {
         ($acc:ident, $acc2:ident, $i:expr) => {{
@@ -1103,7 +1120,7 @@ unsafe fn kernel_bf16_avx512_pair<const R: usize>(
                         acc2 = inout(zmm_reg) $acc2[r],
                         b = in(zmm_reg) bl,
                         b2 = in(zmm_reg) br,
-                        p = in(reg) a.add(r * kp + $i),
+                        p = in(reg) a.add(r * ars + $i),
                         options(nostack, readonly, preserves_flags),
                     );
                 }
@@ -1141,6 +1158,7 @@ unsafe fn kernel_bf16_avx512_pair<const R: usize>(
 unsafe fn kernel_bf16_avx512<const R: usize>(
     kc: usize,
     a: *const f32,
+    ars: usize,
     b: *const f32,
     c: *mut f32,
     ldc: usize,
@@ -1155,7 +1173,6 @@ unsafe fn kernel_bf16_avx512<const R: usize>(
             *row = unsafe { _mm512_loadu_ps(c.add(r * ldc)) };
         }
     }
-    // Row r of the packed A tile starts kp pairs after row r - 1.
     let kp = kc.div_ceil(2);
     macro_rules! step {
         ($acc:ident, $i:expr) => {{
@@ -1172,7 +1189,7 @@ unsafe fn kernel_bf16_avx512<const R: usize>(
                         "vdpbf16ps {acc}, {b}, dword ptr [{p}]{{1to16}}",
                         acc = inout(zmm_reg) $acc[r],
                         b = in(zmm_reg) bv,
-                        p = in(reg) a.add(r * kp + $i),
+                        p = in(reg) a.add(r * ars + $i),
                         options(nostack, readonly, preserves_flags),
                     );
                 }
@@ -1214,6 +1231,7 @@ unsafe fn kernel_bf16_avx512<const R: usize>(
 unsafe fn kernel_bf16_portable<const R: usize>(
     kc: usize,
     a: *const f32,
+    ars: usize,
     b: *const f32,
     c: *mut f32,
     ldc: usize,
@@ -1241,7 +1259,7 @@ unsafe fn kernel_bf16_portable<const R: usize>(
         let (brow, arow) = unsafe {
             (
                 std::slice::from_raw_parts(b.add(i * NR), NR),
-                std::array::from_fn::<f32, R, _>(|r| *a.add(r * kp + i)),
+                std::array::from_fn::<f32, R, _>(|r| *a.add(r * ars + i)),
             )
         };
         for (row, &ap) in acc[i % 2].iter_mut().zip(&arow) {
@@ -1266,6 +1284,7 @@ unsafe fn kernel_bf16_portable<const R: usize>(
 unsafe fn kernel_portable<const R: usize>(
     kc: usize,
     a: *const f32,
+    ars: usize,
     b: *const f32,
     c: *mut f32,
     ldc: usize,
@@ -1285,7 +1304,7 @@ unsafe fn kernel_portable<const R: usize>(
         let (brow, arow) = unsafe {
             (
                 std::slice::from_raw_parts(b.add(kk * NR), NR),
-                std::array::from_fn::<f32, R, _>(|r| *a.add(r * kc + kk)),
+                std::array::from_fn::<f32, R, _>(|r| *a.add(r * ars + kk)),
             )
         };
         for (row, &av) in acc.iter_mut().zip(&arow) {
@@ -1403,7 +1422,12 @@ mod tests {
                 .filter(|i| i.available())
             {
                 let mut pack_buf = AlignedBuf::default();
-                let pa = pack_a_blocks(isa, precision, &a, k, m, k, &mut pack_buf);
+                let pa = match precision {
+                    Precision::F32 => ASource::Rows(&a, k),
+                    Precision::Bf16 => {
+                        ASource::Packed(pack_a_blocks(isa, &a, k, m, k, &mut pack_buf))
+                    }
+                };
                 let panels = packed.panels();
                 let mut whole = vec![0.0; m * n];
                 let mut split = vec![0.0; m * n];
