@@ -1079,6 +1079,7 @@ unsafe fn kernel_avx512<const R: usize>(
 /// See [`tile_pair`], with bf16 pair rows; requires AVX-512F and AVX512_BF16.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bf16")]
+#[allow(clippy::too_many_arguments)]
 unsafe fn kernel_bf16_avx512_pair<const R: usize>(
     kc: usize,
     a: *const f32,
