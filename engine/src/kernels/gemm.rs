@@ -412,7 +412,15 @@ pub fn gemm_par(
         return;
     }
     let panels = b.panels();
-    let parts = pool.parts(panels);
+    // Parts own whole pairs of panels where the kernel pairs them: a part starting or ending
+    // at an odd panel would leave that panel to the slower one-panel kernel.
+    let unit = if Kernel::choose(pool.isa(), b.precision).pairs() {
+        2
+    } else {
+        1
+    };
+    let units = panels.div_ceil(unit);
+    let parts = pool.parts(units);
     let mut scratch = pool.take_scratch();
     let src = match b.precision {
         Precision::F32 => ASource::Rows(a, lda),
@@ -420,7 +428,7 @@ pub fn gemm_par(
     };
     let out = SharedMut::new(c);
     pool.run(parts, |t| {
-        let range = panels * t / parts..panels * (t + 1) / parts;
+        let range = (units * t / parts * unit)..(units * (t + 1) / parts * unit).min(panels);
         // SAFETY: `check` verified the bounds; part `t` writes only the columns of its panels.
         unsafe { gemm_packed(pool.isa(), src, m, b, range, out.ptr(), ldc, init) }
     });
