@@ -123,12 +123,13 @@ impl PackedMatrix {
 
     /// [`Self::from_linear_weights`] stored in `precision`.
     pub fn from_linear_weights_in(precision: Precision, ws: &[(&[f32], usize)], k: usize) -> Self {
-        let n: usize = ws.iter().map(|(_, n)| n).sum();
-        let mut stacked = Vec::with_capacity(n * k);
-        for (w, rows) in ws {
-            stacked.extend_from_slice(&w[..rows * k]);
-        }
-        Self::from_linear_weight_in(precision, &stacked, n, k)
+        // Where each stacked row lives, so that the panels are packed straight from the parts
+        // (no stacked copy of the weights, which briefly doubled them at load).
+        let rows: Vec<&[f32]> = ws
+            .iter()
+            .flat_map(|&(w, n)| (0..n).map(move |r| &w[r * k..(r + 1) * k]))
+            .collect();
+        Self::from_linear_fn_in(precision, rows.len(), k, |j, kk| rows[j][kk])
     }
 
     /// An empty matrix that [`Self::pack_rows`] and [`Self::pack_transposed`] fill in
