@@ -79,14 +79,4 @@ static bool release_floor(const exports_kairos_policy_horizon_chunk_t *c,
 static const char *const KNOWN[] = {"h_max", "h_min", "margin", "quorum", "release", "slow", NULL};
 static const cut_rule_t RULE = {"slow", DEFAULT_SLOW, DEFAULT_MARGIN, KNOWN, "unknown parameter (expected one of: slow, margin, h_min, h_max, release, quorum)", first_contact, release_floor};
 
-bool exports_kairos_policy_horizon_choose(exports_kairos_policy_horizon_chunk_t *chunk,
-                                          exports_kairos_policy_horizon_horizon_context_t *ctx,
-                                          exports_kairos_policy_horizon_list_param_t *params,
-                                          uint32_t *ret, horizon_error_t *err) {
-    bool ok = cut_decide(&RULE, chunk, ctx, params, ret, err);
-    /* The arguments belong to the callee. */
-    exports_kairos_policy_horizon_chunk_free(chunk);
-    exports_kairos_policy_horizon_horizon_context_free(ctx);
-    exports_kairos_policy_horizon_list_param_free(params);
-    return ok;
-}
+CUT_RULE_EXPORT(RULE)

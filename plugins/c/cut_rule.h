@@ -104,4 +104,18 @@ static bool cut_decide(const cut_rule_t *rule, exports_kairos_policy_horizon_chu
     return true;
 }
 
+/* The world's export for a rule: decide, then free the arguments, which belong to the callee.
+ * A rule's source ends with `CUT_RULE_EXPORT(RULE)`. */
+#define CUT_RULE_EXPORT(rule)                                                                      \
+    bool exports_kairos_policy_horizon_choose(                                                     \
+        exports_kairos_policy_horizon_chunk_t *chunk,                                              \
+        exports_kairos_policy_horizon_horizon_context_t *ctx,                                      \
+        exports_kairos_policy_horizon_list_param_t *params, uint32_t *ret, horizon_error_t *err) { \
+        bool ok = cut_decide(&(rule), chunk, ctx, params, ret, err);                               \
+        exports_kairos_policy_horizon_chunk_free(chunk);                                           \
+        exports_kairos_policy_horizon_horizon_context_free(ctx);                                   \
+        exports_kairos_policy_horizon_list_param_free(params);                                     \
+        return ok;                                                                                 \
+    }
+
 #endif

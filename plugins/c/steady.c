@@ -38,14 +38,4 @@ static uint32_t first_change(const exports_kairos_policy_horizon_chunk_t *c, dou
 static const char *const KNOWN[] = {"delta", "h_max", "h_min", "margin", NULL};
 static const cut_rule_t RULE = {"delta", DEFAULT_DELTA, DEFAULT_MARGIN, KNOWN, "unknown parameter (expected one of: delta, margin, h_min, h_max)", first_change, NULL};
 
-bool exports_kairos_policy_horizon_choose(exports_kairos_policy_horizon_chunk_t *chunk,
-                                          exports_kairos_policy_horizon_horizon_context_t *ctx,
-                                          exports_kairos_policy_horizon_list_param_t *params,
-                                          uint32_t *ret, horizon_error_t *err) {
-    bool ok = cut_decide(&RULE, chunk, ctx, params, ret, err);
-    /* The arguments belong to the callee. */
-    exports_kairos_policy_horizon_chunk_free(chunk);
-    exports_kairos_policy_horizon_horizon_context_free(ctx);
-    exports_kairos_policy_horizon_list_param_free(params);
-    return ok;
-}
+CUT_RULE_EXPORT(RULE)
