@@ -181,16 +181,13 @@ impl PackedMatrix {
     /// panels. Same bits as [`Self::pack_with`], which rounded element by element (packing the
     /// attention values took ~2.5% of the vision tower).
     fn pack_rows_bf16(&mut self, isa: Isa, b: &[f32], ldb: usize, k: usize, n: usize) {
-        self.resize(k, n);
-        let panels = self.panels();
         ROW_PAIRS.with(|buf| {
             let mut pairs = buf.borrow_mut();
             pairs.clear();
-            pairs.resize(n, 0);
+            pairs.resize(k.div_ceil(2) * n, 0);
             let mut both = vec![0.0f32; 2 * n];
-            let dst = self.buf.as_mut_slice();
-            for kk in (0..k).step_by(2) {
-                let lo = &b[kk * ldb..kk * ldb + n];
+            for (i, out) in pairs.chunks_exact_mut(n).enumerate() {
+                let (kk, lo) = (2 * i, &b[2 * i * ldb..2 * i * ldb + n]);
                 for (two, &v) in both.chunks_exact_mut(2).zip(lo) {
                     two[0] = v;
                     two[1] = 0.0;
@@ -201,18 +198,9 @@ impl PackedMatrix {
                         two[1] = v;
                     }
                 }
-                round_pairs(isa, &both, &mut pairs);
-                for p in 0..panels {
-                    let c0 = p * NR;
-                    let width = NR.min(n - c0);
-                    let start = offset(Precision::Bf16, k, panels, p, kk);
-                    let row = &mut dst[start..start + NR];
-                    for (v, &pair) in row[..width].iter_mut().zip(&pairs[c0..c0 + width]) {
-                        *v = f32::from_bits(pair);
-                    }
-                    row[width..].fill(0.0);
-                }
+                round_pairs(isa, &both, out);
             }
+            self.store_pairs(k, n, |i, j| pairs[i * n + j]);
         });
     }
 
@@ -230,8 +218,7 @@ impl PackedMatrix {
     /// element while gathering down the columns of `w` made packing the attention keys ~4% of
     /// the vision tower. Same bits as [`Self::pack_with`].
     fn pack_transposed_bf16(&mut self, isa: Isa, w: &[f32], ldw: usize, n: usize, k: usize) {
-        self.resize(k, n);
-        let (panels, kp) = (self.panels(), k.div_ceil(2));
+        let kp = k.div_ceil(2);
         ROW_PAIRS.with(|buf| {
             let mut pairs = buf.borrow_mut();
             pairs.clear();
@@ -239,20 +226,29 @@ impl PackedMatrix {
             for (j, out) in pairs.chunks_exact_mut(kp).enumerate() {
                 round_pairs(isa, &w[j * ldw..j * ldw + k], out);
             }
-            let dst = self.buf.as_mut_slice();
-            for p in 0..panels {
-                let c0 = p * NR;
-                let width = NR.min(n - c0);
-                for i in 0..kp {
-                    let start = offset(Precision::Bf16, k, panels, p, 2 * i);
-                    let row = &mut dst[start..start + NR];
-                    for (jj, v) in row[..width].iter_mut().enumerate() {
-                        *v = f32::from_bits(pairs[(c0 + jj) * kp + i]);
-                    }
-                    row[width..].fill(0.0);
-                }
-            }
+            self.store_pairs(k, n, |i, j| pairs[j * kp + i]);
         });
+    }
+
+    /// Fill the bf16 panels of a `k x n` matrix from already rounded pairs: `pair(i, j)` is
+    /// the pair of rows `2i, 2i + 1` in column `j` (zero past `n`).
+    fn store_pairs(&mut self, k: usize, n: usize, pair: impl Fn(usize, usize) -> u32) {
+        debug_assert_eq!(self.precision, Precision::Bf16);
+        self.resize(k, n);
+        let panels = self.panels();
+        let dst = self.buf.as_mut_slice();
+        for p in 0..panels {
+            let c0 = p * NR;
+            let width = NR.min(n - c0);
+            for i in 0..k.div_ceil(2) {
+                let start = offset(Precision::Bf16, k, panels, p, 2 * i);
+                let row = &mut dst[start..start + NR];
+                for (jj, v) in row[..width].iter_mut().enumerate() {
+                    *v = f32::from_bits(pair(i, c0 + jj));
+                }
+                row[width..].fill(0.0);
+            }
+        }
     }
 
     /// Pack the `k x n` matrix whose element `(kk, j)` is `at(kk, j)`.
@@ -765,10 +761,10 @@ fn round_pairs(isa: Isa, src: &[f32], pairs: &mut [u32]) {
     let last = whole.remainder().first().copied();
     let n = whole.len();
     for (p, two) in pairs.iter_mut().zip(whole) {
-        *p = bf16_bits(two[0].to_bits()) | (bf16_bits(two[1].to_bits()) << 16);
+        *p = bf16_pair(two[0], two[1]).to_bits();
     }
     if let Some(x) = last {
-        pairs[n] = bf16_bits(x.to_bits());
+        pairs[n] = bf16_pair(x, 0.0).to_bits();
     }
 }
 
@@ -827,9 +823,7 @@ impl Kernel {
             Precision::Bf16 => Kernel::Bf16Portable,
         }
     }
-}
 
-impl Kernel {
     /// Whether [`tile_pair`] has a kernel for two panels at once: the AVX512_BF16 one. There
     /// one panel row is a single register, so a one-panel tile has only `MR` (x 2 for even and
     /// odd pairs) accumulators and spends a load of `A` on every product; two panels share
