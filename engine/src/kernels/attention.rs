@@ -7,8 +7,8 @@
 //! are simply absent from the segments: LeRobot's masked scores become exactly 0 after its
 //! softmax, so leaving them out changes no sum.
 
-use super::gemm::{Init, PackedMatrix, gemm};
-use super::{Isa, vecmath};
+use super::gemm::{Init, PackedMatrix, gemm, gemm_pairs, round_pairs};
+use super::{Isa, Precision, vecmath};
 
 /// Keys and values of one attention segment.
 #[derive(Clone, Copy, Debug)]
@@ -37,9 +37,22 @@ pub struct QueryPositions {
     pub period: usize,
 }
 
+/// Scratch space of [`attend`], grown as needed and reused across calls.
+#[derive(Debug, Default)]
+pub struct AttendScratch {
+    /// The scores, then the probabilities (f32), `nq x total`.
+    scores: Vec<f32>,
+    /// The probabilities rounded to bf16 pairs, per segment, for bf16 values.
+    pairs: Vec<u32>,
+}
+
 /// `out[i] = softmax(scale * q[i] · Kᵀ) V` for the `nq` query rows of `q` (row stride
-/// `head_dim`), over the concatenation of `segments`. `out` has row stride `ldo`; `scores` is
-/// scratch space, grown as needed.
+/// `head_dim`), over the concatenation of `segments`. `out` has row stride `ldo`; `scale > 0`.
+///
+/// With bf16 values, each row's probabilities are rounded into bf16 pairs by the pass that
+/// normalises them, while the row is in L1 (for the `P · V` GEMM, which would otherwise read
+/// the f32 probabilities back from L2 to round them: ~4% of the bf16 vision tower); the
+/// rounded values, and so the results, are the same.
 #[allow(clippy::too_many_arguments)]
 pub fn attend(
     isa: Isa,
@@ -49,11 +62,12 @@ pub fn attend(
     segments: &[KvSegment<'_>],
     positions: QueryPositions,
     scale: f32,
-    scores: &mut Vec<f32>,
+    scratch: &mut AttendScratch,
     out: &mut [f32],
     ldo: usize,
 ) {
     let total: usize = segments.iter().map(KvSegment::len).sum();
+    let scores = &mut scratch.scores;
     scores.resize(nq * total, 0.0);
     let mut col = 0;
     for seg in segments {
@@ -69,6 +83,19 @@ pub fn attend(
         );
         col += seg.len();
     }
+    let rounded = !segments.is_empty()
+        && segments
+            .iter()
+            .all(|seg| seg.values.precision() == Precision::Bf16);
+    // Segment `s`'s rounded probabilities: `nq` rows of `ceil(len / 2)` pairs from `offset`.
+    let pair_rows = |s: usize| {
+        let offset: usize = segments[..s].iter().map(|g| nq * g.len().div_ceil(2)).sum();
+        (offset, segments[s].len().div_ceil(2))
+    };
+    if rounded {
+        let (end, last) = pair_rows(segments.len() - 1);
+        scratch.pairs.resize(end + nq * last, 0);
+    }
     for i in 0..nq {
         let row = &mut scores[i * total..(i + 1) * total];
         // Visible keys form a prefix of the row when only the last segment is causal, which is
@@ -79,14 +106,44 @@ pub fn attend(
             total,
         );
         let (seen, hidden) = row.split_at_mut(visible);
-        vecmath::softmax_scaled(isa, seen, scale);
+        if !rounded {
+            vecmath::softmax_scaled(isa, seen, scale);
+            hidden.fill(0.0);
+            continue;
+        }
+        let factor = vecmath::softmax_numerators(isa, seen, scale);
         hidden.fill(0.0);
+        let mut col = 0;
+        for (s, seg) in segments.iter().enumerate() {
+            let (offset, ldp) = pair_rows(s);
+            let dst = &mut scratch.pairs[offset + i * ldp..offset + (i + 1) * ldp];
+            round_scaled(isa, &row[col..col + seg.len()], factor, dst);
+            col += seg.len();
+        }
     }
     let mut col = 0;
     for (s, seg) in segments.iter().enumerate() {
         let init = if s == 0 { Init::Zero } else { Init::Accumulate };
-        gemm(isa, &scores[col..], total, nq, seg.values, out, ldo, init);
+        if rounded {
+            let (offset, ldp) = pair_rows(s);
+            let pairs = &scratch.pairs[offset..offset + nq * ldp];
+            gemm_pairs(isa, pairs, ldp, nq, seg.values, out, ldo, init);
+        } else {
+            gemm(isa, &scores[col..], total, nq, seg.values, out, ldo, init);
+        }
         col += seg.len();
+    }
+}
+
+/// `pairs = bf16 pairs of (src * factor)`, through a small buffer: the products never go back
+/// to memory.
+fn round_scaled(isa: Isa, src: &[f32], factor: f32, pairs: &mut [u32]) {
+    const CHUNK: usize = 256;
+    let mut products = [0.0f32; CHUNK];
+    for (chunk, dst) in src.chunks(CHUNK).zip(pairs.chunks_mut(CHUNK / 2)) {
+        let products = &mut products[..chunk.len()];
+        vecmath::scale_into(isa, chunk, factor, products);
+        round_pairs(isa, products, dst);
     }
 }
 
@@ -111,6 +168,74 @@ mod tests {
                 ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
             })
             .collect()
+    }
+
+    /// With bf16 values the probabilities are rounded as they are normalised; the result has
+    /// the bits of the plain sequence (softmax in f32, then the GEMM rounding them), over an
+    /// odd-length segment followed by a causal one.
+    #[test]
+    fn bf16_probabilities_rounded_in_the_softmax_change_no_bit() {
+        let (d, lp, nq) = (16, 11, 5);
+        let isa = Isa::detect();
+        let q = data(nq * d, 11);
+        let (kp, vp, ks, vs) = (
+            data(lp * d, 12),
+            data(lp * d, 13),
+            data(nq * d, 14),
+            data(nq * d, 15),
+        );
+        let packed = |f: &dyn Fn(&mut PackedMatrix)| {
+            let mut m = PackedMatrix::empty_in(Precision::Bf16);
+            f(&mut m);
+            m
+        };
+        let pk = packed(&|m| m.pack_transposed(isa, &kp, d, lp, d));
+        let pv = packed(&|m| m.pack_rows(isa, &vp, d, lp, d));
+        let sk = packed(&|m| m.pack_transposed(isa, &ks, d, nq, d));
+        let sv = packed(&|m| m.pack_rows(isa, &vs, d, nq, d));
+        let segs = [
+            KvSegment {
+                keys_t: &pk,
+                values: &pv,
+                causal: false,
+            },
+            KvSegment {
+                keys_t: &sk,
+                values: &sv,
+                causal: true,
+            },
+        ];
+        let pos = QueryPositions {
+            offset: 0,
+            period: nq,
+        };
+        let mut got = vec![0.0; nq * d];
+        let mut scratch = AttendScratch::default();
+        attend(isa, &q, nq, d, &segs, pos, 0.25, &mut scratch, &mut got, d);
+
+        let total = lp + nq;
+        let mut p = vec![0.0; nq * total];
+        gemm(isa, &q, d, nq, &pk, &mut p, total, Init::Zero);
+        gemm(isa, &q, d, nq, &sk, &mut p[lp..], total, Init::Zero);
+        for i in 0..nq {
+            let (seen, hidden) = p[i * total..(i + 1) * total].split_at_mut(lp + i + 1);
+            vecmath::softmax_scaled(isa, seen, 0.25);
+            hidden.fill(0.0);
+        }
+        let mut want = vec![0.0; nq * d];
+        gemm(isa, &p, total, nq, &pv, &mut want, d, Init::Zero);
+        gemm(
+            isa,
+            &p[lp..],
+            total,
+            nq,
+            &sv,
+            &mut want,
+            d,
+            Init::Accumulate,
+        );
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&got), bits(&want));
     }
 
     #[test]
@@ -154,7 +279,7 @@ mod tests {
             &segs,
             pos,
             0.25,
-            &mut Vec::new(),
+            &mut AttendScratch::default(),
             &mut out,
             d,
         );
@@ -169,7 +294,7 @@ mod tests {
             &segs,
             pos,
             0.25,
-            &mut Vec::new(),
+            &mut AttendScratch::default(),
             &mut out2,
             d,
         );

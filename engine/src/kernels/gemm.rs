@@ -380,6 +380,75 @@ pub fn gemm(
     });
 }
 
+/// [`gemm`] for a bf16 `B` whose `A` is already rounded: `m` rows of bf16 pairs as
+/// [`round_pairs`] writes them (`ceil(k / 2)` pairs, row stride `ldp` pairs), read in place.
+/// A loop that produces `A` row by row (a softmax, an activation) rounds each row while it is
+/// still in L1, instead of this GEMM reading the whole f32 `A` back to round it; the rounding
+/// is the same, so are the bits.
+///
+/// # Panics
+/// If `b` is not bf16, or a stride or length is too small.
+#[allow(clippy::too_many_arguments)]
+pub fn gemm_pairs(
+    isa: Isa,
+    a: &[u32],
+    ldp: usize,
+    m: usize,
+    b: &PackedMatrix,
+    c: &mut [f32],
+    ldc: usize,
+    init: Init<'_>,
+) {
+    check_pairs(a, ldp, m, b, c, ldc, init);
+    if m == 0 || b.n == 0 {
+        return;
+    }
+    let src = ASource::Pairs(a, ldp);
+    // SAFETY: `check_pairs` verified the bounds of `a` and `c`; this thread owns all of `c`.
+    unsafe { gemm_packed(isa, src, m, b, 0..b.panels(), c.as_mut_ptr(), ldc, init) };
+}
+
+/// [`gemm_pairs`] with the output columns split over the pool's threads, as [`gemm_par`].
+#[allow(clippy::too_many_arguments)]
+pub fn gemm_par_pairs(
+    pool: &Pool,
+    a: &[u32],
+    ldp: usize,
+    m: usize,
+    b: &PackedMatrix,
+    c: &mut [f32],
+    ldc: usize,
+    init: Init<'_>,
+) {
+    check_pairs(a, ldp, m, b, c, ldc, init);
+    if m == 0 || b.n == 0 {
+        return;
+    }
+    run_parts(pool, ASource::Pairs(a, ldp), m, b, c, ldc, init);
+}
+
+/// Make the `A` of a [`gemm_par_pairs`] on the pool's threads: `f(r, row)` writes f32 row `r`
+/// (`width` values) into `row`, which is rounded into row `r` of `pairs` (rows of
+/// `ceil(width / 2)` pairs, back to back) while it is in L1. A layer norm or an activation
+/// that feeds a bf16 GEMM thus never writes its f32 output to memory, nor does the GEMM read
+/// it back to round it.
+pub fn round_rows_par(
+    pool: &Pool,
+    width: usize,
+    pairs: &mut [u32],
+    f: impl Fn(usize, &mut [f32]) + Sync,
+) {
+    let kp = width.div_ceil(2);
+    let isa = pool.isa();
+    pool.for_row_chunks(pairs, kp, |r0, chunk| {
+        let mut row = vec![0.0f32; width];
+        for (i, dst) in chunk.chunks_exact_mut(kp).enumerate() {
+            f(r0 + i, &mut row);
+            round_pairs(isa, &row, dst);
+        }
+    });
+}
+
 /// Where the micro-kernels read `A`.
 #[derive(Clone, Copy)]
 enum ASource<'a> {
@@ -388,6 +457,8 @@ enum ASource<'a> {
     /// f32 rows read in place, `A[r][kk]` at `a[r * lda + kk]`: packing them would only copy
     /// each row (~3% of the f32 vision tower, plus a parallel region per GEMM to do it in).
     Rows(&'a [f32], usize),
+    /// bf16 pair rows read in place, pair `(A[r][2i], A[r][2i + 1])` at `a[r * ldp + i]`.
+    Pairs(&'a [u32], usize),
 }
 
 /// [`gemm`] with the output columns split into [`Pool::parts`] parts run by the pool's threads.
@@ -408,6 +479,26 @@ pub fn gemm_par(
     if m == 0 || b.n == 0 {
         return;
     }
+    let mut scratch = pool.take_scratch();
+    let src = match b.precision {
+        Precision::F32 => ASource::Rows(a, lda),
+        Precision::Bf16 => ASource::Packed(pack_a_blocks_par(pool, a, lda, m, b.k, &mut scratch)),
+    };
+    run_parts(pool, src, m, b, c, ldc, init);
+    pool.put_scratch(scratch);
+}
+
+/// Run the GEMM of `src` (checked by the caller) with the output panels split over the
+/// pool's threads.
+fn run_parts(
+    pool: &Pool,
+    src: ASource<'_>,
+    m: usize,
+    b: &PackedMatrix,
+    c: &mut [f32],
+    ldc: usize,
+    init: Init<'_>,
+) {
     let panels = b.panels();
     // Parts own whole pairs of panels where the kernel pairs them: a part starting or ending
     // at an odd panel would leave that panel to the slower one-panel kernel.
@@ -418,26 +509,49 @@ pub fn gemm_par(
     };
     let units = panels.div_ceil(unit);
     let parts = pool.parts(units);
-    let mut scratch = pool.take_scratch();
-    let src = match b.precision {
-        Precision::F32 => ASource::Rows(a, lda),
-        Precision::Bf16 => ASource::Packed(pack_a_blocks_par(pool, a, lda, m, b.k, &mut scratch)),
-    };
     let out = SharedMut::new(c);
     pool.run(parts, |t| {
         let range = (units * t / parts * unit)..(units * (t + 1) / parts * unit).min(panels);
-        // SAFETY: `check` verified the bounds; part `t` writes only the columns of its panels.
+        // SAFETY: the caller checked the bounds; part `t` writes only its panels' columns.
         unsafe { gemm_packed(pool.isa(), src, m, b, range, out.ptr(), ldc, init) }
     });
-    pool.put_scratch(scratch);
 }
 
 fn check(a: &[f32], lda: usize, m: usize, b: &PackedMatrix, c: &[f32], ldc: usize, init: Init<'_>) {
     if m == 0 || b.n == 0 {
         return;
     }
-    assert!(lda >= b.k && ldc >= b.n, "gemm strides too small");
+    assert!(lda >= b.k, "gemm: A stride too small");
     assert!(a.len() >= (m - 1) * lda + b.k, "gemm: A too short");
+    check_out(m, b, c, ldc, init);
+}
+
+/// [`check`] for `A` given as bf16 pair rows (which needs a bf16 `B`).
+fn check_pairs(
+    a: &[u32],
+    ldp: usize,
+    m: usize,
+    b: &PackedMatrix,
+    c: &[f32],
+    ldc: usize,
+    init: Init<'_>,
+) {
+    assert!(
+        b.precision == Precision::Bf16,
+        "gemm: bf16 pair rows of A need a bf16 B"
+    );
+    if m == 0 || b.n == 0 {
+        return;
+    }
+    let kp = depth(Precision::Bf16, b.k);
+    assert!(ldp >= kp, "gemm: A stride too small");
+    assert!(a.len() >= (m - 1) * ldp + kp, "gemm: A too short");
+    check_out(m, b, c, ldc, init);
+}
+
+/// The bounds of `C` and the bias, for `m > 0` rows.
+fn check_out(m: usize, b: &PackedMatrix, c: &[f32], ldc: usize, init: Init<'_>) {
+    assert!(ldc >= b.n, "gemm: C stride too small");
     assert!(c.len() >= (m - 1) * ldc + b.n, "gemm: C too short");
     if let Init::Bias(bias) | Init::AccumulateBias(bias) = init {
         assert!(bias.len() >= b.n, "gemm: bias too short");
@@ -579,34 +693,30 @@ unsafe fn gemm_packed(
     }
     let kernel = Kernel::choose(isa, b.precision);
     let d = |rows| depth(b.precision, rows);
-    // Zero-initialised outputs start from zero accumulators; a bias is written into C first.
-    // One copy per row for all of this call's panels (a copy per panel, 64 bytes, cost 3% of
-    // the vision tower in call overhead).
-    if let Init::Bias(bias) | Init::AccumulateBias(bias) = init {
+    // Zero-initialised outputs start from zero accumulators, biased ones from the bias itself
+    // (the first `k` block's accumulators read it in place, the same vector for every row:
+    // copying it into C first wrote and read back all of C, 12 MB per MLP layer of the vision
+    // tower, and cost 1-2% of it). A bias added to an existing C goes in first, in one pass per
+    // row for all of this call's panels.
+    if let Init::AccumulateBias(bias) = init {
         let (c0, c1) = (panels.start * NR, (panels.end * NR).min(b.n));
         for r in 0..m {
             // SAFETY: row r, columns c0..c1 are inside C and owned by this call.
             let row = unsafe { std::slice::from_raw_parts_mut(c.add(r * ldc + c0), c1 - c0) };
-            if let Init::Bias(_) = init {
-                row.copy_from_slice(&bias[c0..c1]);
-            } else {
-                for (v, &add) in row.iter_mut().zip(&bias[c0..c1]) {
-                    *v += add;
-                }
+            for (v, &add) in row.iter_mut().zip(&bias[c0..c1]) {
+                *v += add;
             }
         }
     }
     if k == 0 {
-        if let Init::Zero = init {
-            for p in panels {
-                let c0 = p * NR;
-                for r in 0..m {
-                    // SAFETY: as above.
-                    unsafe {
-                        std::slice::from_raw_parts_mut(c.add(r * ldc + c0), NR.min(b.n - c0))
-                            .fill(0.0)
-                    };
-                }
+        let (c0, c1) = (panels.start * NR, (panels.end * NR).min(b.n));
+        for r in 0..m {
+            // SAFETY: as above.
+            let row = unsafe { std::slice::from_raw_parts_mut(c.add(r * ldc + c0), c1 - c0) };
+            match init {
+                Init::Zero => row.fill(0.0),
+                Init::Bias(bias) => row.copy_from_slice(&bias[c0..c1]),
+                Init::Accumulate | Init::AccumulateBias(_) => {}
             }
         }
         return;
@@ -618,7 +728,13 @@ unsafe fn gemm_packed(
         let mut k0 = 0;
         while k0 < k {
             let kc = kc_of(b.precision).min(k - k0);
-            let load = k0 > 0 || !matches!(init, Init::Zero);
+            // Where this block's accumulators start: C itself after the first block or when
+            // accumulating into it, else the bias (or zero).
+            let from_c = k0 > 0 || matches!(init, Init::Accumulate | Init::AccumulateBias(_));
+            let bias = match init {
+                Init::Bias(bias) if !from_c => Some(bias),
+                _ => None,
+            };
             let mut p = panels.start;
             while p < panels.end {
                 let c0 = p * NR;
@@ -649,23 +765,35 @@ unsafe fn gemm_packed(
                             (packed[start..].as_ptr(), d(kc))
                         }
                         ASource::Rows(rows, lda) => (rows[(m0 + r0) * lda + k0..].as_ptr(), lda),
+                        // k0 is even (a multiple of KC_BF16): pair k0 / 2 starts the block.
+                        ASource::Pairs(rows, ldp) => {
+                            (rows[(m0 + r0) * ldp + k0 / 2..].as_ptr().cast::<f32>(), ldp)
+                        }
                     };
                     // SAFETY: the tile lies inside C (rows m0+r0.., columns c0..c0+step*w).
                     let cp = unsafe { c.add((m0 + r0) * ldc + c0) };
                     // The next tile's accumulators come from C: start fetching them now.
-                    if load && t + 1 < tiles {
+                    if from_c && t + 1 < tiles {
                         let next_rows = MR.min(mb - r0 - MR);
                         for s in 0..step {
                             let cs = cp.wrapping_add(MR * ldc + s * NR);
                             prefetch_rows(isa, cs, ldc, next_rows);
                         }
                     }
-                    if pair {
-                        // SAFETY: both panels hold kc rows and are full width; C as above.
-                        unsafe { tile_pair(kernel, rows, kc, ap, ars, bp, bp2, cp, ldc, load) };
+                    let start: Start = if from_c {
+                        Some((cp.cast_const(), ldc))
                     } else {
-                        // SAFETY: the packed A tile and the panel hold kc rows; C as above.
-                        unsafe { tile(kernel, rows, kc, ap, ars, bp, cp, ldc, w, load) };
+                        // Stride 0: every row starts from the bias of these columns.
+                        bias.map(|bias| (bias[c0..].as_ptr(), 0))
+                    };
+                    if pair {
+                        // SAFETY: both panels hold kc rows and are full width (so is the bias,
+                        // `n` values); C as above.
+                        unsafe { tile_pair(kernel, rows, kc, ap, ars, bp, bp2, cp, ldc, start) };
+                    } else {
+                        // SAFETY: the packed A tile and the panel hold kc rows; C and the
+                        // bias have the tile's `w` columns.
+                        unsafe { tile(kernel, rows, kc, ap, ars, bp, cp, ldc, w, start) };
                     }
                 }
                 p += step;
@@ -746,16 +874,28 @@ fn as_pair_bits(values: &mut [f32]) -> &mut [u32] {
 /// `pairs[i] = bf16(src[2i]) | bf16(src[2i + 1]) << 16` ([`to_bf16`] rounding; a missing last
 /// odd value is 0). `pairs` holds `ceil(src.len() / 2)` values. The vector path runs with
 /// `isa`'s kernels (the same bits either way).
-fn round_pairs(isa: Isa, src: &[f32], pairs: &mut [u32]) {
+pub fn round_pairs(isa: Isa, src: &[f32], pairs: &mut [u32]) {
+    debug_assert_eq!(pairs.len(), src.len().div_ceil(2));
+    round_pairs_with(isa, super::cpu_has_avx512_bf16(), src, pairs);
+}
+
+/// [`round_pairs`], with `vcvtneps2bf16` where `native_bf16` (the CPU has AVX512_BF16).
+fn round_pairs_with(isa: Isa, native_bf16: bool, src: &[f32], pairs: &mut [u32]) {
     debug_assert_eq!(pairs.len(), src.len().div_ceil(2));
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
     if isa == Isa::Avx512 {
-        // SAFETY: `Isa::Avx512` is only chosen on a CPU with AVX-512F.
-        done = unsafe { round_pairs_avx512(src, pairs) };
+        done = if native_bf16 {
+            // SAFETY: `Isa::Avx512` is only chosen on a CPU with AVX-512F; the caller says
+            // this one has AVX512_BF16.
+            unsafe { round_pairs_avx512_bf16(src, pairs) }
+        } else {
+            // SAFETY: `Isa::Avx512` is only chosen on a CPU with AVX-512F.
+            unsafe { round_pairs_avx512(src, pairs) }
+        };
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = isa;
+    let _ = (isa, native_bf16);
     let (src, pairs) = (&src[2 * done..], &mut pairs[done..]);
     let whole = src.chunks_exact(2);
     let last = whole.remainder().first().copied();
@@ -780,27 +920,81 @@ fn round_pairs(isa: Isa, src: &[f32], pairs: &mut [u32]) {
 unsafe fn round_pairs_avx512(src: &[f32], pairs: &mut [u32]) -> usize {
     use std::arch::x86_64::*;
     let blocks = src.len() / 16;
-    let one = _mm512_set1_epi32(1);
-    let half = _mm512_set1_epi32(0x7fff);
-    let abs_mask = _mm512_set1_epi32(0x7fff_ffff);
-    let inf = _mm512_set1_epi32(0x7f80_0000);
-    let quiet_bit = _mm512_set1_epi32(0x40);
     for b in 0..blocks {
         // SAFETY: values 16b..16b+16 are inside `src`; pairs 8b..8b+8 inside `pairs` (which
         // holds ceil(len / 2) values); both accesses are unaligned.
         unsafe {
             let v = _mm512_loadu_si512(src.as_ptr().add(16 * b) as *const _);
-            let high = _mm512_srli_epi32::<16>(v);
-            let round = _mm512_add_epi32(half, _mm512_and_si512(high, one));
-            let rounded = _mm512_srli_epi32::<16>(_mm512_add_epi32(v, round));
-            let nan = _mm512_cmpgt_epu32_mask(_mm512_and_si512(v, abs_mask), inf);
-            let bits = _mm512_mask_blend_epi32(nan, rounded, _mm512_or_si512(high, quiet_bit));
-            let packed = _mm512_cvtepi32_epi16(bits);
+            let packed = round16(v);
             _mm256_storeu_si256(pairs.as_mut_ptr().add(8 * b) as *mut __m256i, packed);
         }
     }
     8 * blocks
 }
+
+/// [`bf16_bits`] on the 16 lanes of `v`, packed into 16 bf16 values in order.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+fn round16(v: std::arch::x86_64::__m512i) -> std::arch::x86_64::__m256i {
+    use std::arch::x86_64::*;
+    let high = _mm512_srli_epi32::<16>(v);
+    let round = _mm512_add_epi32(
+        _mm512_set1_epi32(0x7fff),
+        _mm512_and_si512(high, _mm512_set1_epi32(1)),
+    );
+    let rounded = _mm512_srli_epi32::<16>(_mm512_add_epi32(v, round));
+    let magnitude = _mm512_and_si512(v, _mm512_set1_epi32(0x7fff_ffff));
+    let nan = _mm512_cmpgt_epu32_mask(magnitude, _mm512_set1_epi32(0x7f80_0000));
+    let quiet = _mm512_or_si512(high, _mm512_set1_epi32(0x40));
+    _mm512_cvtepi32_epi16(_mm512_mask_blend_epi32(nan, rounded, quiet))
+}
+
+/// [`round_pairs_avx512`] with one `vcvtneps2bf16` per 16 values where it gives the same bits:
+/// it rounds to nearest even and quiets NaNs exactly as [`bf16_bits`] does, but reads denormal
+/// inputs as zero, so a block holding a denormal takes the integer rounding instead. Once the
+/// rounding of the attention probabilities moved into L1 (the softmax's last pass), its
+/// instruction count was what remained of its cost.
+///
+/// # Safety
+/// Requires AVX-512F and AVX512_BF16.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bf16")]
+unsafe fn round_pairs_avx512_bf16(src: &[f32], pairs: &mut [u32]) -> usize {
+    use std::arch::x86_64::*;
+    let blocks = src.len() / 16;
+    let exponent = _mm512_set1_epi32(0x7f80_0000);
+    let mantissa = _mm512_set1_epi32(0x007f_ffff);
+    let (src, dst) = (src.as_ptr(), pairs.as_mut_ptr());
+    for b in 0..blocks {
+        // SAFETY: values 16b..16b+16 are inside `src`; pairs 8b..8b+8 inside `pairs` (which
+        // holds ceil(len / 2) values); both accesses are unaligned. The asm only converts
+        // registers.
+        unsafe {
+            let v = _mm512_loadu_si512(src.add(16 * b) as *const _);
+            let denormal =
+                _mm512_testn_epi32_mask(v, exponent) & _mm512_test_epi32_mask(v, mantissa);
+            let packed = if denormal == 0 {
+                let out: __m256i;
+                std::arch::asm!(
+                    "vcvtneps2bf16 {out}, {v}",
+                    out = lateout(ymm_reg) out,
+                    v = in(zmm_reg) v,
+                    options(pure, nomem, nostack, preserves_flags),
+                );
+                out
+            } else {
+                round16(v)
+            };
+            _mm256_storeu_si256(dst.add(8 * b) as *mut __m256i, packed);
+        }
+    }
+    8 * blocks
+}
+
+/// Where a micro-kernel's accumulators start: zero (`None`), or row `r` from the values at
+/// `ptr + r * stride` (`C` itself to accumulate into it; a bias, stride 0, for every row).
+type Start = Option<(*const f32, usize)>;
 
 /// Which micro-kernel multiplies a tile.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -853,14 +1047,14 @@ macro_rules! unroll4 {
     }};
 }
 
-/// One `rows x w` tile (`rows <= MR`, `w <= NR`): `C = A · B` over `kc`, or `C += A · B` when
-/// `load`. Row `r` of the tile's `A` starts at `a + r * ars`: f32 rows in place, or bf16 pair
-/// rows packed by [`pack_a_bf16`].
+/// One `rows x w` tile (`rows <= MR`, `w <= NR`): `C = S + A · B` over `kc`, where `S` is
+/// `start`'s rows (zero for `None`). Row `r` of the tile's `A` starts at `a + r * ars`: f32 rows
+/// in place, or bf16 pair rows packed by [`pack_a_bf16`].
 ///
 /// # Safety
 /// `a` has `rows` rows `ars` apart of `kc` values (bf16: `ceil(kc / 2)` pairs), `b` has `kc`
 /// rows of `NR` values (pair rows in bf16), `c` has `rows` rows of stride `ldc` with `w`
-/// values.
+/// values, and so has `start` (rows `stride` apart) when given.
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile(
     kernel: Kernel,
@@ -872,16 +1066,16 @@ unsafe fn tile(
     c: *mut f32,
     ldc: usize,
     w: usize,
-    load: bool,
+    start: Start,
 ) {
     if w < NR {
         // Edge panel: run the full-width kernel on a scratch tile, copy the valid columns.
         let mut scratch = [0.0f32; MR * NR];
-        if load {
+        if let Some((src, lds)) = start {
             for r in 0..rows {
                 for j in 0..w {
-                    // SAFETY: inside the caller's C tile.
-                    scratch[r * NR + j] = unsafe { *c.add(r * ldc + j) };
+                    // SAFETY: inside the caller's start rows (`w` values each).
+                    scratch[r * NR + j] = unsafe { *src.add(r * lds + j) };
                 }
             }
         }
@@ -897,7 +1091,7 @@ unsafe fn tile(
                 scratch.as_mut_ptr(),
                 NR,
                 NR,
-                load,
+                start.map(|_| (scratch.as_ptr(), NR)),
             )
         };
         for r in 0..rows {
@@ -911,12 +1105,12 @@ unsafe fn tile(
     macro_rules! dispatch {
         ($f:ident) => {
             match rows {
-                6 => $f::<6>(kc, a, ars, b, c, ldc, load),
-                5 => $f::<5>(kc, a, ars, b, c, ldc, load),
-                4 => $f::<4>(kc, a, ars, b, c, ldc, load),
-                3 => $f::<3>(kc, a, ars, b, c, ldc, load),
-                2 => $f::<2>(kc, a, ars, b, c, ldc, load),
-                _ => $f::<1>(kc, a, ars, b, c, ldc, load),
+                6 => $f::<6>(kc, a, ars, b, c, ldc, start),
+                5 => $f::<5>(kc, a, ars, b, c, ldc, start),
+                4 => $f::<4>(kc, a, ars, b, c, ldc, start),
+                3 => $f::<3>(kc, a, ars, b, c, ldc, start),
+                2 => $f::<2>(kc, a, ars, b, c, ldc, start),
+                _ => $f::<1>(kc, a, ars, b, c, ldc, start),
             }
         };
     }
@@ -954,17 +1148,17 @@ unsafe fn tile_pair(
     b2: *const f32,
     c: *mut f32,
     ldc: usize,
-    load: bool,
+    start: Start,
 ) {
     macro_rules! dispatch {
         ($f:ident) => {
             match rows {
-                6 => $f::<6>(kc, a, ars, b, b2, c, ldc, load),
-                5 => $f::<5>(kc, a, ars, b, b2, c, ldc, load),
-                4 => $f::<4>(kc, a, ars, b, b2, c, ldc, load),
-                3 => $f::<3>(kc, a, ars, b, b2, c, ldc, load),
-                2 => $f::<2>(kc, a, ars, b, b2, c, ldc, load),
-                _ => $f::<1>(kc, a, ars, b, b2, c, ldc, load),
+                6 => $f::<6>(kc, a, ars, b, b2, c, ldc, start),
+                5 => $f::<5>(kc, a, ars, b, b2, c, ldc, start),
+                4 => $f::<4>(kc, a, ars, b, b2, c, ldc, start),
+                3 => $f::<3>(kc, a, ars, b, b2, c, ldc, start),
+                2 => $f::<2>(kc, a, ars, b, b2, c, ldc, start),
+                _ => $f::<1>(kc, a, ars, b, b2, c, ldc, start),
             }
         };
     }
@@ -975,8 +1169,19 @@ unsafe fn tile_pair(
         _ => {
             // SAFETY: the caller's contract, one panel at a time.
             unsafe {
-                tile(kernel, rows, kc, a, ars, b, c, ldc, NR, load);
-                tile(kernel, rows, kc, a, ars, b2, c.add(NR), ldc, NR, load);
+                tile(kernel, rows, kc, a, ars, b, c, ldc, NR, start);
+                tile(
+                    kernel,
+                    rows,
+                    kc,
+                    a,
+                    ars,
+                    b2,
+                    c.add(NR),
+                    ldc,
+                    NR,
+                    start.map(|(p, s)| (p.wrapping_add(NR), s)),
+                );
             }
         }
     }
@@ -993,16 +1198,16 @@ unsafe fn kernel_avx2<const R: usize>(
     b: *const f32,
     c: *mut f32,
     ldc: usize,
-    load: bool,
+    start: Start,
 ) {
     use std::arch::x86_64::*;
     let mut acc = [[_mm256_setzero_ps(); 2]; R];
-    if load {
+    if let Some((src, lds)) = start {
         for (r, row) in acc.iter_mut().enumerate() {
-            // SAFETY: row r of the C tile has NR values.
+            // SAFETY: start row r has NR values.
             unsafe {
-                row[0] = _mm256_loadu_ps(c.add(r * ldc));
-                row[1] = _mm256_loadu_ps(c.add(r * ldc + 8));
+                row[0] = _mm256_loadu_ps(src.add(r * lds));
+                row[1] = _mm256_loadu_ps(src.add(r * lds + 8));
             }
         }
     }
@@ -1045,14 +1250,14 @@ unsafe fn kernel_avx512<const R: usize>(
     b: *const f32,
     c: *mut f32,
     ldc: usize,
-    load: bool,
+    start: Start,
 ) {
     use std::arch::x86_64::*;
     let mut acc = [_mm512_setzero_ps(); R];
-    if load {
+    if let Some((src, lds)) = start {
         for (r, row) in acc.iter_mut().enumerate() {
-            // SAFETY: row r of the C tile has NR values.
-            *row = unsafe { _mm512_loadu_ps(c.add(r * ldc)) };
+            // SAFETY: start row r has NR values.
+            *row = unsafe { _mm512_loadu_ps(src.add(r * lds)) };
         }
     }
     macro_rules! step {
@@ -1091,19 +1296,19 @@ unsafe fn kernel_bf16_avx512_pair<const R: usize>(
     b2: *const f32,
     c: *mut f32,
     ldc: usize,
-    load: bool,
+    start: Start,
 ) {
     use std::arch::x86_64::*;
     let mut even = [_mm512_setzero_ps(); R];
     let mut odd = [_mm512_setzero_ps(); R];
     let mut even2 = [_mm512_setzero_ps(); R];
     let mut odd2 = [_mm512_setzero_ps(); R];
-    if load {
+    if let Some((src, lds)) = start {
         for r in 0..R {
-            // SAFETY: row r of the C tile has 2 * NR values.
+            // SAFETY: start row r has 2 * NR values.
             unsafe {
-                even[r] = _mm512_loadu_ps(c.add(r * ldc));
-                even2[r] = _mm512_loadu_ps(c.add(r * ldc + NR));
+                even[r] = _mm512_loadu_ps(src.add(r * lds));
+                even2[r] = _mm512_loadu_ps(src.add(r * lds + NR));
             }
         }
     }
@@ -1166,15 +1371,15 @@ unsafe fn kernel_bf16_avx512<const R: usize>(
     b: *const f32,
     c: *mut f32,
     ldc: usize,
-    load: bool,
+    start: Start,
 ) {
     use std::arch::x86_64::*;
     let mut even = [_mm512_setzero_ps(); R];
     let mut odd = [_mm512_setzero_ps(); R];
-    if load {
+    if let Some((src, lds)) = start {
         for (r, row) in even.iter_mut().enumerate() {
-            // SAFETY: row r of the C tile has NR values.
-            *row = unsafe { _mm512_loadu_ps(c.add(r * ldc)) };
+            // SAFETY: start row r has NR values.
+            *row = unsafe { _mm512_loadu_ps(src.add(r * lds)) };
         }
     }
     let kp = kc.div_ceil(2);
@@ -1239,7 +1444,7 @@ unsafe fn kernel_bf16_portable<const R: usize>(
     b: *const f32,
     c: *mut f32,
     ldc: usize,
-    load: bool,
+    start: Start,
 ) {
     let widen = |pair: f32| {
         let bits = pair.to_bits();
@@ -1249,11 +1454,11 @@ unsafe fn kernel_bf16_portable<const R: usize>(
         )
     };
     let mut acc = [[[0.0f32; NR]; R]; 2];
-    if load {
+    if let Some((src, lds)) = start {
         for (r, row) in acc[0].iter_mut().enumerate() {
             for (j, v) in row.iter_mut().enumerate() {
-                // SAFETY: row r of the C tile has NR values.
-                *v = unsafe { *c.add(r * ldc + j) };
+                // SAFETY: start row r has NR values.
+                *v = unsafe { *src.add(r * lds + j) };
             }
         }
     }
@@ -1292,14 +1497,14 @@ unsafe fn kernel_portable<const R: usize>(
     b: *const f32,
     c: *mut f32,
     ldc: usize,
-    load: bool,
+    start: Start,
 ) {
     let mut acc = [[0.0f32; NR]; R];
-    if load {
+    if let Some((src, lds)) = start {
         for (r, row) in acc.iter_mut().enumerate() {
             for (j, v) in row.iter_mut().enumerate() {
-                // SAFETY: row r of the C tile has NR values.
-                *v = unsafe { *c.add(r * ldc + j) };
+                // SAFETY: start row r has NR values.
+                *v = unsafe { *src.add(r * lds + j) };
             }
         }
     }
@@ -1414,6 +1619,75 @@ mod tests {
     /// Which panels the paired kernel takes together depends on where a thread's panel range
     /// starts; a range starting at an odd panel pairs them differently (and leaves panel 0 to
     /// the one-panel kernel), so equal results mean the two kernels agree bit for bit.
+    /// `A` rounded into pair rows by the caller (with padding between rows) gives the same
+    /// bits as the GEMM rounding it itself, on one thread and split, over several `k` blocks
+    /// and an odd `k`.
+    #[test]
+    fn pair_rows_of_a_equal_packing_a_in_the_gemm() {
+        for &(m, k, n) in &[(7, 300, 33), (13, 5, 80), (250, 601, 64), (1, 1, 17)] {
+            let (a, w, bias) = (data(m * k, 7), data(n * k, 8), data(n, 9));
+            let packed = PackedMatrix::from_linear_weight_in(Precision::Bf16, &w, n, k);
+            let ldp = k.div_ceil(2) + 3;
+            let mut pairs = vec![u32::MAX; m * ldp];
+            for r in 0..m {
+                let row = &mut pairs[r * ldp..r * ldp + k.div_ceil(2)];
+                round_pairs(Isa::detect(), &a[r * k..(r + 1) * k], row);
+            }
+            for isa in [Isa::Avx512, Isa::Avx2Fma, Isa::Portable]
+                .into_iter()
+                .filter(|i| i.available())
+            {
+                let pool = Pool::with_isa(2, isa).unwrap();
+                let mut want = vec![0.0; m * n];
+                gemm(isa, &a, k, m, &packed, &mut want, n, Init::Bias(&bias));
+                let mut one = vec![0.0; m * n];
+                gemm_pairs(isa, &pairs, ldp, m, &packed, &mut one, n, Init::Bias(&bias));
+                let mut split = vec![0.0; m * n];
+                gemm_par_pairs(
+                    &pool,
+                    &pairs,
+                    ldp,
+                    m,
+                    &packed,
+                    &mut split,
+                    n,
+                    Init::Bias(&bias),
+                );
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&one), bits(&want), "{isa:?} {m}x{k}x{n}");
+                assert_eq!(bits(&split), bits(&want), "{isa:?} {m}x{k}x{n} split");
+            }
+        }
+    }
+
+    /// The accumulators of a biased GEMM start from the bias in place: the same bits as
+    /// writing the bias into every row of C and accumulating, in both precisions, on edge
+    /// panels, paired panels and several `k` blocks.
+    #[test]
+    fn bias_start_equals_accumulating_onto_bias_rows() {
+        for precision in [Precision::F32, Precision::Bf16] {
+            for &(m, k, n) in &[(7, 300, 33), (13, 5, 80), (1, 600, 64), (50, 1, 17)] {
+                let (a, w, bias) = (data(m * k, 4), data(n * k, 5), data(n, 6));
+                let packed = PackedMatrix::from_linear_weight_in(precision, &w, n, k);
+                for isa in [Isa::Avx512, Isa::Avx2Fma, Isa::Portable]
+                    .into_iter()
+                    .filter(|i| i.available())
+                {
+                    let pool = Pool::with_isa(2, isa).unwrap();
+                    let mut want: Vec<f32> = (0..m * n).map(|i| bias[i % n]).collect();
+                    gemm(isa, &a, k, m, &packed, &mut want, n, Init::Accumulate);
+                    let mut got = vec![f32::NAN; m * n];
+                    gemm_par(&pool, &a, k, m, &packed, &mut got, n, Init::Bias(&bias));
+                    let (want, got): (Vec<u32>, Vec<u32>) = (
+                        want.iter().map(|v| v.to_bits()).collect(),
+                        got.iter().map(|v| v.to_bits()).collect(),
+                    );
+                    assert_eq!(got, want, "{precision:?} {isa:?} {m}x{k}x{n}");
+                }
+            }
+        }
+    }
+
     #[test]
     fn paired_and_single_panel_kernels_agree_bit_for_bit() {
         let (m, k, n) = (13, 300, 5 * NR + 3);
@@ -1615,19 +1889,30 @@ mod tests {
         ];
         vals.extend(data(77, 9).iter().map(|v| v * 1e-39));
         vals.extend(data(64, 10));
-        for (isa, len) in [Isa::detect(), Isa::Portable]
-            .into_iter()
-            .flat_map(|isa| [0, 1, 15, 16, 17, 31, 32, 33, vals.len()].map(|len| (isa, len)))
-        {
+        // The same values with the denormals moved to the end, so that the first blocks run
+        // the `vcvtneps2bf16` path and the last ones its integer fallback.
+        let mut normal_first = vals.clone();
+        normal_first.sort_by_key(|v| v.is_subnormal());
+        let native = crate::kernels::cpu_has_avx512_bf16();
+        let paths = [
+            (Isa::detect(), false),
+            (Isa::detect(), native),
+            (Isa::Portable, false),
+        ];
+        for (vals, (isa, native), len) in [&vals, &normal_first].into_iter().flat_map(|vals| {
+            paths.into_iter().flat_map(move |path| {
+                [0, 1, 15, 16, 17, 31, 32, 33, vals.len()].map(move |len| (vals, path, len))
+            })
+        }) {
             let src = &vals[..len];
             let mut pairs = vec![0u32; len.div_ceil(2)];
-            round_pairs(isa, src, &mut pairs);
+            round_pairs_with(isa, native, src, &mut pairs);
             for (i, &x) in src.iter().enumerate() {
                 let got = (pairs[i / 2] >> (16 * (i % 2))) as u16;
                 assert_eq!(
                     got,
                     to_bf16(x),
-                    "{isa:?} len {len} [{i}] {x:e} ({:#x})",
+                    "{isa:?} native bf16 {native} len {len} [{i}] {x:e} ({:#x})",
                     x.to_bits()
                 );
             }

@@ -249,11 +249,11 @@ impl Pool {
 impl Pool {
     /// Split `out` (rows of `row_len` values) into one contiguous run of rows per thread and
     /// call `f(first_row, rows)` on each, in parallel. Small outputs stay on the calling thread.
-    pub fn for_row_chunks(
+    pub fn for_row_chunks<T: Send>(
         &self,
-        out: &mut [f32],
+        out: &mut [T],
         row_len: usize,
-        f: impl Fn(usize, &mut [f32]) + Sync,
+        f: impl Fn(usize, &mut [T]) + Sync,
     ) {
         let rows = out.len() / row_len.max(1);
         // Below ~16k values a wake-up costs more than the work.
@@ -292,23 +292,31 @@ pub fn default_threads() -> usize {
 }
 
 /// A raw pointer that worker threads may share; every user writes a disjoint region.
-#[derive(Clone, Copy)]
-pub(crate) struct SharedMut(*mut f32);
+pub(crate) struct SharedMut<T = f32>(*mut T);
+// Not derived: a derive would ask `T: Clone` / `T: Copy`, but the pointer is always copyable.
+impl<T> Clone for SharedMut<T> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+impl<T> Copy for SharedMut<T> {}
 // SAFETY: callers partition the pointee so that no two threads touch the same element.
-unsafe impl Send for SharedMut {}
+unsafe impl<T: Send> Send for SharedMut<T> {}
 // SAFETY: as above.
-unsafe impl Sync for SharedMut {}
+unsafe impl<T: Send> Sync for SharedMut<T> {}
 
-impl SharedMut {
-    pub(crate) fn new(s: &mut [f32]) -> Self {
+impl<T> SharedMut<T> {
+    pub(crate) fn new(s: &mut [T]) -> Self {
         SharedMut(s.as_mut_ptr())
     }
 
     /// The pointer (a method, so that closures capture the whole `Sync` wrapper).
-    pub(crate) fn ptr(&self) -> *mut f32 {
+    pub(crate) fn ptr(&self) -> *mut T {
         self.0
     }
+}
 
+impl<T: Copy> SharedMut<T> {
     /// Copy `src`, rows of `width` values, into rows `row0..` of the shared matrix (row stride
     /// `ld`) at column `col`.
     ///
@@ -316,7 +324,7 @@ impl SharedMut {
     /// Those rows and columns are inside the matrix, and no other thread touches them meanwhile.
     pub(crate) unsafe fn write_rows(
         &self,
-        src: &[f32],
+        src: &[T],
         width: usize,
         ld: usize,
         row0: usize,

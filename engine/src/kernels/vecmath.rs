@@ -10,25 +10,25 @@ use super::Isa;
 
 /// Generate `$name(isa, ..)` that runs `$body` compiled for AVX2 when `isa` allows it.
 macro_rules! multiversion {
-    ($(#[$meta:meta])* pub fn $name:ident($($arg:ident: $ty:ty),*) $body:block) => {
+    ($(#[$meta:meta])* pub fn $name:ident($($arg:ident: $ty:ty),*) $(-> $ret:ty)? $body:block) => {
         $(#[$meta])*
-        pub fn $name(isa: Isa, $($arg: $ty),*) {
+        pub fn $name(isa: Isa, $($arg: $ty),*) $(-> $ret)? {
             #[inline(always)]
-            fn body($($arg: $ty),*) $body
+            fn body($($arg: $ty),*) $(-> $ret)? $body
             /// `body` compiled for AVX2 and FMA.
             ///
             /// # Safety
             /// Call only on a CPU with AVX2 and FMA (`Isa::Avx2Fma`).
             #[cfg(target_arch = "x86_64")]
             #[target_feature(enable = "avx2,fma")]
-            fn avx2($($arg: $ty),*) { body($($arg),*) }
+            fn avx2($($arg: $ty),*) $(-> $ret)? { body($($arg),*) }
             /// `body` compiled for AVX-512F (and AVX2, FMA).
             ///
             /// # Safety
             /// Call only on a CPU with AVX-512F, AVX2 and FMA (`Isa::Avx512`).
             #[cfg(target_arch = "x86_64")]
             #[target_feature(enable = "avx512f,avx2,fma")]
-            fn avx512($($arg: $ty),*) { body($($arg),*) }
+            fn avx512($($arg: $ty),*) $(-> $ret)? { body($($arg),*) }
             match isa {
                 #[cfg(target_arch = "x86_64")]
                 // SAFETY: `Isa::Avx512` is only constructed on CPUs with AVX-512F, AVX2 and FMA.
@@ -104,19 +104,45 @@ fn max_lanes(x: &[f32]) -> f32 {
         .fold(f32::NEG_INFINITY, |m, &v| if v > m { v } else { m })
 }
 
+/// The softmax numerators of `row * scale` in place, `exp(row[i] * scale - max)` with `max`
+/// the largest `row[i] * scale`, and their sum ([`sum_lanes`]). `scale > 0`, so `max` is the
+/// largest `row[i]` times `scale`, the same value as the maximum of the scaled row: no pass
+/// scales the row first. (Summing inside the exponential loop kept it 8 lanes wide, with the
+/// sum's order fixed, and measured slower than a second pass over the row, which is in L1.)
+#[inline(always)]
+fn numerators(row: &mut [f32], scale: f32) -> f32 {
+    debug_assert!(scale > 0.0, "softmax scale must be positive");
+    let max = max_lanes(row) * scale;
+    for v in row.iter_mut() {
+        *v = exp_approx(*v * scale - max);
+    }
+    sum_lanes(row)
+}
+
 multiversion! {
-    /// Softmax of `row * scale` in place, over the whole row.
+    /// Softmax of `row * scale` in place, over the whole row (`scale > 0`).
     pub fn softmax_scaled(row: &mut [f32], scale: f32) {
-        for v in row.iter_mut() {
-            *v *= scale;
-        }
-        let max = max_lanes(row);
-        for v in row.iter_mut() {
-            *v = exp_approx(*v - max);
-        }
-        let inv = 1.0 / sum_lanes(row);
+        let inv = 1.0 / numerators(row, scale);
         for v in row.iter_mut() {
             *v *= inv;
+        }
+    }
+}
+
+multiversion! {
+    /// [`softmax_scaled`] without its last pass: the numerators in place, and the factor
+    /// (`1 / sum`) that [`softmax_scaled`] would multiply them by. A caller that rounds the
+    /// probabilities for a bf16 GEMM multiplies and rounds in one pass.
+    pub fn softmax_numerators(row: &mut [f32], scale: f32) -> f32 {
+        1.0 / numerators(row, scale)
+    }
+}
+
+multiversion! {
+    /// `out[i] = x[i] * factor`.
+    pub fn scale_into(x: &[f32], factor: f32, out: &mut [f32]) {
+        for (o, &v) in out.iter_mut().zip(x) {
+            *o = v * factor;
         }
     }
 }
@@ -196,18 +222,32 @@ multiversion! {
     }
 }
 
+/// `gelu_pytorch_tanh`: `0.5 u (1 + tanh(sqrt(2/π) (u + 0.044715 u³)))`.
+#[inline(always)]
+fn gelu_tanh_one(u: f32) -> f32 {
+    const SQRT_2_OVER_PI: f32 = 0.797_884_6;
+    let y = SQRT_2_OVER_PI * (u + 0.044_715 * u * u * u);
+    // tanh(y) = sign(y) (1 - e) / (1 + e) with e = exp(-2|y|): never overflows.
+    let e = exp_approx(-2.0 * y.abs());
+    let t = ((1.0 - e) / (1.0 + e)).copysign(y);
+    0.5 * u * (1.0 + t)
+}
+
 multiversion! {
     /// `x[i] = gelu_tanh(x[i])` in place (`gelu_pytorch_tanh`):
     /// `0.5 x (1 + tanh(sqrt(2/π) (x + 0.044715 x³)))`.
     pub fn gelu_tanh_inplace(x: &mut [f32]) {
-        const SQRT_2_OVER_PI: f32 = 0.797_884_6;
         for v in x.iter_mut() {
-            let u = *v;
-            let y = SQRT_2_OVER_PI * (u + 0.044_715 * u * u * u);
-            // tanh(y) = sign(y) (1 - e) / (1 + e) with e = exp(-2|y|): never overflows.
-            let e = exp_approx(-2.0 * y.abs());
-            let t = ((1.0 - e) / (1.0 + e)).copysign(y);
-            *v = 0.5 * u * (1.0 + t);
+            *v = gelu_tanh_one(*v);
+        }
+    }
+}
+
+multiversion! {
+    /// `out[i] = gelu_tanh(x[i])`, as [`gelu_tanh_inplace`].
+    pub fn gelu_tanh(x: &[f32], out: &mut [f32]) {
+        for (o, &v) in out.iter_mut().zip(x) {
+            *o = gelu_tanh_one(v);
         }
     }
 }
@@ -245,6 +285,51 @@ mod tests {
         assert!(exp_approx(-1e30) > 0.0 && exp_approx(-1e30) < 1e-37);
     }
 
+    /// The fused softmax (no scaling pass; exponentials and sum in one pass) gives the bits of
+    /// the pass-by-pass definition, and the numerators times their factor are the softmax.
+    #[test]
+    fn fused_softmax_equals_the_pass_by_pass_softmax() {
+        let reference = |row: &mut [f32], scale: f32| {
+            for v in row.iter_mut() {
+                *v *= scale;
+            }
+            let max = max_lanes(row);
+            for v in row.iter_mut() {
+                *v = exp_approx(*v - max);
+            }
+            let inv = 1.0 / sum_lanes(row);
+            for v in row.iter_mut() {
+                *v *= inv;
+            }
+        };
+        for len in [0, 1, 7, 8, 9, 64, 1000, 1024] {
+            let data: Vec<f32> = (0..len)
+                .map(|i| ((i * 7919) % 1000) as f32 / 9.0 - 50.0)
+                .collect();
+            for scale in [0.125, 0.3, 1.0] {
+                let mut want = data.clone();
+                reference(&mut want, scale);
+                for isa in [Isa::Avx512, Isa::Avx2Fma, Isa::Portable]
+                    .into_iter()
+                    .filter(|i| i.available())
+                {
+                    let mut got = data.clone();
+                    softmax_scaled(isa, &mut got, scale);
+                    assert_eq!(bits(&got), bits(&want), "{isa:?} len {len} scale {scale}");
+                    let mut num = data.clone();
+                    let factor = softmax_numerators(isa, &mut num, scale);
+                    let mut scaled = vec![0.0; len];
+                    scale_into(isa, &num, factor, &mut scaled);
+                    assert_eq!(bits(&scaled), bits(&want), "{isa:?} len {len} numerators");
+                }
+            }
+        }
+    }
+
+    fn bits(v: &[f32]) -> Vec<u32> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
     #[test]
     fn simd_and_portable_builds_agree_bit_for_bit() {
         let data: Vec<f32> = (0..999)
@@ -275,6 +360,9 @@ mod tests {
             gelu_tanh_inplace(isa, &mut g1);
             gelu_tanh_inplace(Isa::Portable, &mut g2);
             assert_eq!(g1, g2);
+            let mut g3 = vec![0.0; 999];
+            gelu_tanh(isa, &data, &mut g3);
+            assert_eq!(bits(&g3), bits(&g1));
             let mut s3 = data.clone();
             let mut s4 = data.clone();
             silu_inplace(isa, &mut s3);

@@ -8,7 +8,7 @@ use super::config::{ExpertDims, LayerKind};
 use super::prefix::PrefixKv;
 use super::weights::{ExpertWeights, LinearWeights, time_embedding};
 use crate::EngineError;
-use crate::kernels::attention::{KvSegment, QueryPositions, attend};
+use crate::kernels::attention::{AttendScratch, KvSegment, QueryPositions, attend};
 use crate::kernels::gemm::{gemm, gemm_par};
 use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 
@@ -563,7 +563,7 @@ struct Workspace {
     act: Vec<f32>,
     suffix_kv: Vec<(PackedMatrix, PackedMatrix)>,
     /// Per attention part: scores and the output block.
-    scores: Vec<Mutex<(Vec<f32>, Vec<f32>)>>,
+    scores: Vec<Mutex<(AttendScratch, Vec<f32>)>>,
 }
 
 impl Workspace {
@@ -588,7 +588,7 @@ impl Workspace {
                 })
                 .collect(),
             scores: (0..4 * threads.max(1))
-                .map(|_| Mutex::new((Vec::new(), Vec::new())))
+                .map(|_| Mutex::new((AttendScratch::default(), Vec::new())))
                 .collect(),
         }
     }

@@ -15,8 +15,8 @@ use super::cpu::Linear;
 use super::vlm_weights::{NormWeights, VlmWeights};
 use super::weights::LinearWeights;
 use crate::EngineError;
-use crate::kernels::attention::{KvSegment, QueryPositions, attend};
-use crate::kernels::gemm::gemm_par;
+use crate::kernels::attention::{AttendScratch, KvSegment, QueryPositions, attend};
+use crate::kernels::gemm::{gemm_par, gemm_par_pairs, round_rows_par};
 use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 
 /// A view of one prepared camera image: `channels x side x side` floats, row-major, in `[-1, 1]`
@@ -228,17 +228,49 @@ impl CpuVision {
         }
 
         let eps = v.layer_norm_eps as f32;
+        let inter = v.intermediate_size;
         let mut h = vec![0.0f32; rows * vh];
         let mut qkv = vec![0.0f32; rows * 3 * vh];
         let mut attn = vec![0.0f32; rows * vh];
-        let mut mlp = vec![0.0f32; rows * v.intermediate_size];
+        let mut mlp = vec![0.0f32; rows * inter];
+        // In bf16 the layer norms and the GELU round their rows straight into the `A` of the
+        // GEMM they feed (see `round_rows_par`); same bits as rounding in the GEMM.
+        let rounded = self.precision == Precision::Bf16;
+        let pairs_for =
+            |width: usize| vec![0u32; if rounded { rows * width.div_ceil(2) } else { 0 }];
+        let (mut h_pairs, mut mlp_pairs) = (pairs_for(vh), pairs_for(inter));
+        let isa = pool.isa();
+        let norm = |x: &[f32], norm: &NormWeights, h: &mut Vec<f32>, h_pairs: &mut Vec<u32>| {
+            if rounded {
+                round_rows_par(pool, vh, h_pairs, |r, out| {
+                    let row = &x[r * vh..(r + 1) * vh];
+                    vecmath::layer_norm(isa, row, &norm.weight, &norm.bias, eps, out);
+                });
+            } else {
+                layer_norm_par(pool, x, norm, eps, h);
+            }
+        };
+        // `C = init + A · B` with `A` the f32 rows `a` or, in bf16, their rounded `pairs`.
+        #[allow(clippy::too_many_arguments)]
+        let gemm_a = |a: &[f32],
+                      pairs: &[u32],
+                      k: usize,
+                      b: &PackedMatrix,
+                      c: &mut [f32],
+                      ldc: usize,
+                      init: Init<'_>| {
+            if rounded {
+                gemm_par_pairs(pool, pairs, k.div_ceil(2), rows, b, c, ldc, init);
+            } else {
+                gemm_par(pool, a, k, rows, b, c, ldc, init);
+            }
+        };
         for layer in &self.layers {
-            layer_norm_par(pool, &x, &layer.norm1, eps, &mut h);
-            gemm_par(
-                pool,
+            norm(&x, &layer.norm1, &mut h, &mut h_pairs);
+            gemm_a(
                 &h,
+                &h_pairs,
                 vh,
-                rows,
                 &layer.qkv.w,
                 &mut qkv,
                 3 * vh,
@@ -255,31 +287,27 @@ impl CpuVision {
                 vh,
                 accumulate_bias(layer.out.bias.as_deref()),
             );
-            layer_norm_par(pool, &x, &layer.norm2, eps, &mut h);
-            let inter = v.intermediate_size;
-            gemm_par(
-                pool,
+            norm(&x, &layer.norm2, &mut h, &mut h_pairs);
+            gemm_a(
                 &h,
+                &h_pairs,
                 vh,
-                rows,
                 &layer.fc1.w,
                 &mut mlp,
                 inter,
                 layer.fc1.init(),
             );
-            pool.for_row_chunks(&mut mlp, inter, |_, chunk| {
-                vecmath::gelu_tanh_inplace(pool.isa(), chunk);
-            });
-            gemm_par(
-                pool,
-                &mlp,
-                inter,
-                rows,
-                &layer.fc2.w,
-                &mut x,
-                vh,
-                accumulate_bias(layer.fc2.bias.as_deref()),
-            );
+            if rounded {
+                round_rows_par(pool, inter, &mut mlp_pairs, |r, out| {
+                    vecmath::gelu_tanh(isa, &mlp[r * inter..(r + 1) * inter], out);
+                });
+            } else {
+                pool.for_row_chunks(&mut mlp, inter, |_, chunk| {
+                    vecmath::gelu_tanh_inplace(isa, chunk);
+                });
+            }
+            let init = accumulate_bias(layer.fc2.bias.as_deref());
+            gemm_a(&mlp, &mlp_pairs, inter, &layer.fc2.w, &mut x, vh, init);
         }
         layer_norm_par(pool, &x, &self.post, eps, &mut h);
 
@@ -346,7 +374,7 @@ impl CpuVision {
         let out = SharedMut::new(attn);
         let isa = pool.isa();
         pool.run(parts, |part| {
-            let (mut q, mut scores, mut tmp) = (Vec::new(), Vec::new(), Vec::new());
+            let (mut q, mut scores, mut tmp) = (Vec::new(), AttendScratch::default(), Vec::new());
             let (mut kt, mut vv) = (
                 PackedMatrix::empty_in(self.precision),
                 PackedMatrix::empty_in(self.precision),

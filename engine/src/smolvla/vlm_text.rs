@@ -18,7 +18,7 @@
 use super::config::VlmTextConfig;
 use super::cpu::rms_norm_par;
 use super::weights::{LayerWeights, LinearWeights};
-use crate::kernels::attention::{KvSegment, QueryPositions, attend};
+use crate::kernels::attention::{AttendScratch, KvSegment, QueryPositions, attend};
 use crate::kernels::gemm::gemm_par;
 use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 use crate::weights::StoredTensor;
@@ -207,7 +207,7 @@ impl CpuText {
         let out = SharedMut::new(attn);
         let isa = pool.isa();
         pool.run(parts, |part| {
-            let (mut q, mut scores, mut tmp) = (Vec::new(), Vec::new(), Vec::new());
+            let (mut q, mut scores, mut tmp) = (Vec::new(), AttendScratch::default(), Vec::new());
             let mut packed: [PackedMatrix; 4] =
                 std::array::from_fn(|_| PackedMatrix::empty_in(self.precision));
             for task in tasks * part / parts..tasks * (part + 1) / parts {
