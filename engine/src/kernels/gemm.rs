@@ -449,6 +449,89 @@ pub fn round_rows_par(
     });
 }
 
+/// The `A` of GEMMs in some precision, made row by row by a producer (a norm, an
+/// activation): f32 rows for f32 weights; for bf16 weights, rows rounded into bf16 pairs as
+/// they are made ([`round_rows_par`]), so the f32 values never go to memory. The results are
+/// the same as giving the f32 rows to [`gemm_par`].
+#[derive(Debug)]
+pub struct ActivationRows {
+    width: usize,
+    rows: usize,
+    precision: Precision,
+    values: Vec<f32>,
+    pairs: Vec<u32>,
+}
+
+impl ActivationRows {
+    /// Room for `rows` rows of `width` values, for GEMMs whose `B` is in `precision`.
+    pub fn new(precision: Precision, rows: usize, width: usize) -> Self {
+        let (values, pairs) = match precision {
+            Precision::F32 => (vec![0.0; rows * width], Vec::new()),
+            Precision::Bf16 => (Vec::new(), vec![0; rows * width.div_ceil(2)]),
+        };
+        ActivationRows {
+            width,
+            rows,
+            precision,
+            values,
+            pairs,
+        }
+    }
+
+    /// Make the first `m` rows: `f(r, row)` writes row `r`'s `width` f32 values, on the pool's
+    /// threads.
+    ///
+    /// # Panics
+    /// If `m` exceeds the rows this was made for.
+    pub fn fill(&mut self, pool: &Pool, m: usize, f: impl Fn(usize, &mut [f32]) + Sync) {
+        assert!(m <= self.rows, "activation rows: {m} > {}", self.rows);
+        let width = self.width;
+        match self.precision {
+            Precision::F32 => {
+                pool.for_row_chunks(&mut self.values[..m * width], width, |r0, chunk| {
+                    for (i, row) in chunk.chunks_exact_mut(width.max(1)).enumerate() {
+                        f(r0 + i, row);
+                    }
+                });
+            }
+            Precision::Bf16 => {
+                round_rows_par(pool, width, &mut self.pairs[..m * width.div_ceil(2)], f);
+            }
+        }
+    }
+
+    /// `C = init + A · B` over the first `m` rows, split over the pool's threads.
+    ///
+    /// # Panics
+    /// If `b`'s precision or input size is not this matrix's, or as [`gemm_par`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn gemm_par(
+        &self,
+        pool: &Pool,
+        m: usize,
+        b: &PackedMatrix,
+        c: &mut [f32],
+        ldc: usize,
+        init: Init<'_>,
+    ) {
+        assert!(
+            b.precision == self.precision && b.k == self.width,
+            "activation rows ({:?}, width {}) vs B ({:?}, k {})",
+            self.precision,
+            self.width,
+            b.precision,
+            b.k
+        );
+        match self.precision {
+            Precision::F32 => gemm_par(pool, &self.values, self.width, m, b, c, ldc, init),
+            Precision::Bf16 => {
+                let ldp = self.width.div_ceil(2);
+                gemm_par_pairs(pool, &self.pairs, ldp, m, b, c, ldc, init);
+            }
+        }
+    }
+}
+
 /// Where the micro-kernels read `A`.
 #[derive(Clone, Copy)]
 enum ASource<'a> {
@@ -1657,6 +1740,28 @@ mod tests {
                 assert_eq!(bits(&one), bits(&want), "{isa:?} {m}x{k}x{n}");
                 assert_eq!(bits(&split), bits(&want), "{isa:?} {m}x{k}x{n} split");
             }
+        }
+    }
+
+    /// Activation rows made by a producer give the GEMM the bits of the f32 rows it makes,
+    /// in both precisions.
+    #[test]
+    fn activation_rows_equal_the_f32_rows_they_are_made_of() {
+        let (m, k, n) = (37, 301, 48);
+        let (a, w) = (data(m * k, 21), data(n * k, 22));
+        for precision in [Precision::F32, Precision::Bf16] {
+            let packed = PackedMatrix::from_linear_weight_in(precision, &w, n, k);
+            let pool = Pool::new(2).unwrap();
+            let mut rows = ActivationRows::new(precision, m + 3, k);
+            rows.fill(&pool, m, |r, out| {
+                out.copy_from_slice(&a[r * k..(r + 1) * k])
+            });
+            let mut got = vec![0.0; m * n];
+            rows.gemm_par(&pool, m, &packed, &mut got, n, Init::Zero);
+            let mut want = vec![0.0; m * n];
+            gemm_par(&pool, &a, k, m, &packed, &mut want, n, Init::Zero);
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&got), bits(&want), "{precision:?}");
         }
     }
 

@@ -9,7 +9,7 @@ use super::prefix::PrefixKv;
 use super::weights::{ExpertWeights, LinearWeights, time_embedding};
 use crate::EngineError;
 use crate::kernels::attention::{AttendScratch, KvSegment, QueryPositions, attend};
-use crate::kernels::gemm::{gemm, gemm_par};
+use crate::kernels::gemm::{ActivationRows, gemm, gemm_par};
 use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 
 /// A `Linear` layer packed for the GEMM, with its bias.
@@ -325,50 +325,30 @@ impl CpuExpert {
             self.time_out.init(),
         );
 
+        let eps = d.rms_eps;
         for (l, layer) in self.layers.iter().enumerate() {
             self.attention_block(pool, ctx, ws, l, layer);
-            vecmath::rms_norm(isa, &ws.x, &layer.post_norm, d.rms_eps, &mut ws.h);
-            let i = d.intermediate;
-            gemm_par(
-                pool,
-                &ws.h,
-                h,
-                tokens,
-                &layer.gate_up,
-                &mut ws.gate_up,
-                2 * i,
-                Init::Zero,
-            );
-            for (gu, act) in ws
-                .gate_up
-                .chunks_exact(2 * i)
-                .zip(ws.act.chunks_exact_mut(i))
-            {
-                let (g, u) = gu.split_at(i);
-                vecmath::silu_mul(isa, g, u, act);
-            }
-            gemm_par(
-                pool,
-                &ws.act,
-                i,
-                tokens,
-                &layer.down,
-                &mut ws.x,
-                h,
-                Init::Accumulate,
-            );
+            let (x, i) = (&ws.x, d.intermediate);
+            ws.normed.fill(pool, tokens, |r, out| {
+                vecmath::rms_norm(isa, &x[r * h..(r + 1) * h], &layer.post_norm, eps, out);
+            });
+            let gate_up = &mut ws.gate_up[..tokens * 2 * i];
+            ws.normed
+                .gemm_par(pool, tokens, &layer.gate_up, gate_up, 2 * i, Init::Zero);
+            let gate_up = &ws.gate_up;
+            ws.act.fill(pool, tokens, |r, out| {
+                let (g, u) = gate_up[r * 2 * i..(r + 1) * 2 * i].split_at(i);
+                vecmath::silu_mul(isa, g, u, out);
+            });
+            ws.act
+                .gemm_par(pool, tokens, &layer.down, &mut ws.x, h, Init::Accumulate);
         }
-        vecmath::rms_norm(isa, &ws.x, &self.final_norm, d.rms_eps, &mut ws.h);
-        gemm_par(
-            pool,
-            &ws.h,
-            h,
-            tokens,
-            &self.out.w,
-            v,
-            d.action_pad,
-            self.out.init(),
-        );
+        let x = &ws.x;
+        ws.normed.fill(pool, tokens, |r, out| {
+            vecmath::rms_norm(isa, &x[r * h..(r + 1) * h], &self.final_norm, eps, out);
+        });
+        ws.normed
+            .gemm_par(pool, tokens, &self.out.w, v, d.action_pad, self.out.init());
     }
 
     fn attention_block(
@@ -383,18 +363,14 @@ impl CpuExpert {
         let (h, hd, n, tokens) = (d.hidden, d.head_dim, d.chunk, ws.tokens);
         let (qw, kvw, half) = (d.q_width(), d.kv_width(), d.head_dim / 2);
         let isa = pool.isa();
-        rms_norm_par(pool, &ws.x, &layer.input_norm, d.rms_eps, &mut ws.h);
+        let (x, eps) = (&ws.x, d.rms_eps);
+        ws.normed.fill(pool, tokens, |r, out| {
+            vecmath::rms_norm(isa, &x[r * h..(r + 1) * h], &layer.input_norm, eps, out);
+        });
         let ld = layer.qkv.n();
-        gemm_par(
-            pool,
-            &ws.h,
-            h,
-            tokens,
-            &layer.qkv,
-            &mut ws.qkv[..tokens * ld],
-            ld,
-            Init::Zero,
-        );
+        let qkv = &mut ws.qkv[..tokens * ld];
+        ws.normed
+            .gemm_par(pool, tokens, &layer.qkv, qkv, ld, Init::Zero);
         let rows = ctx.row_prefix.len();
         // RoPE, and queries regrouped head-major per row so each head is one contiguous A.
         for r in 0..rows {
@@ -530,19 +506,6 @@ impl CpuExpert {
     }
 }
 
-pub(crate) fn rms_norm_par(pool: &Pool, x: &[f32], weight: &[f32], eps: f32, out: &mut [f32]) {
-    let h = weight.len();
-    pool.for_row_chunks(out, h, |r0, rows| {
-        vecmath::rms_norm(
-            pool.isa(),
-            &x[r0 * h..r0 * h + rows.len()],
-            weight,
-            eps,
-            rows,
-        );
-    });
-}
-
 struct StepContext<'a> {
     prepared: &'a [PreparedPrefix],
     row_prefix: &'a [usize],
@@ -560,7 +523,10 @@ struct Workspace {
     q_heads: Vec<f32>,
     attn: Vec<f32>,
     gate_up: Vec<f32>,
-    act: Vec<f32>,
+    /// The RMS-normed rows that feed the q/k/v, gate/up and output GEMMs.
+    normed: ActivationRows,
+    /// `silu(gate) * up`, which feeds the down projection.
+    act: ActivationRows,
     suffix_kv: Vec<(PackedMatrix, PackedMatrix)>,
     /// Per attention part: scores and the output block.
     scores: Vec<Mutex<(AttendScratch, Vec<f32>)>>,
@@ -578,7 +544,8 @@ impl Workspace {
             q_heads: vec![0.0; tokens * d.q_width()],
             attn: vec![0.0; tokens * d.q_width()],
             gate_up: vec![0.0; tokens * 2 * d.intermediate],
-            act: vec![0.0; tokens * d.intermediate],
+            normed: ActivationRows::new(precision, tokens, d.hidden),
+            act: ActivationRows::new(precision, tokens, d.intermediate),
             suffix_kv: (0..rows * d.kv_heads)
                 .map(|_| {
                     (

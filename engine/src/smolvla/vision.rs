@@ -16,7 +16,7 @@ use super::vlm_weights::{NormWeights, VlmWeights};
 use super::weights::LinearWeights;
 use crate::EngineError;
 use crate::kernels::attention::{AttendScratch, KvSegment, QueryPositions, attend};
-use crate::kernels::gemm::{gemm_par, gemm_par_pairs, round_rows_par};
+use crate::kernels::gemm::{ActivationRows, gemm_par};
 use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 
 /// A view of one prepared camera image: `channels x side x side` floats, row-major, in `[-1, 1]`
@@ -233,49 +233,20 @@ impl CpuVision {
         let mut qkv = vec![0.0f32; rows * 3 * vh];
         let mut attn = vec![0.0f32; rows * vh];
         let mut mlp = vec![0.0f32; rows * inter];
-        // In bf16 the layer norms and the GELU round their rows straight into the `A` of the
-        // GEMM they feed (see `round_rows_par`); same bits as rounding in the GEMM.
-        let rounded = self.precision == Precision::Bf16;
-        let pairs_for =
-            |width: usize| vec![0u32; if rounded { rows * width.div_ceil(2) } else { 0 }];
-        let (mut h_pairs, mut mlp_pairs) = (pairs_for(vh), pairs_for(inter));
+        // The layer norms and the GELU make the `A` of the GEMM they feed row by row (in bf16
+        // rounded as they go, see `ActivationRows`).
+        let mut normed = ActivationRows::new(self.precision, rows, vh);
+        let mut act = ActivationRows::new(self.precision, rows, inter);
         let isa = pool.isa();
-        let norm = |x: &[f32], norm: &NormWeights, h: &mut Vec<f32>, h_pairs: &mut Vec<u32>| {
-            if rounded {
-                round_rows_par(pool, vh, h_pairs, |r, out| {
-                    let row = &x[r * vh..(r + 1) * vh];
-                    vecmath::layer_norm(isa, row, &norm.weight, &norm.bias, eps, out);
-                });
-            } else {
-                layer_norm_par(pool, x, norm, eps, h);
-            }
-        };
-        // `C = init + A · B` with `A` the f32 rows `a` or, in bf16, their rounded `pairs`.
-        #[allow(clippy::too_many_arguments)]
-        let gemm_a = |a: &[f32],
-                      pairs: &[u32],
-                      k: usize,
-                      b: &PackedMatrix,
-                      c: &mut [f32],
-                      ldc: usize,
-                      init: Init<'_>| {
-            if rounded {
-                gemm_par_pairs(pool, pairs, k.div_ceil(2), rows, b, c, ldc, init);
-            } else {
-                gemm_par(pool, a, k, rows, b, c, ldc, init);
-            }
+        let norm = |x: &[f32], norm: &NormWeights, normed: &mut ActivationRows| {
+            normed.fill(pool, rows, |r, out| {
+                let row = &x[r * vh..(r + 1) * vh];
+                vecmath::layer_norm(isa, row, &norm.weight, &norm.bias, eps, out);
+            });
         };
         for layer in &self.layers {
-            norm(&x, &layer.norm1, &mut h, &mut h_pairs);
-            gemm_a(
-                &h,
-                &h_pairs,
-                vh,
-                &layer.qkv.w,
-                &mut qkv,
-                3 * vh,
-                layer.qkv.init(),
-            );
+            norm(&x, &layer.norm1, &mut normed);
+            normed.gemm_par(pool, rows, &layer.qkv.w, &mut qkv, 3 * vh, layer.qkv.init());
             self.attention(pool, &qkv, &counts, &starts, &mut attn);
             gemm_par(
                 pool,
@@ -287,27 +258,13 @@ impl CpuVision {
                 vh,
                 accumulate_bias(layer.out.bias.as_deref()),
             );
-            norm(&x, &layer.norm2, &mut h, &mut h_pairs);
-            gemm_a(
-                &h,
-                &h_pairs,
-                vh,
-                &layer.fc1.w,
-                &mut mlp,
-                inter,
-                layer.fc1.init(),
-            );
-            if rounded {
-                round_rows_par(pool, inter, &mut mlp_pairs, |r, out| {
-                    vecmath::gelu_tanh(isa, &mlp[r * inter..(r + 1) * inter], out);
-                });
-            } else {
-                pool.for_row_chunks(&mut mlp, inter, |_, chunk| {
-                    vecmath::gelu_tanh_inplace(isa, chunk);
-                });
-            }
+            norm(&x, &layer.norm2, &mut normed);
+            normed.gemm_par(pool, rows, &layer.fc1.w, &mut mlp, inter, layer.fc1.init());
+            act.fill(pool, rows, |r, out| {
+                vecmath::gelu_tanh(isa, &mlp[r * inter..(r + 1) * inter], out);
+            });
             let init = accumulate_bias(layer.fc2.bias.as_deref());
-            gemm_a(&mlp, &mlp_pairs, inter, &layer.fc2.w, &mut x, vh, init);
+            act.gemm_par(pool, rows, &layer.fc2.w, &mut x, vh, init);
         }
         layer_norm_par(pool, &x, &self.post, eps, &mut h);
 

@@ -16,10 +16,9 @@
 //! it, so its attention output and MLP are skipped; `text_model.norm` is never needed.
 
 use super::config::VlmTextConfig;
-use super::cpu::rms_norm_par;
 use super::weights::{LayerWeights, LinearWeights};
 use crate::kernels::attention::{AttendScratch, KvSegment, QueryPositions, attend};
-use crate::kernels::gemm::gemm_par;
+use crate::kernels::gemm::{ActivationRows, gemm_par};
 use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 use crate::weights::StoredTensor;
 
@@ -121,16 +120,22 @@ impl CpuText {
         }
         let eps = c.rms_norm_eps as f32;
         let inter = c.intermediate_size;
-        let mut hbuf = vec![0.0f32; rows * h];
         let mut qkv = vec![0.0f32; rows * ld];
         let mut attn = vec![0.0f32; rows * qw];
         let mut gate_up = vec![0.0f32; rows * 2 * inter];
-        let mut act = vec![0.0f32; rows * inter];
+        // The norms and SiLU make the `A` of the GEMM they feed (see `ActivationRows`).
+        let mut normed = ActivationRows::new(self.precision, rows, h);
+        let mut act = ActivationRows::new(self.precision, rows, inter);
         let isa = pool.isa();
+        let norm = |x: &[f32], weight: &[f32], normed: &mut ActivationRows| {
+            normed.fill(pool, rows, |r, out| {
+                vecmath::rms_norm(isa, &x[r * h..(r + 1) * h], weight, eps, out);
+            });
+        };
         let last = self.layers.len().saturating_sub(1);
         for (l, layer) in self.layers.iter().enumerate() {
-            rms_norm_par(pool, &x, &layer.input_norm, eps, &mut hbuf);
-            gemm_par(pool, &hbuf, h, rows, &layer.qkv, &mut qkv, ld, Init::Zero);
+            norm(&x, &layer.input_norm, &mut normed);
+            normed.gemm_par(pool, rows, &layer.qkv, &mut qkv, ld, Init::Zero);
             for (&n, &start) in counts.iter().zip(&starts) {
                 for t in 0..n {
                     let (cs, sn) = (&cos[t * half..][..half], &sin[t * half..][..half]);
@@ -154,34 +159,20 @@ impl CpuText {
             }
             self.attention(pool, &qkv, &counts, &starts, &mut attn);
             gemm_par(pool, &attn, qw, rows, &layer.o, &mut x, h, Init::Accumulate);
-            rms_norm_par(pool, &x, &layer.post_norm, eps, &mut hbuf);
-            gemm_par(
+            norm(&x, &layer.post_norm, &mut normed);
+            normed.gemm_par(
                 pool,
-                &hbuf,
-                h,
                 rows,
                 &layer.gate_up,
                 &mut gate_up,
                 2 * inter,
                 Init::Zero,
             );
-            for (gu, a) in gate_up
-                .chunks_exact(2 * inter)
-                .zip(act.chunks_exact_mut(inter))
-            {
-                let (g, u) = gu.split_at(inter);
-                vecmath::silu_mul(isa, g, u, a);
-            }
-            gemm_par(
-                pool,
-                &act,
-                inter,
-                rows,
-                &layer.down,
-                &mut x,
-                h,
-                Init::Accumulate,
-            );
+            act.fill(pool, rows, |r, out| {
+                let (g, u) = gate_up[r * 2 * inter..(r + 1) * 2 * inter].split_at(inter);
+                vecmath::silu_mul(isa, g, u, out);
+            });
+            act.gemm_par(pool, rows, &layer.down, &mut x, h, Init::Accumulate);
         }
         out
     }
