@@ -778,6 +778,8 @@ unsafe fn gemm_packed(
         return;
     }
     let kernel = Kernel::choose(isa, b.precision);
+    // The kernels of whole tiles, looked up once.
+    let (whole_tile, whole_pair) = (full_tile_fn(kernel, MR), pair_tile_fn(kernel, MR));
     let d = |rows| depth(b.precision, rows);
     // Zero-initialised outputs start from zero accumulators, biased ones from the bias itself
     // (the first `k` block's accumulators read it in place, the same vector for every row:
@@ -872,14 +874,24 @@ unsafe fn gemm_packed(
                         // Stride 0: every row starts from the bias of these columns.
                         bias.map(|bias| (bias[c0..].as_ptr(), 0))
                     };
-                    if pair {
-                        // SAFETY: both panels hold kc rows and are full width (so is the bias,
-                        // `n` values); C as above.
-                        unsafe { tile_pair(kernel, rows, kc, ap, ars, bp, bp2, cp, ldc, start) };
-                    } else {
-                        // SAFETY: the packed A tile and the panel hold kc rows; C and the
-                        // bias have the tile's `w` columns.
-                        unsafe { tile(kernel, rows, kc, ap, ars, bp, cp, ldc, w, start) };
+                    // The panel (both panels) hold kc rows, the A tile `rows` rows of kc
+                    // values; C and the bias (`n` values) have the tile's columns (two full
+                    // panels, or `w`); the looked-up kernels are `kernel`'s.
+                    match (pair, rows == MR, whole_pair) {
+                        // SAFETY: as above, two full panels, `MR` rows.
+                        (true, true, Some(f)) => unsafe { f(kc, ap, ars, bp, bp2, cp, ldc, start) },
+                        // SAFETY: as above, two full panels.
+                        (true, _, _) => unsafe {
+                            tile_pair(kernel, rows, kc, ap, ars, bp, bp2, cp, ldc, start)
+                        },
+                        // SAFETY: as above, one full panel, `MR` rows.
+                        (false, true, _) if w == NR => unsafe {
+                            whole_tile(kc, ap, ars, bp, cp, ldc, start)
+                        },
+                        // SAFETY: as above, one panel of `w` columns.
+                        (false, _, _) => unsafe {
+                            tile(kernel, rows, kc, ap, ars, bp, cp, ldc, w, start)
+                        },
                     }
                 }
                 p += step;
@@ -1188,32 +1200,63 @@ unsafe fn tile(
         }
         return;
     }
-    macro_rules! dispatch {
+    // SAFETY: the caller's contract, for a full-width tile of `rows` rows.
+    unsafe { full_tile_fn(kernel, rows)(kc, a, ars, b, c, ldc, start) }
+}
+
+/// A micro-kernel on a full-width tile: `(kc, a, ars, b, c, ldc, start)` as [`tile`] takes them.
+type TileFn = unsafe fn(usize, *const f32, usize, *const f32, *mut f32, usize, Start);
+
+/// The micro-kernel of `kernel` for full-width tiles of `rows` rows (`1..=MR`). The driver
+/// loop looks it up once per GEMM for whole tiles and calls it directly: going through
+/// [`tile`]'s dispatch for every tile (a large stack frame, kept for the edge panels' scratch
+/// tile) was 2-3% of an f32 forward pass.
+fn full_tile_fn(kernel: Kernel, rows: usize) -> TileFn {
+    macro_rules! pick {
         ($f:ident) => {
             match rows {
-                6 => $f::<6>(kc, a, ars, b, c, ldc, start),
-                5 => $f::<5>(kc, a, ars, b, c, ldc, start),
-                4 => $f::<4>(kc, a, ars, b, c, ldc, start),
-                3 => $f::<3>(kc, a, ars, b, c, ldc, start),
-                2 => $f::<2>(kc, a, ars, b, c, ldc, start),
-                _ => $f::<1>(kc, a, ars, b, c, ldc, start),
+                6 => $f::<6> as TileFn,
+                5 => $f::<5>,
+                4 => $f::<4>,
+                3 => $f::<3>,
+                2 => $f::<2>,
+                _ => $f::<1>,
             }
         };
     }
+    // Each kernel's CPU requirement holds for the `Kernel` it is picked for: `Isa::Avx2Fma`
+    // and `Isa::Avx512` are only reported on CPUs with those features, and `Kernel::choose`
+    // picks `Bf16Avx512` only on a CPU with AVX-512F and AVX512_BF16.
     match kernel {
         #[cfg(target_arch = "x86_64")]
-        // SAFETY: Isa::Avx2Fma is only reported when the CPU has AVX2 and FMA.
-        Kernel::F32(Isa::Avx2Fma) => unsafe { dispatch!(kernel_avx2) },
+        Kernel::F32(Isa::Avx2Fma) => pick!(kernel_avx2),
         #[cfg(target_arch = "x86_64")]
-        // SAFETY: Isa::Avx512 is only reported when the CPU has AVX-512F.
-        Kernel::F32(Isa::Avx512) => unsafe { dispatch!(kernel_avx512) },
+        Kernel::F32(Isa::Avx512) => pick!(kernel_avx512),
         #[cfg(target_arch = "x86_64")]
-        // SAFETY: Kernel::choose picks it only on a CPU with AVX-512F and AVX512_BF16.
-        Kernel::Bf16Avx512 => unsafe { dispatch!(kernel_bf16_avx512) },
-        // SAFETY: same pointer contract (bf16 panels and tiles hold ceil(kc / 2) pair rows).
-        Kernel::Bf16Portable => unsafe { dispatch!(kernel_bf16_portable) },
-        // SAFETY: same pointer contract.
-        _ => unsafe { dispatch!(kernel_portable) },
+        Kernel::Bf16Avx512 => pick!(kernel_bf16_avx512),
+        Kernel::Bf16Portable => pick!(kernel_bf16_portable),
+        _ => pick!(kernel_portable),
+    }
+}
+
+/// A micro-kernel on two full-width panels: `(kc, a, ars, b, b2, c, ldc, start)` as
+/// [`tile_pair`] takes them.
+type PairFn = unsafe fn(usize, *const f32, usize, *const f32, *const f32, *mut f32, usize, Start);
+
+/// The two-panel micro-kernel of `kernel` for `rows` rows, where it has one
+/// ([`Kernel::pairs`]; the CPU requirement as in [`full_tile_fn`]).
+fn pair_tile_fn(kernel: Kernel, rows: usize) -> Option<PairFn> {
+    match kernel {
+        #[cfg(target_arch = "x86_64")]
+        Kernel::Bf16Avx512 => Some(match rows {
+            6 => kernel_bf16_avx512_pair::<6> as PairFn,
+            5 => kernel_bf16_avx512_pair::<5>,
+            4 => kernel_bf16_avx512_pair::<4>,
+            3 => kernel_bf16_avx512_pair::<3>,
+            2 => kernel_bf16_avx512_pair::<2>,
+            _ => kernel_bf16_avx512_pair::<1>,
+        }),
+        _ => None,
     }
 }
 
@@ -1236,22 +1279,9 @@ unsafe fn tile_pair(
     ldc: usize,
     start: Start,
 ) {
-    macro_rules! dispatch {
-        ($f:ident) => {
-            match rows {
-                6 => $f::<6>(kc, a, ars, b, b2, c, ldc, start),
-                5 => $f::<5>(kc, a, ars, b, b2, c, ldc, start),
-                4 => $f::<4>(kc, a, ars, b, b2, c, ldc, start),
-                3 => $f::<3>(kc, a, ars, b, b2, c, ldc, start),
-                2 => $f::<2>(kc, a, ars, b, b2, c, ldc, start),
-                _ => $f::<1>(kc, a, ars, b, b2, c, ldc, start),
-            }
-        };
-    }
-    match kernel {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: Kernel::choose picks it only on a CPU with AVX-512F and AVX512_BF16.
-        Kernel::Bf16Avx512 => unsafe { dispatch!(kernel_bf16_avx512_pair) },
+    match pair_tile_fn(kernel, rows) {
+        // SAFETY: the caller's contract.
+        Some(f) => unsafe { f(kc, a, ars, b, b2, c, ldc, start) },
         _ => {
             // SAFETY: the caller's contract, one panel at a time.
             unsafe {
