@@ -46,18 +46,23 @@ const LOG2E: f32 = std::f32::consts::LOG2_E;
 
 /// `exp(x)` for `x` in about `[-87, 88]` (clamped outside), max error ~1 ulp (Cephes `expf`:
 /// Cody–Waite reduction by ln 2 and a degree-5 minimax polynomial), branch-free so that it
-/// vectorises.
+/// vectorises. Written with fused multiply-adds (19 operations instead of 28: the softmax's
+/// exponentials were 4% of the bf16 vision tower). `mul_add` rounds once wherever it runs (an
+/// FMA instruction in the AVX2 and AVX-512 builds, a correctly rounded library call in the
+/// portable one), so every build still gives the same bits.
 #[inline(always)]
 pub fn exp_approx(x: f32) -> f32 {
     let x = x.clamp(-87.0, 88.0);
-    let fx = (x * LOG2E + 0.5).floor();
-    let r = x - fx * 0.693_359_4 + fx * 2.121_944_4e-4;
+    let fx = x.mul_add(LOG2E, 0.5).floor();
+    let r = fx.mul_add(-0.693_359_4, x);
+    let r = fx.mul_add(2.121_944_4e-4, r);
     let r2 = r * r;
-    let p = ((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r
-        + 1.666_666_5e-1)
-        * r
-        + 5e-1;
-    let y = p * r2 + r + 1.0;
+    let p = 1.987_569_1e-4f32.mul_add(r, 1.398_199_9e-3);
+    let p = p.mul_add(r, 8.333_452e-3);
+    let p = p.mul_add(r, 4.166_579_6e-2);
+    let p = p.mul_add(r, 1.666_666_5e-1);
+    let p = p.mul_add(r, 5e-1);
+    let y = p.mul_add(r2, r) + 1.0;
     // 2^fx from the bits of `fx + 1.5 * 2^23`, whose low mantissa bits hold the integer `fx`
     // (in -126..=127 after the clamp): the same value as `(fx as i32 + 127) << 23`, but with
     // integer ops only, which LLVM vectorises (the saturating `as i32` kept every loop that
