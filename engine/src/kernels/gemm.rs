@@ -791,9 +791,7 @@ unsafe fn gemm_packed(
         for r in 0..m {
             // SAFETY: row r, columns c0..c1 are inside C and owned by this call.
             let row = unsafe { std::slice::from_raw_parts_mut(c.add(r * ldc + c0), c1 - c0) };
-            for (v, &add) in row.iter_mut().zip(&bias[c0..c1]) {
-                *v += add;
-            }
+            super::vecmath::add_assign(isa, row, &bias[c0..c1]);
         }
     }
     if k == 0 {

@@ -147,6 +147,15 @@ multiversion! {
 }
 
 multiversion! {
+    /// `x[i] += y[i]`.
+    pub fn add_assign(x: &mut [f32], y: &[f32]) {
+        for (a, &b) in x.iter_mut().zip(y) {
+            *a += b;
+        }
+    }
+}
+
+multiversion! {
     /// `out[i] = x[i] * factor`.
     pub fn scale_into(x: &[f32], factor: f32, out: &mut [f32]) {
         for (o, &v) in out.iter_mut().zip(x) {
