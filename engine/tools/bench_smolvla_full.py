@@ -3,13 +3,18 @@
 `lerobot/smolvla_base` shapes, and the Kairos full pipeline on the same checkpoint, side by side.
 
     python3 engine/tools/bench_smolvla_full.py [--batch 1,4] [--threads 2] [--iters 3] [--rounds 1]
-        [--write-checkpoint DIR | --checkpoint DIR] [--kairos 'CMD' | --kairos-bin target/debug/kairos]
+        [--write-checkpoint DIR | --checkpoint DIR] [--kairos 'CMD' | --kairos-bin target/release/kairos]
         [--kairos-args '--precision bf16'] [--serve-rss]
 
 The whole table in one command (what docs/BENCHMARKS.md records):
 
+    cargo build --release -p kairos-server --bin kairos
     python3 engine/tools/bench_smolvla_full.py --batch 1,4 --iters 2 --checkpoint /tmp/smolvla_base_random \
-        --kairos-bin target/debug/kairos --serve-rss
+        --kairos-bin target/release/kairos --serve-rss
+
+Time the release build, as a deployment runs it: the dev build compiles the engine at opt-level 3
+too, but with debug assertions and overflow checks, which measured 6-11% slower on the vision
+tower (docs/BENCHMARKS.md, sixth stop).
 
 Shapes: SmolVLM2-500M (SigLIP 12 layers of 768 on 512x512 images, patch 16, pixel shuffle 4 ->
 64 tokens per camera; 16 of the 32 SmolLM2 text layers, hidden 960, 15/5 heads of 64), expert
