@@ -7,7 +7,7 @@
 //! are simply absent from the segments: LeRobot's masked scores become exactly 0 after its
 //! softmax, so leaving them out changes no sum.
 
-use super::gemm::{Init, PackedMatrix, gemm, gemm_pairs, round_pairs};
+use super::gemm::{Init, PackedMatrix, gemm, gemm_pairs, round_pairs_scaled};
 use super::{Isa, Precision, vecmath};
 
 /// Keys and values of one attention segment.
@@ -117,7 +117,7 @@ pub fn attend(
         for (s, seg) in segments.iter().enumerate() {
             let (offset, ldp) = pair_rows(s);
             let dst = &mut scratch.pairs[offset + i * ldp..offset + (i + 1) * ldp];
-            round_scaled(isa, &row[col..col + seg.len()], factor, dst);
+            round_pairs_scaled(isa, &row[col..col + seg.len()], factor, dst);
             col += seg.len();
         }
     }
@@ -132,18 +132,6 @@ pub fn attend(
             gemm(isa, &scores[col..], total, nq, seg.values, out, ldo, init);
         }
         col += seg.len();
-    }
-}
-
-/// `pairs = bf16 pairs of (src * factor)`, through a small buffer: the products never go back
-/// to memory.
-fn round_scaled(isa: Isa, src: &[f32], factor: f32, pairs: &mut [u32]) {
-    const CHUNK: usize = 256;
-    let mut products = [0.0f32; CHUNK];
-    for (chunk, dst) in src.chunks(CHUNK).zip(pairs.chunks_mut(CHUNK / 2)) {
-        let products = &mut products[..chunk.len()];
-        vecmath::scale_into(isa, chunk, factor, products);
-        round_pairs(isa, products, dst);
     }
 }
 

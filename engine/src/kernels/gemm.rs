@@ -975,6 +975,27 @@ pub fn round_pairs(isa: Isa, src: &[f32], pairs: &mut [u32]) {
     round_pairs_with(isa, super::cpu_has_avx512_bf16(), src, pairs);
 }
 
+/// `pairs` = the bf16 pairs of `src[i] * factor` (each product rounded to f32, then as
+/// [`round_pairs`]): the attention's probabilities, normalised and rounded in one pass.
+pub fn round_pairs_scaled(isa: Isa, src: &[f32], factor: f32, pairs: &mut [u32]) {
+    debug_assert_eq!(pairs.len(), src.len().div_ceil(2));
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if isa == Isa::Avx512 && super::cpu_has_avx512_bf16() {
+        // SAFETY: `Isa::Avx512` is only chosen on a CPU with AVX-512F; AVX512_BF16 was checked.
+        done = unsafe { round_pairs_avx512_bf16::<true>(src, factor, pairs) };
+    }
+    // The rest (all of it without the native conversion) through a small buffer.
+    const CHUNK: usize = 256;
+    let mut products = [0.0f32; CHUNK];
+    let (src, pairs) = (&src[2 * done..], &mut pairs[done..]);
+    for (chunk, dst) in src.chunks(CHUNK).zip(pairs.chunks_mut(CHUNK / 2)) {
+        let products = &mut products[..chunk.len()];
+        super::vecmath::scale_into(isa, chunk, factor, products);
+        round_pairs(isa, products, dst);
+    }
+}
+
 /// [`round_pairs`], with `vcvtneps2bf16` where `native_bf16` (the CPU has AVX512_BF16).
 fn round_pairs_with(isa: Isa, native_bf16: bool, src: &[f32], pairs: &mut [u32]) {
     debug_assert_eq!(pairs.len(), src.len().div_ceil(2));
@@ -984,7 +1005,7 @@ fn round_pairs_with(isa: Isa, native_bf16: bool, src: &[f32], pairs: &mut [u32])
         done = if native_bf16 {
             // SAFETY: `Isa::Avx512` is only chosen on a CPU with AVX-512F; the caller says
             // this one has AVX512_BF16.
-            unsafe { round_pairs_avx512_bf16(src, pairs) }
+            unsafe { round_pairs_avx512_bf16::<false>(src, 1.0, pairs) }
         } else {
             // SAFETY: `Isa::Avx512` is only chosen on a CPU with AVX-512F.
             unsafe { round_pairs_avx512(src, pairs) }
@@ -1052,22 +1073,35 @@ fn round16(v: std::arch::x86_64::__m512i) -> std::arch::x86_64::__m256i {
 /// rounding of the attention probabilities moved into L1 (the softmax's last pass), its
 /// instruction count was what remained of its cost.
 ///
+/// With `SCALED`, each value is first multiplied by `factor` (an f32 product, as
+/// [`round_pairs_scaled`] defines it).
+///
 /// # Safety
 /// Requires AVX-512F and AVX512_BF16.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bf16")]
-unsafe fn round_pairs_avx512_bf16(src: &[f32], pairs: &mut [u32]) -> usize {
+unsafe fn round_pairs_avx512_bf16<const SCALED: bool>(
+    src: &[f32],
+    factor: f32,
+    pairs: &mut [u32],
+) -> usize {
     use std::arch::x86_64::*;
     let blocks = src.len() / 16;
     let exponent = _mm512_set1_epi32(0x7f80_0000);
     let mantissa = _mm512_set1_epi32(0x007f_ffff);
+    let factor = _mm512_set1_ps(factor);
     let (src, dst) = (src.as_ptr(), pairs.as_mut_ptr());
     for b in 0..blocks {
         // SAFETY: values 16b..16b+16 are inside `src`; pairs 8b..8b+8 inside `pairs` (which
         // holds ceil(len / 2) values); both accesses are unaligned. The asm only converts
         // registers.
         unsafe {
-            let v = _mm512_loadu_si512(src.add(16 * b) as *const _);
+            let v = if SCALED {
+                let x = _mm512_mul_ps(_mm512_loadu_ps(src.add(16 * b)), factor);
+                _mm512_castps_si512(x)
+            } else {
+                _mm512_loadu_si512(src.add(16 * b) as *const _)
+            };
             let denormal =
                 _mm512_testn_epi32_mask(v, exponent) & _mm512_test_epi32_mask(v, mantissa);
             let packed = if denormal == 0 {
@@ -2058,6 +2092,24 @@ mod tests {
                     0,
                     "{isa:?} len {len}: the missing odd value is 0"
                 );
+            }
+        }
+    }
+
+    /// The one-pass scaled rounding equals multiplying, then rounding, on ragged lengths
+    /// (the vector blocks and the tail).
+    #[test]
+    fn scaled_rounding_equals_scaling_then_rounding() {
+        let src: Vec<f32> = data(301, 31).iter().map(|v| v * 3.0).collect();
+        for len in [0, 1, 15, 16, 17, 255, 256, 257, 301] {
+            for isa in [Isa::detect(), Isa::Portable] {
+                let factor = 0.377;
+                let scaled: Vec<f32> = src[..len].iter().map(|v| v * factor).collect();
+                let mut want = vec![0u32; len.div_ceil(2)];
+                round_pairs(isa, &scaled, &mut want);
+                let mut got = vec![1u32; len.div_ceil(2)];
+                round_pairs_scaled(isa, &src[..len], factor, &mut got);
+                assert_eq!(got, want, "{isa:?} len {len}");
             }
         }
     }
