@@ -238,33 +238,32 @@ impl CpuVision {
         let mut normed = ActivationRows::new(self.precision, rows, vh);
         let mut act = ActivationRows::new(self.precision, rows, inter);
         let isa = pool.isa();
-        let norm = |x: &[f32], norm: &NormWeights, normed: &mut ActivationRows| {
+        // Layer norm of every row of `x`; then, while the row is in L1, the bias of the
+        // residual GEMM that accumulates into `x` next is added to it (`x += bias + A · B`
+        // in that order, as `Init::AccumulateBias` would, without a pass of its own over `x`).
+        let norm = |x: &mut [f32], norm: &NormWeights, bias: Option<&[f32]>, normed: &mut ActivationRows| {
+            let shared = SharedMut::new(x);
             normed.fill(pool, rows, |r, out| {
-                let row = &x[r * vh..(r + 1) * vh];
+                // SAFETY: `fill` hands each row to one part only, and `x` (rows x vh) outlives
+                // the call.
+                let row = unsafe { std::slice::from_raw_parts_mut(shared.ptr().add(r * vh), vh) };
                 vecmath::layer_norm(isa, row, &norm.weight, &norm.bias, eps, out);
+                if let Some(bias) = bias {
+                    vecmath::add_assign(isa, row, bias);
+                }
             });
         };
         for layer in &self.layers {
-            norm(&x, &layer.norm1, &mut normed);
+            norm(&mut x, &layer.norm1, layer.out.bias.as_deref(), &mut normed);
             normed.gemm_par(pool, rows, &layer.qkv.w, &mut qkv, 3 * vh, layer.qkv.init());
             self.attention(pool, &qkv, &counts, &starts, &mut attn);
-            gemm_par(
-                pool,
-                &attn,
-                vh,
-                rows,
-                &layer.out.w,
-                &mut x,
-                vh,
-                accumulate_bias(layer.out.bias.as_deref()),
-            );
-            norm(&x, &layer.norm2, &mut normed);
+            gemm_par(pool, &attn, vh, rows, &layer.out.w, &mut x, vh, Init::Accumulate);
+            norm(&mut x, &layer.norm2, layer.fc2.bias.as_deref(), &mut normed);
             normed.gemm_par(pool, rows, &layer.fc1.w, &mut mlp, inter, layer.fc1.init());
             act.fill(pool, rows, |r, out| {
                 vecmath::gelu_tanh(isa, &mlp[r * inter..(r + 1) * inter], out);
             });
-            let init = accumulate_bias(layer.fc2.bias.as_deref());
-            act.gemm_par(pool, rows, &layer.fc2.w, &mut x, vh, init);
+            act.gemm_par(pool, rows, &layer.fc2.w, &mut x, vh, Init::Accumulate);
         }
         layer_norm_par(pool, &x, &self.post, eps, &mut h);
 
@@ -400,12 +399,6 @@ pub(crate) fn starts(counts: &[usize]) -> Vec<usize> {
 
 /// Query rows per attention call: 96 x 1024 scores = 384 KiB.
 const QUERY_BLOCK: usize = 96;
-
-/// How a residual GEMM starts: `x += bias + A · B` (the bias added to `x` first, then the
-/// products, by the threads that own each part of `x`), or plain accumulation without a bias.
-fn accumulate_bias(bias: Option<&[f32]>) -> Init<'_> {
-    bias.map_or(Init::Accumulate, Init::AccumulateBias)
-}
 
 fn layer_norm_par(pool: &Pool, x: &[f32], norm: &NormWeights, eps: f32, out: &mut [f32]) {
     let h = norm.weight.len();
