@@ -46,8 +46,9 @@ pub struct AttendScratch {
     pairs: Vec<u32>,
 }
 
-/// `out[i] = softmax(scale * q[i] · Kᵀ) V` for the `nq` query rows of `q` (row stride
-/// `head_dim`), over the concatenation of `segments`. `out` has row stride `ldo`; `scale > 0`.
+/// `out[i] = softmax(scale * q[i] · Kᵀ) V` for the `nq` query rows of `q` (`head_dim` values
+/// each, row stride `ldq`: a head's columns read in place from `[q | k | v]` rows), over the
+/// concatenation of `segments`. `out` has row stride `ldo`; `scale > 0`.
 ///
 /// With bf16 values, each row's probabilities are rounded into bf16 pairs by the pass that
 /// normalises them, while the row is in L1 (for the `P · V` GEMM, which would otherwise read
@@ -57,6 +58,7 @@ pub struct AttendScratch {
 pub fn attend(
     isa: Isa,
     q: &[f32],
+    ldq: usize,
     nq: usize,
     head_dim: usize,
     segments: &[KvSegment<'_>],
@@ -66,6 +68,11 @@ pub fn attend(
     out: &mut [f32],
     ldo: usize,
 ) {
+    assert!(
+        ldq >= head_dim,
+        "attend: query stride {ldq} < head dim {head_dim}"
+    );
+    debug_assert!(segments.iter().all(|seg| seg.keys_t.k() == head_dim));
     let total: usize = segments.iter().map(KvSegment::len).sum();
     let scores = &mut scratch.scores;
     scores.resize(nq * total, 0.0);
@@ -74,7 +81,7 @@ pub fn attend(
         gemm(
             isa,
             q,
-            head_dim,
+            ldq,
             nq,
             seg.keys_t,
             &mut scores[col..],
@@ -199,7 +206,19 @@ mod tests {
         };
         let mut got = vec![0.0; nq * d];
         let mut scratch = AttendScratch::default();
-        attend(isa, &q, nq, d, &segs, pos, 0.25, &mut scratch, &mut got, d);
+        attend(
+            isa,
+            &q,
+            d,
+            nq,
+            d,
+            &segs,
+            pos,
+            0.25,
+            &mut scratch,
+            &mut got,
+            d,
+        );
 
         let total = lp + nq;
         let mut p = vec![0.0; nq * total];
@@ -262,6 +281,7 @@ mod tests {
         attend(
             Isa::detect(),
             &q,
+            d,
             nq,
             d,
             &segs,
@@ -277,6 +297,7 @@ mod tests {
         attend(
             Isa::detect(),
             &q2,
+            d,
             2 * nq,
             d,
             &segs,

@@ -457,6 +457,7 @@ impl CpuExpert {
                         attend(
                             isa,
                             q,
+                            hd,
                             i1 - i0,
                             hd,
                             &[prefix, own],
@@ -470,6 +471,7 @@ impl CpuExpert {
                     LayerKind::CrossAttention => attend(
                         isa,
                         q,
+                        hd,
                         i1 - i0,
                         hd,
                         &[prefix],

@@ -241,7 +241,10 @@ impl CpuVision {
         // Layer norm of every row of `x`; then, while the row is in L1, the bias of the
         // residual GEMM that accumulates into `x` next is added to it (`x += bias + A · B`
         // in that order, as `Init::AccumulateBias` would, without a pass of its own over `x`).
-        let norm = |x: &mut [f32], norm: &NormWeights, bias: Option<&[f32]>, normed: &mut ActivationRows| {
+        let norm = |x: &mut [f32],
+                    norm: &NormWeights,
+                    bias: Option<&[f32]>,
+                    normed: &mut ActivationRows| {
             let shared = SharedMut::new(x);
             normed.fill(pool, rows, |r, out| {
                 // SAFETY: `fill` hands each row to one part only, and `x` (rows x vh) outlives
@@ -257,7 +260,16 @@ impl CpuVision {
             norm(&mut x, &layer.norm1, layer.out.bias.as_deref(), &mut normed);
             normed.gemm_par(pool, rows, &layer.qkv.w, &mut qkv, 3 * vh, layer.qkv.init());
             self.attention(pool, &qkv, &counts, &starts, &mut attn);
-            gemm_par(pool, &attn, vh, rows, &layer.out.w, &mut x, vh, Init::Accumulate);
+            gemm_par(
+                pool,
+                &attn,
+                vh,
+                rows,
+                &layer.out.w,
+                &mut x,
+                vh,
+                Init::Accumulate,
+            );
             norm(&mut x, &layer.norm2, layer.fc2.bias.as_deref(), &mut normed);
             normed.gemm_par(pool, rows, &layer.fc1.w, &mut mlp, inter, layer.fc1.init());
             act.fill(pool, rows, |r, out| {
@@ -330,7 +342,7 @@ impl CpuVision {
         let out = SharedMut::new(attn);
         let isa = pool.isa();
         pool.run(parts, |part| {
-            let (mut q, mut scores, mut tmp) = (Vec::new(), AttendScratch::default(), Vec::new());
+            let (mut scores, mut tmp) = (AttendScratch::default(), Vec::new());
             let (mut kt, mut vv) = (
                 PackedMatrix::empty_in(self.precision),
                 PackedMatrix::empty_in(self.precision),
@@ -339,10 +351,6 @@ impl CpuVision {
                 let (img, head) = (task / heads, task % heads);
                 let (n, start) = (counts[img], starts[img]);
                 let base = &qkv[start * ld..(start + n) * ld];
-                q.clear();
-                for row in base.chunks_exact(ld) {
-                    q.extend_from_slice(&row[head * hd..(head + 1) * hd]);
-                }
                 kt.pack_transposed(isa, &base[vh + head * hd..], ld, n, hd);
                 vv.pack_rows(isa, &base[2 * vh + head * hd..], ld, n, hd);
                 tmp.resize(n * hd, 0.0);
@@ -357,7 +365,8 @@ impl CpuVision {
                     let rows = QUERY_BLOCK.min(n - r0);
                     attend(
                         isa,
-                        &q[r0 * hd..(r0 + rows) * hd],
+                        &base[r0 * ld + head * hd..],
+                        ld,
                         rows,
                         hd,
                         &[segment],

@@ -240,6 +240,7 @@ impl CpuText {
                         attend(
                             isa,
                             &q,
+                            hd,
                             main,
                             hd,
                             &[main_seg],
@@ -255,6 +256,7 @@ impl CpuText {
                     attend(
                         isa,
                         &q[main * hd..],
+                        hd,
                         1,
                         hd,
                         segs,
