@@ -16,7 +16,7 @@ use super::vlm_weights::{NormWeights, VlmWeights};
 use super::weights::LinearWeights;
 use crate::EngineError;
 use crate::kernels::attention::{AttendScratch, KvSegment, QueryPositions, attend};
-use crate::kernels::gemm::{ActivationRows, gemm_par};
+use crate::kernels::gemm::{ActivationRows, gemm_par, gemm_par_pairs, round_pairs};
 use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 
 /// A view of one prepared camera image: `channels x side x side` floats, row-major, in `[-1, 1]`
@@ -231,7 +231,12 @@ impl CpuVision {
         let inter = v.intermediate_size;
         let mut h = vec![0.0f32; rows * vh];
         let mut qkv = vec![0.0f32; rows * 3 * vh];
-        let mut attn = vec![0.0f32; rows * vh];
+        // In bf16 (with whole pairs per head) each head's output rows are rounded straight into
+        // the out projection's `A`.
+        let hd = vh / v.num_attention_heads;
+        let pairs_out = self.precision == Precision::Bf16 && hd.is_multiple_of(2);
+        let mut attn = vec![0.0f32; if pairs_out { 0 } else { rows * vh }];
+        let mut attn_pairs = vec![0u32; if pairs_out { rows * vh / 2 } else { 0 }];
         let mut mlp = vec![0.0f32; rows * inter];
         // The layer norms and the GELU make the `A` of the GEMM they feed row by row (in bf16
         // rounded as they go, see `ActivationRows`).
@@ -259,17 +264,24 @@ impl CpuVision {
         for layer in &self.layers {
             norm(&mut x, &layer.norm1, layer.out.bias.as_deref(), &mut normed);
             normed.gemm_par(pool, rows, &layer.qkv.w, &mut qkv, 3 * vh, layer.qkv.init());
-            self.attention(pool, &qkv, &counts, &starts, &mut attn);
-            gemm_par(
-                pool,
-                &attn,
-                vh,
-                rows,
-                &layer.out.w,
-                &mut x,
-                vh,
-                Init::Accumulate,
-            );
+            if attn_pairs.is_empty() {
+                self.attention(pool, &qkv, &counts, &starts, AttentionOut::F32(&mut attn));
+                gemm_par(
+                    pool,
+                    &attn,
+                    vh,
+                    rows,
+                    &layer.out.w,
+                    &mut x,
+                    vh,
+                    Init::Accumulate,
+                );
+            } else {
+                let out = AttentionOut::Pairs(&mut attn_pairs);
+                self.attention(pool, &qkv, &counts, &starts, out);
+                let (w, acc) = (&layer.out.w, Init::Accumulate);
+                gemm_par_pairs(pool, &attn_pairs, vh / 2, rows, w, &mut x, vh, acc);
+            }
             norm(&mut x, &layer.norm2, layer.fc2.bias.as_deref(), &mut normed);
             normed.gemm_par(pool, rows, &layer.fc1.w, &mut mlp, inter, layer.fc1.init());
             act.fill(pool, rows, |r, out| {
@@ -330,7 +342,7 @@ impl CpuVision {
         qkv: &[f32],
         counts: &[usize],
         starts: &[usize],
-        attn: &mut [f32],
+        attn: AttentionOut<'_>,
     ) {
         let v = &self.config.vision_config;
         let (vh, heads) = (v.hidden_size, v.num_attention_heads);
@@ -339,7 +351,10 @@ impl CpuVision {
         let ld = 3 * vh;
         let tasks = counts.len() * heads;
         let parts = pool.parts_per_unit(tasks);
-        let out = SharedMut::new(attn);
+        let out = match attn {
+            AttentionOut::F32(a) => Ok(SharedMut::new(a)),
+            AttentionOut::Pairs(p) => Err(SharedMut::new(p)),
+        };
         let isa = pool.isa();
         pool.run(parts, |part| {
             let (mut scores, mut tmp) = (AttendScratch::default(), Vec::new());
@@ -380,11 +395,35 @@ impl CpuVision {
                         hd,
                     );
                 }
-                // SAFETY: this image's rows of this head's columns are written by this task only.
-                unsafe { out.write_rows(&tmp, hd, vh, start, head * hd) };
+                match out {
+                    // SAFETY: this image's rows of this head's columns are written by this task
+                    // only.
+                    Ok(out) => unsafe { out.write_rows(&tmp, hd, vh, start, head * hd) },
+                    Err(pairs) => {
+                        let (kp, ldp) = (hd / 2, vh / 2);
+                        for (t, row) in tmp.chunks_exact(hd).enumerate() {
+                            // SAFETY: as above, this head's `hd / 2` pairs of the row (`hd` is
+                            // even, so they are whole pairs of this head's columns only).
+                            let dst = unsafe {
+                                std::slice::from_raw_parts_mut(
+                                    pairs.ptr().add((start + t) * ldp + head * kp),
+                                    kp,
+                                )
+                            };
+                            round_pairs(isa, row, dst);
+                        }
+                    }
+                }
             }
         });
     }
+}
+
+/// Where the vision attention writes its output: f32 rows, or bf16 pair rows (the out
+/// projection's `A`, rounded as each head's rows are made).
+enum AttentionOut<'a> {
+    F32(&'a mut [f32]),
+    Pairs(&'a mut [u32]),
 }
 
 /// Images run through the tower together while their patches add up to at most this many
