@@ -168,6 +168,40 @@ mod tests {
     /// With bf16 values the probabilities are rounded as they are normalised; the result has
     /// the bits of the plain sequence (softmax in f32, then the GEMM rounding them), over an
     /// odd-length segment followed by a causal one.
+    /// Keys and values of a non-causal prefix segment (`lp` keys) and of a causal segment
+    /// (`nq` keys), packed in `precision`: `[(keys_t, values); 2]`.
+    fn packed_segments(
+        precision: Precision,
+        (kp, vp): (&[f32], &[f32]),
+        (ks, vs): (&[f32], &[f32]),
+        d: usize,
+    ) -> [(PackedMatrix, PackedMatrix); 2] {
+        let isa = Isa::detect();
+        let pack = |k: &[f32], v: &[f32]| {
+            let len = k.len() / d;
+            let (mut kt, mut vv) = (
+                PackedMatrix::empty_in(precision),
+                PackedMatrix::empty_in(precision),
+            );
+            kt.pack_transposed(isa, k, d, len, d);
+            vv.pack_rows(isa, v, d, len, d);
+            (kt, vv)
+        };
+        [pack(kp, vp), pack(ks, vs)]
+    }
+
+    /// [`packed_segments`] as attention segments, the second one causal.
+    fn segments(packed: &[(PackedMatrix, PackedMatrix); 2]) -> [KvSegment<'_>; 2] {
+        [false, true].map(|causal| {
+            let (keys_t, values) = &packed[usize::from(causal)];
+            KvSegment {
+                keys_t,
+                values,
+                causal,
+            }
+        })
+    }
+
     #[test]
     fn bf16_probabilities_rounded_in_the_softmax_change_no_bit() {
         let (d, lp, nq) = (16, 11, 5);
@@ -179,27 +213,9 @@ mod tests {
             data(nq * d, 14),
             data(nq * d, 15),
         );
-        let packed = |f: &dyn Fn(&mut PackedMatrix)| {
-            let mut m = PackedMatrix::empty_in(Precision::Bf16);
-            f(&mut m);
-            m
-        };
-        let pk = packed(&|m| m.pack_transposed(isa, &kp, d, lp, d));
-        let pv = packed(&|m| m.pack_rows(isa, &vp, d, lp, d));
-        let sk = packed(&|m| m.pack_transposed(isa, &ks, d, nq, d));
-        let sv = packed(&|m| m.pack_rows(isa, &vs, d, nq, d));
-        let segs = [
-            KvSegment {
-                keys_t: &pk,
-                values: &pv,
-                causal: false,
-            },
-            KvSegment {
-                keys_t: &sk,
-                values: &sv,
-                causal: true,
-            },
-        ];
+        let packed = packed_segments(Precision::Bf16, (&kp, &vp), (&ks, &vs), d);
+        let segs = segments(&packed);
+        let [(pk, pv), (sk, sv)] = &packed;
         let pos = QueryPositions {
             offset: 0,
             period: nq,
@@ -222,25 +238,16 @@ mod tests {
 
         let total = lp + nq;
         let mut p = vec![0.0; nq * total];
-        gemm(isa, &q, d, nq, &pk, &mut p, total, Init::Zero);
-        gemm(isa, &q, d, nq, &sk, &mut p[lp..], total, Init::Zero);
+        gemm(isa, &q, d, nq, pk, &mut p, total, Init::Zero);
+        gemm(isa, &q, d, nq, sk, &mut p[lp..], total, Init::Zero);
         for i in 0..nq {
             let (seen, hidden) = p[i * total..(i + 1) * total].split_at_mut(lp + i + 1);
             vecmath::softmax_scaled(isa, seen, 0.25);
             hidden.fill(0.0);
         }
         let mut want = vec![0.0; nq * d];
-        gemm(isa, &p, total, nq, &pv, &mut want, d, Init::Zero);
-        gemm(
-            isa,
-            &p[lp..],
-            total,
-            nq,
-            &sv,
-            &mut want,
-            d,
-            Init::Accumulate,
-        );
+        gemm(isa, &p, total, nq, pv, &mut want, d, Init::Zero);
+        gemm(isa, &p[lp..], total, nq, sv, &mut want, d, Init::Accumulate);
         let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&got), bits(&want));
     }
@@ -253,26 +260,8 @@ mod tests {
         let vp = data(lp * d, 3);
         let ks = data(nq * d, 4);
         let vs = data(nq * d, 5);
-        let mut pk = PackedMatrix::default();
-        pk.pack_transposed(Isa::detect(), &kp, d, lp, d);
-        let mut pv = PackedMatrix::default();
-        pv.pack_rows(Isa::detect(), &vp, d, lp, d);
-        let mut sk = PackedMatrix::default();
-        sk.pack_transposed(Isa::detect(), &ks, d, nq, d);
-        let mut sv = PackedMatrix::default();
-        sv.pack_rows(Isa::detect(), &vs, d, nq, d);
-        let segs = [
-            KvSegment {
-                keys_t: &pk,
-                values: &pv,
-                causal: false,
-            },
-            KvSegment {
-                keys_t: &sk,
-                values: &sv,
-                causal: true,
-            },
-        ];
+        let packed = packed_segments(Precision::F32, (&kp, &vp), (&ks, &vs), d);
+        let segs = segments(&packed);
         let mut out = vec![0.0; nq * d];
         let pos = QueryPositions {
             offset: 0,

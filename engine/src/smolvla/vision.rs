@@ -221,9 +221,7 @@ impl CpuVision {
             let ids = position_ids(g, per_side);
             for (t, &id) in ids.iter().enumerate() {
                 let row = &mut x[(start + t) * vh..][..vh];
-                for (a, &b) in row.iter_mut().zip(&self.positions[id * vh..][..vh]) {
-                    *a += b;
-                }
+                vecmath::add_assign(pool.isa(), row, &self.positions[id * vh..][..vh]);
             }
         }
 
@@ -264,7 +262,7 @@ impl CpuVision {
         for layer in &self.layers {
             norm(&mut x, &layer.norm1, layer.out.bias.as_deref(), &mut normed);
             normed.gemm_par(pool, rows, &layer.qkv.w, &mut qkv, 3 * vh, layer.qkv.init());
-            if attn_pairs.is_empty() {
+            if !pairs_out {
                 self.attention(pool, &qkv, &counts, &starts, AttentionOut::F32(&mut attn));
                 gemm_par(
                     pool,
@@ -351,10 +349,7 @@ impl CpuVision {
         let ld = 3 * vh;
         let tasks = counts.len() * heads;
         let parts = pool.parts_per_unit(tasks);
-        let out = match attn {
-            AttentionOut::F32(a) => Ok(SharedMut::new(a)),
-            AttentionOut::Pairs(p) => Err(SharedMut::new(p)),
-        };
+        let out = attn.shared();
         let isa = pool.isa();
         pool.run(parts, |part| {
             let (mut scores, mut tmp) = (AttendScratch::default(), Vec::new());
@@ -398,8 +393,10 @@ impl CpuVision {
                 match out {
                     // SAFETY: this image's rows of this head's columns are written by this task
                     // only.
-                    Ok(out) => unsafe { out.write_rows(&tmp, hd, vh, start, head * hd) },
-                    Err(pairs) => {
+                    SharedOut::F32(out) => unsafe {
+                        out.write_rows(&tmp, hd, vh, start, head * hd)
+                    },
+                    SharedOut::Pairs(pairs) => {
                         let (kp, ldp) = (hd / 2, vh / 2);
                         for (t, row) in tmp.chunks_exact(hd).enumerate() {
                             // SAFETY: as above, this head's `hd / 2` pairs of the row (`hd` is
@@ -424,6 +421,23 @@ impl CpuVision {
 enum AttentionOut<'a> {
     F32(&'a mut [f32]),
     Pairs(&'a mut [u32]),
+}
+
+impl AttentionOut<'_> {
+    /// The output as a pointer the attention's parts share (each writes its own heads' columns).
+    fn shared(self) -> SharedOut {
+        match self {
+            AttentionOut::F32(rows) => SharedOut::F32(SharedMut::new(rows)),
+            AttentionOut::Pairs(rows) => SharedOut::Pairs(SharedMut::new(rows)),
+        }
+    }
+}
+
+/// [`AttentionOut`] shared by the attention's parts.
+#[derive(Clone, Copy)]
+enum SharedOut {
+    F32(SharedMut<f32>),
+    Pairs(SharedMut<u32>),
 }
 
 /// Images run through the tower together while their patches add up to at most this many
