@@ -7,7 +7,7 @@
 //! are simply absent from the segments: LeRobot's masked scores become exactly 0 after its
 //! softmax, so leaving them out changes no sum.
 
-use super::gemm::{Init, PackedMatrix, gemm, gemm_pairs, round_pairs_scaled};
+use super::gemm::{Init, PackedMatrix, gemm, gemm_pairs, round_pairs};
 use super::{Isa, Precision, vecmath};
 
 /// Keys and values of one attention segment.
@@ -42,18 +42,22 @@ pub struct QueryPositions {
 pub struct AttendScratch {
     /// The scores, then the probabilities (f32), `nq x total`.
     scores: Vec<f32>,
-    /// The probabilities rounded to bf16 pairs, per segment, for bf16 values.
+    /// The softmax numerators rounded to bf16 pairs, per segment, for bf16 values.
     pairs: Vec<u32>,
+    /// `1 / sum` of each query row's numerators, for bf16 values.
+    factors: Vec<f32>,
 }
 
 /// `out[i] = softmax(scale * q[i] · Kᵀ) V` for the `nq` query rows of `q` (`head_dim` values
 /// each, row stride `ldq`: a head's columns read in place from `[q | k | v]` rows), over the
 /// concatenation of `segments`. `out` has row stride `ldo`; `scale > 0`.
 ///
-/// With bf16 values, each row's probabilities are rounded into bf16 pairs by the pass that
-/// normalises them, while the row is in L1 (for the `P · V` GEMM, which would otherwise read
-/// the f32 probabilities back from L2 to round them: ~4% of the bf16 vision tower); the
-/// rounded values, and so the results, are the same.
+/// With bf16 values, the `P · V` GEMM takes the softmax *numerators* `exp(s - max)` rounded
+/// to bf16 (made and rounded a chunk at a time in L1, never stored as f32), and each output
+/// row is then multiplied by `1 / sum` of its unrounded numerators: `(Σ bf16(e_j) v_j) / Σ e_j`.
+/// Rounding `e_j` or `e_j / Σ e` to bf16 has the same relative error (2^-9); the numerators
+/// just skip a pass that wrote the f32 probabilities and one that read them back to normalise
+/// and round them (~3% of the bf16 vision tower).
 #[allow(clippy::too_many_arguments)]
 pub fn attend(
     isa: Isa,
@@ -94,7 +98,7 @@ pub fn attend(
         && segments
             .iter()
             .all(|seg| seg.values.precision() == Precision::Bf16);
-    // Segment `s`'s rounded probabilities: `nq` rows of `ceil(len / 2)` pairs from `offset`.
+    // Segment `s`'s rounded numerators: `nq` rows of `ceil(len / 2)` pairs from `offset`.
     let pair_rows = |s: usize| {
         let offset: usize = segments[..s].iter().map(|g| nq * g.len().div_ceil(2)).sum();
         (offset, segments[s].len().div_ceil(2))
@@ -102,6 +106,9 @@ pub fn attend(
     if rounded {
         let (end, last) = pair_rows(segments.len() - 1);
         scratch.pairs.resize(end + nq * last, 0);
+    }
+    if rounded {
+        scratch.factors.resize(nq, 0.0);
     }
     for i in 0..nq {
         let row = &mut scores[i * total..(i + 1) * total];
@@ -112,21 +119,36 @@ pub fn attend(
             (positions.offset + i) % positions.period.max(1),
             total,
         );
-        let (seen, hidden) = row.split_at_mut(visible);
         if !rounded {
+            let (seen, hidden) = row.split_at_mut(visible);
             vecmath::softmax_scaled(isa, seen, scale);
             hidden.fill(0.0);
             continue;
         }
-        let factor = vecmath::softmax_numerators(isa, seen, scale);
-        hidden.fill(0.0);
+        // bf16 values: the numerators are made a chunk at a time into an L1 buffer and rounded
+        // from there into the pairs (never stored back as f32), and `P · V` is scaled by
+        // `1 / sum` after the GEMM, on `head_dim` values per row instead of `total`.
+        let max = vecmath::max_scaled(isa, &row[..visible], scale);
+        let mut lanes = [0.0f32; 32];
+        let mut numerators = [0.0f32; EXP_CHUNK];
         let mut col = 0;
         for (s, seg) in segments.iter().enumerate() {
             let (offset, ldp) = pair_rows(s);
             let dst = &mut scratch.pairs[offset + i * ldp..offset + (i + 1) * ldp];
-            round_pairs_scaled(isa, &row[col..col + seg.len()], factor, dst);
+            let shown = visible.saturating_sub(col).min(seg.len());
+            let mut done = 0;
+            for chunk in row[col..col + shown].chunks(EXP_CHUNK) {
+                let e = &mut numerators[..chunk.len()];
+                vecmath::exp_sum_into(isa, chunk, scale, max, e, &mut lanes);
+                let pairs = chunk.len().div_ceil(2);
+                round_pairs(isa, e, &mut dst[done..done + pairs]);
+                done += pairs;
+            }
+            // Keys this query does not see (a causal segment's tail) weigh exactly zero.
+            dst[done..].fill(0);
             col += seg.len();
         }
+        scratch.factors[i] = 1.0 / vecmath::lanes_sum(&lanes);
     }
     let mut col = 0;
     for (s, seg) in segments.iter().enumerate() {
@@ -140,7 +162,16 @@ pub fn attend(
         }
         col += seg.len();
     }
+    if rounded {
+        for (i, &factor) in scratch.factors.iter().enumerate() {
+            vecmath::scale_assign(isa, &mut out[i * ldo..i * ldo + head_dim], factor);
+        }
+    }
 }
+
+/// Scores per chunk of the bf16 path's numerators (1 KiB: stays in L1 between being made and
+/// being rounded). A multiple of 32, so the chunks share [`vecmath::exp_sum_into`]'s lanes.
+const EXP_CHUNK: usize = 256;
 
 fn visible_len(segments: &[KvSegment<'_>], query: usize, total: usize) -> usize {
     match segments.last() {
@@ -165,9 +196,6 @@ mod tests {
             .collect()
     }
 
-    /// With bf16 values the probabilities are rounded as they are normalised; the result has
-    /// the bits of the plain sequence (softmax in f32, then the GEMM rounding them), over an
-    /// odd-length segment followed by a causal one.
     /// Keys and values of a non-causal prefix segment (`lp` keys) and of a causal segment
     /// (`nq` keys), packed in `precision`: `[(keys_t, values); 2]`.
     fn packed_segments(
@@ -202,9 +230,13 @@ mod tests {
         })
     }
 
+    /// With bf16 values the numerators are made and rounded a chunk at a time and `P · V` is
+    /// normalised afterwards; the result has the bits of the plain sequence (each segment's
+    /// numerators in one pass, stored as f32, the GEMM rounding them, then each row times
+    /// `1 / sum`), over an odd-length segment longer than a chunk followed by a causal one.
     #[test]
-    fn bf16_probabilities_rounded_in_the_softmax_change_no_bit() {
-        let (d, lp, nq) = (16, 11, 5);
+    fn bf16_numerators_rounded_in_chunks_equal_the_pass_by_pass_definition() {
+        let (d, lp, nq) = (16, 2 * EXP_CHUNK + 37, 5);
         let isa = Isa::detect();
         let q = data(nq * d, 11);
         let (kp, vp, ks, vs) = (
@@ -237,19 +269,54 @@ mod tests {
         );
 
         let total = lp + nq;
-        let mut p = vec![0.0; nq * total];
-        gemm(isa, &q, d, nq, pk, &mut p, total, Init::Zero);
-        gemm(isa, &q, d, nq, sk, &mut p[lp..], total, Init::Zero);
+        let mut s = vec![0.0; nq * total];
+        gemm(isa, &q, d, nq, pk, &mut s, total, Init::Zero);
+        gemm(isa, &q, d, nq, sk, &mut s[lp..], total, Init::Zero);
+        let mut e = vec![0.0; nq * total];
+        let mut factors = vec![0.0; nq];
         for i in 0..nq {
-            let (seen, hidden) = p[i * total..(i + 1) * total].split_at_mut(lp + i + 1);
-            vecmath::softmax_scaled(isa, seen, 0.25);
-            hidden.fill(0.0);
+            let (row, num) = (&s[i * total..(i + 1) * total], &mut e[i * total..]);
+            let seen = lp + i + 1;
+            let max = vecmath::max_scaled(isa, &row[..seen], 0.25);
+            let mut lanes = [0.0f32; 32];
+            for range in [0..lp, lp..seen] {
+                let (src, dst) = (&row[range.clone()], &mut num[range]);
+                vecmath::exp_sum_into(isa, src, 0.25, max, dst, &mut lanes);
+            }
+            factors[i] = 1.0 / vecmath::lanes_sum(&lanes);
         }
         let mut want = vec![0.0; nq * d];
-        gemm(isa, &p, total, nq, pv, &mut want, d, Init::Zero);
-        gemm(isa, &p[lp..], total, nq, sv, &mut want, d, Init::Accumulate);
+        gemm(isa, &e, total, nq, pv, &mut want, d, Init::Zero);
+        gemm(isa, &e[lp..], total, nq, sv, &mut want, d, Init::Accumulate);
+        for (row, f) in want.chunks_exact_mut(d).zip(&factors) {
+            row.iter_mut().for_each(|v| *v *= f);
+        }
         let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&got), bits(&want));
+        // And it is the softmax: within bf16 rounding of the f32 result.
+        let packed32 = packed_segments(Precision::F32, (&kp, &vp), (&ks, &vs), d);
+        let mut exact = vec![0.0; nq * d];
+        let mut scratch = AttendScratch::default();
+        let segs32 = segments(&packed32);
+        attend(
+            isa,
+            &q,
+            d,
+            nq,
+            d,
+            &segs32,
+            pos,
+            0.25,
+            &mut scratch,
+            &mut exact,
+            d,
+        );
+        let worst = got
+            .iter()
+            .zip(&exact)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f32::max);
+        assert!(worst < 2e-2, "bf16 attention off by {worst}");
     }
 
     #[test]

@@ -71,6 +71,40 @@ pub fn exp_approx(x: f32) -> f32 {
     y * f32::from_bits(n.wrapping_add(127) << 23)
 }
 
+/// `2^t` to within 3e-6 relative, for numerators that are rounded to bf16 next (whose own
+/// rounding is 2^-9, ~2e-3): `round(t)` goes to the exponent bits and `2^f`, `f` in
+/// `[-0.5, 0.5]`, to a degree-4 polynomial (minimax-fitted; max relative error 2.7e-6 in f32).
+/// About 12 operations where [`exp_approx`] takes 19, which made the softmax's exponentials
+/// the largest cost of the bf16 attention after its GEMMs. `t` is clamped below at -126 (so
+/// `2^round(t)` is a normal number); a NaN stays NaN.
+#[inline(always)]
+fn exp2_bf16_grade(t: f32) -> f32 {
+    let t = if t < -126.0 { -126.0 } else { t };
+    let n = t.round_ties_even();
+    let f = t - n;
+    let p = 9.570_069e-3f32
+        .mul_add(f, 5.591_780_7e-2)
+        .mul_add(f, 2.402_474_4e-1)
+        .mul_add(f, 6.931_218_5e-1)
+        .mul_add(f, 9.999_993e-1);
+    // 2^n from the bits of `n + 1.5 * 2^23`, as in `exp_approx`.
+    let bits = (n + 12_582_912.0).to_bits().wrapping_sub(0x4B40_0000);
+    p * f32::from_bits(bits.wrapping_add(127) << 23)
+}
+
+/// [`gelu_tanh_one`] to within about 1e-5 relative, for outputs rounded to bf16 next: the
+/// same function written as `u σ(2y) = u / (1 + 2^(-2y log2(e)))` with [`exp2_bf16_grade`]
+/// (one exponential and one division, no `tanh` assembly: about 20 operations instead of 30).
+/// The exponent is clamped above at 127, where `u / (1 + 2^127)` is already 0 to f32 precision.
+#[inline(always)]
+fn gelu_tanh_bf16_grade_one(u: f32) -> f32 {
+    const SQRT_2_OVER_PI: f32 = 0.797_884_6;
+    let y = SQRT_2_OVER_PI * (0.044_715 * u * u).mul_add(u, u);
+    let t = -2.0 * LOG2E * y;
+    let t = if t > 127.0 { 127.0 } else { t };
+    u / (1.0 + exp2_bf16_grade(t))
+}
+
 /// Sum with 8 independent partial sums (lane `i` takes elements `i mod 8`), so that the loop
 /// vectorises; float addition is not associative, so LLVM will not reorder a plain running sum.
 #[inline(always)]
@@ -167,11 +201,52 @@ multiversion! {
 }
 
 multiversion! {
-    /// [`softmax_scaled`] without its last pass: the numerators in place, and the factor
-    /// (`1 / sum`) that [`softmax_scaled`] would multiply them by. A caller that rounds the
-    /// probabilities for a bf16 GEMM multiplies and rounds in one pass.
-    pub fn softmax_numerators(row: &mut [f32], scale: f32) -> f32 {
-        1.0 / numerators(row, scale)
+    /// The largest `row[i] * scale` (`scale > 0`, so `max(row) * scale`): the shift of a softmax
+    /// of `row * scale`.
+    pub fn max_scaled(row: &[f32], scale: f32) -> f32 {
+        debug_assert!(scale > 0.0, "softmax scale must be positive");
+        max_lanes(row) * scale
+    }
+}
+
+multiversion! {
+    /// Softmax numerators for bf16 rounding: `out[i] = exp(src[i] * scale - max)` to within
+    /// 3e-6 relative ([`exp2_bf16_grade`] of `src[i] * scale log2(e) - max log2(e)`), each also
+    /// added into `lanes[i mod 32]` (summed like [`softmax_scaled`]'s). The bf16 attention
+    /// makes them a chunk at a time into an L1 buffer; a caller that cuts a row into chunks
+    /// whose lengths are multiples of 32 (but the last) gets the same values and the same lane
+    /// sums as one call over the whole row.
+    pub fn exp_sum_into(src: &[f32], scale: f32, max: f32, out: &mut [f32], lanes: &mut [f32; 32]) {
+        debug_assert_eq!(src.len(), out.len());
+        let (a, b) = (scale * LOG2E, -(max * LOG2E));
+        let mut chunks = src.chunks_exact(32);
+        let mut outs = out.chunks_exact_mut(32);
+        for (c, o) in (&mut chunks).zip(&mut outs) {
+            for i in 0..32 {
+                let e = exp2_bf16_grade(c[i].mul_add(a, b));
+                o[i] = e;
+                lanes[i] += e;
+            }
+        }
+        for (i, (&v, o)) in chunks.remainder().iter().zip(outs.into_remainder()).enumerate() {
+            let e = exp2_bf16_grade(v.mul_add(a, b));
+            *o = e;
+            lanes[i] += e;
+        }
+    }
+}
+
+/// The sum of the 32 partial sums of [`exp_sum_into`], in [`softmax_scaled`]'s order.
+pub fn lanes_sum(lanes: &[f32; 32]) -> f32 {
+    sum_32_lanes(lanes)
+}
+
+multiversion! {
+    /// `x[i] *= factor`.
+    pub fn scale_assign(x: &mut [f32], factor: f32) {
+        for v in x.iter_mut() {
+            *v *= factor;
+        }
     }
 }
 
@@ -180,15 +255,6 @@ multiversion! {
     pub fn add_assign(x: &mut [f32], y: &[f32]) {
         for (a, &b) in x.iter_mut().zip(y) {
             *a += b;
-        }
-    }
-}
-
-multiversion! {
-    /// `out[i] = x[i] * factor`.
-    pub fn scale_into(x: &[f32], factor: f32, out: &mut [f32]) {
-        for (o, &v) in out.iter_mut().zip(x) {
-            *o = v * factor;
         }
     }
 }
@@ -290,6 +356,16 @@ multiversion! {
 }
 
 multiversion! {
+    /// `out[i] = gelu_tanh(x[i])` to within about 1e-5 relative, for a GEMM that rounds it to
+    /// bf16 (2^-9 relative) next; cheaper than [`gelu_tanh`].
+    pub fn gelu_tanh_bf16_grade(x: &[f32], out: &mut [f32]) {
+        for (o, &v) in out.iter_mut().zip(x) {
+            *o = gelu_tanh_bf16_grade_one(v);
+        }
+    }
+}
+
+multiversion! {
     /// `out[i] = gelu_tanh(x[i])`, as [`gelu_tanh_inplace`].
     pub fn gelu_tanh(x: &[f32], out: &mut [f32]) {
         for (o, &v) in out.iter_mut().zip(x) {
@@ -367,14 +443,42 @@ mod tests {
                     let mut got = data.clone();
                     softmax_scaled(isa, &mut got, scale);
                     assert_eq!(bits(&got), bits(&want), "{isa:?} len {len} scale {scale}");
-                    let mut num = data.clone();
-                    let factor = softmax_numerators(isa, &mut num, scale);
-                    let mut scaled = vec![0.0; len];
-                    scale_into(isa, &num, factor, &mut scaled);
-                    assert_eq!(bits(&scaled), bits(&want), "{isa:?} len {len} numerators");
+                    // bf16-grade numerators: made in chunks of 64 or in one call, the same bits
+                    // and sums; within 3e-6 of the exact probabilities once normalised.
+                    let max = max_scaled(isa, &data, scale);
+                    let (mut num, mut lanes) = (vec![0.0; len], [0.0f32; 32]);
+                    for (src, dst) in data.chunks(64).zip(num.chunks_mut(64)) {
+                        exp_sum_into(isa, src, scale, max, dst, &mut lanes);
+                    }
+                    let (mut whole, mut whole_lanes) = (vec![0.0; len], [0.0f32; 32]);
+                    exp_sum_into(isa, &data, scale, max, &mut whole, &mut whole_lanes);
+                    assert_eq!(bits(&num), bits(&whole), "{isa:?} len {len} chunks");
+                    assert_eq!(bits(&lanes), bits(&whole_lanes), "{isa:?} len {len} lanes");
+                    if len > 0 {
+                        scale_assign(isa, &mut num, 1.0 / lanes_sum(&lanes));
+                        let exact = exact_softmax(&data, scale);
+                        for (i, (&got, &p)) in num.iter().zip(&exact).enumerate() {
+                            // 2.7e-6 from the polynomial, the rest from rounding `t` (an
+                            // ulp of `max * scale * log2(e)`, ~1e-5 at this data's range).
+                            let tol = 2e-5 * p + 1e-30;
+                            assert!((f64::from(got) - p).abs() <= tol, "{isa:?} len {len} [{i}]");
+                        }
+                    }
                 }
             }
         }
+    }
+
+    /// `softmax(row * scale)` in f64.
+    fn exact_softmax(row: &[f32], scale: f32) -> Vec<f64> {
+        let s: Vec<f64> = row
+            .iter()
+            .map(|&v| f64::from(v) * f64::from(scale))
+            .collect();
+        let max = s.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let e: Vec<f64> = s.iter().map(|v| (v - max).exp()).collect();
+        let sum: f64 = e.iter().sum();
+        e.iter().map(|v| v / sum).collect()
     }
 
     fn bits(v: &[f32]) -> Vec<u32> {
@@ -483,16 +587,32 @@ mod tests {
             let mut g: Vec<f32> = (-80..80).map(|i| i as f32 / 8.0).collect();
             let src = g.clone();
             gelu_tanh_inplace(isa, &mut g);
-            for (o, &v) in g.iter().zip(&src) {
-                let v = f64::from(v);
-                let want = 0.5
-                    * v
+            let exact = |v: f64| {
+                0.5 * v
                     * (1.0
-                        + ((2.0 / std::f64::consts::PI).sqrt() * (v + 0.044715 * v * v * v))
-                            .tanh());
+                        + ((2.0 / std::f64::consts::PI).sqrt() * (v + 0.044715 * v * v * v)).tanh())
+            };
+            for (o, &v) in g.iter().zip(&src) {
+                let want = exact(f64::from(v));
                 assert!(
                     (f64::from(*o) - want).abs() < 2e-6 * (1.0 + want.abs()),
                     "{v}: {o} vs {want}"
+                );
+            }
+            // The bf16-grade GELU: within 1e-5 relative (plus 1e-7 absolute near 0), from far
+            // negative (an exponent past 2^127) to far positive.
+            let wide: Vec<f32> = src
+                .iter()
+                .copied()
+                .chain([-1e4, -100.0, 100.0, 1e4])
+                .collect();
+            let mut cheap = vec![0.0f32; wide.len()];
+            gelu_tanh_bf16_grade(isa, &wide, &mut cheap);
+            for (o, &v) in cheap.iter().zip(&wide) {
+                let want = exact(f64::from(v));
+                assert!(
+                    (f64::from(*o) - want).abs() <= 1e-5 * want.abs() + 1e-7,
+                    "bf16 grade {v}: {o} vs {want}"
                 );
             }
         }
