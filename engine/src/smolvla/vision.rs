@@ -18,6 +18,7 @@ use crate::EngineError;
 use crate::kernels::attention::{AttendScratch, KvSegment, QueryPositions, attend};
 use crate::kernels::gemm::{ActivationRows, gemm_par, gemm_par_pairs, round_pairs};
 use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
+use std::sync::Mutex;
 
 /// A view of one prepared camera image: `channels x side x side` floats, row-major, in `[-1, 1]`
 /// (after LeRobot's `resize_with_pad` and `x * 2 - 1`).
@@ -60,6 +61,49 @@ pub(crate) struct CpuVision {
     /// The precision of the weight GEMMs, also used for attention's `q kᵀ` and `p v` GEMMs
     /// (keys and values packed in it per request).
     precision: Precision,
+    /// The activations of a group, kept between groups and calls (see [`TowerBuffers`]).
+    buffers: Mutex<TowerBuffers>,
+}
+
+/// A group's activations (~41 MB for 1 024 patch rows), reused: allocated afresh for every
+/// group, each buffer was zeroed (`memset`) and, when it came from `mmap`, faulted in a page
+/// at a time, then returned; every value is written before it is read, so reuse changes no
+/// result.
+#[derive(Default)]
+struct TowerBuffers {
+    unfolded: Vec<f32>,
+    x: Vec<f32>,
+    h: Vec<f32>,
+    qkv: Vec<f32>,
+    attn: Vec<f32>,
+    attn_pairs: Vec<u32>,
+    mlp: Vec<f32>,
+    normed: Option<ActivationRows>,
+    act: Option<ActivationRows>,
+    shuffled: Vec<f32>,
+    emb: Vec<f32>,
+}
+
+/// The first `n` values of `v`, grown (with zeros) where it is shorter.
+fn sized<T: Copy + Default>(v: &mut Vec<T>, n: usize) -> &mut [T] {
+    if v.len() < n {
+        v.resize(n, T::default());
+    }
+    &mut v[..n]
+}
+
+/// `rows` activation rows of `width` in `precision`, reusing `slot`'s where it has room.
+fn activation_rows(
+    slot: &mut Option<ActivationRows>,
+    precision: Precision,
+    rows: usize,
+    width: usize,
+) -> &mut ActivationRows {
+    match slot {
+        Some(a) if a.fits(precision, rows, width) => {}
+        _ => *slot = Some(ActivationRows::new(precision, rows, width)),
+    }
+    slot.as_mut().expect("set above")
 }
 
 impl CpuVision {
@@ -98,6 +142,7 @@ impl CpuVision {
             connector: w.connector.into_linear(precision).w,
             config: w.config,
             precision,
+            buffers: Mutex::default(),
         }
     }
 
@@ -151,6 +196,9 @@ impl CpuVision {
             hidden: Vec::with_capacity(images.len()),
             embeddings: Vec::with_capacity(images.len()),
         };
+        // One forward at a time uses the buffers (a poisoned lock only means a panic left them
+        // half-written, and every value is written before it is read).
+        let mut buffers = self.buffers.lock().unwrap_or_else(|e| e.into_inner());
         let mut first = 0;
         while first < images.len() {
             let mut end = first + 1;
@@ -159,7 +207,8 @@ impl CpuVision {
                 rows += grids[end] * grids[end];
                 end += 1;
             }
-            self.forward_group(pool, &images[first..end], &grids[first..end], &mut out);
+            let (group, group_grids) = (&images[first..end], &grids[first..end]);
+            self.forward_group(pool, group, group_grids, &mut buffers, &mut out);
             first = end;
         }
         Ok(out)
@@ -172,6 +221,7 @@ impl CpuVision {
         pool: &Pool,
         images: &[VisionImage<'_>],
         grids: &[usize],
+        buffers: &mut TowerBuffers,
         out: &mut VisionOutput,
     ) {
         let v = &self.config.vision_config;
@@ -189,7 +239,7 @@ impl CpuVision {
 
         // Patch conv: unfold every patch to `[C][p][p]` (the conv weight's order), one GEMM.
         let kdim = c * p * p;
-        let mut unfolded = vec![0.0f32; rows * kdim];
+        let unfolded = sized(&mut buffers.unfolded, rows * kdim);
         for ((im, &g), &start) in images.iter().zip(grids).zip(&starts) {
             for py in 0..g {
                 for px in 0..g {
@@ -203,18 +253,17 @@ impl CpuVision {
                 }
             }
         }
-        let mut x = vec![0.0f32; rows * vh];
+        let x = sized(&mut buffers.x, rows * vh);
         gemm_par(
             pool,
-            &unfolded,
+            unfolded,
             kdim,
             rows,
             &self.patch.w,
-            &mut x,
+            x,
             vh,
             self.patch.init(),
         );
-        drop(unfolded);
         // Position embedding, per transformers' bucketised fractional coordinates.
         let per_side = v.image_size / p;
         for (&g, &start) in grids.iter().zip(&starts) {
@@ -227,19 +276,22 @@ impl CpuVision {
 
         let eps = v.layer_norm_eps as f32;
         let inter = v.intermediate_size;
-        let mut h = vec![0.0f32; rows * vh];
-        let mut qkv = vec![0.0f32; rows * 3 * vh];
+        let h = sized(&mut buffers.h, rows * vh);
+        let qkv = sized(&mut buffers.qkv, rows * 3 * vh);
         // In bf16 (with whole pairs per head) each head's output rows are rounded straight into
         // the out projection's `A`.
         let hd = vh / v.num_attention_heads;
         let pairs_out = self.precision == Precision::Bf16 && hd.is_multiple_of(2);
-        let mut attn = vec![0.0f32; if pairs_out { 0 } else { rows * vh }];
-        let mut attn_pairs = vec![0u32; if pairs_out { rows * vh / 2 } else { 0 }];
-        let mut mlp = vec![0.0f32; rows * inter];
+        let attn = sized(&mut buffers.attn, if pairs_out { 0 } else { rows * vh });
+        let attn_pairs = sized(
+            &mut buffers.attn_pairs,
+            if pairs_out { rows * vh / 2 } else { 0 },
+        );
+        let mlp = sized(&mut buffers.mlp, rows * inter);
         // The layer norms and the GELU make the `A` of the GEMM they feed row by row (in bf16
         // rounded as they go, see `ActivationRows`).
-        let mut normed = ActivationRows::new(self.precision, rows, vh);
-        let mut act = ActivationRows::new(self.precision, rows, inter);
+        let normed = activation_rows(&mut buffers.normed, self.precision, rows, vh);
+        let act = activation_rows(&mut buffers.act, self.precision, rows, inter);
         let isa = pool.isa();
         // Layer norm of every row of `x`; then, while the row is in L1, the bias of the
         // residual GEMM that accumulates into `x` next is added to it (`x += bias + A · B`
@@ -260,41 +312,37 @@ impl CpuVision {
             });
         };
         for layer in &self.layers {
-            norm(&mut x, &layer.norm1, layer.out.bias.as_deref(), &mut normed);
-            normed.gemm_par(pool, rows, &layer.qkv.w, &mut qkv, 3 * vh, layer.qkv.init());
+            norm(x, &layer.norm1, layer.out.bias.as_deref(), normed);
+            normed.gemm_par(pool, rows, &layer.qkv.w, qkv, 3 * vh, layer.qkv.init());
             if !pairs_out {
-                self.attention(pool, &qkv, &counts, &starts, AttentionOut::F32(&mut attn));
-                gemm_par(
-                    pool,
-                    &attn,
-                    vh,
-                    rows,
-                    &layer.out.w,
-                    &mut x,
-                    vh,
-                    Init::Accumulate,
-                );
+                self.attention(pool, qkv, &counts, &starts, AttentionOut::F32(attn));
+                gemm_par(pool, attn, vh, rows, &layer.out.w, x, vh, Init::Accumulate);
             } else {
-                let out = AttentionOut::Pairs(&mut attn_pairs);
-                self.attention(pool, &qkv, &counts, &starts, out);
+                let out = AttentionOut::Pairs(attn_pairs);
+                self.attention(pool, qkv, &counts, &starts, out);
                 let (w, acc) = (&layer.out.w, Init::Accumulate);
-                gemm_par_pairs(pool, &attn_pairs, vh / 2, rows, w, &mut x, vh, acc);
+                gemm_par_pairs(pool, attn_pairs, vh / 2, rows, w, x, vh, acc);
             }
-            norm(&mut x, &layer.norm2, layer.fc2.bias.as_deref(), &mut normed);
-            normed.gemm_par(pool, rows, &layer.fc1.w, &mut mlp, inter, layer.fc1.init());
+            norm(x, &layer.norm2, layer.fc2.bias.as_deref(), normed);
+            normed.gemm_par(pool, rows, &layer.fc1.w, mlp, inter, layer.fc1.init());
             act.fill(pool, rows, |r, out| {
-                vecmath::gelu_tanh(isa, &mlp[r * inter..(r + 1) * inter], out);
+                let row = &mlp[r * inter..(r + 1) * inter];
+                // In bf16 the GEMM rounds these to 2^-9: a GELU good to 1e-5 costs less.
+                match self.precision {
+                    Precision::Bf16 => vecmath::gelu_tanh_bf16_grade(isa, row, out),
+                    Precision::F32 => vecmath::gelu_tanh(isa, row, out),
+                }
             });
-            act.gemm_par(pool, rows, &layer.fc2.w, &mut x, vh, Init::Accumulate);
+            act.gemm_par(pool, rows, &layer.fc2.w, x, vh, Init::Accumulate);
         }
-        layer_norm_par(pool, &x, &self.post, eps, &mut h);
+        layer_norm_par(pool, x, &self.post, eps, h);
 
         // Connector: pixel shuffle, then one GEMM for all images.
         let s = self.config.scale_factor;
         let wide = vh * s * s;
         let tokens: Vec<usize> = grids.iter().map(|g| (g / s) * (g / s)).collect();
         let total: usize = tokens.iter().sum();
-        let mut shuffled = vec![0.0f32; total * wide];
+        let shuffled = sized(&mut buffers.shuffled, total * wide);
         let mut t0 = 0;
         for (&g, &start) in grids.iter().zip(&starts) {
             let n = g / s;
@@ -313,14 +361,14 @@ impl CpuVision {
             t0 += n * n;
         }
         let th = self.connector.n();
-        let mut emb = vec![0.0f32; total * th];
+        let emb = sized(&mut buffers.emb, total * th);
         gemm_par(
             pool,
-            &shuffled,
+            shuffled,
             wide,
             total,
             &self.connector,
-            &mut emb,
+            emb,
             th,
             Init::Zero,
         );
