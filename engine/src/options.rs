@@ -123,7 +123,12 @@ impl Target {
                 pool.threads()
             ),
             Target::Candle(candle_core::Device::Cpu) => "cpu, candle".to_string(),
-            Target::Candle(d) => format!("{d:?}, candle"),
+            // The ordinal, not `Device`'s Debug form, whose id is Candle's internal counter
+            // (a profile from an H200 read `Cuda(CudaDevice(DeviceId(2)))` for `cuda:0`).
+            Target::Candle(d) => match d.location() {
+                candle_core::DeviceLocation::Cuda { gpu_id } => format!("cuda:{gpu_id}, candle"),
+                other => format!("{other:?}, candle"),
+            },
         }
     }
 }
