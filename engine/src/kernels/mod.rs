@@ -383,6 +383,16 @@ impl AlignedBuf {
     }
 }
 
+/// The first `len` values of `buf`, grown (with default values) where it is shorter: reusable
+/// scratch for a caller that writes every value before reading it, which a `clear` and refill
+/// would zero again on every call.
+pub(crate) fn grown<T: Copy + Default>(buf: &mut Vec<T>, len: usize) -> &mut [T] {
+    if buf.len() < len {
+        buf.resize(len, T::default());
+    }
+    &mut buf[..len]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

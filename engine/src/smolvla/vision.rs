@@ -17,7 +17,7 @@ use super::weights::LinearWeights;
 use crate::EngineError;
 use crate::kernels::attention::{AttendScratch, KvSegment, QueryPositions, attend};
 use crate::kernels::gemm::{ActivationRows, gemm_par, gemm_par_pairs, round_pairs};
-use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
+use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, grown, vecmath};
 use std::sync::Mutex;
 
 /// A view of one prepared camera image: `channels x side x side` floats, row-major, in `[-1, 1]`
@@ -82,14 +82,6 @@ struct TowerBuffers {
     act: Option<ActivationRows>,
     shuffled: Vec<f32>,
     emb: Vec<f32>,
-}
-
-/// The first `n` values of `v`, grown (with zeros) where it is shorter.
-fn sized<T: Copy + Default>(v: &mut Vec<T>, n: usize) -> &mut [T] {
-    if v.len() < n {
-        v.resize(n, T::default());
-    }
-    &mut v[..n]
 }
 
 /// `rows` activation rows of `width` in `precision`, reusing `slot`'s where it has room.
@@ -239,7 +231,7 @@ impl CpuVision {
 
         // Patch conv: unfold every patch to `[C][p][p]` (the conv weight's order), one GEMM.
         let kdim = c * p * p;
-        let unfolded = sized(&mut buffers.unfolded, rows * kdim);
+        let unfolded = grown(&mut buffers.unfolded, rows * kdim);
         for ((im, &g), &start) in images.iter().zip(grids).zip(&starts) {
             for py in 0..g {
                 for px in 0..g {
@@ -253,7 +245,7 @@ impl CpuVision {
                 }
             }
         }
-        let x = sized(&mut buffers.x, rows * vh);
+        let x = grown(&mut buffers.x, rows * vh);
         gemm_par(
             pool,
             unfolded,
@@ -276,18 +268,18 @@ impl CpuVision {
 
         let eps = v.layer_norm_eps as f32;
         let inter = v.intermediate_size;
-        let h = sized(&mut buffers.h, rows * vh);
-        let qkv = sized(&mut buffers.qkv, rows * 3 * vh);
+        let h = grown(&mut buffers.h, rows * vh);
+        let qkv = grown(&mut buffers.qkv, rows * 3 * vh);
         // In bf16 (with whole pairs per head) each head's output rows are rounded straight into
         // the out projection's `A`.
         let hd = vh / v.num_attention_heads;
         let pairs_out = self.precision == Precision::Bf16 && hd.is_multiple_of(2);
-        let attn = sized(&mut buffers.attn, if pairs_out { 0 } else { rows * vh });
-        let attn_pairs = sized(
+        let attn = grown(&mut buffers.attn, if pairs_out { 0 } else { rows * vh });
+        let attn_pairs = grown(
             &mut buffers.attn_pairs,
             if pairs_out { rows * vh / 2 } else { 0 },
         );
-        let mlp = sized(&mut buffers.mlp, rows * inter);
+        let mlp = grown(&mut buffers.mlp, rows * inter);
         // The layer norms and the GELU make the `A` of the GEMM they feed row by row (in bf16
         // rounded as they go, see `ActivationRows`).
         let normed = activation_rows(&mut buffers.normed, self.precision, rows, vh);
@@ -342,7 +334,7 @@ impl CpuVision {
         let wide = vh * s * s;
         let tokens: Vec<usize> = grids.iter().map(|g| (g / s) * (g / s)).collect();
         let total: usize = tokens.iter().sum();
-        let shuffled = sized(&mut buffers.shuffled, total * wide);
+        let shuffled = grown(&mut buffers.shuffled, total * wide);
         let mut t0 = 0;
         for (&g, &start) in grids.iter().zip(&starts) {
             let n = g / s;
@@ -361,7 +353,7 @@ impl CpuVision {
             t0 += n * n;
         }
         let th = self.connector.n();
-        let emb = sized(&mut buffers.emb, total * th);
+        let emb = grown(&mut buffers.emb, total * th);
         gemm_par(
             pool,
             shuffled,
