@@ -38,7 +38,7 @@ mkdir -p "$LINK"
 for lib in cublas cublasLt curand nvrtc cudart; do
     ln -sf "$(ls "$CUDA_HOME"/lib/lib$lib.so.* | head -1)" "$LINK/lib$lib.so"
 done
-CUDARC=$(cargo metadata --format-version 1 --locked | python3 -c \
+CUDARC=$(cargo metadata --format-version 1 --locked --all-features | python3 -c \
     'import json,sys; print(next(p["manifest_path"] for p in json.load(sys.stdin)["packages"] if p["name"]=="cudarc").rsplit("/",1)[0])')
 grep -oE "fn (cu[A-Za-z0-9_]+)\(" "$CUDARC/src/driver/sys/mod.rs" | sed -E 's/fn (.*)\(/\1/' | sort -u \
     | awk '{print "void "$1"(void){}"}' > "$LINK/stub.c"
