@@ -40,7 +40,8 @@ pub struct QueryPositions {
 /// Scratch space of [`attend`], grown as needed and reused across calls.
 #[derive(Debug, Default)]
 pub struct AttendScratch {
-    /// The scores, then the probabilities (f32), `nq x total`.
+    /// The scores (f32), `nq x total`; with f32 values the softmax turns them into the
+    /// probabilities in place.
     scores: Vec<f32>,
     /// The softmax numerators rounded to bf16 pairs, per segment, for bf16 values.
     pairs: Vec<u32>,
@@ -106,8 +107,6 @@ pub fn attend(
     if rounded {
         let (end, last) = pair_rows(segments.len() - 1);
         scratch.pairs.resize(end + nq * last, 0);
-    }
-    if rounded {
         scratch.factors.resize(nq, 0.0);
     }
     for i in 0..nq {
@@ -148,7 +147,7 @@ pub fn attend(
             dst[done..].fill(0);
             col += seg.len();
         }
-        scratch.factors[i] = 1.0 / vecmath::lanes_sum(&lanes);
+        scratch.factors[i] = 1.0 / vecmath::sum_32_lanes(&lanes);
     }
     let mut col = 0;
     for (s, seg) in segments.iter().enumerate() {
@@ -283,7 +282,7 @@ mod tests {
                 let (src, dst) = (&row[range.clone()], &mut num[range]);
                 vecmath::exp_sum_into(isa, src, 0.25, max, dst, &mut lanes);
             }
-            factors[i] = 1.0 / vecmath::lanes_sum(&lanes);
+            factors[i] = 1.0 / vecmath::sum_32_lanes(&lanes);
         }
         let mut want = vec![0.0; nq * d];
         gemm(isa, &e, total, nq, pv, &mut want, d, Init::Zero);

@@ -198,7 +198,7 @@ impl CpuText {
         let out = SharedMut::new(attn);
         let isa = pool.isa();
         pool.run(parts, |part| {
-            let (mut q, mut scores, mut tmp) = (Vec::new(), AttendScratch::default(), Vec::new());
+            let (mut scores, mut tmp) = (AttendScratch::default(), Vec::new());
             let mut packed: [PackedMatrix; 4] =
                 std::array::from_fn(|_| PackedMatrix::empty_in(self.precision));
             for task in tasks * part / parts..tasks * (part + 1) / parts {
@@ -227,10 +227,8 @@ impl CpuText {
                     causal: false,
                 };
                 for head in g * groups..(g + 1) * groups {
-                    q.clear();
-                    for row in base.chunks_exact(ld) {
-                        q.extend_from_slice(&row[head * hd..(head + 1) * hd]);
-                    }
+                    // This head's queries, read in place from the `[q | k | v]` rows.
+                    let q = &base[head * hd..];
                     tmp.resize(n * hd, 0.0);
                     let all = QueryPositions {
                         offset: 0,
@@ -239,8 +237,8 @@ impl CpuText {
                     if main > 0 {
                         attend(
                             isa,
-                            &q,
-                            hd,
+                            q,
+                            ld,
                             main,
                             hd,
                             &[main_seg],
@@ -255,8 +253,8 @@ impl CpuText {
                     let segs: &[KvSegment<'_>] = if main > 0 { &both } else { &only };
                     attend(
                         isa,
-                        &q[main * hd..],
-                        hd,
+                        &q[main * ld..],
+                        ld,
                         1,
                         hd,
                         segs,
