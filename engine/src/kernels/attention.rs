@@ -7,7 +7,7 @@
 //! are simply absent from the segments: LeRobot's masked scores become exactly 0 after its
 //! softmax, so leaving them out changes no sum.
 
-use super::gemm::{Init, PackedMatrix, gemm, gemm_pairs, round_pairs};
+use super::gemm::{Init, PackedMatrix, gemm, gemm_pairs};
 use super::{Isa, Precision, vecmath};
 
 /// Keys and values of one attention segment.
@@ -54,7 +54,7 @@ pub struct AttendScratch {
 /// concatenation of `segments`. `out` has row stride `ldo`; `scale > 0`.
 ///
 /// With bf16 values, the `P · V` GEMM takes the softmax *numerators* `exp(s - max)` rounded
-/// to bf16 (made and rounded a chunk at a time in L1, never stored as f32), and each output
+/// to bf16 (made and rounded in registers, never stored as f32), and each output
 /// row is then multiplied by `1 / sum` of its unrounded numerators: `(Σ bf16(e_j) v_j) / Σ e_j`.
 /// Rounding `e_j` or `e_j / Σ e` to bf16 has the same relative error (2^-9); the numerators
 /// just skip a pass that wrote the f32 probabilities and one that read them back to normalise
@@ -124,27 +124,21 @@ pub fn attend(
             hidden.fill(0.0);
             continue;
         }
-        // bf16 values: the numerators are made a chunk at a time into an L1 buffer and rounded
-        // from there into the pairs (never stored back as f32), and `P · V` is scaled by
+        // bf16 values: the numerators are made and rounded into the pairs in registers (never
+        // stored as f32, see `exp_sum_round_into`), and `P · V` is scaled by
         // `1 / sum` after the GEMM, on `head_dim` values per row instead of `total`.
         let max = vecmath::max_scaled(isa, &row[..visible], scale);
         let mut lanes = [0.0f32; 32];
-        let mut numerators = [0.0f32; EXP_CHUNK];
         let mut col = 0;
         for (s, seg) in segments.iter().enumerate() {
             let (offset, ldp) = pair_rows(s);
             let dst = &mut scratch.pairs[offset + i * ldp..offset + (i + 1) * ldp];
             let shown = visible.saturating_sub(col).min(seg.len());
-            let mut done = 0;
-            for chunk in row[col..col + shown].chunks(EXP_CHUNK) {
-                let e = &mut numerators[..chunk.len()];
-                vecmath::exp_sum_into(isa, chunk, scale, max, e, &mut lanes);
-                let pairs = chunk.len().div_ceil(2);
-                round_pairs(isa, e, &mut dst[done..done + pairs]);
-                done += pairs;
-            }
+            let (seen, hidden) = dst.split_at_mut(shown.div_ceil(2));
+            let src = &row[col..col + shown];
+            vecmath::exp_sum_round_into(isa, src, scale, max, seen, &mut lanes);
             // Keys this query does not see (a causal segment's tail) weigh exactly zero.
-            dst[done..].fill(0);
+            hidden.fill(0);
             col += seg.len();
         }
         scratch.factors[i] = 1.0 / vecmath::sum_32_lanes(&lanes);
@@ -167,10 +161,6 @@ pub fn attend(
         }
     }
 }
-
-/// Scores per chunk of the bf16 path's numerators (1 KiB: stays in L1 between being made and
-/// being rounded). A multiple of 32, so the chunks share [`vecmath::exp_sum_into`]'s lanes.
-const EXP_CHUNK: usize = 256;
 
 fn visible_len(segments: &[KvSegment<'_>], query: usize, total: usize) -> usize {
     match segments.last() {
@@ -229,13 +219,14 @@ mod tests {
         })
     }
 
-    /// With bf16 values the numerators are made and rounded a chunk at a time and `P · V` is
-    /// normalised afterwards; the result has the bits of the plain sequence (each segment's
-    /// numerators in one pass, stored as f32, the GEMM rounding them, then each row times
-    /// `1 / sum`), over an odd-length segment longer than a chunk followed by a causal one.
+    /// With bf16 values the numerators are made and rounded 32 at a time (or a chunk at a time
+    /// without AVX512_BF16) and `P · V` is normalised afterwards; the result has the bits of
+    /// the plain sequence (each segment's numerators in one pass, stored as f32, the GEMM
+    /// rounding them, then each row times `1 / sum`), over an odd-length segment longer than
+    /// a chunk followed by a causal one.
     #[test]
     fn bf16_numerators_rounded_in_chunks_equal_the_pass_by_pass_definition() {
-        let (d, lp, nq) = (16, 2 * EXP_CHUNK + 37, 5);
+        let (d, lp, nq) = (16, 2 * 256 + 37, 5);
         let isa = Isa::detect();
         let q = data(nq * d, 11);
         let (kp, vp, ks, vs) = (

@@ -1066,7 +1066,8 @@ fn round16(v: std::arch::x86_64::__m512i) -> std::arch::x86_64::__m256i {
 /// Requires AVX-512F and AVX512_BF16.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bf16")]
-unsafe fn round_pairs_avx512_bf16(src: &[f32], pairs: &mut [u32]) -> usize {
+#[inline]
+pub(crate) unsafe fn round_pairs_avx512_bf16(src: &[f32], pairs: &mut [u32]) -> usize {
     use std::arch::x86_64::*;
     let blocks = src.len() / 16;
     let exponent = _mm512_set1_epi32(0x7f80_0000);

@@ -372,43 +372,67 @@ impl CpuExpert {
         ws.normed
             .gemm_par(pool, tokens, &layer.qkv, qkv, ld, Init::Zero);
         let rows = ctx.row_prefix.len();
-        // RoPE, and queries regrouped head-major per row so each head is one contiguous A.
-        for r in 0..rows {
-            let (cos, sin) = match layer.kind {
-                LayerKind::SelfAttention => &ctx.self_rope[ctx.row_prefix[r]],
-                LayerKind::CrossAttention => ctx.cross_rope,
-            };
-            for t in 0..n {
-                let (c, s) = (
-                    &cos[t * half..(t + 1) * half],
-                    &sin[t * half..(t + 1) * half],
-                );
-                let tok = &mut ws.qkv[(r * n + t) * ld..(r * n + t + 1) * ld];
-                for head in 0..d.heads {
-                    let qh = &mut tok[head * hd..(head + 1) * hd];
-                    vecmath::rope(isa, qh, c, s);
-                    let dst = ((r * d.heads + head) * n + t) * hd;
-                    ws.q_heads[dst..dst + hd].copy_from_slice(qh);
+        let groups = d.heads / d.kv_heads;
+        // RoPE; the queries regrouped head-major per row, so that each head is one contiguous
+        // `A`; in self-attention layers the action tokens' own keys and values packed. One unit
+        // per row and KV head: it reads `qkv` only (the rotated keys go to its own buffer, not
+        // back) and writes its own query heads and its own packed pair, so the units run on
+        // the pool's threads (on the calling thread alone, they left the others waiting for
+        // ~3% of a step at batch 4).
+        let units = rows * d.kv_heads;
+        let parts = pool.parts_per_unit(units);
+        let (qkv, self_attention) = (
+            &ws.qkv[..tokens * ld],
+            layer.kind == LayerKind::SelfAttention,
+        );
+        let q_heads = SharedMut::new(&mut ws.q_heads);
+        let suffix_kv = SharedMut::new(&mut ws.suffix_kv);
+        pool.run(parts, |p| {
+            let (mut keys, mut values) = (Vec::new(), Vec::new());
+            for unit in units * p / parts..units * (p + 1) / parts {
+                let (r, g) = (unit / d.kv_heads, unit % d.kv_heads);
+                let (cos, sin) = match layer.kind {
+                    LayerKind::SelfAttention => &ctx.self_rope[ctx.row_prefix[r]],
+                    LayerKind::CrossAttention => ctx.cross_rope,
+                };
+                if self_attention {
+                    keys.resize(n * hd, 0.0);
+                    values.resize(n * hd, 0.0);
                 }
-                if layer.kind == LayerKind::SelfAttention {
-                    for g in 0..d.kv_heads {
-                        vecmath::rope(isa, &mut tok[qw + g * hd..qw + (g + 1) * hd], c, s);
+                for t in 0..n {
+                    let (c, s) = (
+                        &cos[t * half..(t + 1) * half],
+                        &sin[t * half..(t + 1) * half],
+                    );
+                    let tok = &qkv[(r * n + t) * ld..(r * n + t + 1) * ld];
+                    for head in g * groups..(g + 1) * groups {
+                        let dst = ((r * d.heads + head) * n + t) * hd;
+                        // SAFETY: `q_heads` holds `tokens x q width` values; (row r, head, token
+                        // t) belongs to this unit's KV head `g`, so no other unit writes it.
+                        let qh =
+                            unsafe { std::slice::from_raw_parts_mut(q_heads.ptr().add(dst), hd) };
+                        qh.copy_from_slice(&tok[head * hd..(head + 1) * hd]);
+                        vecmath::rope(isa, qh, c, s);
+                    }
+                    if self_attention {
+                        let key = &mut keys[t * hd..(t + 1) * hd];
+                        key.copy_from_slice(&tok[qw + g * hd..qw + (g + 1) * hd]);
+                        vecmath::rope(isa, key, c, s);
+                        values[t * hd..(t + 1) * hd]
+                            .copy_from_slice(&tok[qw + kvw + g * hd..qw + kvw + (g + 1) * hd]);
                     }
                 }
-            }
-            if layer.kind == LayerKind::SelfAttention {
-                let base = r * n * ld;
-                for g in 0..d.kv_heads {
-                    let (kt, vv) = &mut ws.suffix_kv[r * d.kv_heads + g];
-                    kt.pack_transposed(isa, &ws.qkv[base + qw + g * hd..], ld, n, hd);
-                    vv.pack_rows(isa, &ws.qkv[base + qw + kvw + g * hd..], ld, n, hd);
+                if self_attention {
+                    // SAFETY: `suffix_kv` holds `rows x kv_heads` pairs; this unit's is its own.
+                    let (kt, vv) = unsafe { &mut *suffix_kv.ptr().add(r * d.kv_heads + g) };
+                    kt.pack_transposed(isa, &keys, hd, n, hd);
+                    vv.pack_rows(isa, &values, hd, n, hd);
                 }
             }
-        }
+        });
         // Attention: the queries of the heads that share a KV head form one block of
         // `groups * n` rows (one GEMM against the shared keys). Each block is cut in two tasks
         // so that batch 1 still gives the threads even work.
-        let groups = d.heads / d.kv_heads;
         let block = groups * n;
         let splits = if block >= 4 * crate::kernels::gemm::MR {
             2

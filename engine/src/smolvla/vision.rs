@@ -31,13 +31,22 @@ pub struct VisionImage<'a> {
 }
 
 /// What the vision tower computes for each image.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct VisionOutput {
     /// Post-LayerNorm encoder output, `[patches][vision hidden]` per image.
     pub hidden: Vec<Vec<f32>>,
     /// Connector output (`embed_image`, before LeRobot's `x sqrt(hidden)`),
     /// `[tokens][text hidden]` per image.
     pub embeddings: Vec<Vec<f32>>,
+}
+
+impl VisionOutput {
+    fn with_capacity(images: usize) -> Self {
+        VisionOutput {
+            hidden: Vec::with_capacity(images),
+            embeddings: Vec::with_capacity(images),
+        }
+    }
 }
 
 struct VisionLayer {
@@ -61,8 +70,9 @@ pub(crate) struct CpuVision {
     /// The precision of the weight GEMMs, also used for attention's `q kᵀ` and `p v` GEMMs
     /// (keys and values packed in it per request).
     precision: Precision,
-    /// The activations of a group, kept between groups and calls (see [`TowerBuffers`]).
-    buffers: Mutex<TowerBuffers>,
+    /// The activations of a group, kept between groups and calls (see [`TowerBuffers`]): one
+    /// set per thread that runs groups at the same time.
+    buffers: Mutex<Vec<TowerBuffers>>,
 }
 
 /// A group's activations (~40 MB in bf16, ~50 MB in f32, for 1 024 patch rows), kept resident
@@ -184,13 +194,8 @@ impl CpuVision {
                 Ok(g)
             })
             .collect::<Result<Vec<_>, EngineError>>()?;
-        let mut out = VisionOutput {
-            hidden: Vec::with_capacity(images.len()),
-            embeddings: Vec::with_capacity(images.len()),
-        };
-        // One forward at a time uses the buffers (a poisoned lock only means a panic left them
-        // half-written, and every value is written before it is read).
-        let mut buffers = self.buffers.lock().unwrap_or_else(|e| e.into_inner());
+        // Consecutive images whose patches fit in one group (see [`GROUP_ROWS`]).
+        let mut groups = Vec::new();
         let mut first = 0;
         while first < images.len() {
             let mut end = first + 1;
@@ -199,9 +204,67 @@ impl CpuVision {
                 rows += grids[end] * grids[end];
                 end += 1;
             }
-            let (group, group_grids) = (&images[first..end], &grids[first..end]);
-            self.forward_group(pool, group, group_grids, &mut buffers, &mut out);
+            groups.push(first..end);
             first = end;
+        }
+        // One forward at a time uses the buffers (a poisoned lock only means a panic left them
+        // half-written, and every value is written before it is read).
+        let mut slots = self.buffers.lock().unwrap_or_else(|e| e.into_inner());
+        let threads = pool.threads().max(1);
+        let held = slots.len();
+        slots.resize_with(held.max(1), TowerBuffers::default);
+        // While there is a group for every thread, each thread runs whole groups on its own
+        // (the GEMMs inside run inline): no thread waits for another at each of the tower's
+        // ~100 parallel regions per group, and the serial steps (unfolding, pixel shuffle) run
+        // in parallel too. The remaining groups split every GEMM over the threads. Which
+        // thread computes a row never changes its bits, so both ways give the same results.
+        let spread = if threads > 1 {
+            groups.len() / threads * threads
+        } else {
+            0
+        };
+        let mut outs: Vec<VisionOutput> = Vec::with_capacity(groups.len());
+        if spread > 0 {
+            slots.resize_with(held.max(threads), TowerBuffers::default);
+            let free: Vec<Mutex<&mut TowerBuffers>> = slots.iter_mut().map(Mutex::new).collect();
+            let done: Vec<Mutex<Option<VisionOutput>>> =
+                (0..spread).map(|_| Mutex::new(None)).collect();
+            pool.run(spread, |g| {
+                // At most `threads` parts run at once, so one of the `threads` slots is free.
+                let mut buffers = free
+                    .iter()
+                    .find_map(|slot| match slot.try_lock() {
+                        Ok(held) => Some(held),
+                        Err(std::sync::TryLockError::Poisoned(held)) => Some(held.into_inner()),
+                        Err(std::sync::TryLockError::WouldBlock) => None,
+                    })
+                    .expect("more tower parts at once than the pool has threads");
+                let range = groups[g].clone();
+                let mut out = VisionOutput::with_capacity(range.len());
+                self.forward_group(
+                    pool,
+                    &images[range.clone()],
+                    &grids[range],
+                    &mut buffers,
+                    &mut out,
+                );
+                *done[g].lock().unwrap_or_else(|e| e.into_inner()) = Some(out);
+            });
+            for slot in done {
+                let out = slot.into_inner().unwrap_or_else(|e| e.into_inner());
+                outs.push(out.expect("every spread group ran"));
+            }
+        }
+        for range in &groups[spread..] {
+            let mut out = VisionOutput::with_capacity(range.len());
+            let (group, group_grids) = (&images[range.clone()], &grids[range.clone()]);
+            self.forward_group(pool, group, group_grids, &mut slots[0], &mut out);
+            outs.push(out);
+        }
+        let mut out = VisionOutput::with_capacity(images.len());
+        for group in outs {
+            out.hidden.extend(group.hidden);
+            out.embeddings.extend(group.embeddings);
         }
         Ok(out)
     }
@@ -550,6 +613,9 @@ mod tests {
 
     /// Images of 1024 patch rows run alone and four of 256 rows run together (see
     /// [`GROUP_ROWS`]); each image's outputs must be exactly those of running it by itself.
+    /// The seven images make four groups, which the two threads run a whole group each (see
+    /// [`CpuVision::forward`]), while an image by itself is one group whose GEMMs the two
+    /// threads split: the two ways must agree bit for bit.
     #[test]
     fn grouping_images_changes_no_bit() {
         let config = VlmConfig {
