@@ -73,6 +73,8 @@ pub(crate) struct CpuVision {
     /// The activations of a group, kept between groups and calls (see [`TowerBuffers`]): one
     /// set per thread that runs groups at the same time.
     buffers: Mutex<Vec<TowerBuffers>>,
+    /// Free attention buffers, one set per part running at once (see [`HeadScratch`]).
+    head_scratch: Mutex<Vec<HeadScratch>>,
 }
 
 /// A group's activations (~40 MB in bf16, ~50 MB in f32, for 1 024 patch rows), kept resident
@@ -145,6 +147,7 @@ impl CpuVision {
             config: w.config,
             precision,
             buffers: Mutex::default(),
+            head_scratch: Mutex::default(),
         }
     }
 
@@ -455,11 +458,13 @@ impl CpuVision {
         let out = attn.shared();
         let isa = pool.isa();
         pool.run(parts, |part| {
-            let (mut scores, mut tmp) = (AttendScratch::default(), Vec::new());
-            let (mut kt, mut vv) = (
-                PackedMatrix::empty_in(self.precision),
-                PackedMatrix::empty_in(self.precision),
-            );
+            let mut scratch = self.head_scratch(self.precision);
+            let HeadScratch {
+                scores,
+                out: tmp,
+                keys_t: kt,
+                values: vv,
+            } = &mut scratch;
             for task in tasks * part / parts..tasks * (part + 1) / parts {
                 let (img, head) = (task / heads, task % heads);
                 let (n, start) = (counts[img], starts[img]);
@@ -468,8 +473,8 @@ impl CpuVision {
                 vv.pack_rows(isa, &base[2 * vh + head * hd..], ld, n, hd);
                 tmp.resize(n * hd, 0.0);
                 let segment = KvSegment {
-                    keys_t: &kt,
-                    values: &vv,
+                    keys_t: kt,
+                    values: vv,
                     causal: false,
                 };
                 // Queries in blocks, so that a block's scores (`QUERY_BLOCK x n`) stay in L2;
@@ -488,7 +493,7 @@ impl CpuVision {
                             period: rows,
                         },
                         scale,
-                        &mut scores,
+                        scores,
                         &mut tmp[r0 * hd..(r0 + rows) * hd],
                         hd,
                     );
@@ -497,7 +502,7 @@ impl CpuVision {
                     // SAFETY: this image's rows of this head's columns are written by this task
                     // only.
                     SharedOut::F32(out) => unsafe {
-                        out.write_rows(&tmp, hd, vh, start, head * hd)
+                        out.write_rows(tmp, hd, vh, start, head * hd)
                     },
                     SharedOut::Pairs(pairs) => {
                         let (kp, ldp) = (hd / 2, vh / 2);
@@ -515,8 +520,36 @@ impl CpuVision {
                     }
                 }
             }
+            self.put_head_scratch(scratch);
         });
     }
+
+    /// A head's attention buffers from the stack of free ones (or new ones): a part of every
+    /// layer's attention used to allocate its own, ~1 MB for a 1 024-patch image, which
+    /// `malloc` took from `mmap` and the kernel zeroed page by page, twelve times a layer.
+    fn head_scratch(&self, precision: Precision) -> HeadScratch {
+        let mut free = self.head_scratch.lock().unwrap_or_else(|e| e.into_inner());
+        free.pop().unwrap_or_else(|| HeadScratch {
+            scores: AttendScratch::default(),
+            out: Vec::new(),
+            keys_t: PackedMatrix::empty_in(precision),
+            values: PackedMatrix::empty_in(precision),
+        })
+    }
+
+    fn put_head_scratch(&self, scratch: HeadScratch) {
+        let mut free = self.head_scratch.lock().unwrap_or_else(|e| e.into_inner());
+        free.push(scratch);
+    }
+}
+
+/// The buffers of one attention head of one image: its scores, its output rows and its packed
+/// keys and values. Every value is written before it is read, so reuse changes no result.
+struct HeadScratch {
+    scores: AttendScratch,
+    out: Vec<f32>,
+    keys_t: PackedMatrix,
+    values: PackedMatrix,
 }
 
 /// Where the vision attention writes its output: f32 rows, or bf16 pair rows (the out
