@@ -375,10 +375,10 @@ impl CpuExpert {
         let groups = d.heads / d.kv_heads;
         // RoPE; the queries regrouped head-major per row, so that each head is one contiguous
         // `A`; in self-attention layers the action tokens' own keys and values packed. One unit
-        // per row and KV head: it reads `qkv` only (the rotated keys go to its own buffer, not
-        // back) and writes its own query heads and its own packed pair, so the units run on
-        // the pool's threads (on the calling thread alone, they left the others waiting for
-        // ~3% of a step at batch 4).
+        // per row and KV head: it reads `qkv` only (the rotated queries and keys go to its own
+        // heads of `q_heads` and its own buffer, not back) and writes its own packed pair, so
+        // the units run on the pool's threads (on the calling thread alone, they left the other
+        // thread spinning for ~3% of a step at batch 4).
         let units = rows * d.kv_heads;
         let parts = pool.parts_per_unit(units);
         let (qkv, self_attention) = (
@@ -388,7 +388,7 @@ impl CpuExpert {
         let q_heads = SharedMut::new(&mut ws.q_heads);
         let suffix_kv = SharedMut::new(&mut ws.suffix_kv);
         pool.run(parts, |p| {
-            let (mut keys, mut values) = (Vec::new(), Vec::new());
+            let mut keys = Vec::new();
             for unit in units * p / parts..units * (p + 1) / parts {
                 let (r, g) = (unit / d.kv_heads, unit % d.kv_heads);
                 let (cos, sin) = match layer.kind {
@@ -397,7 +397,6 @@ impl CpuExpert {
                 };
                 if self_attention {
                     keys.resize(n * hd, 0.0);
-                    values.resize(n * hd, 0.0);
                 }
                 for t in 0..n {
                     let (c, s) = (
@@ -418,15 +417,14 @@ impl CpuExpert {
                         let key = &mut keys[t * hd..(t + 1) * hd];
                         key.copy_from_slice(&tok[qw + g * hd..qw + (g + 1) * hd]);
                         vecmath::rope(isa, key, c, s);
-                        values[t * hd..(t + 1) * hd]
-                            .copy_from_slice(&tok[qw + kvw + g * hd..qw + kvw + (g + 1) * hd]);
                     }
                 }
                 if self_attention {
                     // SAFETY: `suffix_kv` holds `rows x kv_heads` pairs; this unit's is its own.
                     let (kt, vv) = unsafe { &mut *suffix_kv.ptr().add(r * d.kv_heads + g) };
                     kt.pack_transposed(isa, &keys, hd, n, hd);
-                    vv.pack_rows(isa, &values, hd, n, hd);
+                    // The values need no RoPE: packed straight from the rows of `qkv`.
+                    vv.pack_rows(isa, &qkv[r * n * ld + qw + kvw + g * hd..], ld, n, hd);
                 }
             }
         });

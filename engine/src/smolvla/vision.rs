@@ -501,9 +501,7 @@ impl CpuVision {
                 match out {
                     // SAFETY: this image's rows of this head's columns are written by this task
                     // only.
-                    SharedOut::F32(out) => unsafe {
-                        out.write_rows(tmp, hd, vh, start, head * hd)
-                    },
+                    SharedOut::F32(out) => unsafe { out.write_rows(tmp, hd, vh, start, head * hd) },
                     SharedOut::Pairs(pairs) => {
                         let (kp, ldp) = (hd / 2, vh / 2);
                         for (t, row) in tmp.chunks_exact(hd).enumerate() {
