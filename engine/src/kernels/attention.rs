@@ -37,6 +37,17 @@ pub struct QueryPositions {
     pub period: usize,
 }
 
+/// The query rows of [`attend`], `head_dim` values each.
+#[derive(Clone, Copy, Debug)]
+pub enum Queries<'a> {
+    /// f32 rows with this row stride (a head's columns read in place from `[q | k | v]` rows);
+    /// the `q kᵀ` GEMM rounds them to bf16 pairs when the keys are bf16.
+    F32(&'a [f32], usize),
+    /// Rows already rounded to bf16 pairs ([`super::gemm::round_pairs`]), with this row stride
+    /// in pairs: the same bits as the f32 rows they were rounded from (bf16 keys only).
+    Pairs(&'a [u32], usize),
+}
+
 /// Scratch space of [`attend`], grown as needed and reused across calls.
 #[derive(Debug, Default)]
 pub struct AttendScratch {
@@ -62,8 +73,7 @@ pub struct AttendScratch {
 #[allow(clippy::too_many_arguments)]
 pub fn attend(
     isa: Isa,
-    q: &[f32],
-    ldq: usize,
+    q: Queries<'_>,
     nq: usize,
     head_dim: usize,
     segments: &[KvSegment<'_>],
@@ -73,6 +83,10 @@ pub fn attend(
     out: &mut [f32],
     ldo: usize,
 ) {
+    let ldq = match q {
+        Queries::F32(_, ld) => ld,
+        Queries::Pairs(_, ld) => 2 * ld,
+    };
     assert!(
         ldq >= head_dim,
         "attend: query stride {ldq} < head dim {head_dim}"
@@ -83,16 +97,13 @@ pub fn attend(
     scores.resize(nq * total, 0.0);
     let mut col = 0;
     for seg in segments {
-        gemm(
-            isa,
-            q,
-            ldq,
-            nq,
-            seg.keys_t,
-            &mut scores[col..],
-            total,
-            Init::Zero,
-        );
+        let out = &mut scores[col..];
+        match q {
+            Queries::F32(rows, ld) => gemm(isa, rows, ld, nq, seg.keys_t, out, total, Init::Zero),
+            Queries::Pairs(rows, ld) => {
+                gemm_pairs(isa, rows, ld, nq, seg.keys_t, out, total, Init::Zero)
+            }
+        }
         col += seg.len();
     }
     let rounded = !segments.is_empty()
@@ -246,8 +257,7 @@ mod tests {
         let mut scratch = AttendScratch::default();
         attend(
             isa,
-            &q,
-            d,
+            Queries::F32(&q, d),
             nq,
             d,
             &segs,
@@ -283,6 +293,26 @@ mod tests {
         }
         let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&got), bits(&want));
+        // Queries given already rounded to pairs (row stride 3 pairs wider): the same bits.
+        let ldp = d / 2 + 3;
+        let mut q_pairs = vec![0u32; nq * ldp];
+        for (row, dst) in q.chunks_exact(d).zip(q_pairs.chunks_exact_mut(ldp)) {
+            crate::kernels::gemm::round_pairs(isa, row, &mut dst[..d / 2]);
+        }
+        let mut from_pairs = vec![0.0; nq * d];
+        attend(
+            isa,
+            Queries::Pairs(&q_pairs, ldp),
+            nq,
+            d,
+            &segs,
+            pos,
+            0.25,
+            &mut scratch,
+            &mut from_pairs,
+            d,
+        );
+        assert_eq!(bits(&from_pairs), bits(&got), "queries as pairs");
         // And it is the softmax: within bf16 rounding of the f32 result.
         let packed32 = packed_segments(Precision::F32, (&kp, &vp), (&ks, &vs), d);
         let mut exact = vec![0.0; nq * d];
@@ -290,8 +320,7 @@ mod tests {
         let segs32 = segments(&packed32);
         attend(
             isa,
-            &q,
-            d,
+            Queries::F32(&q, d),
             nq,
             d,
             &segs32,
@@ -326,8 +355,7 @@ mod tests {
         };
         attend(
             Isa::detect(),
-            &q,
-            d,
+            Queries::F32(&q, d),
             nq,
             d,
             &segs,
@@ -342,8 +370,7 @@ mod tests {
         let mut out2 = vec![0.0; 2 * nq * d];
         attend(
             Isa::detect(),
-            &q2,
-            d,
+            Queries::F32(&q2, d),
             2 * nq,
             d,
             &segs,

@@ -237,6 +237,33 @@ impl PackedMatrix {
         });
     }
 
+    /// [`Self::pack_transposed`] of rows already rounded to bf16 pairs ([`round_pairs`]; `n`
+    /// rows of `ceil(k / 2)` pairs, row stride `ldp` pairs): the same panels as packing the
+    /// f32 rows they were rounded from, without rounding them again.
+    ///
+    /// # Panics
+    /// If the matrix is not bf16.
+    pub fn pack_transposed_pairs(&mut self, pairs: &[u32], ldp: usize, n: usize, k: usize) {
+        assert_eq!(self.precision, Precision::Bf16, "pairs pack into bf16 only");
+        self.store_pairs(k, n, |i, j| pairs[j * ldp + i]);
+    }
+
+    /// [`Self::pack_rows`] of rows already rounded to bf16 pairs ([`round_pairs`]; `k` rows
+    /// of `n` values as `ceil(n / 2)` pairs, row stride `ldp` pairs): a panel pairs two *rows*,
+    /// so each value's 16 bits move from its row's pair into the pair of its two rows. The
+    /// same panels as packing the f32 rows they were rounded from.
+    ///
+    /// # Panics
+    /// If the matrix is not bf16.
+    pub fn pack_rows_pairs(&mut self, pairs: &[u32], ldp: usize, k: usize, n: usize) {
+        assert_eq!(self.precision, Precision::Bf16, "pairs pack into bf16 only");
+        let half = |r: usize, j: usize| (pairs[r * ldp + j / 2] >> (16 * (j % 2))) & 0xffff;
+        self.store_pairs(k, n, |i, j| {
+            let hi = if 2 * i + 1 < k { half(2 * i + 1, j) } else { 0 };
+            half(2 * i, j) | hi << 16
+        });
+    }
+
     /// Fill the bf16 panels of a `k x n` matrix from already rounded pairs: `pair(i, j)` is
     /// the pair of rows `2i, 2i + 1` in column `j` (zero past `n`).
     fn store_pairs(&mut self, k: usize, n: usize, pair: impl Fn(usize, usize) -> u32) {
@@ -2132,6 +2159,28 @@ mod tests {
                 let mut by_rows = PackedMatrix::empty_in(Precision::Bf16);
                 by_rows.pack_rows(isa, &rows, ldb, k, n);
                 assert_eq!(bits(&by_rows), bits(&want), "rows {isa:?} n={n} k={k}");
+                // From rows already rounded to pairs (row strides of 5 and 2 spare pairs): the
+                // same panels, transposed and by rows.
+                let round = |src: &[f32], count: usize, width: usize, ld: usize, ldp: usize| {
+                    let mut pairs = vec![0u32; count * ldp];
+                    for r in 0..count {
+                        let dst = &mut pairs[r * ldp..r * ldp + width.div_ceil(2)];
+                        round_pairs(isa, &src[r * ld..r * ld + width], dst);
+                    }
+                    pairs
+                };
+                let ldp = k.div_ceil(2) + 5;
+                let mut from_pairs = PackedMatrix::empty_in(Precision::Bf16);
+                from_pairs.pack_transposed_pairs(&round(&w, n, k, ldw, ldp), ldp, n, k);
+                assert_eq!(bits(&from_pairs), bits(&want), "pairs {isa:?} n={n} k={k}");
+                let ldp = n.div_ceil(2) + 2;
+                let mut rows_pairs = PackedMatrix::empty_in(Precision::Bf16);
+                rows_pairs.pack_rows_pairs(&round(&rows, k, n, ldb, ldp), ldp, k, n);
+                assert_eq!(
+                    bits(&rows_pairs),
+                    bits(&want),
+                    "row pairs {isa:?} n={n} k={k}"
+                );
             }
         }
     }

@@ -8,7 +8,7 @@ use super::config::{ExpertDims, LayerKind};
 use super::prefix::PrefixKv;
 use super::weights::{ExpertWeights, LinearWeights, time_embedding};
 use crate::EngineError;
-use crate::kernels::attention::{AttendScratch, KvSegment, QueryPositions, attend};
+use crate::kernels::attention::{AttendScratch, KvSegment, Queries, QueryPositions, attend};
 use crate::kernels::gemm::{ActivationRows, gemm, gemm_par};
 use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 
@@ -478,8 +478,7 @@ impl CpuExpert {
                         };
                         attend(
                             isa,
-                            q,
-                            hd,
+                            Queries::F32(q, hd),
                             i1 - i0,
                             hd,
                             &[prefix, own],
@@ -492,8 +491,7 @@ impl CpuExpert {
                     }
                     LayerKind::CrossAttention => attend(
                         isa,
-                        q,
-                        hd,
+                        Queries::F32(q, hd),
                         i1 - i0,
                         hd,
                         &[prefix],

@@ -15,7 +15,7 @@ use super::cpu::Linear;
 use super::vlm_weights::{NormWeights, VlmWeights};
 use super::weights::LinearWeights;
 use crate::EngineError;
-use crate::kernels::attention::{AttendScratch, KvSegment, QueryPositions, attend};
+use crate::kernels::attention::{AttendScratch, KvSegment, Queries, QueryPositions, attend};
 use crate::kernels::gemm::{ActivationRows, gemm_par, gemm_par_pairs, round_pairs};
 use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, grown, vecmath};
 use std::sync::Mutex;
@@ -87,6 +87,8 @@ struct TowerBuffers {
     x: Vec<f32>,
     h: Vec<f32>,
     qkv: Vec<f32>,
+    /// `qkv` rounded to bf16 pairs, in bf16 mode.
+    qkv_pairs: Vec<u32>,
     attn: Vec<f32>,
     attn_pairs: Vec<u32>,
     mlp: Vec<f32>,
@@ -346,6 +348,13 @@ impl CpuVision {
             if pairs_out { rows * vh / 2 } else { 0 },
         );
         let mlp = grown(&mut buffers.mlp, rows * inter);
+        // In bf16 the attention reads `q`, `k` and `v` rounded once, row by row, into pairs:
+        // rounding each head's queries per block and packing its keys and values from the f32
+        // rows read every head's columns down 1 024 rows 9 KiB apart, three times a head.
+        let qkv_pairs = grown(
+            &mut buffers.qkv_pairs,
+            if pairs_out { rows * 3 * vh / 2 } else { 0 },
+        );
         // The layer norms and the GELU make the `A` of the GEMM they feed row by row (in bf16
         // rounded as they go, see `ActivationRows`).
         let normed = activation_rows(&mut buffers.normed, self.precision, rows, vh);
@@ -373,11 +382,19 @@ impl CpuVision {
             norm(x, &layer.norm1, layer.out.bias.as_deref(), normed);
             normed.gemm_par(pool, rows, &layer.qkv.w, qkv, 3 * vh, layer.qkv.init());
             if !pairs_out {
-                self.attention(pool, qkv, &counts, &starts, AttentionOut::F32(attn));
+                let src = AttentionIn::F32(qkv);
+                self.attention(pool, src, &counts, &starts, AttentionOut::F32(attn));
                 gemm_par(pool, attn, vh, rows, &layer.out.w, x, vh, Init::Accumulate);
             } else {
-                let out = AttentionOut::Pairs(attn_pairs);
-                self.attention(pool, qkv, &counts, &starts, out);
+                // `3 vh` is even, so no pair straddles two rows: the rows round as one run.
+                pool.for_row_chunks(qkv_pairs, 3 * vh / 2, |r0, chunk| {
+                    round_pairs(isa, &qkv[r0 * 3 * vh..][..2 * chunk.len()], chunk);
+                });
+                let (src, out) = (
+                    AttentionIn::Pairs(qkv_pairs),
+                    AttentionOut::Pairs(attn_pairs),
+                );
+                self.attention(pool, src, &counts, &starts, out);
                 let (w, acc) = (&layer.out.w, Init::Accumulate);
                 gemm_par_pairs(pool, attn_pairs, vh / 2, rows, w, x, vh, acc);
             }
@@ -443,7 +460,7 @@ impl CpuVision {
     fn attention(
         &self,
         pool: &Pool,
-        qkv: &[f32],
+        qkv: AttentionIn<'_>,
         counts: &[usize],
         starts: &[usize],
         attn: AttentionOut<'_>,
@@ -468,9 +485,18 @@ impl CpuVision {
             for task in tasks * part / parts..tasks * (part + 1) / parts {
                 let (img, head) = (task / heads, task % heads);
                 let (n, start) = (counts[img], starts[img]);
-                let base = &qkv[start * ld..(start + n) * ld];
-                kt.pack_transposed(isa, &base[vh + head * hd..], ld, n, hd);
-                vv.pack_rows(isa, &base[2 * vh + head * hd..], ld, n, hd);
+                match qkv {
+                    AttentionIn::F32(qkv) => {
+                        let base = &qkv[start * ld..(start + n) * ld];
+                        kt.pack_transposed(isa, &base[vh + head * hd..], ld, n, hd);
+                        vv.pack_rows(isa, &base[2 * vh + head * hd..], ld, n, hd);
+                    }
+                    AttentionIn::Pairs(pairs) => {
+                        let (base, ldp) = (&pairs[start * ld / 2..(start + n) * ld / 2], ld / 2);
+                        kt.pack_transposed_pairs(&base[(vh + head * hd) / 2..], ldp, n, hd);
+                        vv.pack_rows_pairs(&base[(2 * vh + head * hd) / 2..], ldp, n, hd);
+                    }
+                }
                 tmp.resize(n * hd, 0.0);
                 let segment = KvSegment {
                     keys_t: kt,
@@ -483,8 +509,15 @@ impl CpuVision {
                     let rows = QUERY_BLOCK.min(n - r0);
                     attend(
                         isa,
-                        &base[r0 * ld + head * hd..],
-                        ld,
+                        match qkv {
+                            AttentionIn::F32(qkv) => {
+                                Queries::F32(&qkv[(start + r0) * ld + head * hd..], ld)
+                            }
+                            AttentionIn::Pairs(pairs) => Queries::Pairs(
+                                &pairs[((start + r0) * ld + head * hd) / 2..],
+                                ld / 2,
+                            ),
+                        },
                         rows,
                         hd,
                         &[segment],
@@ -548,6 +581,14 @@ struct HeadScratch {
     out: Vec<f32>,
     keys_t: PackedMatrix,
     values: PackedMatrix,
+}
+
+/// What the vision attention reads: the `[q | k | v]` rows in f32, or rounded to bf16 pairs
+/// (`hd` even, so each head's columns are whole pairs).
+#[derive(Clone, Copy)]
+enum AttentionIn<'a> {
+    F32(&'a [f32]),
+    Pairs(&'a [u32]),
 }
 
 /// Where the vision attention writes its output: f32 rows, or bf16 pair rows (the out

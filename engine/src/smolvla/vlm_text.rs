@@ -17,7 +17,7 @@
 
 use super::config::VlmTextConfig;
 use super::weights::{LayerWeights, LinearWeights};
-use crate::kernels::attention::{AttendScratch, KvSegment, QueryPositions, attend};
+use crate::kernels::attention::{AttendScratch, KvSegment, Queries, QueryPositions, attend};
 use crate::kernels::gemm::{ActivationRows, gemm_par};
 use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 use crate::weights::StoredTensor;
@@ -237,8 +237,7 @@ impl CpuText {
                     if main > 0 {
                         attend(
                             isa,
-                            q,
-                            ld,
+                            Queries::F32(q, ld),
                             main,
                             hd,
                             &[main_seg],
@@ -253,8 +252,7 @@ impl CpuText {
                     let segs: &[KvSegment<'_>] = if main > 0 { &both } else { &only };
                     attend(
                         isa,
-                        &q[main * ld..],
-                        ld,
+                        Queries::F32(&q[main * ld..], ld),
                         1,
                         hd,
                         segs,
