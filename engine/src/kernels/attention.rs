@@ -61,7 +61,7 @@ pub struct AttendScratch {
 }
 
 /// `out[i] = softmax(scale * q[i] · Kᵀ) V` for the `nq` query rows of `q` (`head_dim` values
-/// each, row stride `ldq`: a head's columns read in place from `[q | k | v]` rows), over the
+/// each, with the row stride `q` gives: a head's columns read in place), over the
 /// concatenation of `segments`. `out` has row stride `ldo`; `scale > 0`.
 ///
 /// With bf16 values, the `P · V` GEMM takes the softmax *numerators* `exp(s - max)` rounded

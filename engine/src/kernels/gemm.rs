@@ -233,7 +233,7 @@ impl PackedMatrix {
             for (j, out) in pairs.chunks_exact_mut(kp).enumerate() {
                 round_pairs(isa, &w[j * ldw..j * ldw + k], out);
             }
-            self.store_pairs(k, n, |i, j| pairs[j * kp + i]);
+            self.pack_transposed_pairs(pairs, kp, n, k);
         });
     }
 

@@ -151,7 +151,7 @@ pub struct Pool {
     isa: Isa,
     /// Buffers for packed GEMM operands, one per concurrent caller: taken for a call and put
     /// back after it, never held while waiting for workers.
-    scratch: std::sync::Mutex<Vec<AlignedBuf>>,
+    scratch: FreeList<AlignedBuf>,
 }
 
 impl std::fmt::Debug for Pool {
@@ -188,22 +188,16 @@ impl Pool {
             team,
             threads,
             isa,
-            scratch: std::sync::Mutex::new(Vec::new()),
+            scratch: FreeList::default(),
         })
     }
 
     pub(crate) fn take_scratch(&self) -> AlignedBuf {
-        match self.scratch.lock() {
-            Ok(mut v) => v.pop().unwrap_or_default(),
-            Err(poisoned) => poisoned.into_inner().pop().unwrap_or_default(),
-        }
+        self.scratch.take(AlignedBuf::default)
     }
 
     pub(crate) fn put_scratch(&self, buf: AlignedBuf) {
-        match self.scratch.lock() {
-            Ok(mut v) => v.push(buf),
-            Err(poisoned) => poisoned.into_inner().push(buf),
-        }
+        self.scratch.put(buf);
     }
 
     /// The instruction set of the kernels run on this pool.
@@ -380,6 +374,35 @@ impl AlignedBuf {
     /// The buffer, mutable.
     pub fn as_mut_slice(&mut self) -> &mut [f32] {
         &mut self.raw[self.offset..self.offset + self.len]
+    }
+}
+
+/// Reusable values (scratch buffers kept between calls), one per user at a time: [`take`]
+/// pops a free one or makes one, [`put`] returns it. The lock is held only to pop or push,
+/// never while a value is in use, so as many values exist as users ever overlapped; a user
+/// that panics drops its value instead of returning it (a poisoned lock is used as is: the
+/// list holds whole values only).
+///
+/// [`take`]: FreeList::take
+/// [`put`]: FreeList::put
+pub(crate) struct FreeList<T>(std::sync::Mutex<Vec<T>>);
+
+impl<T> Default for FreeList<T> {
+    fn default() -> Self {
+        FreeList(std::sync::Mutex::new(Vec::new()))
+    }
+}
+
+impl<T> FreeList<T> {
+    /// A free value, or `make()` when none is.
+    pub(crate) fn take(&self, make: impl FnOnce() -> T) -> T {
+        let popped = self.0.lock().unwrap_or_else(|e| e.into_inner()).pop();
+        popped.unwrap_or_else(make)
+    }
+
+    /// Return `value` for the next [`FreeList::take`].
+    pub(crate) fn put(&self, value: T) {
+        self.0.lock().unwrap_or_else(|e| e.into_inner()).push(value);
     }
 }
 

@@ -213,27 +213,29 @@ multiversion! {
 multiversion! {
     /// Softmax numerators for bf16 rounding: `out[i] = exp(src[i] * scale - max)` to within
     /// 3e-6 relative ([`exp2_bf16_grade`] of `src[i] * scale log2(e) - max log2(e)`), each also
-    /// added into `lanes[i mod 32]` (summed like [`softmax_scaled`]'s). The bf16 attention
-    /// makes them a chunk at a time into an L1 buffer; a caller that cuts a row into chunks
-    /// whose lengths are multiples of 32 (but the last) gets the same values and the same lane
-    /// sums as one call over the whole row.
+    /// added into `lanes[i mod 32]` (summed like [`softmax_scaled`]'s). A caller that cuts a
+    /// row into chunks whose lengths are multiples of 32 (but the last) gets the same values
+    /// and the same lane sums as one call over the whole row; [`exp_sum_round_into`] makes
+    /// them and rounds them to bf16 in one loop.
     pub fn exp_sum_into(src: &[f32], scale: f32, max: f32, out: &mut [f32], lanes: &mut [f32; 32]) {
         debug_assert_eq!(src.len(), out.len());
         let (a, b) = (scale * LOG2E, -(max * LOG2E));
-        let mut chunks = src.chunks_exact(32);
-        let mut outs = out.chunks_exact_mut(32);
-        for (c, o) in (&mut chunks).zip(&mut outs) {
-            for i in 0..32 {
-                let e = exp2_bf16_grade(c[i].mul_add(a, b));
-                o[i] = e;
-                lanes[i] += e;
-            }
+        // Whole blocks of 32, then the tail, with the lanes starting over at 0.
+        for (c, o) in src.chunks(32).zip(out.chunks_mut(32)) {
+            exp_sum_block(c, a, b, o, lanes);
         }
-        for (i, (&v, o)) in chunks.remainder().iter().zip(outs.into_remainder()).enumerate() {
-            let e = exp2_bf16_grade(v.mul_add(a, b));
-            *o = e;
-            lanes[i] += e;
-        }
+    }
+}
+
+/// `out[i] = exp2_bf16_grade(src[i] * a + b)`, each added into `lanes[i]`, for up to 32 values:
+/// one block of [`exp_sum_into`] and of [`exp_sum_round_into`]'s register loop, so both make
+/// the same values and lane sums.
+#[inline(always)]
+fn exp_sum_block(src: &[f32], a: f32, b: f32, out: &mut [f32], lanes: &mut [f32; 32]) {
+    for ((&v, o), lane) in src.iter().zip(out).zip(lanes.iter_mut()) {
+        let e = exp2_bf16_grade(v.mul_add(a, b));
+        *o = e;
+        *lane += e;
     }
 }
 
@@ -284,15 +286,12 @@ unsafe fn exp_round_avx512_bf16(
     pairs: &mut [u32],
     lanes: &mut [f32; 32],
 ) -> usize {
-    // The expression of `exp_sum_into`'s body, compiled with the same features: the same bits.
+    // `exp_sum_into`'s block, compiled with the same features: the same bits.
     let (a, b) = (scale * LOG2E, -(max * LOG2E));
     let blocks = src.len() / 32;
     for (c, out) in src.chunks_exact(32).zip(pairs.chunks_exact_mut(16)) {
         let mut e = [0.0f32; 32];
-        for i in 0..32 {
-            e[i] = exp2_bf16_grade(c[i].mul_add(a, b));
-            lanes[i] += e[i];
-        }
+        exp_sum_block(c, a, b, &mut e, lanes);
         // SAFETY: this function's features include the rounding's; `e` holds 32 values and
         // `out` their 16 pairs.
         unsafe { super::gemm::round_pairs_avx512_bf16(&e, out) };

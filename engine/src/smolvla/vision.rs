@@ -17,7 +17,7 @@ use super::weights::LinearWeights;
 use crate::EngineError;
 use crate::kernels::attention::{AttendScratch, KvSegment, Queries, QueryPositions, attend};
 use crate::kernels::gemm::{ActivationRows, gemm_par, gemm_par_pairs, round_pairs};
-use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, grown, vecmath};
+use crate::kernels::{FreeList, Init, PackedMatrix, Pool, Precision, SharedMut, grown, vecmath};
 use std::sync::Mutex;
 
 /// A view of one prepared camera image: `channels x side x side` floats, row-major, in `[-1, 1]`
@@ -71,10 +71,11 @@ pub(crate) struct CpuVision {
     /// (keys and values packed in it per request).
     precision: Precision,
     /// The activations of a group, kept between groups and calls (see [`TowerBuffers`]): one
-    /// set per thread that runs groups at the same time.
-    buffers: Mutex<Vec<TowerBuffers>>,
-    /// Free attention buffers, one set per part running at once (see [`HeadScratch`]).
-    head_scratch: Mutex<Vec<HeadScratch>>,
+    /// set per group run at the same time.
+    buffers: FreeList<TowerBuffers>,
+    /// Attention buffers, one set per attention part run at the same time (see
+    /// [`HeadScratch`]).
+    head_scratch: FreeList<HeadScratch>,
 }
 
 /// A group's activations (~40 MB in bf16, ~50 MB in f32, for 1 024 patch rows), kept resident
@@ -148,8 +149,8 @@ impl CpuVision {
             connector: w.connector.into_linear(precision).w,
             config: w.config,
             precision,
-            buffers: Mutex::default(),
-            head_scratch: Mutex::default(),
+            buffers: FreeList::default(),
+            head_scratch: FreeList::default(),
         }
     }
 
@@ -212,12 +213,7 @@ impl CpuVision {
             groups.push(first..end);
             first = end;
         }
-        // One forward at a time uses the buffers (a poisoned lock only means a panic left them
-        // half-written, and every value is written before it is read).
-        let mut slots = self.buffers.lock().unwrap_or_else(|e| e.into_inner());
         let threads = pool.threads().max(1);
-        let held = slots.len();
-        slots.resize_with(held.max(1), TowerBuffers::default);
         // While there is a group for every thread, each thread runs whole groups on its own
         // (the GEMMs inside run inline): no thread waits for another at each of the tower's
         // ~100 parallel regions per group, and the serial steps (unfolding, pixel shuffle) run
@@ -230,29 +226,15 @@ impl CpuVision {
         };
         let mut outs: Vec<VisionOutput> = Vec::with_capacity(groups.len());
         if spread > 0 {
-            slots.resize_with(held.max(threads), TowerBuffers::default);
-            let free: Vec<Mutex<&mut TowerBuffers>> = slots.iter_mut().map(Mutex::new).collect();
             let done: Vec<Mutex<Option<VisionOutput>>> =
                 (0..spread).map(|_| Mutex::new(None)).collect();
             pool.run(spread, |g| {
-                // At most `threads` parts run at once, so one of the `threads` slots is free.
-                let mut buffers = free
-                    .iter()
-                    .find_map(|slot| match slot.try_lock() {
-                        Ok(held) => Some(held),
-                        Err(std::sync::TryLockError::Poisoned(held)) => Some(held.into_inner()),
-                        Err(std::sync::TryLockError::WouldBlock) => None,
-                    })
-                    .expect("more tower parts at once than the pool has threads");
+                let mut buffers = self.buffers.take(TowerBuffers::default);
                 let range = groups[g].clone();
                 let mut out = VisionOutput::with_capacity(range.len());
-                self.forward_group(
-                    pool,
-                    &images[range.clone()],
-                    &grids[range],
-                    &mut buffers,
-                    &mut out,
-                );
+                let (group, group_grids) = (&images[range.clone()], &grids[range]);
+                self.forward_group(pool, group, group_grids, &mut buffers, &mut out);
+                self.buffers.put(buffers);
                 *done[g].lock().unwrap_or_else(|e| e.into_inner()) = Some(out);
             });
             for slot in done {
@@ -260,11 +242,15 @@ impl CpuVision {
                 outs.push(out.expect("every spread group ran"));
             }
         }
-        for range in &groups[spread..] {
-            let mut out = VisionOutput::with_capacity(range.len());
-            let (group, group_grids) = (&images[range.clone()], &grids[range.clone()]);
-            self.forward_group(pool, group, group_grids, &mut slots[0], &mut out);
-            outs.push(out);
+        if spread < groups.len() {
+            let mut buffers = self.buffers.take(TowerBuffers::default);
+            for range in &groups[spread..] {
+                let mut out = VisionOutput::with_capacity(range.len());
+                let (group, group_grids) = (&images[range.clone()], &grids[range.clone()]);
+                self.forward_group(pool, group, group_grids, &mut buffers, &mut out);
+                outs.push(out);
+            }
+            self.buffers.put(buffers);
         }
         let mut out = VisionOutput::with_capacity(images.len());
         for group in outs {
@@ -475,7 +461,7 @@ impl CpuVision {
         let out = attn.shared();
         let isa = pool.isa();
         pool.run(parts, |part| {
-            let mut scratch = self.head_scratch(self.precision);
+            let mut scratch = self.head_scratch.take(|| HeadScratch::new(self.precision));
             let HeadScratch {
                 scores,
                 out: tmp,
@@ -551,26 +537,8 @@ impl CpuVision {
                     }
                 }
             }
-            self.put_head_scratch(scratch);
+            self.head_scratch.put(scratch);
         });
-    }
-
-    /// A head's attention buffers from the stack of free ones (or new ones): a part of every
-    /// layer's attention used to allocate its own, ~1 MB for a 1 024-patch image, which
-    /// `malloc` took from `mmap` and the kernel zeroed page by page, twelve times a layer.
-    fn head_scratch(&self, precision: Precision) -> HeadScratch {
-        let mut free = self.head_scratch.lock().unwrap_or_else(|e| e.into_inner());
-        free.pop().unwrap_or_else(|| HeadScratch {
-            scores: AttendScratch::default(),
-            out: Vec::new(),
-            keys_t: PackedMatrix::empty_in(precision),
-            values: PackedMatrix::empty_in(precision),
-        })
-    }
-
-    fn put_head_scratch(&self, scratch: HeadScratch) {
-        let mut free = self.head_scratch.lock().unwrap_or_else(|e| e.into_inner());
-        free.push(scratch);
     }
 }
 
@@ -581,6 +549,20 @@ struct HeadScratch {
     out: Vec<f32>,
     keys_t: PackedMatrix,
     values: PackedMatrix,
+}
+
+impl HeadScratch {
+    /// Empty buffers, for keys and values packed in `precision`. Each attention part used to
+    /// allocate its own, ~1 MB for a 1 024-patch image, which `malloc` took from `mmap` and the
+    /// kernel zeroed page by page, twelve times a layer; they are now kept in a [`FreeList`].
+    fn new(precision: Precision) -> Self {
+        HeadScratch {
+            scores: AttendScratch::default(),
+            out: Vec::new(),
+            keys_t: PackedMatrix::empty_in(precision),
+            values: PackedMatrix::empty_in(precision),
+        }
+    }
 }
 
 /// What the vision attention reads: the `[q | k | v]` rows in f32, or rounded to bf16 pairs
