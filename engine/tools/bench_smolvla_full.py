@@ -9,12 +9,13 @@
 The whole table in one command (what docs/BENCHMARKS.md records):
 
     cargo build --release -p kairos-server --bin kairos
-    python3 engine/tools/bench_smolvla_full.py --batch 1,4 --iters 2 --checkpoint /tmp/smolvla_base_random \
+    python3 engine/tools/bench_smolvla_full.py --write-checkpoint $CKPT --no-bench   # once, 1.1 GB
+    python3 engine/tools/bench_smolvla_full.py --batch 1,4 --iters 3 --checkpoint $CKPT \
         --kairos-bin target/release/kairos --serve-rss
 
 Time the release build, as a deployment runs it: the dev build compiles the engine at opt-level 3
 too, but with debug assertions and overflow checks, which measured 6-11% slower on the vision
-tower (docs/BENCHMARKS.md, sixth stop).
+tower (docs/BENCHMARKS.md, "Engine: vision tower, prefix and kernels").
 
 Shapes: SmolVLM2-500M (SigLIP 12 layers of 768 on 512x512 images, patch 16, pixel shuffle 4 ->
 64 tokens per camera; 16 of the 32 SmolLM2 text layers, hidden 960, 15/5 heads of 64), expert
