@@ -19,7 +19,7 @@ COPY wit wit
 COPY assets assets
 RUN --mount=type=cache,target=/usr/local/cargo/registry \
     --mount=type=cache,target=/src/target \
-    cargo build --release --locked -p kairos-server --bin kairos \
+    cargo build --release --locked -p kairos-cli --bin kairos \
     && cp target/release/kairos /usr/local/bin/kairos
 
 FROM debian:bookworm-slim

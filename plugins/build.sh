@@ -32,7 +32,7 @@ if [ -n "${KAIROS_BIN:-}" ]; then
     KAIROS=$KAIROS_BIN
 else
     echo "building the kairos binary (for componentize and check)"
-    cargo build --quiet --locked -p kairos-server --bin kairos
+    cargo build --quiet --locked -p kairos-cli --bin kairos
     KAIROS=target/debug/kairos
 fi
 

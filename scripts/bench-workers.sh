@@ -3,7 +3,7 @@
 # local engine (`kairos serve --local-engines 0`), 1 vs 2 `kairos worker` processes, 8 robots
 # requesting back to back (`--trigger 0`), twice each; then a SIGKILL of one of two workers
 # mid-run and when the scheduler detected the loss and re-dispatched. Usage:
-#   cargo build -p kairos-server && bash scripts/bench-workers.sh [path/to/kairos]
+#   cargo build -p kairos-cli && bash scripts/bench-workers.sh [path/to/kairos]
 set -u
 K=$(realpath "${1:-target/debug/kairos}")
 WORK=$(mktemp -d)

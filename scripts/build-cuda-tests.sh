@@ -54,7 +54,7 @@ for line in sys.stdin:
     m = json.loads(line)
     if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["name"] in ("kairos_engine", "it"):
         print(m["target"]["name"], m["executable"])' > target/cuda-gpu/test-binaries.txt
-cargo build --locked -p kairos-server --bin kairos --features cuda
+cargo build --locked -p kairos-cli --bin kairos --features cuda
 
 mkdir -p .devbin
 while read -r name exe; do

@@ -41,6 +41,6 @@ export PATH="$CUDA_HOME/bin:$PATH" CUDA_PATH="$CUDA_HOME" CUDA_ROOT="$CUDA_HOME"
 export CUDA_COMPUTE_CAP="${CUDA_COMPUTE_CAP:-90}" CUDARC_CUDA_VERSION=13040
 nvcc --version | tail -2
 
-cargo clippy --locked -p kairos-engine -p kairos-server --features cuda --all-targets \
+cargo clippy --locked -p kairos-engine -p kairos-server -p kairos-cli --features cuda --all-targets \
     --target-dir "${CUDA_CHECK_TARGET_DIR:-target/cuda-check}" "$@" -- -D warnings
 echo "the cuda feature compiles (nvcc $(nvcc --version | grep -o 'release [0-9.]*'), sm_$CUDA_COMPUTE_CAP)"

@@ -9,7 +9,6 @@
 //! The server talks to models only through [`ActionModel`]; it never sees tensors.
 
 pub mod builtin;
-pub mod chunk;
 pub mod error;
 pub mod flow_head;
 pub mod image_features;
@@ -23,12 +22,11 @@ pub mod smolvla;
 pub mod weights;
 
 pub use builtin::{default_model, load_model, load_model_with, resolve_model, resolve_model_with};
-pub use chunk::ActionChunk;
 pub use error::{EngineError, InputError};
 pub use image_features::ImageLimits;
+pub use kairos_engine_types::ActionChunk;
+pub use kairos_engine_types::{ActionRequest, ImageFormat, ImageInput};
+pub use kairos_engine_types::{EngineProfile, ProfilePoint};
 pub use kernels::Precision;
-pub use model::{
-    ActionModel, ActionRequest, ImageFormat, ImageInput, MAX_SAMPLES, ModelSpec, generate_isolated,
-};
+pub use model::{ActionModel, MAX_SAMPLES, ModelSpec, generate_isolated};
 pub use options::{DeviceKind, EngineOptions, Kernels};
-pub use profile::{EngineProfile, ProfilePoint};

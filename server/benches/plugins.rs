@@ -21,18 +21,18 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
-use kairos_server::horizon::fixed::StaticHorizon;
-use kairos_server::horizon::threshold::Threshold;
-use kairos_server::horizon::{HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
+use kairos_core::horizon::fixed::StaticHorizon;
+use kairos_core::horizon::threshold::Threshold;
+use kairos_core::horizon::{HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
+use kairos_core::scheduler::{
+    FinishedTask, PendingView, PolicyError, PolicySpec, PriorityPolicy, TaskId, build_policy,
+};
+use kairos_core::time::Timestamp;
 use kairos_server::plugin::cache::CodeCache;
 use kairos_server::plugin::conformance::{UpdateShape, horizon_case, pending_case};
 use kairos_server::plugin::{
     InstanceMode, PluginOptions, PluginSource, WasmHorizonPolicy, WasmPriorityPolicy,
 };
-use kairos_server::scheduler::{
-    FinishedTask, PendingView, PolicyError, PolicySpec, PriorityPolicy, TaskId, build_policy,
-};
-use kairos_server::time::Timestamp;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 

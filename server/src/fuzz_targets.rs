@@ -25,14 +25,15 @@ use kairos_sdk::protocol::{
 };
 use kairos_sdk::trace::TraceSet;
 
-use crate::action::ActionManager;
 use crate::config::Config;
-use crate::horizon::{self, PolicyParams};
 use crate::plugin::factory::spec_params;
-use crate::registry::native_horizon_policies;
-use crate::scheduler::{PolicySpec, RobotId, build_policy};
-use crate::time::Timestamp;
-use crate::validation::{ClockMap, Validator, decode_images};
+use crate::validation::{Validator, decode_images};
+use kairos_core::action::ActionManager;
+use kairos_core::clock_map::ClockMap;
+use kairos_core::horizon::{self, PolicyParams};
+use kairos_core::registry::native_horizon_policies;
+use kairos_core::scheduler::{PolicySpec, RobotId, build_policy};
+use kairos_core::time::Timestamp;
 
 /// A fuzz target: one input, panics only on a broken invariant; `true` if every check passed.
 pub type Target = fn(&[u8]) -> bool;

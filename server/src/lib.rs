@@ -1,30 +1,24 @@
-//! Kairos server: the execution-aware scheduler, horizon policies, plugin host, engine pool,
-//! QUIC transport, the harnesses that drive fleets of robots against it (`fleet`, `demo`,
-//! `live_replay`), and the `kairos` command line (`cli`, which only parses and prints).
+//! Kairos server: the I/O shell around the pure core (`kairos-core`). The QUIC endpoint for
+//! robots and workers (`transport`), the openpi-compatible websocket endpoint (`openpi`), request
+//! validation (`validation`), the driver's shell that runs the core on a thread of its own
+//! (`driver`), the engine pool with local engines and remote workers (`pool`, `worker`), the
+//! WASM plugin host (`plugin`), configuration and the data directory (`config`, `data_dir`),
+//! metrics and readiness (`metrics`), and the parsers strangers feed, as fuzz targets
+//! (`fuzz_targets`).
+//!
+//! Tools that drive servers (the simulator, fleets, the demo, benchmarks) live in `kairos-bench`;
+//! the `kairos` command line lives in `kairos-cli`. Neither is a dependency of this crate.
 
-pub mod action;
-pub mod cli;
+pub mod clock;
 pub mod config;
+pub mod credentials;
 pub mod data_dir;
-pub mod demo;
 pub mod driver;
-pub mod fleet;
 pub mod fuzz_targets;
-pub mod horizon;
-pub mod horizon_bench;
-pub mod lifecycle;
-pub mod live_replay;
 pub mod metrics;
 pub mod openpi;
-pub mod plot;
 pub mod plugin;
 pub mod pool;
-pub mod registry;
-pub mod scheduler;
-pub mod sim;
-pub mod stats;
-pub mod time;
 pub mod transport;
 pub mod validation;
 pub mod worker;
-pub mod workload;

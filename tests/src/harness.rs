@@ -2,7 +2,7 @@
 //!
 //! [`TestServer::start`] runs the whole server (QUIC with TLS 1.3, the driver, the scheduler, an
 //! engine pool) on `127.0.0.1:0` with a temporary data dir, through the server's fleet harness
-//! (`kairos_server::fleet`, which `kairos demo` and `kairos bench live` use too).
+//! (`kairos_bench::fleet`, which `kairos demo` and `kairos bench live` use too).
 //! [`run_task`] plays one robot through a multi-round task with asynchronous inference (the next
 //! request goes out while the current chunk still executes) and logs, on the robot's own clock,
 //! what it did: when each request was sent and answered, when each chunk started executing, and
@@ -14,14 +14,15 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::{Context, bail};
+use kairos_bench::fleet::{self, LocalServer};
 use kairos_engine::{ActionModel, EngineProfile, ProfilePoint};
 use kairos_sdk::client::{Client, ClientConfig, NoRefetch, RoundRequest};
 use kairos_sdk::protocol::{
     HorizonSelection, LastExecInfo, Observation, TaskEnded, TaskOutcome, Tensor,
 };
 use kairos_sdk::tls::Fingerprint;
-use kairos_server::config::{Config, RobotConfig, hash_token};
-use kairos_server::fleet::{self, LocalServer};
+use kairos_server::config::{Config, RobotConfig};
+use kairos_server::credentials::hash_token;
 use kairos_server::pool::{EngineInstance, EnginePool, LocalEngine};
 use kairos_server::transport::launch::{Policies, RunningServer, ServerReport};
 
@@ -154,7 +155,7 @@ impl TestServer {
         let snapshot = self
             .server()
             .driver
-            .snapshot(kairos_server::scheduler::TaskId(task))
+            .snapshot(kairos_core::scheduler::TaskId(task))
             .await
             .expect("driver running")
             .unwrap_or_else(|| panic!("no record of task {task}"));

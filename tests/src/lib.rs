@@ -7,4 +7,5 @@
 pub mod harness;
 pub mod model;
 pub mod netns;
+pub mod plugins;
 pub mod proxy;

@@ -16,8 +16,8 @@
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, mpsc};
 
+use kairos_core::round::round_seed;
 use kairos_engine::{ActionChunk, ActionModel, ActionRequest, EngineError, ModelSpec};
-use kairos_server::validation::round_seed;
 use rand::{Rng, SeedableRng};
 
 /// Stops the engine thread at chosen rounds until the test releases it; see

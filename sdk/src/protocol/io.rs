@@ -8,9 +8,9 @@ use quinn::{ReadError, RecvStream, SendStream, WriteError};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 use tokio::time::Instant;
 
-use super::codec::{EncodeError, Message, WireBody, encode_body};
-use super::frame::{Frame, FrameError, HEADER_LEN, parse_header};
-use super::limits::Limits;
+use kairos_protocol::codec::{EncodeError, Message, WireBody, encode_body};
+use kairos_protocol::frame::{Frame, FrameError, HEADER_LEN, parse_header};
+use kairos_protocol::limits::Limits;
 
 /// Bodies grow in steps of at most this much as their bytes arrive, so a peer that announces a
 /// large frame and sends nothing costs no more than the bytes it actually sent.

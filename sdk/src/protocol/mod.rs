@@ -1,39 +1,11 @@
-//! The Kairos wire protocol, version 1 (normative text: `docs/PROTOCOL.md`).
-//!
-//! Shared by the robot client and the server. Transport: QUIC (TLS 1.3, ALPN `kairos/1`).
-//! A connection starts with a `Hello`/`Welcome` exchange on the first bidirectional stream; then
-//! every round is its own bidirectional stream opened by the client: `Submit`, zero or more
-//! `FetchObservation`/`FreshObservation` exchanges, then exactly one `Reply` or `Error`.
-//! Every message is one frame: `kind: u8 | length: u32 big-endian | body`, where body is a
-//! MessagePack map with string keys (see `messages`).
-//!
-//! The layers, each usable alone:
-//! - [`frame`]: bytes ↔ [`Frame`] (sans-IO, `Cursor`-based, never panics);
-//! - [`codec`]: [`Frame`] ↔ [`Message`] (MessagePack, strict envelope);
-//! - [`limits`]: [`Limits`] and [`Validate`], the size checks on every field;
-//! - [`io`]: reading and writing frames on quinn streams.
+//! The Kairos wire protocol, version 1 (normative text: `docs/PROTOCOL.md`): the sans-IO
+//! messages, framing, codec and limits of the `kairos-protocol` crate, re-exported, plus [`io`],
+//! reading and writing frames on quinn streams.
 
-pub mod codec;
-pub mod frame;
 pub mod io;
-pub mod limits;
-pub mod messages;
-mod strict;
-mod tensor;
-pub mod worker;
 
-pub use codec::{EncodeError, MAX_DEPTH, Message, WireBody, encode_body};
-pub use frame::{Frame, FrameError, HEADER_LEN};
 pub use io::{
     MinRate, ReadBounds, ReadFrameError, WriteFrameError, read_frame, read_frame_bounded,
     read_message, read_message_bounded, write_body, write_frame, write_message,
 };
-pub use limits::{Limits, MAX_ROUND, Validate, ValidationError};
-pub use messages::*;
-pub use tensor::TensorError;
-
-/// Protocol version spoken by this crate.
-pub const PROTOCOL_VERSION: u32 = 1;
-
-/// ALPN identifier of protocol version 1.
-pub const ALPN: &[u8] = b"kairos/1";
+pub use kairos_protocol::*;

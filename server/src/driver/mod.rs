@@ -1,5 +1,5 @@
-//! The driver: the [`Scheduler`](crate::scheduler::Scheduler) and what the server remembers
-//! around it, as a pure state machine ([`core::DriverCore`]) behind a thin shell ([`shell`]).
+//! The driver: the pure state machine of `kairos_core::driver` ([`DriverCore`]) behind a thin
+//! shell ([`shell`]) that runs it on a thread of its own and carries out its effects.
 //!
 //! The core takes events with `now` as an argument and returns [`core::Effect`]s: answers for
 //! the streams waiting for a round, re-fetch asks, batches to run, the next timer. It keeps
@@ -19,39 +19,28 @@
 //! meanwhile. No policy runs on a tokio worker thread. docs/ARCHITECTURE.md says why this
 //! split, with the measurement.
 //!
-//! Time is read from [`Clock`](crate::time::Clock), that is tokio's clock, so tests run the
+//! Time is read from [`Clock`](crate::clock::Clock), that is tokio's clock, so tests run the
 //! driver in virtual time.
 //!
 //! Shutdown: once the shutdown signal is set (or every handle is dropped) new rounds are
 //! refused with `shutting_down`; rounds already accepted are still run and answered, and the
 //! task returned by [`spawn`] completes when none is left.
 
-pub mod core;
-#[cfg(test)]
-mod core_tests;
 mod shell;
-mod stats;
 #[cfg(test)]
 mod tests;
 
-use std::collections::BTreeMap;
 use std::time::Duration;
 
-use kairos_sdk::protocol::{ErrorReply, IntervalUs, Reply, RoundRecordWire};
+pub use kairos_core::driver::{
+    DriverCore, DriverReport, DriverStats, LatencySummary, RECENT_LATENCIES, Redispatch,
+    RedispatchCounts, RedispatchRule, RoundAnswer, TaskSnapshot, WaiterId,
+};
+use kairos_core::round::ValidObservation;
 use tokio::sync::oneshot;
 
-pub use self::core::{Redispatch, RedispatchRule};
 pub use self::shell::EngineView;
 pub use self::shell::{DriverGone, DriverHandle, PendingRound, spawn};
-pub use self::stats::{DriverStats, LatencySummary, RECENT_LATENCIES, RedispatchCounts};
-use crate::lifecycle::RoundRecord;
-use crate::scheduler::{RobotId, TaskId};
-use crate::time::Timestamp;
-use crate::validation::{ClockMap, ValidObservation};
-
-/// Identifies one stream waiting for a round (a round may have several after reconnects).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub struct WaiterId(pub u64);
 
 /// A request from the driver to a round's connection task: send `FetchObservation` and return
 /// the validated `FreshObservation`. Dropping `reply` means "no fresh observation".
@@ -61,48 +50,6 @@ pub struct RefetchAsk {
     pub age: Duration,
     /// Where the fresh observation goes.
     pub reply: oneshot::Sender<ValidObservation>,
-}
-
-/// The answer to a round: the reply, or the error to send.
-pub type RoundAnswer = Result<Reply, ErrorReply>;
-
-/// A snapshot of one task for tests and metrics.
-#[derive(Clone, Debug, PartialEq)]
-pub struct TaskSnapshot {
-    /// The task.
-    pub task: TaskId,
-    /// Its owner.
-    pub owner: RobotId,
-    /// Rounds answered.
-    pub rounds_completed: u32,
-    /// The bounded G/E history on the server clock, oldest first.
-    pub history: Vec<RoundRecord>,
-    /// The clock mapping of the task's latest request.
-    pub clock: ClockMap,
-    /// Chunks generated and sent per round id (cached re-sends not counted), for the most recent
-    /// rounds (as many as the scheduler's history keeps).
-    pub generated: BTreeMap<u64, u32>,
-    /// Whether the task has ended.
-    pub ended: bool,
-}
-
-impl TaskSnapshot {
-    /// The history on the robot's clock, as `TaskEnded` carries it.
-    pub fn wire_history(&self) -> Vec<RoundRecordWire> {
-        let to_client = |start: Timestamp, end: Timestamp| IntervalUs {
-            start_us: self.clock.to_client(start),
-            end_us: self.clock.to_client(end),
-        };
-        self.history
-            .iter()
-            .map(|r| RoundRecordWire {
-                round: r.round,
-                generation: Some(to_client(r.generation.start, r.generation.end)),
-                execution: r.execution.map(|e| to_client(e.start, e.end)),
-                horizon: Some(r.horizon),
-            })
-            .collect()
-    }
 }
 
 /// Tunables of the driver.

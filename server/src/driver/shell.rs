@@ -14,16 +14,21 @@ use kairos_sdk::protocol::{ErrorReply, TaskEnded};
 use tokio::runtime::Handle;
 use tokio::sync::{mpsc, oneshot, watch};
 
-use super::core::{BatchJob, DriverCore, Effect};
 use super::{DriverConfig, DriverStats, RefetchAsk, RoundAnswer, TaskSnapshot, WaiterId};
-use crate::action::ActionManager;
 use crate::pool::BatchLabel;
-use crate::pool::{EngineInstance, EnginePool, LossReason, PoolBuildError, PoolError};
-use crate::scheduler::{
+use crate::pool::{EngineInstance, EnginePool, PoolBuildError, PoolError};
+use kairos_core::action::ActionManager;
+use kairos_core::driver::{BatchJob, DriverCore, Effect};
+use kairos_core::error::LossReason;
+use kairos_core::scheduler::{
     BatchId, EngineId, EngineSpec, RequestId, RobotId, Scheduler, ServerLoad, TaskId, Tier,
 };
-use crate::time::{Clock, Timestamp};
-use crate::validation::{RequestError, ValidEndTask, ValidObservation, ValidSubmit};
+use kairos_core::time::Timestamp;
+
+use crate::clock::Clock;
+use crate::metrics::DriverExport;
+use crate::validation::RequestError;
+use kairos_core::round::{ValidEndTask, ValidObservation, ValidSubmit};
 
 /// Messages to the driver thread.
 #[derive(Debug)]
@@ -69,7 +74,7 @@ enum Command {
         batch: BatchId,
         reason: LossReason,
         inputs: Vec<kairos_engine::ActionRequest>,
-        rounds: Vec<crate::action::HorizonJob>,
+        rounds: Vec<kairos_core::action::HorizonJob>,
     },
     AddEngine {
         instance: NewInstance,
@@ -284,6 +289,8 @@ struct Shell {
     refetch_timeout: Duration,
     timer: watch::Sender<Option<Timestamp>>,
     shutdown: watch::Receiver<bool>,
+    /// Where the core's report goes after every event (`/metrics`).
+    export: Option<DriverExport>,
 }
 
 /// Starts the driver: its core on a thread of its own, its waiting on the current tokio runtime.
@@ -304,8 +311,14 @@ pub fn spawn(
     runtime.spawn(watch_shutdown(shutdown.clone(), commands_tx.downgrade()));
     let mut core = DriverCore::new(scheduler, config.ended_snapshots);
     core.set_redispatch_rule(config.redispatch);
+    let export = config.metrics.driver().cloned();
+    if let Some(export) = &export {
+        export.attach_actions(actions.clone());
+        export.publish(core.report());
+    }
     let shell = Shell {
-        core: core.with_metrics(config.metrics),
+        core,
+        export,
         commands,
         reports: commands_tx.downgrade(),
         waiters: HashMap::new(),
@@ -464,6 +477,9 @@ impl Shell {
             Command::Shutdown => self.core.shut_down(),
         }
         self.carry_out(now);
+        if let Some(export) = &self.export {
+            export.publish(self.core.report());
+        }
     }
 
     fn carry_out(&mut self, now: Timestamp) {
@@ -553,9 +569,7 @@ impl Shell {
             return;
         };
         let Some(reports) = self.reports.upgrade() else {
-            let results = fail_all(RequestError::Internal(
-                "no engine instance for the batch".into(),
-            ));
+            let results = fail_all(RequestError::internal("no engine instance for the batch"));
             self.core.generation_ended(now, batch, Duration::ZERO);
             self.core.batch_done(now, batch, results);
             return;
@@ -595,6 +609,12 @@ impl Shell {
             let load = load_rx.await.ok();
             let results = match outcome {
                 Ok(chunks) => {
+                    // A request the engine failed alone gets its own wire error; the batch's
+                    // others go on.
+                    let chunks = chunks
+                        .into_iter()
+                        .map(|c| c.map_err(|e| ErrorReply::from(&RequestError::Engine(e))))
+                        .collect();
                     let chosen = tokio::task::spawn_blocking(move || {
                         actions.answer_batch(rounds, chunks, load)
                     })
@@ -603,7 +623,7 @@ impl Shell {
                         Ok(results) => results,
                         Err(error) => {
                             tracing::error!(%error, "horizon policies panicked");
-                            fail_all(RequestError::Internal(format!(
+                            fail_all(RequestError::internal(format!(
                                 "horizon policies panicked: {error}"
                             )))
                         }

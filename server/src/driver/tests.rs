@@ -17,14 +17,15 @@ use kairos_sdk::protocol::{
 use tokio::sync::{Semaphore, mpsc, watch};
 
 use super::*;
-use crate::action::ActionManager;
-use crate::horizon::{HorizonError, HorizonInput, HorizonPolicy};
 use crate::pool::test_model::LinearFlow;
 use crate::pool::{BatchChunks, EngineInstance, EnginePool, PoolError};
-use crate::registry::{HorizonRegistry, native_horizon_policies};
-use crate::scheduler::fifo::Fifo;
-use crate::scheduler::{Scheduler, SchedulerConfig, Tier};
 use crate::validation::Validator;
+use kairos_core::action::ActionManager;
+use kairos_core::clock_map::ClockMap;
+use kairos_core::horizon::{HorizonError, HorizonInput, HorizonPolicy};
+use kairos_core::registry::{HorizonRegistry, native_horizon_policies};
+use kairos_core::scheduler::fifo::Fifo;
+use kairos_core::scheduler::{RobotId, Scheduler, SchedulerConfig, TaskId, Tier};
 
 /// `LinearFlow` behind a gate: each batch takes one permit, then runs on the blocking pool. It
 /// draws its noise from seed 0, so that the first action shows which observation was used:

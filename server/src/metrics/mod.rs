@@ -1,22 +1,23 @@
 //! Prometheus metrics and readiness: what `/metrics` and `/ready` serve ([`http`]).
 //!
 //! One [`Metrics`] per process (the scheduler's `kairos serve`, or a `kairos worker`), cheap to
-//! clone (an `Arc`), owning the [`prometheus_client`] registry. The components that own a fact
-//! feed it at the point where they already count it: the driver core (queue depth, round
-//! latency, batch size, deadline misses, engine busy time), the action manager and the plugin
-//! host (policy fallbacks), the launcher (engine instances by tier and state), the worker pool
-//! (re-dispatches, worker round trips). Nothing here keeps a second copy of a count: each counter
-//! is either fed where the fact happens, or *is* the owner's counter (the plugin health record
-//! and the action manager count their fallbacks in the [`Counter`] handed to them).
-//!
-//! A `kairos worker` process uses [`Metrics::for_worker`]: the same registry type and families
-//! (its engine's busy time, its batch sizes) plus the worker's own ([`WorkerConnection`],
-//! batches answered, heartbeats sent, compute time per batch), fed by `crate::worker`.
+//! clone (an `Arc`), owning the [`prometheus_client`] registry. Each fact has one owner, and
+//! nothing here keeps a second copy of a count:
+//! - the driver core counts rounds, batches, latencies, deadline misses, re-dispatches and
+//!   engine busy time, and reports them as data; the driver's shell publishes each report to
+//!   [`DriverExport`] and every scrape encodes the latest ([`driver`]); the action manager's
+//!   fallbacks are read from it the same way;
+//! - the plugin host counts its fallbacks in the [`Counter`] handed to it
+//!   ([`Metrics::fallback_counter`]);
+//! - a `kairos worker` process ([`Metrics::for_worker`]) counts its own facts in typed families:
+//!   its connection state, batches answered, heartbeats sent, compute time per batch, its
+//!   engine's busy time and batch sizes, fed by `crate::worker`.
 //!
 //! No label names a robot or a task: a fleet of thousands must not become thousands of series.
 //! Label values are engine instances, worker ids, tiers, re-dispatch reasons and policy names,
 //! all bounded by the deployment's configuration.
 
+pub mod driver;
 pub mod http;
 
 use std::collections::BTreeMap;
@@ -31,7 +32,7 @@ use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::{Registry, Unit};
 
-use crate::scheduler::Tier;
+pub use self::driver::DriverExport;
 
 /// `Content-Type` of [`Metrics::encode`]'s output (OpenMetrics text, which Prometheus scrapes).
 pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
@@ -40,25 +41,6 @@ pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; cha
 /// scrapes closer together than this see the previous value rather than a noisy ratio over a
 /// few milliseconds.
 pub const BUSY_RATIO_MIN_WINDOW: Duration = Duration::from_secs(1);
-
-/// The state of an engine instance, as `kairos_workers` counts it.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum WorkerState {
-    /// Registered and taking batches.
-    Ready,
-    /// Finishing its batch before it leaves (a worker that sent `Drain`).
-    Draining,
-}
-
-impl WorkerState {
-    /// The label value.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            WorkerState::Ready => "ready",
-            WorkerState::Draining => "draining",
-        }
-    }
-}
 
 /// A worker process's connection to its scheduler, as `kairos_worker_connection{state}` shows
 /// it (1 for the current state, 0 for the others).
@@ -113,29 +95,6 @@ impl PolicyKind {
     }
 }
 
-fn tier_label(tier: Tier) -> &'static str {
-    match tier {
-        Tier::Edge => "edge",
-        Tier::Cloud => "cloud",
-    }
-}
-
-#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
-struct WorkerLabels {
-    tier: &'static str,
-    state: &'static str,
-}
-
-#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
-struct ReasonLabel {
-    reason: String,
-}
-
-#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
-struct WorkerLabel {
-    worker: String,
-}
-
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct EngineLabel {
     engine: String,
@@ -170,24 +129,21 @@ struct EngineBusy {
 
 struct Inner {
     registry: Registry,
-    queue_depth: Gauge,
-    workers: Family<WorkerLabels, Gauge>,
-    round_latency: Histogram,
-    batch_size: Histogram,
-    deadline_misses: Counter,
-    redispatch: Family<ReasonLabel, Counter>,
-    worker_rtt: Family<WorkerLabel, FloatGauge>,
     plugin_fallbacks: Family<FallbackLabels, Counter>,
-    engine_busy: Family<EngineLabel, FloatCounter>,
-    engine_busy_ratio: Family<EngineLabel, FloatGauge>,
-    /// Per engine: its busy counter and ratio gauge, and where the ratio's window started.
-    engines: Mutex<BTreeMap<String, EngineBusy>>,
+    /// The scheduler's: the driver core's latest report, encoded at every scrape. `None` in a
+    /// worker.
+    driver: Option<DriverExport>,
     /// The worker process's own families ([`Metrics::for_worker`]); `None` in a scheduler.
     worker: Option<WorkerFamilies>,
 }
 
 /// What only a `kairos worker` process exports.
 struct WorkerFamilies {
+    batch_size: Histogram,
+    engine_busy: Family<EngineLabel, FloatCounter>,
+    engine_busy_ratio: Family<EngineLabel, FloatGauge>,
+    /// Per engine: its busy counter and ratio gauge, and where the ratio's window started.
+    engines: Mutex<BTreeMap<String, EngineBusy>>,
     connection: Family<StateLabel, Gauge>,
     batches: Counter,
     failed_batches: Counter,
@@ -229,75 +185,40 @@ impl Metrics {
 
     fn build(worker: bool) -> Metrics {
         let mut registry = Registry::default();
-        let queue_depth = Gauge::default();
-        registry.register(
-            "kairos_queue_depth",
-            "Rounds waiting for dispatch (accepted by the scheduler, not yet in a batch)",
-            queue_depth.clone(),
-        );
-        let workers = Family::<WorkerLabels, Gauge>::default();
-        registry.register(
-            "kairos_workers",
-            "Engine instances (local engines and remote workers) by tier and state",
-            workers.clone(),
-        );
-        // 1 ms .. ~16 s: a round is a forward pass (ms to a second) plus queueing.
-        let round_latency = Histogram::new(exponential_buckets(0.001, 2.0, 15));
-        registry.register_with_unit(
-            "kairos_round_latency",
-            "Server-side latency of answered rounds, from the Submit read to the reply",
-            Unit::Seconds,
-            round_latency.clone(),
-        );
-        // 1 .. 512 requests per batch.
-        let batch_size = Histogram::new(exponential_buckets(1.0, 2.0, 10));
-        registry.register(
-            "kairos_batch_size",
-            "Requests per batch given to an engine instance",
-            batch_size.clone(),
-        );
-        let deadline_misses = Counter::default();
-        registry.register(
-            "kairos_deadline_misses",
-            "Rounds answered after their robot ran out of actions (E.end of its previous round), \
-             plus rounds refused because they could no longer be served in time",
-            deadline_misses.clone(),
-        );
-        let redispatch = Family::<ReasonLabel, Counter>::default();
-        registry.register(
-            "kairos_redispatch",
-            "Rounds put back at the front of the queue after their worker failed, by reason",
-            redispatch.clone(),
-        );
-        let worker_rtt = Family::<WorkerLabel, FloatGauge>::default();
-        registry.register_with_unit(
-            "kairos_worker_rtt",
-            "Moving average of a remote worker's round trip (batch time less its compute time)",
-            Unit::Seconds,
-            worker_rtt.clone(),
-        );
         let plugin_fallbacks = Family::<FallbackLabels, Counter>::default();
         registry.register(
             "kairos_plugin_fallbacks",
-            "Decisions answered by a fallback policy because the selected one failed",
+            "Decisions a policy plugin answered through its fallback policy because it failed",
             plugin_fallbacks.clone(),
         );
-        let engine_busy = Family::<EngineLabel, FloatCounter>::default();
-        registry.register_with_unit(
-            "kairos_engine_busy",
-            "Time an engine instance spent running forward passes; \
-             rate() of it is the busy fraction",
-            Unit::Seconds,
-            engine_busy.clone(),
-        );
-        let engine_busy_ratio = Family::<EngineLabel, FloatGauge>::default();
-        registry.register(
-            "kairos_engine_busy_ratio",
-            "Fraction of the time since the previous scrape (at least 1 s) an engine instance \
-             spent running forward passes",
-            engine_busy_ratio.clone(),
-        );
+        let driver = (!worker).then(|| {
+            let export = DriverExport::default();
+            registry.register_collector(Box::new(driver::DriverCollector(export.clone())));
+            export
+        });
         let worker = worker.then(|| {
+            // 1 .. 512 requests per batch.
+            let batch_size = Histogram::new(exponential_buckets(1.0, 2.0, 10));
+            registry.register(
+                "kairos_batch_size",
+                "Requests per batch given to an engine instance",
+                batch_size.clone(),
+            );
+            let engine_busy = Family::<EngineLabel, FloatCounter>::default();
+            registry.register_with_unit(
+                "kairos_engine_busy",
+                "Time an engine instance spent running forward passes; \
+                 rate() of it is the busy fraction",
+                Unit::Seconds,
+                engine_busy.clone(),
+            );
+            let engine_busy_ratio = Family::<EngineLabel, FloatGauge>::default();
+            registry.register(
+                "kairos_engine_busy_ratio",
+                "Fraction of the time since the previous scrape (at least 1 s) an engine instance \
+                 spent running forward passes",
+                engine_busy_ratio.clone(),
+            );
             let connection = Family::<StateLabel, Gauge>::default();
             registry.register(
                 "kairos_worker_connection",
@@ -331,6 +252,10 @@ impl Metrics {
                 compute.clone(),
             );
             WorkerFamilies {
+                batch_size,
+                engine_busy,
+                engine_busy_ratio,
+                engines: Mutex::new(BTreeMap::new()),
                 connection,
                 batches,
                 failed_batches,
@@ -340,19 +265,15 @@ impl Metrics {
         });
         Metrics(Arc::new(Inner {
             registry,
-            queue_depth,
-            workers,
-            round_latency,
-            batch_size,
-            deadline_misses,
-            redispatch,
-            worker_rtt,
             plugin_fallbacks,
-            engine_busy,
-            engine_busy_ratio,
-            engines: Mutex::new(BTreeMap::new()),
+            driver,
             worker,
         }))
+    }
+
+    /// Where the driver's shell publishes the core's reports (`None` in a worker process).
+    pub fn driver(&self) -> Option<&DriverExport> {
+        self.0.driver.as_ref()
     }
 
     /// `kairos_worker_connection{state}`: the worker is now in `state`. No-op in a scheduler.
@@ -374,8 +295,8 @@ impl Metrics {
         if let Some(w) = &self.0.worker {
             w.batches.inc();
             w.compute.observe(compute.as_secs_f64());
+            w.batch_size.observe(requests as f64);
         }
-        self.observe_batch_size(requests);
     }
 
     /// `kairos_worker_failed_batches_total`: a batch the worker could not answer.
@@ -397,81 +318,6 @@ impl Metrics {
         self.0.worker.as_ref().map_or(0, |w| w.batches.get())
     }
 
-    /// `kairos_queue_depth`: rounds waiting for dispatch.
-    pub fn set_queue_depth(&self, rounds: usize) {
-        self.0.queue_depth.set(saturating_i64(rounds));
-    }
-
-    /// `kairos_workers{tier,state}`: engine instances of `tier` in `state`.
-    pub fn set_workers(&self, tier: Tier, state: WorkerState, count: usize) {
-        self.0
-            .workers
-            .get_or_create(&WorkerLabels {
-                tier: tier_label(tier),
-                state: state.as_str(),
-            })
-            .set(saturating_i64(count));
-    }
-
-    /// `kairos_round_latency_seconds`: one answered round's server-side latency.
-    pub fn observe_round_latency(&self, latency: Duration) {
-        self.0.round_latency.observe(latency.as_secs_f64());
-    }
-
-    /// `kairos_batch_size`: one batch handed to an engine.
-    pub fn observe_batch_size(&self, requests: usize) {
-        self.0.batch_size.observe(requests as f64);
-    }
-
-    /// `kairos_deadline_misses_total`: one round late for its robot.
-    pub fn record_deadline_miss(&self) {
-        self.0.deadline_misses.inc();
-    }
-
-    /// `kairos_redispatch_total{reason}`: `rounds` rounds put back in the queue for `reason`
-    /// (e.g. `connection_lost`, `stream_reset`, `deadline`).
-    pub fn record_redispatch(&self, reason: &str, rounds: u64) {
-        self.0
-            .redispatch
-            .get_or_create(&ReasonLabel {
-                reason: reason.to_string(),
-            })
-            .inc_by(rounds);
-    }
-
-    /// Creates `kairos_redispatch_total{reason}` at zero for each of `reasons`, so that the
-    /// family is exported (and rate() queries and alerts resolve) before the first re-dispatch:
-    /// prometheus-client writes no family without a series.
-    pub fn declare_redispatch_reasons(&self, reasons: &[&str]) {
-        for reason in reasons {
-            self.record_redispatch(reason, 0);
-        }
-    }
-
-    /// `kairos_worker_rtt_seconds{worker}`: the worker's current round-trip estimate.
-    pub fn set_worker_rtt(&self, worker: &str, rtt: Duration) {
-        self.0
-            .worker_rtt
-            .get_or_create(&WorkerLabel {
-                worker: worker.to_string(),
-            })
-            .set(rtt.as_secs_f64());
-    }
-
-    /// Drops the series of a worker that left (its RTT and busy time), so departed workers do
-    /// not accumulate.
-    pub fn remove_worker(&self, worker: &str) {
-        self.0.worker_rtt.remove(&WorkerLabel {
-            worker: worker.to_string(),
-        });
-        let engine = EngineLabel {
-            engine: worker.to_string(),
-        };
-        self.0.engine_busy.remove(&engine);
-        self.0.engine_busy_ratio.remove(&engine);
-        lock(&self.0.engines).remove(worker);
-    }
-
     /// The counter of fallbacks of `policy` (`kairos_plugin_fallbacks_total{kind,policy}`),
     /// for its owner to count in. Handles to the same labels share one value.
     pub fn fallback_counter(&self, kind: PolicyKind, policy: &str) -> Counter {
@@ -484,18 +330,25 @@ impl Metrics {
             .clone()
     }
 
-    /// Makes `engine` appear in `kairos_engine_busy_*` at zero before its first batch.
+    /// Makes `engine` appear in `kairos_engine_busy_*` at zero before its first batch (a worker
+    /// process's; in a scheduler the driver's report carries its engines).
     pub fn add_engine(&self, engine: &str) {
         self.with_engine(engine, |_| ());
     }
 
-    /// `kairos_engine_busy_seconds_total{engine}`: `engine` ran a forward pass for `busy`.
+    /// `kairos_engine_busy_seconds_total{engine}`: the worker's `engine` ran a forward pass for
+    /// `busy`. No-op in a scheduler, whose driver core counts its engines' busy time.
     pub fn record_engine_busy(&self, engine: &str, busy: Duration) {
-        self.with_engine(engine, |e| e.busy.inc_by(busy.as_secs_f64()));
+        self.with_engine(engine, |e| {
+            e.busy.inc_by(busy.as_secs_f64());
+        });
     }
 
-    fn with_engine<R>(&self, engine: &str, f: impl FnOnce(&EngineBusy) -> R) -> R {
-        let mut engines = lock(&self.0.engines);
+    fn with_engine(&self, engine: &str, f: impl FnOnce(&EngineBusy)) {
+        let Some(w) = &self.0.worker else {
+            return;
+        };
+        let mut engines = lock(&w.engines);
         if let Some(e) = engines.get(engine) {
             return f(e);
         }
@@ -503,13 +356,12 @@ impl Metrics {
             engine: engine.to_string(),
         };
         let e = EngineBusy {
-            busy: self.0.engine_busy.get_or_create(&label).clone(),
-            ratio: self.0.engine_busy_ratio.get_or_create(&label).clone(),
+            busy: w.engine_busy.get_or_create(&label).clone(),
+            ratio: w.engine_busy_ratio.get_or_create(&label).clone(),
             mark: None,
         };
-        let r = f(&e);
+        f(&e);
         engines.insert(engine.to_string(), e);
-        r
     }
 
     /// The registry in the OpenMetrics text format ([`CONTENT_TYPE`]), after recomputing the
@@ -531,7 +383,10 @@ impl Metrics {
     /// `kairos_engine_busy_ratio`: busy seconds gained over the time since the previous
     /// recomputation (at least [`BUSY_RATIO_MIN_WINDOW`] ago), per engine.
     fn refresh_busy_ratios(&self, now: Instant) {
-        for e in lock(&self.0.engines).values_mut() {
+        let Some(w) = &self.0.worker else {
+            return;
+        };
+        for e in lock(&w.engines).values_mut() {
             let busy_secs = e.busy.get();
             let Some(mark) = e.mark else {
                 e.mark = Some(BusyMark { at: now, busy_secs });
@@ -571,16 +426,19 @@ impl Readiness {
     }
 }
 
-fn saturating_i64(n: usize) -> i64 {
-    i64::try_from(n).unwrap_or(i64::MAX)
-}
-
 fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     mutex.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
 #[cfg(test)]
 mod tests {
+    use kairos_core::action::ActionManager;
+    use kairos_core::driver::{
+        DriverReport, DriverStats, EngineReport, EngineState, Histogram as CoreHistogram,
+    };
+    use kairos_core::error::LossReason;
+    use kairos_core::scheduler::Tier;
+
     use super::*;
 
     /// The sample line of `name` (with its labels) in `text`, parsed.
@@ -589,30 +447,65 @@ mod tests {
             .find_map(|line| line.strip_prefix(series)?.strip_prefix(' ')?.parse().ok())
     }
 
+    fn engine(name: &str, tier: Tier, state: EngineState, busy_ms: u64) -> EngineReport {
+        EngineReport {
+            name: name.into(),
+            tier,
+            state,
+            busy: false,
+            busy_time: Duration::from_millis(busy_ms),
+            rtt: None,
+        }
+    }
+
+    /// A report as the driver core would publish it.
+    fn report() -> DriverReport {
+        let mut stats = DriverStats {
+            round_latency: CoreHistogram::round_latency(),
+            batch_size: CoreHistogram::batch_size(),
+            deadline_misses: 1,
+            ..DriverStats::default()
+        };
+        stats.round_latency.observe(0.003);
+        stats.batch_size.observe(4.0);
+        for _ in 0..3 {
+            stats.redispatched.count(LossReason::ConnectionLost);
+        }
+        let mut gpu = engine("gpu-0", Tier::Cloud, EngineState::Draining, 0);
+        gpu.rtt = Some(Duration::from_millis(20));
+        DriverReport {
+            stats,
+            queue_depth: 7,
+            running: 0,
+            open_tasks: 3,
+            engines: vec![
+                engine("edge-0", Tier::Edge, EngineState::Ready, 250),
+                engine("edge-1", Tier::Edge, EngineState::Ready, 0),
+                gpu,
+            ],
+        }
+    }
+
     #[test]
     fn every_family_is_exported_and_typed() {
         let metrics = Metrics::new();
-        metrics.set_queue_depth(7);
-        metrics.set_workers(Tier::Edge, WorkerState::Ready, 2);
-        metrics.set_workers(Tier::Cloud, WorkerState::Draining, 1);
-        metrics.observe_round_latency(Duration::from_millis(3));
-        metrics.observe_batch_size(4);
-        metrics.record_deadline_miss();
-        metrics.declare_redispatch_reasons(&["connection_lost", "deadline"]);
-        metrics.record_redispatch("connection_lost", 3);
-        metrics.set_worker_rtt("gpu-0", Duration::from_millis(20));
+        let export = metrics.driver().expect("a scheduler's registry");
+        export.publish(report());
         metrics.fallback_counter(PolicyKind::Priority, "plas").inc();
-        metrics.record_engine_busy("edge-0", Duration::from_millis(250));
         let text = metrics.encode();
         for (series, value) in [
             ("kairos_queue_depth", 7.0),
             (r#"kairos_workers{tier="edge",state="ready"}"#, 2.0),
             (r#"kairos_workers{tier="cloud",state="draining"}"#, 1.0),
+            (r#"kairos_workers{tier="cloud",state="ready"}"#, 0.0),
             ("kairos_round_latency_seconds_count", 1.0),
             ("kairos_round_latency_seconds_sum", 0.003),
+            (r#"kairos_round_latency_seconds_bucket{le="0.004"}"#, 1.0),
+            (r#"kairos_round_latency_seconds_bucket{le="0.002"}"#, 0.0),
             ("kairos_batch_size_count", 1.0),
             (r#"kairos_batch_size_bucket{le="4.0"}"#, 1.0),
             (r#"kairos_batch_size_bucket{le="2.0"}"#, 0.0),
+            (r#"kairos_batch_size_bucket{le="+Inf"}"#, 1.0),
             ("kairos_deadline_misses_total", 1.0),
             (r#"kairos_redispatch_total{reason="connection_lost"}"#, 3.0),
             (r#"kairos_redispatch_total{reason="deadline"}"#, 0.0),
@@ -629,10 +522,32 @@ mod tests {
         assert!(text.contains("# TYPE kairos_round_latency_seconds histogram"));
         assert!(text.contains("# TYPE kairos_deadline_misses counter"));
         assert!(text.ends_with("# EOF\n"), "OpenMetrics ends with EOF");
+        assert!(
+            !text.contains(r#"kairos_worker_rtt_seconds{worker="edge-0"}"#),
+            "a local engine has no round trip"
+        );
 
-        // A departed worker's series go away.
-        metrics.remove_worker("gpu-0");
+        // A departed worker's series go away with it from the report.
+        let mut next = report();
+        next.engines.pop();
+        export.publish(next);
         assert!(!metrics.encode().contains("gpu-0"));
+    }
+
+    #[test]
+    fn the_action_managers_fallbacks_are_exported_by_policy() {
+        use kairos_core::registry::native_horizon_policies;
+        let metrics = Metrics::new();
+        let natives = native_horizon_policies();
+        let actions = Arc::new(
+            ActionManager::new(natives.clone(), &natives, "threshold", BTreeMap::new()).unwrap(),
+        );
+        metrics.driver().unwrap().attach_actions(actions.clone());
+        assert!(
+            !metrics.encode().contains("kairos_horizon_fallbacks"),
+            "no fallback yet: no series, no family"
+        );
+        assert_eq!(actions.fallback_count(), 0);
     }
 
     #[test]
@@ -640,7 +555,15 @@ mod tests {
         let scheduler = Metrics::new();
         scheduler.record_worker_heartbeat();
         scheduler.set_worker_connection(WorkerConnection::Registered);
-        assert!(!scheduler.encode().contains("kairos_worker_"));
+        let text = scheduler.encode();
+        for family in [
+            "kairos_worker_connection",
+            "kairos_worker_batches",
+            "kairos_worker_heartbeats",
+            "kairos_worker_compute",
+        ] {
+            assert!(!text.contains(family), "{family} in a scheduler's registry");
+        }
 
         let worker = Metrics::for_worker();
         let connected = |text: &str, state: &str| {
@@ -692,26 +615,40 @@ mod tests {
 
     #[test]
     fn busy_ratio_is_busy_time_over_the_window_since_the_last_scrape() {
-        let metrics = Metrics::new();
+        let export = DriverExport::default();
+        let publish = |busy_ms: u64| {
+            export.publish(DriverReport {
+                engines: vec![engine("edge-0", Tier::Edge, EngineState::Ready, busy_ms)],
+                ..DriverReport::default()
+            })
+        };
+        publish(0);
+        let t0 = Instant::now();
+        let ratio = |now: Instant| export.encode_at(now).busy_ratios.get("edge-0").copied();
+        // The first scrape starts the window.
+        assert_eq!(ratio(t0), Some(0.0));
+        publish(500);
+        // Too soon: the previous value stands and the window keeps its start.
+        assert_eq!(ratio(t0 + Duration::from_millis(100)), Some(0.0));
+        assert_eq!(ratio(t0 + Duration::from_secs(2)), Some(0.25));
+        // An idle window decays to zero.
+        assert_eq!(ratio(t0 + Duration::from_secs(4)), Some(0.0));
+        // An engine that left is forgotten.
+        export.publish(DriverReport::default());
+        assert_eq!(ratio(t0 + Duration::from_secs(6)), None);
+    }
+
+    #[test]
+    fn a_workers_busy_ratio_follows_its_engine() {
+        let metrics = Metrics::for_worker();
         metrics.add_engine("edge-0");
         let t0 = Instant::now();
         let ratio = |text: &str| sample(text, r#"kairos_engine_busy_ratio{engine="edge-0"}"#);
-        // The first scrape starts the window.
         assert_eq!(ratio(&metrics.encode_at(t0)), Some(0.0));
         metrics.record_engine_busy("edge-0", Duration::from_millis(500));
-        // Too soon: the previous value stands and the window keeps its start.
-        assert_eq!(
-            ratio(&metrics.encode_at(t0 + Duration::from_millis(100))),
-            Some(0.0)
-        );
         assert_eq!(
             ratio(&metrics.encode_at(t0 + Duration::from_secs(2))),
             Some(0.25)
-        );
-        // An idle window decays to zero.
-        assert_eq!(
-            ratio(&metrics.encode_at(t0 + Duration::from_secs(4))),
-            Some(0.0)
         );
     }
 

@@ -21,7 +21,7 @@
 
 use kairos_sdk::protocol::LastExecInfo;
 
-use crate::time::Timestamp;
+use kairos_core::time::Timestamp;
 
 /// Estimated control rates are kept in this range (Hz): a client that calls again at once (a
 /// benchmark loop) would otherwise report an infinite rate.

@@ -56,9 +56,10 @@ use self::exec::ExecEstimate;
 use self::msgpack::Writer;
 use crate::config::OpenpiConfig;
 use crate::driver::RefetchAsk;
-use crate::scheduler::RobotId;
 use crate::transport::{DRAIN_TIMEOUT, ServerContext};
-use crate::validation::{ClockMap, RequestError};
+use crate::validation::RequestError;
+use kairos_core::clock_map::ClockMap;
+use kairos_core::scheduler::RobotId;
 
 /// Most msgpack values one request may hold (an observation dict has tens).
 pub const MAX_VALUES: usize = 4096;
@@ -490,7 +491,7 @@ impl Session {
         let reply = match answer {
             Ok(Ok(reply)) => reply,
             Ok(Err(error)) => return Err(End::from(error)),
-            Err(_) => return Err(End::refused(&RequestError::ShuttingDown)),
+            Err(_) => return Err(End::refused(&RequestError::SHUTTING_DOWN)),
         };
         let frame = self.reply_frame(&reply);
         if ws.send(Message::binary(frame)).await.is_err() {

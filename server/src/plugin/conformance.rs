@@ -19,12 +19,12 @@ use rand::{Rng, SeedableRng};
 use super::health::FailureKind;
 use super::runtime::LoadError;
 use super::{PluginKind, PluginOptions, PluginSource, WasmHorizonPolicy, WasmPriorityPolicy};
-use crate::horizon::{ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
-use crate::scheduler::{
+use kairos_core::horizon::{ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
+use kairos_core::scheduler::{
     FinishedTask, PendingView, PolicyError, PriorityPolicy, RemainingWork, RequestId, ServerLoad,
     TaskId,
 };
-use crate::time::Timestamp;
+use kairos_core::time::Timestamp;
 
 /// What to run.
 #[derive(Clone, Debug)]
@@ -771,7 +771,7 @@ fn summarize(times: Vec<(String, Duration)>) -> Vec<Timing> {
         .map(|(group, mut ts)| {
             ts.sort_unstable();
             let secs: Vec<f64> = ts.iter().map(Duration::as_secs_f64).collect();
-            let at = |q: f64| Duration::from_secs_f64(crate::stats::quantile(&secs, q));
+            let at = |q: f64| Duration::from_secs_f64(kairos_core::stats::quantile(&secs, q));
             Timing {
                 group,
                 calls: ts.len(),

@@ -11,11 +11,11 @@ use super::{
     HorizonPlugin, LoadError, PluginKind, PluginOptions, PluginSource, WasmPriorityPolicy,
 };
 use crate::config::PluginConfig;
-use crate::horizon::{self, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
-use crate::registry::{
+use kairos_core::horizon::{self, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
+use kairos_core::registry::{
     HorizonKind, HorizonRegistry, Origin, PolicyKind, PriorityKind, PriorityRegistry, RegistryError,
 };
-use crate::scheduler::{PolicySpec, PolicySpecError, PriorityPolicy, build_policy};
+use kairos_core::scheduler::{PolicySpec, PolicySpecError, PriorityPolicy, build_policy};
 
 /// Calls a native policy with its own default parameters, whatever the request carried (those
 /// were meant for the plugin).

@@ -13,8 +13,10 @@ use super::reload::Reloader;
 use super::runtime::{CallCost, CallFailure, Compiled, Exec, LoadError, PluginMeta, World, load};
 use super::sandbox::HostState;
 use super::{PluginKind, PluginOptions, PluginSource};
-use crate::horizon::{HorizonError, HorizonInput, HorizonPolicy, PolicyParams, validate_horizon};
-use crate::scheduler::ServerLoad;
+use kairos_core::horizon::{
+    HorizonError, HorizonInput, HorizonPolicy, PolicyParams, validate_horizon,
+};
+use kairos_core::scheduler::ServerLoad;
 
 use since_v0_1_0::horizon as v0_1;
 use since_v0_2_0::horizon as v0_2;
@@ -86,7 +88,7 @@ macro_rules! call_choose_in {
                 queued: l.queued,
                 running: l.running,
                 open_tasks: l.open_tasks,
-                backlog_ns: crate::time::duration_nanos(l.backlog),
+                backlog_ns: kairos_core::time::duration_nanos(l.backlog),
             }),
         })
     };
@@ -209,7 +211,7 @@ impl OwnedHorizonInput {
     /// Borrows it as a [`HorizonInput`].
     pub fn view(&self) -> HorizonInput<'_> {
         HorizonInput {
-            chunk: crate::horizon::ChunkView {
+            chunk: kairos_core::horizon::ChunkView {
                 samples: self.samples,
                 steps: self.steps,
                 chunk_len: self.chunk_len,
@@ -506,8 +508,8 @@ impl HorizonPolicy for WasmHorizonPolicy {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::horizon::ChunkView;
     use crate::plugin::runtime::testing::{shipped, short_patience};
+    use kairos_core::horizon::ChunkView;
 
     #[test]
     fn a_stuck_worker_thread_is_abandoned_and_replaced() {
@@ -526,7 +528,7 @@ mod tests {
             release
         };
         let fallback =
-            crate::horizon::builtin("static", &PolicyParams::from([("h".to_string(), 3.0)]))
+            kairos_core::horizon::builtin("static", &PolicyParams::from([("h".to_string(), 3.0)]))
                 .unwrap();
         let mut policy = plugin.policy(fallback);
         let updates = [0.1, 0.1, 0.1, 0.1, 0.2, 0.2, 0.2, 0.2];
@@ -558,7 +560,7 @@ mod tests {
         let answer = policy.choose(&input);
         assert_eq!(policy.stats().answered, 1, "the replacement thread answers");
         assert_eq!(policy.answered_by(), None, "the plugin answered itself");
-        let mut native = crate::horizon::builtin("threshold", &params).unwrap();
+        let mut native = kairos_core::horizon::builtin("threshold", &params).unwrap();
         assert_eq!(
             answer,
             native.choose(&input),

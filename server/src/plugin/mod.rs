@@ -5,8 +5,8 @@
 //! of the WIT package `kairos:policy` (`wit/`, documented in `docs/PLUGINS.md`).
 //!
 //! - [`WasmHorizonPolicy`] and [`WasmPriorityPolicy`] wrap a component as a native
-//!   [`HorizonPolicy`](crate::horizon::HorizonPolicy) /
-//!   [`PriorityPolicy`](crate::scheduler::PriorityPolicy), so the action manager and the
+//!   [`HorizonPolicy`](kairos_core::horizon::HorizonPolicy) /
+//!   [`PriorityPolicy`](kairos_core::scheduler::PriorityPolicy), so the action manager and the
 //!   scheduler take them like any built-in policy. Each wraps a built-in fallback policy too.
 //! - Loading ([`load`]) reads the component's world and version from its exports
 //!   ([`inspect`]), refuses the wrong world, an unsupported version or an import the sandbox
@@ -44,8 +44,6 @@ use std::time::Duration;
 pub use health::{FailureKind, PluginStats};
 pub use horizon::{HorizonPlugin, OwnedHorizonInput, WasmHorizonPolicy};
 pub use priority::WasmPriorityPolicy;
-#[cfg(test)]
-pub(crate) use runtime::testing;
 pub use runtime::{CallCost, CallFailure, LoadError, PluginMeta};
 
 /// Which world a plugin implements.

@@ -12,11 +12,11 @@ use super::reload::Reloader;
 use super::runtime::{CallCost, CallFailure, Compiled, Exec, LoadError, PluginMeta, World, load};
 use super::sandbox::HostState;
 use super::{PluginKind, PluginOptions, PluginSource};
-use crate::horizon::PolicyParams;
-use crate::scheduler::{
+use kairos_core::horizon::PolicyParams;
+use kairos_core::scheduler::{
     FinishedTask, PendingView, PolicyError, PriorityPolicy, order_by_indexed_key, validate_order,
 };
-use crate::time::Timestamp;
+use kairos_core::time::Timestamp;
 
 use since_v0_1_0::priority as v0_1;
 use since_v0_2_0::priority as v0_2;
@@ -74,7 +74,7 @@ impl World for PriorityWorld {
     }
 }
 
-use crate::time::duration_nanos as nanos;
+use kairos_core::time::duration_nanos as nanos;
 
 /// The pending list in v0.1.0's types.
 fn pending_v0_1(pending: &[PendingView]) -> Vec<v0_1::exports::kairos::policy::priority::Pending> {
@@ -603,7 +603,7 @@ mod tests {
 
     use super::*;
     use crate::plugin::runtime::testing::{shipped, short_patience};
-    use crate::scheduler::{PolicySpec, RemainingWork, RequestId, TaskId, build_policy};
+    use kairos_core::scheduler::{PolicySpec, RemainingWork, RequestId, TaskId, build_policy};
 
     fn view(request: u64, arrived_us: u64) -> PendingView {
         PendingView {

@@ -1,6 +1,7 @@
-//! The engine pool `[[engine]]` sections describe.
+//! The engine pool `[[engine]]` sections describe, and [`ModelSchemes`]: model specs a caller
+//! adds to those the engine crate resolves.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use kairos_engine::profile::{
@@ -10,7 +11,7 @@ use kairos_engine::{ActionModel, EngineError, EngineOptions, EngineProfile, Prof
 
 use super::{EmulatedLinkEngine, EngineInstance, EnginePool, LocalEngine, PoolBuildError};
 use crate::config::EngineConfig;
-use crate::scheduler::Tier;
+use kairos_core::scheduler::Tier;
 
 /// Timed generations per batch size when a profile is measured at start (after one warm-up);
 /// the median is kept.
@@ -26,8 +27,8 @@ pub enum PoolConfigError {
         index: usize,
         /// Its `model`.
         model: String,
-        /// The engine's error.
-        source: EngineError,
+        /// The engine's error (boxed: Candle's errors are large, and this one is rare).
+        source: Box<EngineError>,
     },
     /// The profile file could not be read.
     #[error("engine[{index}]: profile {}: {reason}", .path.display())]
@@ -46,8 +47,8 @@ pub enum PoolConfigError {
         index: usize,
         /// Its `model`.
         model: String,
-        /// The engine's error.
-        source: EngineError,
+        /// The engine's error (boxed, as above).
+        source: Box<EngineError>,
     },
     /// The instances do not form a pool.
     #[error(transparent)]
@@ -90,6 +91,7 @@ pub enum BuildEvent {
 /// nothing. Blocking: loading and profiling run models; call it off the async runtime.
 pub fn build_pool(
     engines: &[EngineConfig],
+    schemes: &ModelSchemes,
     mut progress: impl FnMut(BuildEvent),
 ) -> Result<EnginePool, PoolConfigError> {
     let default = [EngineConfig::default()];
@@ -108,13 +110,13 @@ pub fn build_pool(
         let failed = |source| PoolConfigError::Model {
             index,
             model: config.model.clone(),
-            source,
+            source: Box::new(source),
         };
         let options = config.options().map_err(failed)?;
-        let model: Arc<dyn ActionModel> =
-            resolve_model(&config.model, config.tokenizer.as_deref(), &options)
-                .map_err(failed)?
-                .into();
+        let model: Arc<dyn ActionModel> = schemes
+            .resolve(&config.model, config.tokenizer.as_deref(), &options)
+            .map_err(failed)?
+            .into();
         site_spec.get_or_insert_with(|| model.spec().clone());
         if config.instances == 0 {
             continue;
@@ -144,26 +146,73 @@ pub fn build_pool(
     Ok(EnginePool::with_spec(spec, instances)?)
 }
 
-/// Loads the model a `model` spec names: `horizon-flow:DIR`, the closed-loop bench's policy
-/// ([`crate::horizon_bench::served`], on the CPU whatever `options` say), or anything the engine
-/// crate resolves (`builtin`, `builtin:<preset>`, a checkpoint path), with `tokenizer` for a
-/// SmolVLA checkpoint (`None`: the `tokenizer.json` beside it; a model that reads no text
-/// refuses one).
-pub fn resolve_model(
-    name: &str,
-    tokenizer: Option<&std::path::Path>,
-    options: &EngineOptions,
-) -> Result<Box<dyn ActionModel>, EngineError> {
-    use crate::horizon_bench::served;
-    // Refused before the policy is loaded, as the engine crate refuses a built-in's tokenizer.
-    if tokenizer.is_some() && name.starts_with(served::HORIZON_FLOW_PREFIX) {
-        return Err(EngineError::InvalidInput(format!(
-            "a tokenizer was given, but `{name}` reads no text"
-        )));
+/// Resolves a model spec `scheme:REST` of a scheme the caller registered, taking the
+/// `--tokenizer` argument and the engine options.
+pub type ResolveModel = dyn Fn(&str, Option<&Path>, &EngineOptions) -> Result<Box<dyn ActionModel>, EngineError>
+    + Send
+    + Sync;
+
+/// Model specs beyond the engine crate's (`builtin`, `builtin:<preset>`, a checkpoint folder):
+/// `scheme:REST`, loaded by a function its caller registers. A tool with models of its own (the
+/// closed-loop bench's `horizon-flow:DIR`) registers them here, so serving never imports the
+/// tool. `REST` is a path; `kairos.toml` resolves it against the file's folder
+/// ([`Config::load`](crate::config::Config::load)).
+#[derive(Clone, Default)]
+pub struct ModelSchemes {
+    schemes: Vec<(String, Arc<ResolveModel>)>,
+}
+
+impl std::fmt::Debug for ModelSchemes {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_list()
+            .entries(self.schemes.iter().map(|(scheme, _)| scheme))
+            .finish()
     }
-    match served::resolve(name) {
-        Some(model) => Ok(Box::new(model?)),
-        None => kairos_engine::resolve_model_with(name, tokenizer, options),
+}
+
+impl ModelSchemes {
+    /// Only the engine crate's models.
+    pub fn new() -> ModelSchemes {
+        ModelSchemes::default()
+    }
+
+    /// Specs `scheme:REST` are loaded by `resolve(REST, tokenizer, options)` (a later
+    /// registration of the same scheme replaces the earlier).
+    pub fn register(
+        &mut self,
+        scheme: &str,
+        resolve: impl Fn(
+            &str,
+            Option<&Path>,
+            &EngineOptions,
+        ) -> Result<Box<dyn ActionModel>, EngineError>
+        + Send
+        + Sync
+        + 'static,
+    ) -> &mut ModelSchemes {
+        self.schemes.retain(|(s, _)| s != scheme);
+        self.schemes.push((scheme.to_string(), Arc::new(resolve)));
+        self
+    }
+
+    /// Loads the model `name` names: a registered scheme's, or whatever the engine crate
+    /// resolves, with `tokenizer` for a SmolVLA checkpoint (`None`: the `tokenizer.json` beside
+    /// it; a model that reads no text refuses one).
+    pub fn resolve(
+        &self,
+        name: &str,
+        tokenizer: Option<&Path>,
+        options: &EngineOptions,
+    ) -> Result<Box<dyn ActionModel>, EngineError> {
+        for (scheme, resolve) in &self.schemes {
+            if let Some(rest) = name
+                .strip_prefix(scheme.as_str())
+                .and_then(|r| r.strip_prefix(':'))
+            {
+                return resolve(rest, tokenizer, options);
+            }
+        }
+        kairos_engine::resolve_model_with(name, tokenizer, options)
     }
 }
 
@@ -209,10 +258,10 @@ fn measure_at_start(
     options: &EngineOptions,
     progress: &mut impl FnMut(BuildEvent),
 ) -> Result<EngineProfile, PoolConfigError> {
-    let failed = |source| PoolConfigError::Measure {
+    let failed = |source: EngineError| PoolConfigError::Measure {
         index,
         model: config.model.clone(),
-        source,
+        source: Box::new(source),
     };
     let device = format!(
         "{} (measured at start)",
@@ -264,16 +313,38 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_horizon_flow_model_refuses_a_tokenizer_before_loading() {
-        // The directory does not exist: the tokenizer is refused without trying to load it.
-        let error = resolve_model(
-            "horizon-flow:/nonexistent/horizon-model",
-            Some(std::path::Path::new("tokenizer.json")),
-            &EngineOptions::default(),
-        )
-        .err()
-        .expect("a tokenizer for a model that reads no text is refused");
-        assert!(error.to_string().contains("reads no text"), "{error}");
+    fn a_registered_scheme_is_resolved_before_the_engine_crate() {
+        let mut schemes = ModelSchemes::new();
+        schemes.register("echo", |rest, tokenizer, _| {
+            Err(EngineError::InvalidInput(format!(
+                "echo asked for `{rest}` with tokenizer {tokenizer:?}"
+            )))
+        });
+        let error = schemes
+            .resolve(
+                "echo:dir/x",
+                Some(Path::new("t.json")),
+                &EngineOptions::default(),
+            )
+            .err()
+            .expect("the registered resolver answered");
+        assert!(
+            error
+                .to_string()
+                .contains("`dir/x` with tokenizer Some(\"t.json\")"),
+            "{error}"
+        );
+        // Another scheme, or the bare name, goes to the engine crate.
+        assert!(
+            schemes
+                .resolve("echoes:x", None, &EngineOptions::default())
+                .is_err()
+        );
+        let builtin = schemes
+            .resolve("builtin", None, &EngineOptions::default())
+            .unwrap();
+        let default = kairos_engine::default_model(&EngineOptions::default()).unwrap();
+        assert_eq!(builtin.spec().name, default.spec().name);
     }
 
     #[test]
@@ -312,7 +383,7 @@ mod tests {
             },
         ];
         let mut events = Vec::new();
-        let pool = build_pool(&engines, |e| events.push(e)).unwrap();
+        let pool = build_pool(&engines, &ModelSchemes::new(), |e| events.push(e)).unwrap();
         let specs = pool.specs();
         assert_eq!(specs.len(), 3);
         assert_eq!(specs[0].profile.max_batch, 4, "max_batch caps the profile");
@@ -331,7 +402,7 @@ mod tests {
             model: "builtin:nope".into(),
             ..EngineConfig::default()
         }];
-        let err = build_pool(&bad, |_| {}).unwrap_err();
+        let err = build_pool(&bad, &ModelSchemes::new(), |_| {}).unwrap_err();
         assert!(err.to_string().contains("builtin:nope"), "{err}");
     }
 
@@ -343,7 +414,7 @@ mod tests {
             profile_max_batch: 1,
             ..EngineConfig::default()
         }];
-        let pool = build_pool(&engines, |_| {}).unwrap();
+        let pool = build_pool(&engines, &ModelSchemes::new(), |_| {}).unwrap();
         let device = &pool.specs()[0].profile.device;
         assert!(
             device.contains("Portable") && device.contains("1 threads"),
@@ -358,7 +429,9 @@ mod tests {
             device: "cuda:0".into(),
             ..EngineConfig::default()
         }];
-        let err = build_pool(&engines, |_| {}).unwrap_err().to_string();
+        let err = build_pool(&engines, &ModelSchemes::new(), |_| {})
+            .unwrap_err()
+            .to_string();
         assert!(
             err.contains("engine[0]") && err.contains("--features cuda"),
             "{err}"

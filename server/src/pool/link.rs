@@ -8,7 +8,7 @@ use futures::future::BoxFuture;
 use kairos_engine::{ActionRequest, EngineProfile, ModelSpec};
 
 use super::{BatchChunks, EngineInstance, PoolError};
-use crate::scheduler::Tier;
+use kairos_core::scheduler::Tier;
 
 /// Wraps an instance and adds a fixed round trip to every batch: half before the batch reaches
 /// the engine, half after the chunks leave it. This is an **emulation** of a remote (cloud) link

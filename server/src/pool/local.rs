@@ -14,7 +14,7 @@ use kairos_engine::{
 use tokio::sync::oneshot;
 
 use super::{BatchChunks, EngineInstance, PoolError, check_output};
-use crate::scheduler::Tier;
+use kairos_core::scheduler::Tier;
 
 type Answer = Result<BatchChunks, PoolError>;
 

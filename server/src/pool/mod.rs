@@ -27,12 +27,13 @@ use std::time::Duration;
 use futures::future::BoxFuture;
 use kairos_engine::{ActionChunk, ActionRequest, EngineError, EngineProfile, ModelSpec};
 
-pub use build::{BuildEvent, PoolConfigError, build_pool, resolve_model};
+pub use build::{BuildEvent, ModelSchemes, PoolConfigError, ResolveModel, build_pool};
 pub use link::EmulatedLinkEngine;
 pub use local::LocalEngine;
 pub use remote::RemoteEngine;
 
-use crate::scheduler::{EngineId, EngineSpec, Tier};
+pub use kairos_core::error::LossReason;
+use kairos_core::scheduler::{EngineId, EngineSpec, Tier};
 
 /// Why a batch produced no chunks.
 #[derive(Debug, thiserror::Error)]
@@ -88,45 +89,6 @@ pub enum PoolError {
     },
 }
 
-/// Why a batch was lost with its engine instance (the label of the re-dispatch counter).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum LossReason {
-    /// The worker's connection closed or timed out (missed heartbeats, kill).
-    ConnectionLost,
-    /// The worker reset the batch's stream, or answered something unusable for the batch.
-    StreamReset,
-    /// The batch's deadline passed without an answer.
-    Deadline,
-    /// The instance had left the pool before the batch could be sent.
-    Gone,
-}
-
-impl LossReason {
-    /// Every reason, for exporting counters.
-    pub const ALL: [LossReason; 4] = [
-        LossReason::ConnectionLost,
-        LossReason::StreamReset,
-        LossReason::Deadline,
-        LossReason::Gone,
-    ];
-
-    /// The label, `snake_case`.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            LossReason::ConnectionLost => "connection_lost",
-            LossReason::StreamReset => "stream_reset",
-            LossReason::Deadline => "deadline",
-            LossReason::Gone => "gone",
-        }
-    }
-}
-
-impl std::fmt::Display for LossReason {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
 /// One result per request of a batch, in order: its chunk, or why that request got none.
 pub type BatchChunks = Vec<Result<ActionChunk, PoolError>>;
 
@@ -168,7 +130,7 @@ pub trait EngineInstance: Send + Sync {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct BatchLabel {
     /// The scheduler's batch id (never reused).
-    pub batch: crate::scheduler::BatchId,
+    pub batch: kairos_core::scheduler::BatchId,
     /// Earlier dispatches of its rounds (0: none ran in a lost batch).
     pub attempt: u32,
 }

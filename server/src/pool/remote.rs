@@ -28,9 +28,10 @@ use kairos_sdk::protocol::{
 };
 use quinn::{Connection, ConnectionError, ReadError, VarInt, WriteError};
 
-use super::{BatchChunks, BatchLabel, EngineInstance, LossReason, PoolError, check_output};
+use super::{BatchChunks, BatchLabel, EngineInstance, PoolError, check_output};
 use crate::config::WorkersConfig;
-use crate::scheduler::Tier;
+use kairos_core::error::LossReason;
+use kairos_core::scheduler::Tier;
 
 /// A moving average of a worker's round trip: end-to-end batch time minus the compute time the
 /// worker reports, so payload transfer counts. Seeded from QUIC's smoothed RTT. Pure.
@@ -180,7 +181,7 @@ impl EngineInstance for RemoteEngine {
     fn run(&self, batch: Vec<ActionRequest>) -> BoxFuture<'static, Result<BatchChunks, PoolError>> {
         self.run_labeled(
             BatchLabel {
-                batch: crate::scheduler::BatchId(u64::MAX),
+                batch: kairos_core::scheduler::BatchId(u64::MAX),
                 attempt: 0,
             },
             batch,

@@ -143,12 +143,7 @@ pub fn replay_state(round: &RoundTrace, chunk_len: usize) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::action::{ActionManager, RoundContext};
-    use crate::horizon::PolicyParams;
-    use crate::registry::{HorizonRegistry, native_horizon_policies};
-    use crate::sim::horizon::{ReplayHorizon, confidence_for_target};
     use kairos_engine::ProfilePoint;
-    use kairos_sdk::trace::HorizonSetting;
 
     fn profile() -> EngineProfile {
         EngineProfile {
@@ -189,47 +184,6 @@ mod tests {
             round_trip_us: None,
             obs_bytes: 100,
             confidence,
-        }
-    }
-
-    #[test]
-    fn the_live_horizon_from_a_replayed_chunk_is_the_simulators() {
-        let n = 50;
-        let model = TraceReplayModel::new(n, profile()).unwrap();
-        let params = PolicyParams::from([("t".to_string(), 0.4), ("h_min".to_string(), 5.0)]);
-        let manager = ActionManager::new(
-            HorizonRegistry::new(),
-            &native_horizon_policies(),
-            "threshold",
-            params.clone(),
-        )
-        .unwrap();
-        let setting = HorizonSetting {
-            policy: "threshold".into(),
-            params: params.clone(),
-        };
-        let mut sim = ReplayHorizon::new(&setting).unwrap();
-        for target in [1, 5, 9, 17, 33, 50] {
-            let recorded = round(Some(confidence_for_target(target, 0.4, n as u32)), target);
-            let chunk = &model
-                .generate(&[request(replay_state(&recorded, n))])
-                .unwrap()[0];
-            let mut policy = manager.build(Some("threshold"), Some(&params)).unwrap();
-            let live = manager
-                .choose(
-                    &mut policy,
-                    chunk,
-                    RoundContext {
-                        control_hz: 20.0,
-                        round_index: 0,
-                        recent_horizons: &[],
-                        load: None,
-                    },
-                )
-                .unwrap();
-            let simulated = sim.choose(&recorded, 0, n as u32, 20.0).unwrap();
-            assert_eq!(live.horizon as u32, simulated, "target {target}");
-            assert_eq!(live.horizon, (target as usize).max(5));
         }
     }
 

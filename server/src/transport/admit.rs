@@ -7,9 +7,10 @@ use tokio::sync::mpsc;
 
 use super::ServerContext;
 use crate::driver::{PendingRound, RefetchAsk};
-use crate::scheduler::RobotId;
-use crate::time::Timestamp;
-use crate::validation::{ClockMap, RequestError};
+use crate::validation::RequestError;
+use kairos_core::clock_map::ClockMap;
+use kairos_core::scheduler::RobotId;
+use kairos_core::time::Timestamp;
 
 impl ServerContext {
     /// Validates `submit` from `robot`, decodes its images and hands it to the driver.
@@ -25,10 +26,10 @@ impl ServerContext {
         link: mpsc::Sender<RefetchAsk>,
     ) -> Result<PendingRound, RequestError> {
         let valid = self.validator.submit(submit, robot, &self.actions, clock)?;
-        let valid = self.validator.decode_submit(valid).await?;
+        let valid = self.decode.decode_submit(valid).await?;
         self.driver
             .submit(valid, received, link)
             .await
-            .map_err(|_| RequestError::ShuttingDown)
+            .map_err(|_| RequestError::SHUTTING_DOWN)
     }
 }

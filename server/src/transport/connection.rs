@@ -15,9 +15,10 @@ use tokio::time::Instant;
 
 use super::{Gate, ServerContext};
 use crate::driver::RefetchAsk;
-use crate::scheduler::RobotId;
-use crate::time::Timestamp;
-use crate::validation::{ClockEstimator, ClockMap, RequestError};
+use crate::validation::RequestError;
+use kairos_core::clock_map::{ClockEstimator, ClockMap};
+use kairos_core::scheduler::RobotId;
+use kairos_core::time::Timestamp;
 
 /// How long the server waits, after a stream's final frame, for the client to acknowledge it or
 /// finish its own side.
@@ -373,7 +374,7 @@ async fn end_task(
         .driver
         .end_task(peer.robot, end)
         .await
-        .map_err(|_| RequestError::ShuttingDown)?;
+        .map_err(|_| RequestError::SHUTTING_DOWN)?;
     let message = match answer {
         Ok(ended) => Message::TaskEnded(ended),
         Err(error) => Message::Error(error),
@@ -416,7 +417,7 @@ async fn round(
         Ok(Ok(reply)) => Message::Reply(reply),
         Ok(Err(error)) => Message::Error(error),
         // The driver stopped without answering.
-        Err(_) => return Err(RequestError::ShuttingDown),
+        Err(_) => return Err(RequestError::SHUTTING_DOWN),
     };
     let _ = write_message(send, &message, context.limits().max_frame).await;
     let _ = send.finish();
@@ -448,7 +449,7 @@ async fn refetch(
     let fetch = Message::FetchObservation(FetchObservation {
         task,
         round,
-        age_us: crate::time::duration_micros(ask.age),
+        age_us: kairos_core::time::duration_micros(ask.age),
     });
     if write_message(send, &fetch, context.limits().max_frame)
         .await
@@ -465,7 +466,7 @@ async fn refetch(
         Ok(Some(Message::FreshObservation(fresh))) => {
             let clock = peer.clock(context, fresh.sent_at_us, true);
             let checked = match context.validator.fresh(fresh, clock) {
-                Ok(observation) => context.validator.decode(observation).await,
+                Ok(observation) => context.decode.decode(observation).await,
                 Err(error) => Err(error),
             };
             match checked {

@@ -13,15 +13,17 @@ use tokio::sync::watch;
 
 use super::tls::{ServerIdentity, TlsError};
 use super::{RobotTable, ServerContext, TransportStats};
-use crate::action::{ActionConfigError, ActionManager};
-use crate::config::{Config, ConfigError, resolve_robots};
+use crate::config::{Config, ConfigError};
+use crate::credentials::{RobotCredential, hash_token, parse_token_hash};
+use crate::data_dir::DataDir;
 use crate::driver::{DriverConfig, DriverHandle, DriverStats};
-use crate::metrics::{Metrics, Readiness, WorkerState};
+use crate::metrics::{Metrics, Readiness};
 use crate::pool::EnginePool;
-use crate::registry::{build_priority, native_horizon_policies, native_priority_policies};
-use crate::scheduler::Scheduler;
-use crate::scheduler::registry::PolicySpecError;
-use crate::validation::Validator;
+use crate::validation::{DecodePool, Validator};
+use kairos_core::action::{ActionConfigError, ActionManager};
+use kairos_core::registry::{build_priority, native_horizon_policies, native_priority_policies};
+use kairos_core::scheduler::Scheduler;
+use kairos_core::scheduler::registry::PolicySpecError;
 
 /// Why the server could not start.
 #[derive(Debug, thiserror::Error)]
@@ -77,7 +79,7 @@ pub enum LaunchError {
     },
 }
 
-pub use crate::registry::Policies;
+pub use kairos_core::registry::Policies;
 
 /// A running server.
 pub struct RunningServer {
@@ -120,7 +122,7 @@ impl Drop for AbortOnDrop {
 }
 
 /// What a server did, returned when it stops.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct ServerReport {
     /// Connections.
     pub transport: TransportStats,
@@ -171,7 +173,7 @@ pub async fn start(
     let (robots, tokens_file) = resolve_robots(config)?;
     let worker_token_hash = if config.workers.enabled {
         let token = crate::data_dir::DataDir::new(&config.data_dir).worker_token_or_generate()?;
-        Some(crate::config::hash_token(&token))
+        Some(crate::credentials::hash_token(&token))
     } else {
         None
     };
@@ -187,23 +189,16 @@ pub async fn start(
     horizons.extend(policies.horizon);
     priorities.extend(policies.priority);
     let natives = native_horizon_policies();
-    let actions = Arc::new(
-        ActionManager::new(
-            horizons,
-            &natives,
-            &config.horizon.policy,
-            config.horizon.params.clone(),
-        )?
-        .with_metrics(metrics.clone()),
-    );
+    let actions = Arc::new(ActionManager::new(
+        horizons,
+        &natives,
+        &config.horizon.policy,
+        config.horizon.params.clone(),
+    )?);
     let mut all_priorities = native_priority_policies();
     all_priorities.extend(priorities);
     let priority = build_priority(&all_priorities, &config.scheduler.policy)?;
     let specs = pool.specs();
-    for tier in [crate::scheduler::Tier::Edge, crate::scheduler::Tier::Cloud] {
-        let count = specs.iter().filter(|e| e.tier == tier).count();
-        metrics.set_workers(tier, WorkerState::Ready, count);
-    }
     let scheduler = Scheduler::new(config.scheduler.core(), specs, priority);
 
     let server_config = quinn_server_config(&identity, config)?;
@@ -275,9 +270,12 @@ pub async fn start(
         max_images: limits.max_images,
         cameras: spec.cameras.clone(),
     };
+    let validator = Validator { spec, limits };
+    let decode = DecodePool::for_this_machine(validator.image_limits());
     let context = Arc::new(ServerContext {
         robots: RobotTable::new(&robots),
-        validator: Validator { spec, limits },
+        validator,
+        decode,
         actions,
         driver: driver.clone(),
         model: model.clone(),
@@ -384,4 +382,86 @@ fn quinn_server_config(
     let mut server = quinn::ServerConfig::with_crypto(Arc::new(crypto));
     server.transport_config(Arc::new(transport)).migration(true);
     Ok(server)
+}
+
+/// The robots the server accepts: those configured, or else the generated local ones from the
+/// data directory's tokens file ([`DataDir::tokens_or_generate`]).
+/// Returns the credentials and, when the tokens file is in use, its path.
+fn resolve_robots(config: &Config) -> Result<(Vec<RobotCredential>, Option<PathBuf>), ConfigError> {
+    if !config.robots.is_empty() {
+        let robots = config
+            .robots
+            .iter()
+            .filter_map(|r| {
+                parse_token_hash(&r.token_sha256).map(|token_hash| RobotCredential {
+                    name: r.name.clone(),
+                    token_hash,
+                })
+            })
+            .collect();
+        return Ok((robots, None));
+    }
+    let data_dir = DataDir::new(&config.data_dir);
+    let file = data_dir.tokens_or_generate()?;
+    let robots = file
+        .robots
+        .iter()
+        .map(|r| RobotCredential {
+            name: r.name.clone(),
+            token_hash: hash_token(&r.token),
+        })
+        .collect();
+    Ok((robots, Some(data_dir.tokens())))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::fs;
+
+    use crate::config::{DEFAULT_ROBOT, RobotConfig};
+
+    use super::*;
+
+    #[test]
+    fn default_robot_token_is_generated_once_with_private_permissions() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = Config {
+            data_dir: dir.path().join("data"),
+            ..Config::default()
+        };
+        let (robots, path) = resolve_robots(&config).unwrap();
+        let path = path.unwrap();
+        assert_eq!(robots.len(), 1);
+        assert_eq!(robots[0].name, DEFAULT_ROBOT);
+        assert_eq!(path, DataDir::new(&config.data_dir).tokens());
+        let token = DataDir::new(&config.data_dir).token(DEFAULT_ROBOT).unwrap();
+        let token = token.as_str();
+        assert!(token.starts_with("kairos_") && token.len() == 7 + 64);
+        assert_eq!(robots[0].token_hash, hash_token(token));
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let mode = fs::metadata(&path).unwrap().permissions().mode();
+            assert_eq!(mode & 0o777, 0o600);
+        }
+        let (again, _) = resolve_robots(&config).unwrap();
+        assert_eq!(again, robots, "a second start reuses the token");
+    }
+
+    #[test]
+    fn configured_robots_use_their_hashes_and_no_token_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = Config {
+            data_dir: dir.path().to_path_buf(),
+            robots: vec![RobotConfig {
+                name: "arm".into(),
+                token_sha256: hex::encode(hash_token("secret")),
+            }],
+            ..Config::default()
+        };
+        let (robots, path) = resolve_robots(&config).unwrap();
+        assert!(path.is_none());
+        assert_eq!(robots[0].token_hash, hash_token("secret"));
+        assert!(!DataDir::new(dir.path()).tokens().exists());
+    }
 }

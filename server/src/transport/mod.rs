@@ -52,11 +52,12 @@ use quinn::VarInt;
 use tokio::sync::{Semaphore, watch};
 use tokio::task::JoinSet;
 
-use crate::action::ActionManager;
-use crate::config::{ConnectionsConfig, RobotCredential};
+use crate::config::ConnectionsConfig;
+use crate::credentials::RobotCredential;
 use crate::driver::DriverHandle;
-use crate::scheduler::RobotId;
-use crate::validation::Validator;
+use crate::validation::{DecodePool, Validator};
+use kairos_core::action::ActionManager;
+use kairos_core::scheduler::RobotId;
 
 /// How long shutdown waits for connections to deliver the answers of accepted rounds.
 pub const DRAIN_TIMEOUT: Duration = Duration::from_secs(10);
@@ -83,7 +84,9 @@ impl RobotTable {
     /// The robot whose token this is. Only the token's SHA-256 is compared, so the lookup's
     /// timing says nothing about how close a guess was to a real token.
     pub fn authenticate(&self, token: &str) -> Option<RobotId> {
-        self.by_hash.get(&crate::config::hash_token(token)).copied()
+        self.by_hash
+            .get(&crate::credentials::hash_token(token))
+            .copied()
     }
 
     /// The robot's configured name.
@@ -111,6 +114,8 @@ pub struct ServerContext {
     pub robots: RobotTable,
     /// Request checks against the model and limits.
     pub validator: Validator,
+    /// Decodes observations' images before the queue, a bounded number at once.
+    pub decode: DecodePool,
     /// Builds requests' horizon policies.
     pub actions: Arc<ActionManager>,
     /// The driver.
@@ -327,7 +332,7 @@ pub async fn run(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::hash_token;
+    use crate::credentials::hash_token;
 
     #[test]
     fn admission_retries_unvalidated_attempts_over_half_and_refuses_when_full() {

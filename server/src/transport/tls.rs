@@ -22,7 +22,8 @@ use rustls::server::ServerSessionMemoryCache;
 use rustls_pki_types::pem::PemObject;
 use rustls_pki_types::{CertificateDer, PrivateKeyDer, PrivatePkcs8KeyDer};
 
-use crate::config::{Config, ConfigError, write_private};
+use crate::config::{Config, ConfigError};
+use crate::credentials::write_private;
 use crate::data_dir::DataDir;
 
 /// Names the generated certificate is valid for. Clients pin the fingerprint, so the names only
@@ -128,7 +129,10 @@ impl ServerIdentity {
         let cert_der = certified.cert.der().clone();
         let key_der = certified.signing_key.serialize_der();
         // Key first: a certificate without its key on disk would be unusable next start.
-        write_private(&key_path, &key_der)?;
+        write_private(&key_path, &key_der).map_err(|source| ConfigError::Io {
+            path: key_path.clone(),
+            source,
+        })?;
         fs::write(&cert_path, cert_der.as_ref()).map_err(|source| ConfigError::Io {
             path: cert_path.clone(),
             source,

@@ -18,10 +18,11 @@ use tokio::sync::watch;
 use tokio::time::Instant;
 
 use super::{Gate, ServerContext};
-use crate::config::{WorkersConfig, hash_token};
+use crate::config::WorkersConfig;
+use crate::credentials::hash_token;
 use crate::pool::remote::{model_spec, profile_from_wire};
 use crate::pool::{EngineInstance, RemoteEngine, same_shapes};
-use crate::scheduler::Tier;
+use kairos_core::scheduler::Tier;
 
 /// Who may register as a worker, and how workers are treated.
 #[derive(Clone, Debug)]
@@ -79,7 +80,7 @@ async fn watch_worker(
     connection: &Connection,
     mut recv: RecvStream,
     context: &ServerContext,
-    engine: crate::scheduler::EngineId,
+    engine: kairos_core::scheduler::EngineId,
     stop: &mut watch::Receiver<bool>,
 ) -> &'static str {
     let idle = context.workers.config.idle_timeout();
@@ -139,7 +140,7 @@ async fn watch_worker(
     }
 }
 
-type Registration = (crate::scheduler::EngineId, SendStream, RecvStream);
+type Registration = (kairos_core::scheduler::EngineId, SendStream, RecvStream);
 
 /// `Register` → checks → the pool → `Registered`; or the close code and reason after `Refused`.
 async fn register(

@@ -7,11 +7,11 @@
 
 use std::time::Duration;
 
-use kairos_server::horizon::load_aware::LoadAware;
-use kairos_server::horizon::threshold::Threshold;
-use kairos_server::horizon::{HorizonPolicy, PolicyParams};
+use kairos_core::horizon::load_aware::LoadAware;
+use kairos_core::horizon::threshold::Threshold;
+use kairos_core::horizon::{HorizonPolicy, PolicyParams};
+use kairos_core::scheduler::ServerLoad;
 use kairos_server::plugin::conformance::horizon_cases;
-use kairos_server::scheduler::ServerLoad;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 

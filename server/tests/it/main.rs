@@ -5,15 +5,8 @@
 //! time" in docs/BENCHMARKS.md). A new integration test is a new module here, not a new file in
 //! `tests/`.
 
-mod bench_horizon;
-mod bench_live_plugins;
-mod bench_plugins;
-mod bench_scale;
-mod deploy;
 mod load_horizon;
 mod plugin_common;
 mod plugin_containment;
 mod plugin_reload;
 mod plugin_twins;
-mod predict;
-mod workers;

@@ -7,19 +7,19 @@
 use std::time::{Duration, Instant};
 
 use crate::plugin_common::*;
-use kairos_server::horizon::{
+use kairos_core::horizon::{
     ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams, validate_horizon,
 };
+use kairos_core::scheduler::{
+    FinishedTask, PendingView, PolicyError, PriorityPolicy, RequestId, TaskId, validate_order,
+};
+use kairos_core::time::Timestamp;
 use kairos_server::plugin::cache::{CodeCache, CodeSource};
 use kairos_server::plugin::inspect::InspectError;
 use kairos_server::plugin::{
     FailureKind, LoadError, PluginKind, PluginOptions, PluginSource, WasmHorizonPolicy,
     WasmPriorityPolicy,
 };
-use kairos_server::scheduler::{
-    FinishedTask, PendingView, PolicyError, PriorityPolicy, RequestId, TaskId, validate_order,
-};
-use kairos_server::time::Timestamp;
 
 // No upper bounds on how long a contained call took: a loaded machine can stretch any wall-clock
 // margin. That a call returns proves containment (the loop fixtures never would); the failure

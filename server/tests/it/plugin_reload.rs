@@ -7,7 +7,7 @@ use std::sync::{Condvar, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use crate::plugin_common::*;
-use kairos_server::horizon::{ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
+use kairos_core::horizon::{ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams};
 use kairos_server::plugin::{PluginOptions, PluginSource, WasmHorizonPolicy};
 
 /// Answers 1, so a fallback answer is visible (the fixtures answer h_min = 2 or h_max = 40).

@@ -8,18 +8,18 @@
 
 use std::time::Duration;
 
-use kairos_server::horizon::contact::ContactAware;
-use kairos_server::horizon::fixed::StaticHorizon;
-use kairos_server::horizon::steady::Steady;
-use kairos_server::horizon::threshold::Threshold;
-use kairos_server::horizon::{HorizonPolicy, PolicyParams};
-use kairos_server::plugin::conformance::{HorizonCase, UpdateShape, horizon_case, horizon_cases};
-use kairos_server::plugin::{FailureKind, PluginOptions, PluginSource, WasmPriorityPolicy};
-use kairos_server::scheduler::{
+use kairos_core::horizon::contact::ContactAware;
+use kairos_core::horizon::fixed::StaticHorizon;
+use kairos_core::horizon::steady::Steady;
+use kairos_core::horizon::threshold::Threshold;
+use kairos_core::horizon::{HorizonPolicy, PolicyParams};
+use kairos_core::scheduler::{
     FinishedTask, PendingView, PolicySpec, PriorityPolicy, RemainingWork, RequestId, TaskId,
     build_policy,
 };
-use kairos_server::time::Timestamp;
+use kairos_core::time::Timestamp;
+use kairos_server::plugin::conformance::{HorizonCase, UpdateShape, horizon_case, horizon_cases};
+use kairos_server::plugin::{FailureKind, PluginOptions, PluginSource, WasmPriorityPolicy};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 

@@ -1,18 +1,18 @@
 //! `kairos demo`'s code path, small: the built-in flow head profiled at start, a fresh server per
 //! scheduler, two robots over QUIC, a few rounds each, and the summary and plot at the end.
 
-use kairos_server::demo::{DemoArgs, Horizons, execute, fleet};
+use kairos_bench::demo::{DemoOptions, Horizons, execute, fleet};
 
 #[test]
 fn a_small_demo_answers_every_round_of_every_scheduler_and_writes_its_summary() {
     let dir = tempfile::tempdir().unwrap();
-    let args = DemoArgs {
+    let args = DemoOptions {
         robots: 2,
         task_s: 0.5,
         stagger_s: 0.05,
         profile_max_batch: 1,
         out: dir.path().join("demo"),
-        ..DemoArgs::default()
+        ..DemoOptions::default()
     };
     let planned = fleet(&args);
     let report = execute(&args, std::sync::Arc::new(())).unwrap();
@@ -99,18 +99,18 @@ fn a_small_demo_answers_every_round_of_every_scheduler_and_writes_its_summary() 
 
 #[test]
 fn dynamic_horizons_for_every_scheduler_when_asked() {
-    let args = DemoArgs {
+    let args = DemoOptions {
         horizons: Horizons::Dynamic,
         schedulers: vec!["fifo".into(), "kairos:buckets=5".into()],
-        ..DemoArgs::default()
+        ..DemoOptions::default()
     };
-    let runs = kairos_server::demo::scheduler_runs(&args).unwrap();
+    let runs = kairos_bench::demo::scheduler_runs(&args).unwrap();
     assert!(runs.iter().all(|r| r.dynamic()));
     assert_eq!(runs[1].policy.to_string(), "kairos:buckets=5");
-    let bad = DemoArgs {
+    let bad = DemoOptions {
         schedulers: vec!["lottery".into()],
-        ..DemoArgs::default()
+        ..DemoOptions::default()
     };
-    let error = kairos_server::demo::scheduler_runs(&bad).unwrap_err();
+    let error = kairos_bench::demo::scheduler_runs(&bad).unwrap_err();
     assert!(error.to_string().contains("lottery"), "{error}");
 }

@@ -108,22 +108,21 @@ async fn twenty_robots_complete_multi_round_tasks_and_records_match() {
 async fn serve_with_defaults_answers_a_robot_that_reads_the_data_dir() {
     use kairos_sdk::client::{Client, ClientConfig, NoRefetch, RoundRequest};
     use kairos_sdk::protocol::{Observation, Tensor};
-    use kairos_server::cli::serve::{ServeArgs, config, start_engines};
-    use kairos_server::config::DEFAULT_ROBOT;
+    use kairos_server::config::{Config, DEFAULT_ROBOT, Overrides};
     use kairos_server::data_dir::DataDir;
+    use kairos_server::pool::{ModelSchemes, build_pool};
     use kairos_server::transport::launch::{Policies, start};
 
     let dir = tempfile::tempdir().unwrap();
-    let args = ServeArgs {
-        config: None,
+    let overrides = Overrides {
         listen: Some("127.0.0.1:0".parse().unwrap()),
         data_dir: Some(dir.path().join("kairos-data")),
-        ..ServeArgs::default()
+        ..Overrides::default()
     };
-    let config = config(&args).unwrap();
+    let config = Config::load_with(None, &overrides).unwrap();
     let pool = tokio::task::spawn_blocking({
         let config = config.clone();
-        move || start_engines(&config)
+        move || build_pool(&config.engines, &ModelSchemes::new(), |_| {})
     })
     .await
     .unwrap()

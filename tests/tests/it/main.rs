@@ -9,6 +9,7 @@
 mod admission;
 mod auth;
 mod binaries;
+mod boundaries;
 mod demo;
 mod e2e;
 mod fuzz_replay;
@@ -18,6 +19,7 @@ mod malformed;
 mod metrics;
 mod openpi;
 mod plugins_served;
+mod replay_horizon;
 mod sim_runner_agreement;
 mod sim_vs_live;
 mod smolvla_served;

@@ -116,7 +116,7 @@ async fn openpi_client_gets_metadata_and_chunks_of_the_model_shape() {
     let snapshot = server
         .server()
         .driver
-        .snapshot(kairos_server::scheduler::TaskId(task))
+        .snapshot(kairos_core::scheduler::TaskId(task))
         .await
         .unwrap()
         .expect("the task is known");

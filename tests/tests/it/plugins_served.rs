@@ -7,7 +7,6 @@
 #![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
 
 use kairos_sdk::protocol::HorizonSelection;
 use kairos_server::config::{Config, PluginConfig};
@@ -17,14 +16,7 @@ const ROBOTS: u64 = 8;
 const ROUNDS: u64 = 5;
 
 fn plugin(name: &str, file: &str) -> PluginConfig {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../plugins/build")
-        .join(file);
-    assert!(
-        path.exists(),
-        "{} is missing: run `bash scripts/install-plugin-toolchains.sh && bash plugins/build.sh`",
-        path.display()
-    );
+    let path = kairos_tests::plugins::shipped_plugin(file.trim_end_matches(".wasm"));
     PluginConfig {
         name: Some(name.into()),
         // A generous deadline: a loaded CI machine must not turn a slow call into a fallback.

@@ -8,14 +8,14 @@
 use std::collections::BTreeMap;
 use std::time::Duration;
 
+use kairos_bench::sim::{Load, SimConfig, SimNetwork, simulate};
+use kairos_core::scheduler::{EngineSpec, SchedulerConfig, Tier};
+use kairos_core::time::Timestamp;
 use kairos_engine::{EngineProfile, ProfilePoint};
 use kairos_sdk::client::{ClientError, Clock, ObservationSource, RoundReply, RoundRequest};
 use kairos_sdk::protocol::{LastExecInfo, Reply, TaskEnded, TaskOutcome, Tensor, Timing};
 use kairos_sdk::robot::{RobotRunner, RoundTransport, RunnerConfig, SimulatedRobot};
 use kairos_sdk::trace::{HorizonSetting, RecordSetup, RunnerTraceRecorder, TraceSet};
-use kairos_server::scheduler::{EngineSpec, SchedulerConfig, Tier};
-use kairos_server::sim::{Load, SimConfig, SimNetwork, simulate};
-use kairos_server::time::Timestamp;
 
 const HZ: f32 = 10.0;
 const TASK: u64 = 9;

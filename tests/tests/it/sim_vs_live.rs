@@ -35,11 +35,11 @@
 //! measures it on a full workload, and docs/EVALUATION.md ("Live replay and the simulator")
 //! records the numbers (Kairos within ~2%, FIFO within ~5–15%, always slower live, never faster).
 
-use kairos_server::live_replay::{
+use kairos_bench::live_replay::{
     Comparison, LiveOutcome, SimNetworkMode, Target, compare, live_job, relative_diff, run_live,
     scale_traces, variant,
 };
-use kairos_server::workload::{Workload, generate};
+use kairos_bench::workload::{Workload, generate};
 
 /// A small LIBERO-like workload with short tasks, so a contended run fits in seconds.
 const WORKLOAD: &str = r#"

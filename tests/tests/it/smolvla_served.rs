@@ -6,14 +6,14 @@
 
 use std::path::{Path, PathBuf};
 
+use kairos_core::round::round_seed;
 use kairos_engine::{ActionRequest, EngineOptions, ImageFormat, ImageInput};
 use kairos_sdk::client::{Client, ClientConfig, ClientError, NoRefetch, RoundReply, RoundRequest};
 use kairos_sdk::protocol::{ErrorCode, ErrorReply, Image, ImagePayload, Observation, Tensor};
-use kairos_server::cli::serve::{ServeArgs, config, start_engines};
-use kairos_server::config::DEFAULT_ROBOT;
+use kairos_server::config::{Config, DEFAULT_ROBOT, Overrides};
 use kairos_server::data_dir::DataDir;
+use kairos_server::pool::{ModelSchemes, build_pool};
 use kairos_server::transport::launch::{Policies, RunningServer, start};
-use kairos_server::validation::round_seed;
 
 const STATE: [f32; 7] = [0.1, -0.2, 0.3, 0.4, 0.5, -0.6, 0.7];
 const TASK: &str = "put the blue block on the plate";
@@ -28,18 +28,17 @@ async fn serve(
     tokenizer: Option<&Path>,
     data: &Path,
 ) -> anyhow::Result<RunningServer> {
-    let args = ServeArgs {
-        config: None,
+    let overrides = Overrides {
         listen: Some("127.0.0.1:0".parse()?),
         data_dir: Some(data.to_path_buf()),
         model: Some(model.display().to_string()),
         tokenizer: tokenizer.map(Path::to_path_buf),
-        ..ServeArgs::default()
+        ..Overrides::default()
     };
-    let config = config(&args)?;
+    let config = Config::load_with(None, &overrides)?;
     let pool = tokio::task::spawn_blocking({
         let config = config.clone();
-        move || start_engines(&config)
+        move || build_pool(&config.engines, &ModelSchemes::new(), |_| {})
     })
     .await??;
     Ok(start(&config, pool, Policies::default()).await?)

@@ -11,6 +11,7 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
+use kairos_core::scheduler::Tier;
 use kairos_engine::{EngineProfile, ProfilePoint};
 use kairos_sdk::client::{Client, ClientError};
 use kairos_sdk::protocol::worker::WorkerTier;
@@ -19,7 +20,6 @@ use kairos_server::data_dir::DataDir;
 use kairos_server::driver::EngineView;
 use kairos_server::metrics::{Metrics, Readiness};
 use kairos_server::pool::{EngineInstance, LocalEngine};
-use kairos_server::scheduler::Tier;
 use kairos_server::worker::{WorkerError, WorkerOptions, WorkerReport, run};
 use kairos_tests::harness::{RobotPlan, ServerOptions, TestServer, run_fleet};
 use kairos_tests::model::TestFlow;

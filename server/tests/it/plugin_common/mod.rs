@@ -10,13 +10,13 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use kairos_server::horizon::{HorizonError, HorizonInput, HorizonPolicy};
+use kairos_core::horizon::{HorizonError, HorizonInput, HorizonPolicy};
+use kairos_core::scheduler::{PendingView, PolicyError, PriorityPolicy};
+use kairos_core::time::Timestamp;
 use kairos_server::plugin::PluginKind;
 use kairos_server::plugin::cache::CodeCache;
 use kairos_server::plugin::componentize::componentize;
 use kairos_server::plugin::{PluginOptions, PluginSource, WasmHorizonPolicy};
-use kairos_server::scheduler::{PendingView, PolicyError, PriorityPolicy};
-use kairos_server::time::Timestamp;
 
 /// The repository root.
 pub fn repo_root() -> PathBuf {

@@ -1,0 +1,197 @@
+//! `kairos predict` on the `smolvla_tiny` fixture, run as a user runs it: the printed actions are
+//! exactly what the engine's `SmolVlaPipeline` computes for the same observation and seed.
+
+#![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
+
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+use kairos_engine::smolvla::{Observation, SmolVlaPipeline};
+use kairos_engine::{EngineOptions, ImageFormat, ImageInput};
+
+use crate::repo_root;
+
+fn fixture() -> PathBuf {
+    repo_root().join("engine/tests/fixtures/smolvla_tiny")
+}
+
+fn predict(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_kairos"))
+        .arg("predict")
+        .arg("--model")
+        .arg(fixture())
+        .args(["--threads", "2"])
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn parse(output: &Output) -> serde_json::Value {
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    serde_json::from_slice(&output.stdout).unwrap()
+}
+
+fn actions(v: &serde_json::Value) -> Vec<Vec<f32>> {
+    v["actions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|row| {
+            row.as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_f64().unwrap() as f32)
+                .collect()
+        })
+        .collect()
+}
+
+fn library(obs: &Observation, seed: u64) -> Vec<Vec<f32>> {
+    let options = EngineOptions {
+        threads: 2,
+        ..Default::default()
+    };
+    let pipeline = SmolVlaPipeline::load(&fixture(), None, &options).unwrap();
+    let (mut out, _) = pipeline
+        .predict(std::slice::from_ref(obs), &[seed])
+        .unwrap();
+    out.remove(0).actions
+}
+
+#[test]
+fn synthetic_observation_prints_the_chunk() {
+    let v = parse(&predict(&[]));
+    let (chunk, dim) = (
+        v["chunk"].as_u64().unwrap(),
+        v["action_dim"].as_u64().unwrap(),
+    );
+    // The fixture's config: chunk_size 16, a 6-wide action.
+    assert_eq!((chunk, dim), (16, 6));
+    let got = actions(&v);
+    assert_eq!(got.len(), 16);
+    for stage in ["preprocess", "prefix", "expert", "postprocess", "total"] {
+        assert!(v["timing_ms"][stage].as_f64().unwrap() >= 0.0, "{stage}");
+    }
+    let options = EngineOptions::default();
+    let pipeline = SmolVlaPipeline::load(&fixture(), None, &options).unwrap();
+    let obs = pipeline.checkpoint().synthetic_observation();
+    assert_eq!(got, library(&obs, 0));
+}
+
+#[test]
+fn images_state_task_and_seed_from_the_command_line() {
+    let png = fixture().join("golden/missing.0.top.png");
+    let state = "0.1,-0.2,0.3,0.4,0.5,-0.6,0.7";
+    let task = "put the blue block on the plate";
+    let v = parse(&predict(&[
+        "--image",
+        &format!("top={}", png.display()),
+        "--state",
+        state,
+        "--task",
+        task,
+        "--seed",
+        "7",
+    ]));
+    let obs = Observation {
+        images: [(
+            "top".to_owned(),
+            ImageInput::Encoded {
+                format: ImageFormat::Png,
+                bytes: std::fs::read(&png).unwrap(),
+            },
+        )]
+        .into_iter()
+        .collect(),
+        state: state.split(',').map(|s| s.parse().unwrap()).collect(),
+        task: task.into(),
+    };
+    assert_eq!(actions(&v), library(&obs, 7));
+
+    // The same observation as a JSON file.
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("obs.json");
+    let json = serde_json::json!({
+        "task": task,
+        "state": obs.state,
+        "images": {"top": png},
+    });
+    std::fs::write(&file, json.to_string()).unwrap();
+    let from_file = parse(&predict(&[
+        "--json-in",
+        file.to_str().unwrap(),
+        "--seed",
+        "7",
+    ]));
+    assert_eq!(actions(&from_file), actions(&v));
+}
+
+#[test]
+fn bad_inputs_fail_with_the_field_named() {
+    let out = predict(&["--image", "wrist=/dev/null"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("/dev/null"), "{err}");
+
+    let png = fixture().join("golden/missing.0.top.png");
+    let out = predict(&["--image", &format!("wrist={}", png.display())]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("unknown camera `wrist`"), "{err}");
+
+    let out = predict(&["--state", "1,2"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("observation.state has 2 values"), "{err}");
+}
+
+/// `--precision bf16` where the native bf16 kernel may not run (forced here with
+/// `KAIROS_DISABLE_BF16`) runs the exact f32 model and says so once on stderr.
+#[test]
+fn precision_bf16_falls_back_to_f32_with_a_warning() {
+    let out = Command::new(env!("CARGO_BIN_EXE_kairos"))
+        .env("KAIROS_DISABLE_BF16", "1")
+        .arg("predict")
+        .arg("--model")
+        .arg(fixture())
+        .args(["--threads", "2", "--precision", "bf16"])
+        .output()
+        .unwrap();
+    let v = parse(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.matches("precision bf16").count(), 1, "{err}");
+    assert!(err.contains("runs in f32"), "{err}");
+    let pipeline = SmolVlaPipeline::load(&fixture(), None, &EngineOptions::default()).unwrap();
+    let obs = pipeline.checkpoint().synthetic_observation();
+    assert_eq!(actions(&v), library(&obs, 0));
+    let bad = predict(&["--precision", "fp8"]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("--precision"));
+}
+
+/// `--batch N` predicts N copies of the observation in one batch, copy `i` with seed `seed + i`,
+/// each exactly as alone; `--repeat R` adds its timings without changing the actions.
+#[test]
+fn a_batch_of_copies_and_repeated_timings() {
+    let v = parse(&predict(&["--batch", "2", "--seed", "3", "--repeat", "2"]));
+    let options = EngineOptions::default();
+    let pipeline = SmolVlaPipeline::load(&fixture(), None, &options).unwrap();
+    let obs = pipeline.checkpoint().synthetic_observation();
+    let batch = v["batch_actions"].as_array().unwrap();
+    assert_eq!(batch.len(), 2);
+    let chunk = |i: usize| actions(&serde_json::json!({ "actions": batch[i] }));
+    assert_eq!(chunk(0), actions(&v));
+    assert_eq!(chunk(0), library(&obs, 3));
+    assert_eq!(chunk(1), library(&obs, 4));
+    assert_eq!(v["batch"], 2);
+    assert_eq!(v["runs_ms"].as_array().unwrap().len(), 2);
+    assert!(v["cpu_ms_per_run"].as_f64().unwrap() >= 0.0);
+    assert!(v["peak_rss_mb"].as_f64().unwrap() > 0.0);
+    // Without --batch/--repeat the output keeps its shape.
+    let plain = parse(&predict(&[]));
+    assert!(plain.get("batch_actions").is_none() && plain.get("runs_ms").is_none());
+}
