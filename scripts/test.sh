@@ -15,6 +15,10 @@ step_done() {
     step_started=$SECONDS
 }
 
+# Formatting first: it takes a second and fails before anything is built.
+cargo fmt --all --check
+step_done "cargo fmt --check"
+
 bash scripts/install-plugin-toolchains.sh
 # `ip` (iproute2): the remote-worker test puts a worker in a network namespace of its own
 # (tests/tests/it/workers.rs, tests/src/netns.rs); it fails rather than skips without it.
@@ -75,3 +79,8 @@ if [ -n "${KAIROS_SMOLVLA_CHECKPOINT:-}" ]; then real_checkpoint=(); fi
 KAIROS_PYTHON="$PWD/.venv/bin/python" KAIROS_OPENPI_PYTHON="$PWD/.venv-openpi/bin/python" cargo test --workspace --locked -- --include-ignored "${real_checkpoint[@]}"
 step_done "tests"
 bash scripts/test-python.sh; step_done "Python package: pip install ./sdk/python, pytest against kairos serve"
+
+# Lints last, on the tree that just passed its tests: every target of every crate, warnings as
+# errors (`[workspace.lints]` and clippy.toml say which).
+cargo clippy --workspace --all-targets --locked -- -D warnings
+step_done "cargo clippy -D warnings"

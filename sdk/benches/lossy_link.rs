@@ -157,12 +157,11 @@ async fn measure(
     (all, failures)
 }
 
+/// The `p`-quantile of ascending latencies in µs, in ms: the project's one percentile
+/// definition (`kairos_core::stats::quantile`, linear interpolation).
 fn percentile(sorted: &[u64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    let index = ((p * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
-    sorted[index] as f64 / 1000.0
+    let ms: Vec<f64> = sorted.iter().map(|&us| us as f64 / 1000.0).collect();
+    kairos_core::stats::quantile(&ms, p)
 }
 
 #[tokio::main]

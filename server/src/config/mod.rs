@@ -31,8 +31,9 @@ pub const DEFAULT_LISTEN: &str = "127.0.0.1:4433";
 
 /// Default data directory, relative to the working directory. A fixed relative path (rather than
 /// an XDG directory) keeps `kairos serve` and `kairos robot` started from the same directory in
-/// agreement without any configuration, and makes the state easy to find and delete.
-pub const DEFAULT_DATA_DIR: &str = "kairos-data";
+/// agreement without any configuration, and makes the state easy to find and delete. Defined
+/// with the robot's side of the files, so server, robots and workers share one name.
+pub use kairos_sdk::data_dir::DEFAULT_DATA_DIR;
 
 /// Name of the robot whose token is generated when no robot is configured.
 pub const DEFAULT_ROBOT: &str = kairos_sdk::data_dir::DEFAULT_ROBOT;
