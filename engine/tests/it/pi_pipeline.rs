@@ -392,3 +392,39 @@ fn bad_observations_are_named_errors() {
     let (p, _) = pipeline.predict(&[good], &[0]).unwrap();
     assert_eq!((p[0].actions.len(), p[0].actions[0].len()), (12, 6));
 }
+
+/// A real π0 / π0.5 checkpoint directory (`KAIROS_PI_CHECKPOINT`, with `KAIROS_PI_TOKENIZER`
+/// when PaliGemma's `tokenizer.json` is not beside it): it loads with openpi's variant sizes
+/// read from its tensors, predicts a finite chunk of the config's shape for the synthetic
+/// observation, and two copies in one batch get what one gets alone. Opt-in: a base checkpoint
+/// is ~13 GB in f32 and minutes of CPU.
+#[test]
+#[ignore = "needs KAIROS_PI_CHECKPOINT (a LeRobot pi0 / pi05 directory)"]
+fn a_real_checkpoint_loads_and_predicts() {
+    let dir = std::path::PathBuf::from(
+        std::env::var("KAIROS_PI_CHECKPOINT").expect("KAIROS_PI_CHECKPOINT: a checkpoint dir"),
+    );
+    let tokenizer = std::env::var("KAIROS_PI_TOKENIZER")
+        .ok()
+        .map(std::path::PathBuf::from);
+    let pipeline = PiPipeline::load(&dir, tokenizer.as_deref(), &options()).unwrap();
+    let d = pipeline.model().dims();
+    assert_eq!(d.vlm, kairos_engine::pi::GemmaDims::gemma_2b());
+    assert_eq!(d.expert, kairos_engine::pi::GemmaDims::gemma_300m());
+    assert_eq!(
+        (d.vision.hidden, d.vision.layers, d.vision.patch),
+        (1152, 27, 14)
+    );
+    let obs = pipeline.checkpoint().synthetic_observation();
+    let (batch, _) = pipeline
+        .predict(&[obs.clone(), obs.clone()], &[1, 2])
+        .unwrap();
+    let (alone, _) = pipeline.predict(&[obs], &[2]).unwrap();
+    assert_eq!(alone[0], batch[1]);
+    let a = &batch[0].actions;
+    assert_eq!(
+        (a.len(), a[0].len()),
+        (pipeline.chunk(), pipeline.action_dim())
+    );
+    assert!(a.iter().flatten().all(|v| v.is_finite()));
+}
