@@ -54,10 +54,7 @@ pub struct PiPrepared {
 /// bin `np.digitize(x, np.linspace(-1, 1, 257)[:-1]) - 1` (from -1 below -1 to 255 at 1 and
 /// above): `"Task: {task}, State: {b0 b1 ..};\nAction: "`.
 pub fn state_prompt(task: &str, normalized_state: &[f32]) -> String {
-    let cleaned = task
-        .trim_matches(is_python_space)
-        .replace('_', " ")
-        .replace('\n', " ");
+    let cleaned = task.trim_matches(is_python_space).replace(['_', '\n'], " ");
     let bins: Vec<String> = normalized_state
         .iter()
         .map(|&x| state_bin(x).to_string())

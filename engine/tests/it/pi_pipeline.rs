@@ -400,7 +400,7 @@ fn bad_observations_are_named_errors() {
 /// is ~13 GB in f32 and minutes of CPU.
 #[test]
 #[ignore = "needs KAIROS_PI_CHECKPOINT (a LeRobot pi0 / pi05 directory)"]
-fn a_real_checkpoint_loads_and_predicts() {
+fn real_pi_checkpoint_loads_and_predicts() {
     let dir = std::path::PathBuf::from(
         std::env::var("KAIROS_PI_CHECKPOINT").expect("KAIROS_PI_CHECKPOINT: a checkpoint dir"),
     );
