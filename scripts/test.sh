@@ -72,10 +72,12 @@ step_done "plugins"
 # --include-ignored: the ignored tests (the Python client against the Rust responder, the real
 # openpi-client against the openpi endpoint) are ignored in a plain `cargo test` because they
 # need the Python packages installed above; here they exist, so they run, and fail rather than skip.
-# The one exception, named here: the opt-in `real_checkpoint` tests need a real SmolVLA checkpoint
-# (KAIROS_SMOLVLA_CHECKPOINT, about 1 GB, not in the repository); they run only when it is set.
-real_checkpoint=(--skip real_checkpoint)
-if [ -n "${KAIROS_SMOLVLA_CHECKPOINT:-}" ]; then real_checkpoint=(); fi
+# The exceptions, named here: the opt-in `real_checkpoint` tests need a real SmolVLA checkpoint
+# (KAIROS_SMOLVLA_CHECKPOINT, about 1 GB, not in the repository) and `real_pi_checkpoint` a real
+# π0 / π0.5 one (KAIROS_PI_CHECKPOINT, about 7 GB); each runs only when its variable is set.
+real_checkpoint=()
+if [ -z "${KAIROS_SMOLVLA_CHECKPOINT:-}" ]; then real_checkpoint+=(--skip real_checkpoint); fi
+if [ -z "${KAIROS_PI_CHECKPOINT:-}" ]; then real_checkpoint+=(--skip real_pi_checkpoint); fi
 KAIROS_PYTHON="$PWD/.venv/bin/python" KAIROS_OPENPI_PYTHON="$PWD/.venv-openpi/bin/python" cargo test --workspace --locked -- --include-ignored "${real_checkpoint[@]}"
 step_done "tests"
 bash scripts/test-python.sh; step_done "Python package: pip install ./sdk/python, pytest against kairos serve"

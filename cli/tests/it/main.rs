@@ -8,6 +8,7 @@ mod bench_live_plugins;
 mod bench_plugins;
 mod bench_scale;
 mod deploy;
+mod openpi_pi05;
 mod predict;
 mod worker_processes;
 
