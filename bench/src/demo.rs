@@ -26,8 +26,8 @@
 //! request goes out with the same slack (the half chunk its robot still has to execute), so
 //! arrival order is deadline order and FIFO is already close to the best order for idle robots;
 //! a scheduler gains there only through what FIFO ignores, such as a task's remaining length, and
-//! loses by serving a request with slack before one whose robot is dry (Autellix's
-//! least-attained-service order does that). Under the dynamic horizon the same fleet no longer
+//! loses by serving a request with slack before one whose robot is dry. Under the dynamic horizon
+//! the same fleet no longer
 //! contends the engine enough for the order to matter. The summary says which differences are
 //! within noise ([`comparison`]) and how fast the engine ran in each run (a shared machine's
 //! other work shows there). `--horizons dynamic` gives every scheduler the threshold policy,
@@ -553,7 +553,7 @@ pub fn execute(args: &DemoOptions, progress: Arc<dyn DemoProgress>) -> anyhow::R
         results.push(result);
     }
 
-    let mut summary = format!("# kairos demo\n\n{}\n\n", headline(&results));
+    let mut summary = format!("# kairos demo\n\n{}\n\n", headline(&results, &profile));
     summary.push_str(&summary_table(&results, &profile));
     summary.push('\n');
     summary.push_str(&format!(

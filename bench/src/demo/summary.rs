@@ -40,10 +40,26 @@ fn interval(c: &Comparison) -> String {
     )
 }
 
+/// Paces further apart than this (slower / faster) mean the machine's speed changed between
+/// runs.
+const PACE_SPREAD: f64 = 1.15;
+
+/// When the engine ran at clearly different paces in two runs: a clause saying so, since the
+/// interval covers the fleet's tasks, not the machine's other load.
+fn pace_note(base: &RunResult, other: &RunResult, profile: &EngineProfile) -> Option<String> {
+    let (a, b) = (base.engine_pace(profile), other.engine_pace(profile));
+    (a.min(b) > 0.0 && a.max(b) / a.min(b) > PACE_SPREAD).then(|| {
+        format!(
+            "but the engine ran at {a:.2}× its profiled latency under {} and {b:.2}× under {}, so part of the difference is the machine, which the interval does not cover",
+            base.run.label, other.run.label
+        )
+    })
+}
+
 /// The short result the summary leads with: Kairos's average task latency against FIFO's (or,
 /// without those two, the best run's against the first), whether that is more than noise, and
 /// the engine's busy share under each.
-pub fn headline(results: &[RunResult]) -> String {
+pub fn headline(results: &[RunResult], profile: &EngineProfile) -> String {
     let Some(base) = baseline(results) else {
         return String::new();
     };
@@ -65,13 +81,16 @@ pub fn headline(results: &[RunResult]) -> String {
             base.engine_busy() * 100.0
         );
     };
-    let busy = format!(
+    let mut busy = format!(
         "engine busy {:.0}% under {}, {:.0}% under {}",
         base.engine_busy() * 100.0,
         base.run.label,
         ours.engine_busy() * 100.0,
         ours.run.label
     );
+    if let Some(note) = pace_note(base, ours, profile) {
+        busy = format!("{busy}; {note}");
+    }
     match compare_runs(base, ours) {
         Some(c) if c.within_noise() => format!(
             "**{} and {}: average task latency within noise** ({:.2} s vs {:.2} s, {:+.1}%, {}); {busy}.",
@@ -166,7 +185,7 @@ pub fn sizing_sentence(sizing: &FleetSizing, static_h: u32) -> String {
         )
     };
     format!(
-        "Fleet sized from the engine's profile: at its saturation batch of {} the engine serves {:.1} requests/s; FIFO's robots with H={static_h} ask every {:.0} ms ({:.1} actions per round), so {robots}, {stagger}, about {:.1} at once, offer {:.0}% of that.",
+        "Fleet sized from the engine's profile: at its saturation batch of {} the engine serves {:.1} requests/s; FIFO's robots with H={static_h} ask every {:.0} ms ({:.1} actions per round) when each answer arrives as the robot runs out of actions, so {robots}, {stagger}, about {:.1} at once, offer {:.0}% of that (more while answers come sooner, so the queue builds).",
         sizing.batch,
         sizing.capacity_rps,
         sizing.cycle.seconds * 1e3,
@@ -175,9 +194,6 @@ pub fn sizing_sentence(sizing: &FleetSizing, static_h: u32) -> String {
         sizing.load * 100.0,
     )
 }
-
-/// Paces further apart than this (max / min) mean the machine's speed changed between runs.
-const PACE_SPREAD: f64 = 1.15;
 
 /// A few sentences reading the table: how much of the gain is the horizon and how much the
 /// scheduler, which differences are within noise, whether requests queued, and whether the
@@ -220,7 +236,7 @@ pub fn reading(results: &[RunResult], profile: &EngineProfile) -> String {
             };
             let _ = write!(
                 s,
-                "Same horizon, another scheduler: {}'s average task latency is {} {}'s ({}): {}. ",
+                "Same horizon, another scheduler: {}'s average task latency is {} {}'s ({}): {}{}. ",
                 other.run.label,
                 below_or_above(c.change),
                 first.run.label,
@@ -230,6 +246,9 @@ pub fn reading(results: &[RunResult], profile: &EngineProfile) -> String {
                 } else {
                     "more than noise"
                 },
+                pace_note(first, other, profile)
+                    .map(|note| format!(", {note}"))
+                    .unwrap_or_default(),
             );
         }
     }
@@ -246,9 +265,14 @@ pub fn reading(results: &[RunResult], profile: &EngineProfile) -> String {
         } else {
             let _ = write!(
                 s,
-                "Under {} requests waited {:.0} ms on average for the engine (up to {worst:.0} ms in another run): they queued, and the scheduler's order decided who waited. ",
+                "Under {} requests waited {:.0} ms on average for the engine{}: they queued, and the scheduler's order decided who waited. ",
                 base.run.label,
                 base.mean_queue_ms(),
+                if worst > base.mean_queue_ms() {
+                    format!(" (up to {worst:.0} ms in another run)")
+                } else {
+                    String::new()
+                },
             );
         }
     }
@@ -263,7 +287,7 @@ pub fn reading(results: &[RunResult], profile: &EngineProfile) -> String {
     if fastest > 0.0 && slowest / fastest > PACE_SPREAD {
         let _ = write!(
             s,
-            "The engine ran at {fastest:.2}–{slowest:.2}× its profiled latency across the runs (engine pace): the machine was busier during some runs than during others, which the intervals do not cover, so read a difference between those runs that is not far larger than that as noise. "
+            "The engine ran at {fastest:.2}–{slowest:.2}× its profiled latency across the runs (engine pace): the machine was busier during some runs than during others. "
         );
     }
     if !dynamic.is_empty() {

@@ -17,19 +17,31 @@
 //! - **Actions per round.** With asynchronous inference a robot does not ask once per `H`
 //!   actions. It asks when it has executed `⌈trigger · e⌉` of the `e` actions it can execute of a
 //!   chunk, and keeps executing while the round is generated; the new chunk's actions for those
-//!   steps are then discarded (the SDK runner's rules, `kairos_sdk::robot`). With every round
-//!   taking `L(b*)` (no queueing), [`round_cycle`] follows these rules to a steady state: about
-//!   `H/2` to `H/(2 − trigger)` actions per round (5–6.7 for `H = 10`), so a robot sends
-//!   `1.5–2×` as many requests as `actions / H`.
+//!   steps are then discarded (the SDK runner's rules, `kairos_sdk::robot`). [`round_cycle`]
+//!   follows these rules to a steady state: from `H/2` actions per round when answers are
+//!   instant to about `H/(2 − trigger)` when each answer arrives as the robot runs out (5 to
+//!   6.7 for `H = 10`), so a robot sends `1.5–2×` as many requests as `actions / H`.
+//! - **The rate the rule counts** is the one at which FIFO's robots ask when the queue delays
+//!   each answer up to the moment its robot runs out of actions ([`sizing_cycle`]), or when the
+//!   engine alone takes longer than that, the one at `L(b*)`. A faster answer makes the robots
+//!   ask more often, so on an engine much faster than the robots' slack the fleet offers more
+//!   than the target until the queue builds to about that slack: the queue builds on any
+//!   engine, and FIFO's robots are on the edge of stalling. Counting the rate at `L(b*)`
+//!   instead would let a fast engine absorb the fleet with a short queue, where the order of a
+//!   few requests decides nothing.
 //! - **Work per task.** A task of `n` actions (log-normal around `task_s · control_hz`, see
 //!   [`fleet`]) takes `n / (actions per round)` rounds; [`mean_task_actions`] is the
 //!   distribution's mean.
 //! - **Arrivals.** Robots start as a Poisson process with mean gap `s`. In steady state the
 //!   fleet offers `rounds per task / s` requests per second, so `s = rounds per task / (load · μ)`
 //!   (the same as Little's law: `task time / s` robots at once, each asking once per cycle).
-//! - **Fleet.** Enough robots to keep arriving for [`ARRIVAL_WINDOW_TASKS`] median task
-//!   lengths: `robots = ⌈window / s⌉`, at most [`MAX_ROBOTS`]. The window is counted in tasks, so
-//!   a fast engine gets more robots, not a longer run.
+//! - **Fleet.** Enough robots to keep arriving for [`ARRIVAL_WINDOW_TASKS`] mean task times:
+//!   `robots = ⌈window / s⌉`, i.e. that many times as many robots as run at once, at most
+//!   [`MAX_ROBOTS`]. The window is counted in tasks, so a fast engine gets more robots, not a
+//!   longer run.
+//! - **Calibration.** The seed draws the fleet's tasks and gaps; with a few dozen robots they
+//!   stray from their means, so the stagger is scaled such that this fleet's rounds over the
+//!   span its robots arrive in are exactly the target load.
 //!
 //! `--robots` and `--stagger-s` each replace their own half of the rule; [`FleetSizing::load`]
 //! is then what the fleet given offers. The dynamic horizon asks less often than the static one,
@@ -45,8 +57,10 @@ use super::DemoOptions;
 
 /// The share of the engine's capacity the baseline fleet offers, by default.
 pub const DEFAULT_LOAD: f64 = 0.9;
-/// Robots keep starting for this many median task lengths.
-pub const ARRIVAL_WINDOW_TASKS: f64 = 4.0;
+/// Robots keep starting for this many mean task times (a task's actions and its robot's waits
+/// for chunks, every round taking the engine's latency at its saturation batch): long enough
+/// for the queue to build, short enough for the four runs to take about a minute.
+pub const ARRIVAL_WINDOW_TASKS: f64 = 3.5;
 /// The largest fleet the rule picks (the command line's bound on `--robots`).
 pub const MAX_ROBOTS: u32 = 1024;
 /// The runner's trigger: the next request goes out when half of a chunk's executable actions
@@ -154,6 +168,19 @@ pub fn round_cycle(h: u32, trigger: f64, control_hz: f64, latency_s: f64) -> Rou
     }
 }
 
+/// The round the sizing rule counts for a robot executing `h` actions of each chunk, when the
+/// engine alone takes `latency_s`: each answer arriving as the robot runs out of actions (the
+/// slowest the robot asks without stalling), or at `latency_s` when that is later.
+pub fn sizing_cycle(h: u32, trigger: f64, control_hz: f64, latency_s: f64) -> RoundCycle {
+    // A round trip of a whole chunk's time outlasts whatever the robot has left.
+    let dry = round_cycle(h, trigger, control_hz, f64::from(h.max(1)) / control_hz);
+    let engine = round_cycle(h, trigger, control_hz, latency_s);
+    RoundCycle {
+        actions: dry.actions,
+        seconds: (dry.actions / control_hz).max(engine.seconds),
+    }
+}
+
 /// How the fleet was sized, and what it offers the engine.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FleetSizing {
@@ -170,7 +197,7 @@ pub struct FleetSizing {
     pub batch: u32,
     /// Requests per second the engine serves at `b*`.
     pub capacity_rps: f64,
-    /// A baseline robot's round in steady state, every round taking `L(b*)`.
+    /// A baseline robot's round as the rule counts it ([`sizing_cycle`]).
     pub cycle: RoundCycle,
     /// Mean rounds per task of the fleet under the baseline.
     pub rounds_per_task: f64,
@@ -195,18 +222,20 @@ pub fn size_fleet(profile: &EngineProfile, args: &DemoOptions) -> FleetSizing {
     // A profile of zero latency (none is measured so) would make the capacity infinite; a
     // microsecond keeps every ratio finite.
     let capacity_rps = f64::from(batch) / latency_s.max(1e-6);
-    let cycle = round_cycle(args.static_h, TRIGGER, args.control_hz, latency_s);
+    let cycle = sizing_cycle(args.static_h, TRIGGER, args.control_hz, latency_s);
     let actions_per_round = cycle.actions.max(1e-9);
     let per_robot_rps = 1.0 / cycle.seconds.max(1e-9);
     let target_rps = (args.load * capacity_rps).max(1e-9);
-    // The fleet's size from the distribution's mean task.
+    // The fleet's size from the distribution's mean task: robots keep arriving for
+    // `ARRIVAL_WINDOW_TASKS` mean task times, i.e. that many times as many robots as run at once.
     let mean_rounds = mean_task_actions(args.task_s * args.control_hz) / actions_per_round;
+    let task_seconds = mean_rounds * cycle.seconds;
     let robots = match (args.robots, args.stagger_s) {
         (Some(n), _) => f64::from(n),
         // All at once: as many robots as offer the load together.
         (None, Some(s)) if s <= 0.0 => (target_rps / per_robot_rps).ceil(),
         (None, s) => {
-            (ARRIVAL_WINDOW_TASKS * args.task_s / s.unwrap_or(mean_rounds / target_rps)).ceil()
+            (ARRIVAL_WINDOW_TASKS * task_seconds / s.unwrap_or(mean_rounds / target_rps)).ceil()
         }
     }
     .clamp(1.0, f64::from(MAX_ROBOTS)) as u32;
@@ -321,9 +350,11 @@ mod tests {
         for s in [slow, fast] {
             assert!((s.load - DEFAULT_LOAD).abs() < 0.01, "{s:?}");
         }
-        // The arrival window is counted in tasks: the same length for both.
-        let window = |s: &FleetSizing| f64::from(s.robots) * s.stagger_s;
-        assert!((window(&fast) / window(&slow) - 1.0).abs() < 0.35);
+        // The arrival window is counted in tasks: as many times as many robots as run at once.
+        for s in [slow, fast] {
+            let ratio = f64::from(s.robots) / s.concurrent;
+            assert!((ratio - ARRIVAL_WINDOW_TASKS).abs() < 0.5, "{ratio} {s:?}");
+        }
     }
 
     #[test]
@@ -418,6 +449,24 @@ mod tests {
         assert!(
             round_cycle(40, 0.5, 30.0, 0.1).seconds > 2.5 * round_cycle(10, 0.5, 30.0, 0.1).seconds
         );
+    }
+
+    #[test]
+    fn the_rule_counts_the_rate_of_robots_answered_as_they_run_out() {
+        // An engine far faster than the robot's slack: the rate of a robot answered just in
+        // time, slower than that of one answered at once.
+        let fast = sizing_cycle(10, 0.5, 30.0, 0.01);
+        let dry = round_cycle(10, 0.5, 30.0, 10.0);
+        assert_eq!(fast.actions, dry.actions);
+        assert!(
+            (fast.seconds - dry.actions / 30.0).abs() < 1e-12,
+            "no idling counted"
+        );
+        assert!(fast.seconds > round_cycle(10, 0.5, 30.0, 0.01).seconds);
+        // An engine slower than the slack: its own latency sets the pace.
+        let slow = sizing_cycle(10, 0.5, 30.0, 0.5);
+        assert_eq!(slow, round_cycle(10, 0.5, 30.0, 0.5));
+        assert!(slow.seconds > fast.seconds);
     }
 
     #[test]

@@ -2,7 +2,7 @@
 //! scheduler, two robots over QUIC, a few rounds each, and the summary and plot at the end; and
 //! the fleet the demo sizes from the profile it measures.
 
-use kairos_bench::demo::workload::round_cycle;
+use kairos_bench::demo::workload::sizing_cycle;
 use kairos_bench::demo::{DEFAULT_LOAD, DemoOptions, Horizons, execute, fleet, size_fleet};
 use kairos_server::config::EngineConfig;
 use kairos_server::pool::{BuildEvent, ModelSchemes, build_pool};
@@ -39,7 +39,7 @@ fn the_auto_sized_fleet_contends_the_measured_engine() {
         // the saturation batch, over the time the robots keep arriving.
         let batch = profile.max_batch;
         let per_request_s = profile.latency(batch).as_secs_f64() / f64::from(batch);
-        let cycle = round_cycle(
+        let cycle = sizing_cycle(
             args.static_h,
             0.5,
             args.control_hz,
