@@ -14,8 +14,9 @@
 //! **The fleet contends the engine on any machine.** Its size and stagger come from the profile
 //! measured at start ([`workload`]): under FIFO with the static horizon the fleet offers about 90%
 //! of what the engine serves at its saturation batch, so requests queue and the order matters,
-//! whether a forward pass takes 13 ms or 130 ms. A fixed fleet could not do that: 24 robots left a
-//! fast machine's engine half idle, and every scheduler and horizon came out the same.
+//! whether a forward pass takes 13 ms or 130 ms. A fixed fleet could not do that: one that
+//! contends a slow machine's engine leaves a fast one's mostly idle, and there every scheduler and
+//! horizon comes out the same.
 //!
 //! **What it shows.** Horizons follow the paper's comparison by default (`--horizons paper`): the
 //! baselines (FIFO, Autellix) execute a static `H`, Kairos and SRW the §3.1 threshold policy on

@@ -4,9 +4,8 @@
 //! # Why the fleet is sized from the profile
 //!
 //! A scheduler only matters when requests wait for the engine: with an idle engine every order
-//! is the same order. A fixed fleet contends a slow engine and leaves a fast one idle (24 robots
-//! kept a 13.5 ms flow head 48% busy under FIFO, and the four schedulers came out within 1.3% of
-//! each other). So the demo sizes its fleet from the engine it measured, such that the baseline
+//! is the same order. A fixed fleet contends a slow engine and leaves a fast one mostly idle,
+//! where every scheduler and horizon comes out the same. So the demo sizes its fleet from the engine it measured, such that the baseline
 //! (FIFO with the static horizon `H`) offers about [`DEFAULT_LOAD`] of what the engine can serve:
 //! contended, with a queue that builds, on any machine.
 //!
