@@ -48,6 +48,8 @@ pub struct DriverStats {
     pub round_latency: Histogram,
     /// Requests per batch given to an engine instance.
     pub batch_size: Histogram,
+    /// Horizons of answered rounds: the actions each reply asked its robot to execute.
+    pub horizon: Histogram,
     /// Server-added latency of recent replies: `timing.total − timing.inference` (queueing
     /// behind other batches included).
     pub overhead: LatencySummary,
@@ -91,6 +93,20 @@ impl Histogram {
     /// Batch size: 1 .. 512 requests.
     pub fn batch_size() -> Histogram {
         Histogram::exponential(1.0, 2.0, 10)
+    }
+
+    /// Horizon, actions per reply: every count up to 8, then coarser up to 64 (chunks are 16
+    /// to 50 actions long).
+    pub fn horizon() -> Histogram {
+        let bounds = vec![
+            1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 16.0, 20.0, 24.0, 32.0, 48.0, 64.0,
+        ];
+        Histogram {
+            counts: vec![0; bounds.len()],
+            bounds,
+            sum: 0.0,
+            count: 0,
+        }
     }
 
     /// Counts `value` (a non-finite value counts in `count` and the `+Inf` bucket only).
