@@ -361,14 +361,19 @@ pub fn http(data: &[u8]) -> bool {
     });
     let data = &data[..data.len().min(MAX_HEAD)];
     let whole = parse(data);
-    let cut = data
-        .first()
-        .map_or(0, |&b| usize::from(b).min(data.len()));
+    let cut = data.first().map_or(0, |&b| usize::from(b).min(data.len()));
     match parse(&data[..cut]) {
         Parsed::Partial => {}
         Parsed::Request { len, .. } => {
-            assert!(len <= cut, "a head longer than the bytes it was parsed from");
-            assert_eq!(parse(&data[..cut]), whole, "more bytes changed a complete head");
+            assert!(
+                len <= cut,
+                "a head longer than the bytes it was parsed from"
+            );
+            assert_eq!(
+                parse(&data[..cut]),
+                whole,
+                "more bytes changed a complete head"
+            );
         }
         refused @ Parsed::Refused(_) => {
             assert_eq!(refused, whole, "more bytes changed a refusal");
@@ -400,7 +405,13 @@ pub fn http(data: &[u8]) -> bool {
         .find(|h| h.name.eq_ignore_ascii_case("content-length"))
         .and_then(|h| std::str::from_utf8(h.value).ok()?.parse::<usize>().ok())
         .unwrap_or_else(|| panic!("no Content-Length in the answer to {whole:?}"));
-    let head_only = matches!(whole, Parsed::Request { head_only: true, .. });
+    let head_only = matches!(
+        whole,
+        Parsed::Request {
+            head_only: true,
+            ..
+        }
+    );
     let body = bytes.len() - head_len;
     if head_only {
         assert_eq!(body, 0, "a HEAD answer carries a body");

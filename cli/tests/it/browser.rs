@@ -34,7 +34,8 @@ const FLAGS: &[&str] = &[
 
 /// Debian's Chromium, or a test failure that says how to get it.
 pub fn chromium_binary() -> PathBuf {
-    let path = PathBuf::from(std::env::var("KAIROS_CHROMIUM").unwrap_or("/usr/bin/chromium".into()));
+    let path =
+        PathBuf::from(std::env::var("KAIROS_CHROMIUM").unwrap_or("/usr/bin/chromium".into()));
     assert!(
         path.exists(),
         "{} not found: install Debian's Chromium (`apt-get install chromium`; scripts/test.sh \

@@ -22,12 +22,8 @@ pub const GIVE_UP: Duration = Duration::from_secs(300);
 pub struct LiveFleet {
     /// The data directory shared by the server, the workers and the robots.
     pub dir: tempfile::TempDir,
-    /// The server's QUIC address.
-    pub quic: SocketAddr,
     /// The server's metrics listener.
     pub metrics: SocketAddr,
-    /// The robots in the fleet.
-    pub robots: u64,
     serve: Child,
     workers: Vec<Child>,
     fleet: Option<Child>,
@@ -67,7 +63,9 @@ fn kairos() -> Command {
 /// `GET path` on `addr`: (status, body).
 pub fn http_get(addr: SocketAddr, path: &str) -> (u16, String) {
     let mut stream = TcpStream::connect(addr).unwrap();
-    stream.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(30)))
+        .unwrap();
     write!(stream, "GET {path} HTTP/1.1\r\nHost: kairos\r\n\r\n").unwrap();
     let mut response = String::new();
     stream.read_to_string(&mut response).unwrap();
@@ -104,7 +102,7 @@ impl LiveFleet {
             .spawn()
             .unwrap();
         let output = Arc::new(Mutex::new(Vec::new()));
-        let (addresses, found) = std::sync::mpsc::channel();
+        let (found, addresses) = std::sync::mpsc::channel();
         let stdout = serve.stdout.take().unwrap();
         let lines = output.clone();
         std::thread::spawn(move || {
@@ -136,9 +134,7 @@ impl LiveFleet {
             );
         };
         let mut fleet = LiveFleet {
-            quic,
             metrics,
-            robots,
             serve,
             workers: Vec::new(),
             fleet: None,

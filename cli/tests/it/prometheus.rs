@@ -65,7 +65,9 @@ fn percent_encode(text: &str) -> String {
 /// `GET path` over HTTP/1.0 (so the body is not chunked), parsed as JSON.
 fn get_json(addr: SocketAddr, path: &str) -> Value {
     let mut stream = TcpStream::connect(addr).unwrap();
-    stream.set_read_timeout(Some(Duration::from_secs(60))).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(60)))
+        .unwrap();
     write!(stream, "GET {path} HTTP/1.0\r\nHost: prometheus\r\n\r\n").unwrap();
     let mut response = String::new();
     stream.read_to_string(&mut response).unwrap();
@@ -97,7 +99,10 @@ impl Prometheus {
         .unwrap();
         let child = Command::new(prometheus_binary("prometheus"))
             .arg(format!("--config.file={}", config.display()))
-            .arg(format!("--storage.tsdb.path={}", dir.join("tsdb").display()))
+            .arg(format!(
+                "--storage.tsdb.path={}",
+                dir.join("tsdb").display()
+            ))
             .arg(format!("--web.listen-address={addr}"))
             .stdout(Stdio::null())
             .stderr(Stdio::null())
@@ -105,7 +110,8 @@ impl Prometheus {
             .unwrap();
         let prometheus = Prometheus { child, addr };
         prometheus.wait_for("Prometheus ready", || {
-            TcpStream::connect(addr).is_ok() && get_json(addr, "/api/v1/status/buildinfo")["status"] == "success"
+            TcpStream::connect(addr).is_ok()
+                && get_json(addr, "/api/v1/status/buildinfo")["status"] == "success"
         });
         prometheus
     }
@@ -120,7 +126,10 @@ impl Prometheus {
 
     /// An instant query's result vector (or scalar as a one-element list).
     fn query(&self, expr: &str) -> Vec<Value> {
-        let answer = get_json(self.addr, &format!("/api/v1/query?query={}", percent_encode(expr)));
+        let answer = get_json(
+            self.addr,
+            &format!("/api/v1/query?query={}", percent_encode(expr)),
+        );
         assert_eq!(answer["status"], "success", "`{expr}`: {answer}");
         match answer["data"]["resultType"].as_str() {
             Some("vector") | Some("matrix") => answer["data"]["result"].as_array().unwrap().clone(),
@@ -129,16 +138,41 @@ impl Prometheus {
     }
 }
 
-/// The `expr:` of every rule in a rules file (one line each, as the file's header promises).
-fn rule_expressions(text: &str) -> Vec<String> {
-    let exprs: Vec<String> = text
-        .lines()
-        .filter_map(|l| l.trim().strip_prefix("expr: "))
-        .map(str::to_string)
-        .collect();
-    let rules = text.lines().filter(|l| l.trim().starts_with("- alert:")).count();
-    assert_eq!(exprs.len(), rules, "one single-line expr per rule");
-    exprs
+/// A rule of the rules file: its expression, and the labels its annotations show
+/// (`{{ $labels.NAME }}`).
+struct Rule {
+    expr: String,
+    shown_labels: Vec<String>,
+}
+
+/// Every rule in a rules file (its `expr` one line, as the file's header promises).
+fn rules_of(text: &str) -> Vec<Rule> {
+    let mut rules: Vec<Rule> = Vec::new();
+    for line in text.lines().map(str::trim) {
+        if line.starts_with("- alert:") {
+            rules.push(Rule {
+                expr: String::new(),
+                shown_labels: Vec::new(),
+            });
+        } else if let (Some(rule), Some(expr)) = (rules.last_mut(), line.strip_prefix("expr: ")) {
+            rule.expr = expr.to_string();
+        } else if let Some(rule) = rules.last_mut() {
+            let mut rest = line;
+            while let Some(at) = rest.find("$labels.") {
+                let name: String = rest[at + 8..]
+                    .chars()
+                    .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+                    .collect();
+                rest = &rest[at + 8 + name.len()..];
+                rule.shown_labels.push(name);
+            }
+        }
+    }
+    assert!(
+        rules.iter().all(|r| !r.expr.is_empty()),
+        "one single-line expr per rule"
+    );
+    rules
 }
 
 /// Every `expr` of the dashboard's panels, and the metric its variables are read from.
@@ -176,7 +210,9 @@ fn with_bool_comparisons(expr: &str) -> String {
         let next = chars.get(i + 1).copied();
         if quoted {
             out.push(c);
-            if c == '\\' && let Some(n) = next {
+            if c == '\\'
+                && let Some(n) = next
+            {
                 out.push(n);
                 i += 1;
             } else if c == '"' {
@@ -247,15 +283,19 @@ fn every_shipped_expression_returns_data_from_a_live_fleet() {
         .arg(&rules_file)
         .output()
         .unwrap();
-    assert!(check.status.success(), "{}", String::from_utf8_lossy(&check.stdout));
+    assert!(
+        check.status.success(),
+        "{}",
+        String::from_utf8_lossy(&check.stdout)
+    );
 
-    let rules = rule_expressions(&std::fs::read_to_string(&rules_file).unwrap());
+    let rules = rules_of(&std::fs::read_to_string(&rules_file).unwrap());
     let dashboard: Value = serde_json::from_str(
         &std::fs::read_to_string(monitoring.join("kairos-fleet.dashboard.json")).unwrap(),
     )
     .unwrap();
     let (panels, variables) = dashboard_expressions(&dashboard);
-    assert!(rules.len() >= 6 && panels.len() >= 15, "{rules:?} {panels:?}");
+    assert!(rules.len() >= 6 && panels.len() >= 15, "{panels:?}");
 
     let mut fleet = LiveFleet::start(4);
     let dir = tempfile::tempdir().unwrap();
@@ -276,9 +316,14 @@ fn every_shipped_expression_returns_data_from_a_live_fleet() {
     prometheus.wait_for("KairosWorkerRemoved to fire", || {
         let alerts = get_json(prometheus.addr, "/api/v1/alerts");
         alerts["data"]["alerts"].as_array().is_some_and(|a| {
-            a.iter()
-                .any(|a| a["labels"]["alertname"] == "KairosWorkerRemoved" && a["state"] == "firing")
+            a.iter().any(|a| {
+                a["labels"]["alertname"] == "KairosWorkerRemoved" && a["state"] == "firing"
+            })
         })
+    });
+    // The surviving worker has run a batch since and been scraped: its round trip is known.
+    prometheus.wait_for("the surviving worker's round trip", || {
+        !prometheus.query("kairos_worker_rtt_seconds").is_empty()
     });
 
     let names = get_json(prometheus.addr, "/api/v1/label/__name__/values");
@@ -289,10 +334,23 @@ fn every_shipped_expression_returns_data_from_a_live_fleet() {
         .filter_map(Value::as_str)
         .collect();
     let mut failures = Vec::new();
+    // An alert's annotations name labels of its series: each answer must carry them.
+    for rule in &rules {
+        let query = with_bool_comparisons(&rule.expr);
+        for series in prometheus.query(&query) {
+            for label in &rule.shown_labels {
+                if series["metric"].get(label).is_none() {
+                    failures.push(format!(
+                        "`{query}` answers {series} without the label {label} its annotations show"
+                    ));
+                }
+            }
+        }
+    }
     let queries = panels
         .iter()
         .map(|e| as_grafana_sends(e))
-        .chain(rules.iter().map(|e| with_bool_comparisons(e)))
+        .chain(rules.iter().map(|r| with_bool_comparisons(&r.expr)))
         .chain(variables.iter().map(|v| {
             // `label_values(metric, label)`: the metric must have the label.
             let inner = v.trim_start_matches("label_values(").trim_end_matches(')');
@@ -313,11 +371,16 @@ fn every_shipped_expression_returns_data_from_a_live_fleet() {
     for group in rules_state["data"]["groups"].as_array().unwrap() {
         for rule in group["rules"].as_array().unwrap() {
             if rule["health"] != "ok" {
-                failures.push(format!("rule {} is {}: {}", rule["name"], rule["health"], rule["lastError"]));
+                failures.push(format!(
+                    "rule {} is {}: {}",
+                    rule["name"], rule["health"], rule["lastError"]
+                ));
             }
         }
     }
-    let loaded = rules_state["data"]["groups"][0]["rules"].as_array().map_or(0, Vec::len);
+    let loaded = rules_state["data"]["groups"][0]["rules"]
+        .as_array()
+        .map_or(0, Vec::len);
     assert_eq!(loaded, rules.len(), "Prometheus loaded every rule");
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }

@@ -95,11 +95,12 @@ impl Histogram {
         Histogram::exponential(1.0, 2.0, 10)
     }
 
-    /// Horizon, actions per reply: every count up to 8, then coarser up to 64 (chunks are 16
-    /// to 50 actions long).
+    /// Horizon, actions per reply: every count up to 8, then coarser up to 64, with a bound at
+    /// 50 so that SmolVLA's and π0's whole chunk has a bucket of its own.
     pub fn horizon() -> Histogram {
         let bounds = vec![
-            1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 16.0, 20.0, 24.0, 32.0, 48.0, 64.0,
+            1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 16.0, 20.0, 25.0, 32.0, 40.0, 49.0,
+            50.0, 64.0,
         ];
         Histogram {
             counts: vec![0; bounds.len()],

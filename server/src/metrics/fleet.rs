@@ -278,10 +278,7 @@ impl FleetView {
             ..Sample::of(started, &DriverReport::default())
         });
         let seconds = now.saturating_duration_since(base.at).as_secs_f64();
-        let rounds = current
-            .latency
-            .count()
-            .saturating_sub(base.latency.count());
+        let rounds = current.latency.count().saturating_sub(base.latency.count());
         let batches = current
             .batch_size
             .count()
@@ -324,18 +321,21 @@ impl FleetView {
         let skip = latency_history.len().saturating_sub(HISTORY_POINTS);
         latency_history.drain(..skip);
 
-        // Busy share over RECENT: from the newest sample at least that old, else the oldest.
-        let busy_from = samples
-            .iter()
-            .rev()
-            .find(|s| now.saturating_duration_since(s.at) >= RECENT)
-            .or(samples.front());
         let engines = report
             .engines
             .iter()
             .map(|e| {
+                // Busy share over RECENT: from the newest sample at least that old that knew
+                // the engine, else from the oldest that did (it joined less than RECENT ago).
+                let knew = |s: &&Sample| s.busy.contains_key(&e.name);
+                let from = samples
+                    .iter()
+                    .rev()
+                    .filter(knew)
+                    .find(|s| now.saturating_duration_since(s.at) >= RECENT)
+                    .or_else(|| samples.iter().find(knew));
                 let busy_now = e.busy_time.as_secs_f64();
-                let busy_share = busy_from
+                let busy_share = from
                     .and_then(|from| {
                         let then = from.busy.get(&e.name)?;
                         let span = now.saturating_duration_since(from.at).as_secs_f64();
@@ -561,6 +561,25 @@ mod tests {
     }
 
     #[test]
+    fn an_engine_that_joined_recently_has_its_busy_share_since_it_joined() {
+        let metrics = Metrics::new();
+        let export = metrics.driver().unwrap().clone();
+        let view = FleetView::new(metrics, Readiness::new()).unwrap();
+        let t0 = Instant::now();
+        view.sample(t0);
+        let mut joined = report(&[], &[], 0);
+        joined.engines[0].busy_time = Duration::ZERO;
+        export.publish(joined);
+        view.sample(t0 + Duration::from_secs(2));
+        export.publish(report(&[], &[], 1_000));
+        let snapshot = view.snapshot(t0 + Duration::from_secs(6));
+        assert_eq!(
+            snapshot.engines[0].busy_share, 0.25,
+            "1 s busy in the 4 s since it joined"
+        );
+    }
+
+    #[test]
     fn samples_older_than_the_window_are_forgotten_but_one_starts_it() {
         let metrics = Metrics::new();
         let view = FleetView::new(metrics, Readiness::new()).unwrap();
@@ -569,7 +588,11 @@ mod tests {
             view.sample(t0 + Duration::from_secs(s));
         }
         let samples = view.samples();
-        assert_eq!(samples.len(), 61, "60 s of samples and the one that starts the window");
+        assert_eq!(
+            samples.len(),
+            61,
+            "60 s of samples and the one that starts the window"
+        );
         let span = samples.back().unwrap().at - samples.front().unwrap().at;
         assert_eq!(span, WINDOW);
     }
@@ -582,7 +605,10 @@ mod tests {
     #[test]
     fn the_json_carries_no_token_and_documents_its_schema() {
         let metrics = Metrics::new();
-        metrics.driver().unwrap().publish(report(&[0.01], &[8.0], 0));
+        metrics
+            .driver()
+            .unwrap()
+            .publish(report(&[0.01], &[8.0], 0));
         let view = FleetView::new(metrics, Readiness::new()).unwrap();
         let json: serde_json::Value = serde_json::from_str(&view.json(Instant::now())).unwrap();
         assert_eq!(json["schema"], SCHEMA);

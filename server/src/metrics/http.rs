@@ -116,8 +116,13 @@ struct Refusals {
 
 impl Refusals {
     fn of(metrics: &Metrics) -> Refusals {
-        let [evicted_idle, at_capacity, head_timeout, head_too_large, malformed] =
-            REFUSAL_REASONS.map(|reason| metrics.refusal_counter("metrics", reason));
+        let [
+            evicted_idle,
+            at_capacity,
+            head_timeout,
+            head_too_large,
+            malformed,
+        ] = REFUSAL_REASONS.map(|reason| metrics.refusal_counter("metrics", reason));
         Refusals {
             evicted_idle,
             at_capacity,

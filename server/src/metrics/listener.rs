@@ -189,10 +189,7 @@ mod tests {
 
     fn evicted_now(slot: &mut Slot) -> bool {
         let rx = slot.evicted.as_mut().expect("idle");
-        matches!(
-            rx.try_recv(),
-            Err(oneshot::error::TryRecvError::Closed)
-        )
+        matches!(rx.try_recv(), Err(oneshot::error::TryRecvError::Closed))
     }
 
     #[test]

@@ -53,7 +53,10 @@ async fn silent(addr: SocketAddr, n: usize) -> Vec<TcpStream> {
     for i in 0..n {
         let mut stream = TcpStream::connect(addr).await.unwrap();
         if i % 2 == 1 {
-            stream.write_all(b"GET /metrics HTTP/1.1\r\nHo").await.unwrap();
+            stream
+                .write_all(b"GET /metrics HTTP/1.1\r\nHo")
+                .await
+                .unwrap();
         }
         streams.push(stream);
     }

@@ -113,8 +113,8 @@ function drawLatency(history) {
     });
     ctx.stroke();
   }
-  ctx.fillStyle = "#2f6fdf"; ctx.fillText("p50", w - 70, pad.t + 10);
-  ctx.fillStyle = "#e07a1f"; ctx.fillText("p99", w - 40, pad.t + 10);
+  ctx.fillStyle = "#2f6fdf"; ctx.fillText("— p50", pad.l + 8, pad.t + 12);
+  ctx.fillStyle = "#e07a1f"; ctx.fillText("— p99", pad.l + 52, pad.t + 12);
 }
 
 function drawHorizons(buckets) {
