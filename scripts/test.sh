@@ -91,5 +91,6 @@ if [ -n "${KAIROS_SMOLVLA_CHECKPOINT:-}" ]; then real_checkpoint=(); fi
 KAIROS_PYTHON="$PWD/.venv/bin/python" KAIROS_OPENPI_PYTHON="$PWD/.venv-openpi/bin/python" cargo test --workspace --locked -- --include-ignored "${real_checkpoint[@]}"
 step_done "tests"
 bash scripts/test-python.sh; step_done "Python package: pip install ./sdk/python, pytest against kairos serve"
-bash scripts/build-wheel.sh --profile dev && bash scripts/test-wheel.sh
+bash scripts/build-wheel.sh --profile dev
+bash scripts/test-wheel.sh
 step_done "Python wheel: maturin build, installed without a Rust toolchain, the LeRobot example"

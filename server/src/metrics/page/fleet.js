@@ -67,7 +67,8 @@ function setupCanvas(canvas) {
 function niceMax(v) {
   if (!(v > 0)) return 1;
   const p = Math.pow(10, Math.floor(Math.log10(v)));
-  for (const m of [1, 2, 2.5, 5, 10]) if (v <= m * p) return m * p;
+  // Multiples that divide into four round ticks.
+  for (const m of [1, 2, 4, 6, 8, 10]) if (v <= m * p) return m * p;
   return 10 * p;
 }
 
@@ -81,7 +82,7 @@ function axes(ctx, w, h, pad, max, unit) {
     ctx.moveTo(pad.l, y);
     ctx.lineTo(w - pad.r, y);
     ctx.stroke();
-    const label = (max * i / 4).toFixed(max < 4 ? 1 : 0) + unit;
+    const label = (max * i / 4).toFixed(max < 4 ? 2 : 0) + unit;
     ctx.fillText(label, 4, y + 4);
   }
 }
