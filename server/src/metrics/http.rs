@@ -227,11 +227,14 @@ async fn connection(mut stream: TcpStream, mut slot: Slot, site: &Site) -> std::
         Ok(Err(error)) => return Err(error),
         Ok(Ok(())) => {
             let response = respond(&head, site, Instant::now());
-            match response.status {
-                431 => site.refusals.head_too_large.inc(),
-                400 => site.refusals.malformed.inc(),
-                _ => 0,
+            let refused = match response.status {
+                431 => Some(&site.refusals.head_too_large),
+                400 => Some(&site.refusals.malformed),
+                _ => None,
             };
+            if let Some(counter) = refused {
+                counter.inc();
+            }
             response
         }
     };

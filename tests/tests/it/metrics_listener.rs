@@ -157,3 +157,51 @@ async fn a_full_address_gives_way_to_a_probe_by_evicting_its_oldest_silent_conne
         5.0
     );
 }
+
+/// Sends `bytes`, half-closes unless `keep_open`, and returns the status of the answer.
+async fn exchange(addr: SocketAddr, bytes: &[u8], keep_open: bool) -> u16 {
+    let mut stream = TcpStream::connect(addr).await.unwrap();
+    stream.write_all(bytes).await.unwrap();
+    if !keep_open {
+        stream.shutdown().await.unwrap();
+    }
+    let mut response = Vec::new();
+    stream.read_to_end(&mut response).await.unwrap();
+    let text = String::from_utf8(response).unwrap();
+    text.get(9..12).unwrap().parse().unwrap()
+}
+
+/// What the listener refuses is answered with its status and counted by reason.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn refusals_are_answered_and_counted_by_reason() {
+    let (addr, metrics) = listener(ListenerOptions {
+        // The silent client below never sends its head; any timeout gives it a 408.
+        head_timeout: Duration::from_millis(100),
+        ..ListenerOptions::default()
+    })
+    .await;
+    let refused = |reason: &str| {
+        sample(
+            &metrics,
+            &format!("kairos_refusals_total{{door=\"metrics\",reason=\"{reason}\"}}"),
+        )
+    };
+    assert_eq!(exchange(addr, b"NOT HTTP\r\n\r\n", false).await, 400);
+    let huge = [
+        b"GET /metrics HTTP/1.1\r\nX: ".as_slice(),
+        &vec![b'a'; http::MAX_HEAD],
+    ]
+    .concat();
+    // Exactly the most the listener reads, so that nothing is left unread when it closes (which
+    // would reset the connection, and could discard the answer before the client reads it).
+    assert_eq!(exchange(addr, &huge[..http::MAX_HEAD], false).await, 431);
+    assert_eq!(
+        exchange(addr, b"GET /metrics HTTP/1.1\r\n", true).await,
+        408
+    );
+    assert_eq!(refused("malformed"), 1.0);
+    assert_eq!(refused("head_too_large"), 1.0);
+    assert_eq!(refused("head_timeout"), 1.0);
+    assert_eq!(refused("evicted_idle"), 0.0);
+    assert_eq!(probe(addr).await, 200, "and the listener still answers");
+}
