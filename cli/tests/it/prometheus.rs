@@ -62,19 +62,26 @@ fn percent_encode(text: &str) -> String {
     out
 }
 
-/// `GET path` over HTTP/1.0 (so the body is not chunked), parsed as JSON.
-fn get_json(addr: SocketAddr, path: &str) -> Value {
-    let mut stream = TcpStream::connect(addr).unwrap();
+/// `GET path` over HTTP/1.0 (so the body is not chunked): status and body; `None` if nothing
+/// listens yet.
+fn get(addr: SocketAddr, path: &str) -> Option<(u16, String)> {
+    let mut stream = TcpStream::connect(addr).ok()?;
     stream
         .set_read_timeout(Some(Duration::from_secs(60)))
         .unwrap();
-    write!(stream, "GET {path} HTTP/1.0\r\nHost: prometheus\r\n\r\n").unwrap();
+    write!(stream, "GET {path} HTTP/1.0\r\nHost: prometheus\r\n\r\n").ok()?;
     let mut response = String::new();
-    stream.read_to_string(&mut response).unwrap();
-    let (_, body) = response
-        .split_once("\r\n\r\n")
-        .unwrap_or_else(|| panic!("not an HTTP response: {response}"));
-    serde_json::from_str(body).unwrap_or_else(|e| panic!("{e}: {body}"))
+    stream.read_to_string(&mut response).ok()?;
+    let (head, body) = response.split_once("\r\n\r\n")?;
+    let status = head.get(9..12)?.parse().ok()?;
+    Some((status, body.to_string()))
+}
+
+/// `GET path`, answered 200, parsed as JSON.
+fn get_json(addr: SocketAddr, path: &str) -> Value {
+    let (status, body) = get(addr, path).unwrap_or_else(|| panic!("no answer to {path}"));
+    assert_eq!(status, 200, "{path}: {body}");
+    serde_json::from_str(&body).unwrap_or_else(|e| panic!("{e}: {body}"))
 }
 
 impl Prometheus {
@@ -109,9 +116,9 @@ impl Prometheus {
             .spawn()
             .unwrap();
         let prometheus = Prometheus { child, addr };
+        // `/-/ready` answers 503 while the storage starts, 200 once queries are served.
         prometheus.wait_for("Prometheus ready", || {
-            TcpStream::connect(addr).is_ok()
-                && get_json(addr, "/api/v1/status/buildinfo")["status"] == "success"
+            get(addr, "/-/ready").is_some_and(|(status, _)| status == 200)
         });
         prometheus
     }
