@@ -229,7 +229,9 @@ fn print_banner(config: &Config, server: &RunningServer) {
         println!("  openpi         ws://{addr} (openpi-client; Api-Key = a robot token)");
     }
     if let Some(addr) = server.metrics_addr {
-        println!("  metrics        http://{addr}/metrics, readiness http://{addr}/ready");
+        println!(
+            "  metrics        http://{addr}/metrics, readiness http://{addr}/ready, fleet page http://{addr}/"
+        );
     }
     println!(
         "  certificate    {}{}",

@@ -291,6 +291,8 @@ struct Shell {
     shutdown: watch::Receiver<bool>,
     /// Where the core's report goes after every event (`/metrics`).
     export: Option<DriverExport>,
+    /// `kairos_driver_alive` is 1 while the thread holds this (dropped however it ends).
+    _running: Option<crate::metrics::driver::DriverRunning>,
 }
 
 /// Starts the driver: its core on a thread of its own, its waiting on the current tokio runtime.
@@ -318,6 +320,7 @@ pub fn spawn(
     }
     let shell = Shell {
         core,
+        _running: export.as_ref().map(DriverExport::running),
         export,
         commands,
         reports: commands_tx.downgrade(),

@@ -18,7 +18,10 @@
 //! all bounded by the deployment's configuration.
 
 pub mod driver;
+pub mod fleet;
 pub mod http;
+mod listener;
+mod operations;
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -33,6 +36,7 @@ use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::{Registry, Unit};
 
 pub use self::driver::DriverExport;
+pub use self::operations::{DoorConnections, PluginHealth, RefusalCount};
 
 /// `Content-Type` of [`Metrics::encode`]'s output (OpenMetrics text, which Prometheus scrapes).
 pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
@@ -105,12 +109,6 @@ struct StateLabel {
     state: &'static str,
 }
 
-#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
-struct FallbackLabels {
-    kind: &'static str,
-    policy: String,
-}
-
 type FloatGauge = Gauge<f64, AtomicU64>;
 type FloatCounter = Counter<f64, AtomicU64>;
 
@@ -129,7 +127,10 @@ struct EngineBusy {
 
 struct Inner {
     registry: Registry,
-    plugin_fallbacks: Family<FallbackLabels, Counter>,
+    /// Connections, refusals, removed workers, plugins ([`operations`]).
+    operations: operations::Operations,
+    /// When the registry was built: the process's start, near enough.
+    started: Instant,
     /// The scheduler's: the driver core's latest report, encoded at every scrape. `None` in a
     /// worker.
     driver: Option<DriverExport>,
@@ -185,12 +186,7 @@ impl Metrics {
 
     fn build(worker: bool) -> Metrics {
         let mut registry = Registry::default();
-        let plugin_fallbacks = Family::<FallbackLabels, Counter>::default();
-        registry.register(
-            "kairos_plugin_fallbacks",
-            "Decisions a policy plugin answered through its fallback policy because it failed",
-            plugin_fallbacks.clone(),
-        );
+        let operations = operations::Operations::register(&mut registry, !worker);
         let driver = (!worker).then(|| {
             let export = DriverExport::default();
             registry.register_collector(Box::new(driver::DriverCollector(export.clone())));
@@ -265,7 +261,8 @@ impl Metrics {
         });
         Metrics(Arc::new(Inner {
             registry,
-            plugin_fallbacks,
+            operations,
+            started: Instant::now(),
             driver,
             worker,
         }))
@@ -321,13 +318,63 @@ impl Metrics {
     /// The counter of fallbacks of `policy` (`kairos_plugin_fallbacks_total{kind,policy}`),
     /// for its owner to count in. Handles to the same labels share one value.
     pub fn fallback_counter(&self, kind: PolicyKind, policy: &str) -> Counter {
-        self.0
-            .plugin_fallbacks
-            .get_or_create(&FallbackLabels {
-                kind: kind.as_str(),
-                policy: policy.to_string(),
-            })
-            .clone()
+        self.0.operations.plugin(kind, policy).fallbacks
+    }
+
+    /// The gauge of `policy`'s quarantine (`kairos_plugin_quarantined{kind,policy}`, 1 while
+    /// quarantined), for its owner to set.
+    pub fn quarantine_gauge(&self, kind: PolicyKind, policy: &str) -> Gauge {
+        self.0.operations.plugin(kind, policy).quarantined
+    }
+
+    /// The counter of refusals at `door` for `reason` (`kairos_refusals_total{door,reason}`),
+    /// for the guard that refuses to count in; the series exists at zero from this call on.
+    /// Both labels are chosen by the code, so the label set stays bounded.
+    pub fn refusal_counter(&self, door: &'static str, reason: &'static str) -> Counter {
+        self.0.operations.refusal_counter(door, reason)
+    }
+
+    /// The counter of remote workers removed from the pool for `reason`
+    /// (`kairos_worker_removed_total{reason}`; a scheduler's family).
+    pub fn worker_removed_counter(&self, reason: &'static str) -> Counter {
+        self.0.operations.removed_counter(reason)
+    }
+
+    /// Exports `door`'s places for authenticated robot connections (a semaphore of `capacity`
+    /// permits, one held per connection) as `kairos_robot_connections{door}`, for as long as
+    /// the semaphore exists.
+    pub fn watch_connection_places(
+        &self,
+        door: &'static str,
+        places: &Arc<tokio::sync::Semaphore>,
+        capacity: usize,
+    ) {
+        self.0.operations.watch_places(door, places, capacity);
+    }
+
+    /// Every refusal counted so far, by door and reason.
+    pub fn refusals(&self) -> Vec<RefusalCount> {
+        self.0.operations.refusals()
+    }
+
+    /// Remote workers removed so far, by reason.
+    pub fn workers_removed(&self) -> BTreeMap<&'static str, u64> {
+        self.0.operations.removed()
+    }
+
+    /// Every policy plugin's fallbacks and quarantine state.
+    pub fn plugins(&self) -> Vec<PluginHealth> {
+        self.0.operations.plugins()
+    }
+
+    /// Authenticated robot connections per door.
+    pub fn robot_connections(&self) -> Vec<DoorConnections> {
+        self.0.operations.connections()
+    }
+
+    /// Time since the registry was built (the process's uptime, near enough).
+    pub fn uptime(&self) -> Duration {
+        self.0.started.elapsed()
     }
 
     /// Makes `engine` appear in `kairos_engine_busy_*` at zero before its first batch (a worker

@@ -122,6 +122,8 @@ pub struct Health {
     stats: PluginStats,
     /// `stats.fallbacks`, exported (`PluginOptions::fallback_counter`).
     exported_fallbacks: Option<prometheus_client::metrics::counter::Counter>,
+    /// Whether it is quarantined, exported (`PluginOptions::quarantine_gauge`).
+    exported_quarantine: Option<prometheus_client::metrics::gauge::Gauge>,
 }
 
 impl Health {
@@ -138,6 +140,7 @@ impl Health {
             logged: [false; FailureKind::ALL.len()],
             stats: PluginStats::default(),
             exported_fallbacks: options.fallback_counter.clone(),
+            exported_quarantine: options.quarantine_gauge.clone(),
         }
     }
 
@@ -172,6 +175,7 @@ impl Health {
         if self.sitting_out.take().is_some() {
             tracing::info!(plugin = %self.name, "plugin answered again; quarantine lifted");
             self.probation = self.base_probation;
+            self.export_quarantine();
         }
     }
 
@@ -211,6 +215,7 @@ impl Health {
             self.stats.quarantines += 1;
             tracing::warn!(plugin = %self.name, consecutive_failures = self.consecutive_failures,
                 sit_out_decisions = self.probation, "plugin quarantined: the fallback policy answers until it is probed again or its file changes");
+            self.export_quarantine();
         }
     }
 
@@ -230,6 +235,13 @@ impl Health {
         self.sitting_out = None;
         self.probation = self.base_probation;
         self.logged = [false; FailureKind::ALL.len()];
+        self.export_quarantine();
+    }
+
+    fn export_quarantine(&self) {
+        if let Some(gauge) = &self.exported_quarantine {
+            gauge.set(i64::from(self.sitting_out.is_some()));
+        }
     }
 
     /// A snapshot of the counters.
@@ -265,10 +277,12 @@ mod tests {
     #[test]
     fn quarantine_starts_after_consecutive_failures_and_doubles_on_failed_probes() {
         let exported = prometheus_client::metrics::counter::Counter::default();
+        let quarantined = prometheus_client::metrics::gauge::Gauge::<i64>::default();
         let mut h = Health::new(
             "p",
             &PluginOptions {
                 fallback_counter: Some(exported.clone()),
+                quarantine_gauge: Some(quarantined.clone()),
                 ..options(2, 3)
             },
         );
@@ -283,6 +297,7 @@ mod tests {
         assert!(h.admit());
         h.failed(FailureKind::Timeout, "x");
         assert!(h.stats().quarantined);
+        assert_eq!(quarantined.get(), 1, "the quarantine is exported");
         assert_eq!(h.stats().quarantines, 1);
         // Sits out 3 decisions, then is probed.
         assert!((0..3).all(|_| !h.admit()));
@@ -293,6 +308,7 @@ mod tests {
         assert!(h.admit());
         h.succeeded(Duration::ZERO, 0);
         assert!(!h.stats().quarantined);
+        assert_eq!(quarantined.get(), 0, "and so is its end");
         let stats = h.stats();
         assert_eq!(stats.failures_of(FailureKind::Quarantined), 9);
         assert_eq!(stats.failures_of(FailureKind::Trap), 3);

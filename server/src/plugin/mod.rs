@@ -108,6 +108,9 @@ pub struct PluginOptions {
     /// Where its fallbacks are exported too (`kairos_plugin_fallbacks_total`); `None`: not
     /// exported.
     pub fallback_counter: Option<prometheus_client::metrics::counter::Counter>,
+    /// Where its quarantine is exported (`kairos_plugin_quarantined`, 1 while quarantined);
+    /// `None`: not exported.
+    pub quarantine_gauge: Option<prometheus_client::metrics::gauge::Gauge>,
 }
 
 /// The default per-call deadline of a component that imports WASI, either world.
@@ -182,6 +185,7 @@ impl PluginOptions {
             cache: None,
             reload_poll: Some(Duration::from_millis(500)),
             fallback_counter: None,
+            quarantine_gauge: None,
         }
     }
 }

@@ -181,6 +181,10 @@ pub async fn start(
 
     // Configured plugins first, so that policies passed in by the caller shadow them.
     let metrics = Metrics::new();
+    // Every removal reason is a series from the start, so that `increase()` sees the first one.
+    for reason in super::workers::REMOVAL_REASONS {
+        metrics.worker_removed_counter(reason);
+    }
     let (mut horizons, mut priorities) = crate::plugin::factory::load_configured(
         &config.plugins,
         &crate::data_dir::DataDir::new(&config.data_dir).plugin_cache(),
@@ -284,6 +288,7 @@ pub async fn start(
             token_hash: worker_token_hash,
             config: config.workers.clone(),
         },
+        metrics: metrics.clone(),
     });
     let openpi_task = openpi_listener.map(|listener| {
         tokio::spawn(crate::openpi::run(

@@ -126,6 +126,8 @@ pub struct ServerContext {
     pub connections: ConnectionsConfig,
     /// Remote engine workers: their token and `[workers]`.
     pub workers: workers::WorkerGate,
+    /// The server's metrics, for the counts the connection tasks own.
+    pub metrics: crate::metrics::Metrics,
 }
 
 impl ServerContext {
@@ -252,6 +254,11 @@ pub async fn run(
     shutdown: impl Future<Output = ()>,
 ) -> TransportStats {
     let gate = Arc::new(Gate::new(&context.connections));
+    context.metrics.watch_connection_places(
+        "quic",
+        &gate.authenticated,
+        context.connections.max_connections,
+    );
     let max_unauthenticated = context.connections.max_unauthenticated;
     let unauthenticated = Arc::new(Semaphore::new(max_unauthenticated));
     let (stop_tx, stop_rx) = watch::channel(false);

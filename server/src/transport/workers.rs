@@ -70,10 +70,22 @@ pub(super) async fn serve(
     let _send = send;
     let why = watch_worker(&connection, recv, &context, engine, &mut stop).await;
     context.driver.remove_engine(engine).await;
+    context.metrics.worker_removed_counter(why).inc();
     tracing::info!(%remote, ?engine, why, "worker left the pool");
 }
 
-/// Heartbeats until the worker leaves; returns why. A `Drain` takes the worker out of
+/// Every reason [`watch_worker`] gives for a worker leaving the pool.
+pub const REMOVAL_REASONS: [&str; 6] = [
+    "silent",
+    "protocol_error",
+    "drained",
+    "connection_lost",
+    "connection_closed",
+    "scheduler_stopped",
+];
+
+/// Heartbeats until the worker leaves; returns why (`snake_case`, the label of
+/// `kairos_worker_removed_total`). A `Drain` takes the worker out of
 /// placement at once; its running batch still finishes and the connection is closed once the
 /// worker finishes its registration stream.
 async fn watch_worker(
@@ -112,7 +124,7 @@ async fn watch_worker(
                             let reason = format!("unexpected on the registration stream: {other:?}");
                             let reason: String = reason.chars().take(200).collect();
                             connection.close(VarInt::from_u32(close_code::PROTOCOL_ERROR), reason.as_bytes());
-                            return "protocol error";
+                            return "protocol_error";
                         }
                     },
                     // The worker finished its registration stream: it is done.
@@ -121,10 +133,10 @@ async fn watch_worker(
                         connection.close(VarInt::from_u32(worker_close::DRAINED), b"drained");
                         return "drained";
                     }
-                    Ok(Err(_)) => return "connection lost",
+                    Ok(Err(_)) => return "connection_lost",
                 }
             }
-            _ = connection.closed() => return "connection closed",
+            _ = connection.closed() => return "connection_closed",
             // The scheduler stops: the worker keeps serving while the driver answers the rounds
             // it accepted; the transport closes the connection when it is done draining.
             () = async { let _ = stop.wait_for(|stopping| *stopping).await; }, if !stopping => {
@@ -134,7 +146,7 @@ async fn watch_worker(
             // the next scheduler) instead of holding the shutdown until the drain timeout.
             () = context.driver.stopped(), if stopping => {
                 connection.close(VarInt::from_u32(close_code::SHUTTING_DOWN), b"scheduler stopped");
-                return "scheduler stopped";
+                return "scheduler_stopped";
             }
         }
     }

@@ -17,6 +17,7 @@ mod isolation;
 mod lossy;
 mod malformed;
 mod metrics;
+mod metrics_listener;
 mod openpi;
 mod plugins_served;
 mod replay_horizon;
