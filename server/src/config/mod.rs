@@ -129,7 +129,7 @@ pub struct WorkersConfig {
     pub redispatch_within_ms: u32,
     /// A worker that registers with tier `auto` is cloud when its measured round trip is at
     /// least this many ms and edge below it; it is re-classified as the moving average moves
-    /// (25 % hysteresis around the threshold, `pool::remote::tier_from_rtt`).
+    /// (25 % hysteresis around the threshold, `worker::remote::tier_from_rtt`).
     pub cloud_rtt_ms: u32,
 }
 

@@ -93,7 +93,15 @@ pub(super) async fn serve(
         Some(Admitted::Robot(connection, robot, place)) => (connection, robot, place),
         Some(Admitted::Worker(connection, deadline)) => {
             // A worker takes no robot place; its registration shares the handshake budget.
-            super::workers::serve(connection, unauthenticated, context, gate, deadline, stop).await;
+            crate::worker::registration::serve(
+                connection,
+                unauthenticated,
+                context,
+                gate,
+                deadline,
+                stop,
+            )
+            .await;
             return;
         }
         None => return,
@@ -150,7 +158,8 @@ enum Admitted {
 
 /// The handshake and `Hello`, both within `hello_timeout_ms` of the first packet: the connection,
 /// its robot and its place among the authenticated connections, or `None` after closing it. A
-/// worker connection (by its ALPN) is returned after the handshake, for `workers::serve`.
+/// worker connection (by its ALPN) is returned after the handshake, for
+/// `worker::registration::serve`.
 async fn admit(
     incoming: quinn::Incoming,
     context: &ServerContext,

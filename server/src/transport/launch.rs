@@ -22,8 +22,8 @@ use crate::pool::EnginePool;
 use crate::validation::{DecodePool, Validator};
 use kairos_core::action::{ActionConfigError, ActionManager};
 use kairos_core::registry::{build_priority, native_horizon_policies, native_priority_policies};
-use kairos_core::scheduler::Scheduler;
 use kairos_core::scheduler::registry::PolicySpecError;
+use kairos_core::scheduler::{PriorityPolicy, Scheduler};
 
 /// Why the server could not start.
 #[derive(Debug, thiserror::Error)]
@@ -69,6 +69,9 @@ pub enum LaunchError {
         /// The error.
         source: std::io::Error,
     },
+    /// A start-up step could not run (its thread failed).
+    #[error("cannot start: {0}")]
+    Startup(String),
     /// The UDP socket could not be bound.
     #[error("cannot listen on {addr}: {source}")]
     Bind {
@@ -179,25 +182,16 @@ pub async fn start(
     };
     let identity = super::tls::load_or_generate(config)?;
 
-    // Configured plugins first, so that policies passed in by the caller shadow them.
     let metrics = Metrics::new();
-    let (mut horizons, mut priorities) = crate::plugin::factory::load_configured(
-        &config.plugins,
-        &crate::data_dir::DataDir::new(&config.data_dir).plugin_cache(),
-        Some(&metrics),
-    )?;
-    horizons.extend(policies.horizon);
-    priorities.extend(policies.priority);
-    let natives = native_horizon_policies();
-    let actions = Arc::new(ActionManager::new(
-        horizons,
-        &natives,
-        &config.horizon.policy,
-        config.horizon.params.clone(),
-    )?);
-    let mut all_priorities = native_priority_policies();
-    all_priorities.extend(priorities);
-    let priority = build_priority(&all_priorities, &config.scheduler.policy)?;
+    // Compiling plugins (wasmtime, seconds for a large component) and building the policies
+    // block: on a thread of the blocking pool, not on one of the runtime's workers.
+    let (actions, priority) = {
+        let (config, metrics) = (config.clone(), metrics.clone());
+        tokio::task::spawn_blocking(move || build_policies(&config, policies, &metrics))
+            .await
+            .map_err(|error| LaunchError::Startup(format!("building the policies: {error}")))??
+    };
+    let actions = Arc::new(actions);
     let specs = pool.specs();
     let scheduler = Scheduler::new(config.scheduler.core(), specs, priority);
 
@@ -280,7 +274,7 @@ pub async fn start(
         driver: driver.clone(),
         model: model.clone(),
         connections: config.connections.clone(),
-        workers: super::workers::WorkerGate {
+        workers: crate::worker::registration::WorkerGate {
             token_hash: worker_token_hash,
             config: config.workers.clone(),
         },
@@ -335,6 +329,34 @@ pub async fn start(
         stop,
         task,
     })
+}
+
+/// The action manager (horizon policies) and the scheduler's priority policy: the configured
+/// plugins first, so that policies passed in by the caller shadow them. Blocking: plugins are
+/// compiled here.
+fn build_policies(
+    config: &Config,
+    policies: Policies,
+    metrics: &Metrics,
+) -> Result<(ActionManager, Box<dyn PriorityPolicy>), LaunchError> {
+    let (mut horizons, mut priorities) = crate::plugin::factory::load_configured(
+        &config.plugins,
+        &crate::data_dir::DataDir::new(&config.data_dir).plugin_cache(),
+        Some(metrics),
+    )?;
+    horizons.extend(policies.horizon);
+    priorities.extend(policies.priority);
+    let natives = native_horizon_policies();
+    let actions = ActionManager::new(
+        horizons,
+        &natives,
+        &config.horizon.policy,
+        config.horizon.params.clone(),
+    )?;
+    let mut all_priorities = native_priority_policies();
+    all_priorities.extend(priorities);
+    let priority = build_priority(&all_priorities, &config.scheduler.policy)?;
+    Ok((actions, priority))
 }
 
 /// The server's UDP socket, with `buffer` bytes of kernel buffer each way (best effort: the kernel

@@ -38,7 +38,6 @@ mod admit;
 mod connection;
 pub mod launch;
 pub mod tls;
-pub mod workers;
 
 use std::collections::HashMap;
 use std::future::Future;
@@ -125,7 +124,7 @@ pub struct ServerContext {
     /// Connection limits.
     pub connections: ConnectionsConfig,
     /// Remote engine workers: their token and `[workers]`.
-    pub workers: workers::WorkerGate,
+    pub workers: crate::worker::registration::WorkerGate,
 }
 
 impl ServerContext {

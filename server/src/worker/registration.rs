@@ -17,11 +17,12 @@ use quinn::{Connection, RecvStream, SendStream, VarInt};
 use tokio::sync::watch;
 use tokio::time::Instant;
 
-use super::{Gate, ServerContext};
+use super::RemoteEngine;
+use super::wire::{model_spec, profile_from_wire};
 use crate::config::WorkersConfig;
 use crate::credentials::hash_token;
-use crate::pool::remote::{model_spec, profile_from_wire};
-use crate::pool::{EngineInstance, RemoteEngine, same_shapes};
+use crate::pool::{EngineInstance, same_shapes};
+use crate::transport::{Gate, ServerContext};
 use kairos_core::scheduler::Tier;
 
 /// Who may register as a worker, and how workers are treated.
@@ -38,7 +39,7 @@ const REGISTER_MAX_FRAME: u32 = 64 << 10;
 
 /// Serves one worker connection until it leaves. Registration must complete by `deadline`
 /// (the robot's `hello_timeout_ms`).
-pub(super) async fn serve(
+pub(crate) async fn serve(
     connection: Connection,
     unauthenticated: tokio::sync::OwnedSemaphorePermit,
     context: Arc<ServerContext>,

@@ -26,9 +26,9 @@ use kairos_sdk::transport::{TransportTuning, worker_client_config};
 use quinn::{Connection, RecvStream, SendStream, VarInt};
 use tokio::sync::Notify;
 
+use super::wire::{chunk_to_wire, model_info, profile_to_wire, request_from_wire};
 use crate::metrics::{Metrics, WorkerConnection};
 use crate::pool::EngineInstance;
-use crate::pool::remote::{chunk_to_wire, model_info, profile_to_wire, request_from_wire};
 
 /// Where and as whom a worker registers.
 #[derive(Clone, Debug)]
