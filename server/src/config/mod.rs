@@ -121,6 +121,9 @@ pub struct WorkersConfig {
     pub batch_deadline_factor: f64,
     /// See `batch_deadline_factor`.
     pub min_batch_deadline_ms: u32,
+    /// The longest a batch sent to a worker may take, whatever the worker declared in its
+    /// profile: the deadline is capped here.
+    pub max_batch_deadline_ms: u32,
     /// Dispatches a round may get in all (the first included) before a lost batch fails it
     /// with a retryable error instead of running it again.
     pub max_attempts: u32,
@@ -140,6 +143,7 @@ impl Default for WorkersConfig {
             heartbeat_ms: 500,
             batch_deadline_factor: 4.0,
             min_batch_deadline_ms: 2_000,
+            max_batch_deadline_ms: 60_000,
             max_attempts: 3,
             redispatch_within_ms: 10_000,
             cloud_rtt_ms: 20,
@@ -158,10 +162,16 @@ impl WorkersConfig {
         self.heartbeat() * 3 + self.heartbeat() / 2
     }
 
-    /// The deadline of a batch expected to take `expected`.
+    /// The deadline of a batch expected to take `expected`: `batch_deadline_factor` times it,
+    /// at least `min_batch_deadline_ms` and at most `max_batch_deadline_ms`. `expected` comes
+    /// from a worker's profile, so nothing here can overflow or panic, whatever it is.
     pub fn batch_deadline(&self, expected: Duration) -> Duration {
-        let scaled = expected.mul_f64(self.batch_deadline_factor.max(1.0));
-        scaled.max(Duration::from_millis(u64::from(self.min_batch_deadline_ms)))
+        let factor = self.batch_deadline_factor.max(1.0);
+        let scaled =
+            Duration::try_from_secs_f64(expected.as_secs_f64() * factor).unwrap_or(Duration::MAX);
+        let min = Duration::from_millis(u64::from(self.min_batch_deadline_ms));
+        let max = Duration::from_millis(u64::from(self.max_batch_deadline_ms));
+        scaled.max(min).min(max.max(min))
     }
 
     /// The round trip from which an `auto` worker is cloud.
@@ -726,6 +736,12 @@ impl Config {
                 "must be at least 1".into(),
             ));
         }
+        if self.workers.max_batch_deadline_ms < self.workers.min_batch_deadline_ms {
+            return Err(invalid(
+                "workers.max_batch_deadline_ms".into(),
+                "must be at least workers.min_batch_deadline_ms".into(),
+            ));
+        }
         if !(self.workers.batch_deadline_factor.is_finite()
             && self.workers.batch_deadline_factor >= 1.0)
         {
@@ -1009,6 +1025,22 @@ mod tests {
     }
 
     #[test]
+    fn a_batch_deadline_is_scaled_and_bounded_whatever_the_worker_declared() {
+        let workers = WorkersConfig {
+            batch_deadline_factor: 4.0,
+            min_batch_deadline_ms: 2_000,
+            max_batch_deadline_ms: 60_000,
+            ..WorkersConfig::default()
+        };
+        let ms = Duration::from_millis;
+        assert_eq!(workers.batch_deadline(ms(100)), ms(2_000));
+        assert_eq!(workers.batch_deadline(ms(1_000)), ms(4_000));
+        assert_eq!(workers.batch_deadline(ms(100_000)), ms(60_000));
+        // A profile's latency saturates at `Duration::MAX`: capped, no overflow.
+        assert_eq!(workers.batch_deadline(Duration::MAX), ms(60_000));
+    }
+
+    #[test]
     fn unknown_key_error_names_file_and_key() {
         let err = Config::parse("[scheduler]\nstale_afterms = 5\n", Path::new("my.toml"))
             .unwrap_err()
@@ -1030,6 +1062,10 @@ mod tests {
         let cases = [
             ("[workers]\nheartbeat_ms = 0\n", "workers.heartbeat_ms"),
             ("[workers]\nmax_attempts = 0\n", "workers.max_attempts"),
+            (
+                "[workers]\nmin_batch_deadline_ms = 5000\nmax_batch_deadline_ms = 4000\n",
+                "workers.max_batch_deadline_ms",
+            ),
             (
                 "[[robot]]\nname = \"a\"\ntoken_sha256 = \"abc\"\n",
                 "robot[0].token_sha256",

@@ -9,6 +9,9 @@
 //!   fallbacks are read from it the same way;
 //! - the plugin host counts its fallbacks in the [`Counter`] handed to it
 //!   ([`Metrics::fallback_counter`]);
+//! - the scheduler's worker registration counts the workers it removes
+//!   (`kairos_worker_removed_total{reason}`), and the driver's shell says whether the driver
+//!   thread runs (`kairos_driver_alive`);
 //! - a `kairos worker` process ([`Metrics::for_worker`]) counts its own facts in typed families:
 //!   its connection state, batches answered, heartbeats sent, compute time per batch, its
 //!   engine's busy time and batch sizes, fed by `crate::worker`.
@@ -76,6 +79,53 @@ impl WorkerConnection {
     }
 }
 
+/// Why the scheduler removed a worker (or refused its registration), as
+/// `kairos_worker_removed_total{reason}` labels it. A worker that drains is not removed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum WorkerRemoval {
+    /// Its `Register` broke the protocol's rules (an unusable profile, oversized strings).
+    InvalidRegistration,
+    /// It answered a batch with something unusable (wrong count or shapes, non-finite values,
+    /// oversized error text).
+    InvalidAnswer,
+    /// A batch's deadline passed without an answer.
+    Deadline,
+    /// A batch's stream was reset or finished without an answer.
+    StreamFailed,
+    /// No heartbeat for about three periods.
+    Silent,
+    /// A message its registration stream may not carry.
+    ProtocolError,
+    /// Its connection was lost.
+    ConnectionLost,
+}
+
+impl WorkerRemoval {
+    /// Every reason, in the order exported.
+    pub const ALL: [WorkerRemoval; 7] = [
+        WorkerRemoval::InvalidRegistration,
+        WorkerRemoval::InvalidAnswer,
+        WorkerRemoval::Deadline,
+        WorkerRemoval::StreamFailed,
+        WorkerRemoval::Silent,
+        WorkerRemoval::ProtocolError,
+        WorkerRemoval::ConnectionLost,
+    ];
+
+    /// The label value.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            WorkerRemoval::InvalidRegistration => "invalid_registration",
+            WorkerRemoval::InvalidAnswer => "invalid_answer",
+            WorkerRemoval::Deadline => "deadline",
+            WorkerRemoval::StreamFailed => "stream_failed",
+            WorkerRemoval::Silent => "silent",
+            WorkerRemoval::ProtocolError => "protocol_error",
+            WorkerRemoval::ConnectionLost => "connection_lost",
+        }
+    }
+}
+
 /// Which policy fell back, as `kairos_plugin_fallbacks_total` labels it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum PolicyKind {
@@ -106,6 +156,11 @@ struct StateLabel {
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct ReasonLabel {
+    reason: &'static str,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct FallbackLabels {
     kind: &'static str,
     policy: String,
@@ -133,8 +188,18 @@ struct Inner {
     /// The scheduler's: the driver core's latest report, encoded at every scrape. `None` in a
     /// worker.
     driver: Option<DriverExport>,
+    /// The scheduler's own families; `None` in a worker.
+    scheduler: Option<SchedulerFamilies>,
     /// The worker process's own families ([`Metrics::for_worker`]); `None` in a scheduler.
     worker: Option<WorkerFamilies>,
+}
+
+/// What only a scheduler exports, beside the driver's report.
+struct SchedulerFamilies {
+    /// `kairos_driver_alive`: 1 while the driver thread runs.
+    driver_alive: Gauge,
+    /// `kairos_worker_removed_total{reason}`.
+    workers_removed: Family<ReasonLabel, Counter>,
 }
 
 /// What only a `kairos worker` process exports.
@@ -195,6 +260,31 @@ impl Metrics {
             let export = DriverExport::default();
             registry.register_collector(Box::new(driver::DriverCollector(export.clone())));
             export
+        });
+        let scheduler = (!worker).then(|| {
+            let driver_alive = Gauge::default();
+            registry.register(
+                "kairos_driver_alive",
+                "1 while the scheduler's driver thread runs; 0 once it has ended (a server whose \
+                 driver died is not ready and stops)",
+                driver_alive.clone(),
+            );
+            let workers_removed = Family::<ReasonLabel, Counter>::default();
+            // Every reason exported from the start, at 0.
+            for reason in WorkerRemoval::ALL {
+                let _ = workers_removed.get_or_create(&ReasonLabel {
+                    reason: reason.as_str(),
+                });
+            }
+            registry.register(
+                "kairos_worker_removed",
+                "Remote workers removed from the pool, or refused at registration, by reason",
+                workers_removed.clone(),
+            );
+            SchedulerFamilies {
+                driver_alive,
+                workers_removed,
+            }
         });
         let worker = worker.then(|| {
             // 1 .. 512 requests per batch.
@@ -267,6 +357,7 @@ impl Metrics {
             registry,
             plugin_fallbacks,
             driver,
+            scheduler,
             worker,
         }))
     }
@@ -274,6 +365,36 @@ impl Metrics {
     /// Where the driver's shell publishes the core's reports (`None` in a worker process).
     pub fn driver(&self) -> Option<&DriverExport> {
         self.0.driver.as_ref()
+    }
+
+    /// `kairos_driver_alive`: whether the driver thread runs. No-op in a worker.
+    pub fn set_driver_alive(&self, alive: bool) {
+        if let Some(s) = &self.0.scheduler {
+            s.driver_alive.set(i64::from(alive));
+        }
+    }
+
+    /// `kairos_worker_removed_total{reason}`: the scheduler removed a worker (or refused its
+    /// registration) for `reason`. No-op in a worker.
+    pub fn record_worker_removed(&self, reason: WorkerRemoval) {
+        if let Some(s) = &self.0.scheduler {
+            s.workers_removed
+                .get_or_create(&ReasonLabel {
+                    reason: reason.as_str(),
+                })
+                .inc();
+        }
+    }
+
+    /// Workers removed for `reason` so far (`kairos_worker_removed_total`; 0 in a worker).
+    pub fn workers_removed(&self, reason: WorkerRemoval) -> u64 {
+        self.0.scheduler.as_ref().map_or(0, |s| {
+            s.workers_removed
+                .get_or_create(&ReasonLabel {
+                    reason: reason.as_str(),
+                })
+                .get()
+        })
     }
 
     /// `kairos_worker_connection{state}`: the worker is now in `state`. No-op in a scheduler.

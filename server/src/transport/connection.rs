@@ -323,9 +323,10 @@ pub(super) fn stream_window(context_limits: &Limits, connection_window: u64) -> 
     (u64::from(context_limits.max_frame) + HEADER_LEN as u64).min(connection_window)
 }
 
-/// Writes `error` as the stream's final frame and finishes the stream.
-async fn send_error(send: &mut SendStream, error: &RequestError, context: &ServerContext) {
-    let mut reply = ErrorReply::from(error);
+/// `reply` with its message cut to the protocol's `max_message_bytes` (on a character
+/// boundary): an error may quote what others sent (a worker's engine error, a plugin's
+/// refusal), and the robot would refuse an oversized message.
+fn within_limits(mut reply: ErrorReply, context: &ServerContext) -> ErrorReply {
     let max = context.limits().max_message_bytes as usize;
     if reply.message.len() > max {
         let mut cut = max;
@@ -334,6 +335,12 @@ async fn send_error(send: &mut SendStream, error: &RequestError, context: &Serve
         }
         reply.message.truncate(cut);
     }
+    reply
+}
+
+/// Writes `error` as the stream's final frame and finishes the stream.
+async fn send_error(send: &mut SendStream, error: &RequestError, context: &ServerContext) {
+    let reply = within_limits(ErrorReply::from(error), context);
     let _ = write_message(send, &Message::Error(reply), context.limits().max_frame).await;
     let _ = send.finish();
 }
@@ -386,7 +393,7 @@ async fn end_task(
         .map_err(|_| RequestError::SHUTTING_DOWN)?;
     let message = match answer {
         Ok(ended) => Message::TaskEnded(ended),
-        Err(error) => Message::Error(error),
+        Err(error) => Message::Error(within_limits(error, context)),
     };
     let _ = write_message(send, &message, context.limits().max_frame).await;
     let _ = send.finish();
@@ -424,7 +431,7 @@ async fn round(
     };
     let message = match answer {
         Ok(Ok(reply)) => Message::Reply(reply),
-        Ok(Err(error)) => Message::Error(error),
+        Ok(Err(error)) => Message::Error(within_limits(error, context)),
         // The driver stopped without answering.
         Err(_) => return Err(RequestError::SHUTTING_DOWN),
     };

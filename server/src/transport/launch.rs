@@ -277,6 +277,7 @@ pub async fn start(
         workers: crate::worker::registration::WorkerGate {
             token_hash: worker_token_hash,
             config: config.workers.clone(),
+            metrics: metrics.clone(),
         },
     });
     let openpi_task = openpi_listener.map(|listener| {

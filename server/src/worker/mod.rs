@@ -8,12 +8,19 @@
 //!   is removed.
 //! - [`remote`]: the scheduler's side of a worker's batches: [`RemoteEngine`], one engine
 //!   instance of the pool (`crate::pool::EngineInstance`) whose batches are QUIC streams.
+//! - [`removal`]: how the scheduler removes a worker, once, counted by reason.
 //! - [`wire`]: the conversions between the engine's types and their wire forms, used by both
 //!   ends, with the checks that make a worker's messages safe to use.
+//!
+//! A worker holds the worker token, but what it sends is untrusted input, like a robot's: every
+//! message is checked (the protocol's rules, then the batch's counts, shapes and values) before
+//! the scheduler computes with it or a robot sees any of it, and a worker that breaks a rule
+//! is refused or removed, its batch run again elsewhere.
 
 pub mod client;
 pub mod registration;
 pub mod remote;
+pub mod removal;
 pub mod wire;
 
 pub use client::{

@@ -5,7 +5,7 @@ use kairos_engine::{
     ActionChunk, ActionRequest, EngineProfile, ImageFormat, ImageInput, ModelSpec, ProfilePoint,
 };
 use kairos_sdk::protocol::worker::{ProfilePointWire, ProfileWire, WorkChunk, WorkRequest};
-use kairos_sdk::protocol::{DType, Image, ImagePayload, ModelInfo, Tensor};
+use kairos_sdk::protocol::{DType, Image, ImagePayload, Limits, ModelInfo, Tensor, Validate};
 
 fn usize_u32(value: usize) -> u32 {
     u32::try_from(value).unwrap_or(u32::MAX)
@@ -147,26 +147,44 @@ pub fn chunk_to_wire(chunk: &ActionChunk) -> Result<WorkChunk, String> {
     })
 }
 
-/// A wire chunk as the engine's, for a request of `samples` samples of a `spec` model.
+/// A wire chunk as the engine's, for a request of `samples` samples of a `spec` model. Refused
+/// unless every tensor is `f32` of exactly the shape the model and the request give
+/// (`actions` and `noise` `[S, N, D]`, `updates` `[S, K, N, D]`) and every value is finite:
+/// a worker's numbers reach the horizon policy and the robot.
 pub fn chunk_from_wire(
     spec: &ModelSpec,
     samples: usize,
     chunk: &WorkChunk,
 ) -> Result<ActionChunk, String> {
-    let values = |t: &Tensor| {
+    let dims = |dims: &[usize]| dims.iter().map(|&d| usize_u32(d)).collect::<Vec<u32>>();
+    let (s, k, n, d) = (samples, spec.steps, spec.chunk_len, spec.action_dim);
+    let values = |name: &str, t: &Tensor, shape: Vec<u32>| {
         if t.dtype != DType::F32 {
-            return Err(format!("{:?} tensor where f32 is expected", t.dtype));
+            return Err(format!(
+                "{name}: {:?} tensor where f32 is expected",
+                t.dtype
+            ));
         }
-        t.to_f32().map_err(|e| e.to_string())
+        if t.shape != shape {
+            return Err(format!("{name}: shape {:?}, expected {shape:?}", t.shape));
+        }
+        let values = t.to_f32().map_err(|e| format!("{name}: {e}"))?;
+        match values.iter().position(|v| !v.is_finite()) {
+            Some(at) => Err(format!(
+                "{name}[{at}] is {}, not a finite number",
+                values[at]
+            )),
+            None => Ok(values),
+        }
     };
     Ok(ActionChunk {
         samples,
-        steps: spec.steps,
-        chunk_len: spec.chunk_len,
-        action_dim: spec.action_dim,
-        actions: values(&chunk.actions)?,
-        updates: values(&chunk.updates)?,
-        noise: values(&chunk.noise)?,
+        steps: k,
+        chunk_len: n,
+        action_dim: d,
+        actions: values("actions", &chunk.actions, dims(&[s, n, d]))?,
+        updates: values("updates", &chunk.updates, dims(&[s, k, n, d]))?,
+        noise: values("noise", &chunk.noise, dims(&[s, n, d]))?,
     })
 }
 
@@ -187,8 +205,13 @@ pub fn profile_to_wire(profile: &EngineProfile) -> ProfileWire {
     }
 }
 
-/// A wire profile as the engine's; refused when it has no usable point.
+/// A wire profile as the engine's, its points sorted by batch; refused unless it follows the
+/// protocol's rules (at least one point, batches and latencies finite, positive and bounded:
+/// `ProfileWire`'s [`Validate`]).
 pub fn profile_from_wire(profile: ProfileWire) -> Result<EngineProfile, String> {
+    profile
+        .validate(&Limits::default())
+        .map_err(|e| e.to_string())?;
     let mut points: Vec<ProfilePoint> = profile
         .points
         .iter()
@@ -197,19 +220,12 @@ pub fn profile_from_wire(profile: ProfileWire) -> Result<EngineProfile, String> 
             latency_ms: p.latency_ms,
         })
         .collect();
-    if points.is_empty()
-        || points
-            .iter()
-            .any(|p| p.batch == 0 || !(p.latency_ms.is_finite() && p.latency_ms >= 0.0))
-    {
-        return Err("the profile needs points with batch >= 1 and a finite latency >= 0".into());
-    }
     points.sort_by_key(|p| p.batch);
     Ok(EngineProfile {
         model: profile.model,
         device: profile.device,
         points,
-        max_batch: profile.max_batch.max(1),
+        max_batch: profile.max_batch,
     })
 }
 

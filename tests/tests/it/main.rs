@@ -13,6 +13,7 @@ mod boundaries;
 mod demo;
 mod e2e;
 mod fuzz_replay;
+mod hostile_workers;
 mod isolation;
 mod lossy;
 mod malformed;
