@@ -16,7 +16,7 @@ use super::{RobotTable, ServerContext, TransportStats};
 use crate::config::{Config, ConfigError};
 use crate::credentials::{RobotCredential, hash_token, parse_token_hash};
 use crate::data_dir::DataDir;
-use crate::driver::{DriverConfig, DriverHandle, DriverStats};
+use crate::driver::{DriverConfig, DriverEnd, DriverHandle, DriverStats};
 use crate::metrics::{Metrics, Readiness};
 use crate::pool::EnginePool;
 use crate::validation::{DecodePool, Validator};
@@ -133,6 +133,9 @@ pub struct ServerReport {
     pub driver: DriverStats,
     /// The openpi endpoint's connections.
     pub openpi: crate::openpi::OpenpiStats,
+    /// Why the driver died, when it did: the server stopped because of it (and `kairos serve`
+    /// exits with an error, so that an orchestrator restarts it).
+    pub driver_failure: Option<String>,
 }
 
 impl RunningServer {
@@ -148,9 +151,20 @@ impl RunningServer {
         self.stopped().await
     }
 
-    /// Waits for the server to stop (after [`RunningServer::begin_shutdown`]).
+    /// Waits for the server to stop (after [`RunningServer::begin_shutdown`], or on its own
+    /// once its driver died).
     pub async fn stopped(self) -> ServerReport {
         self.task.await.unwrap_or_default()
+    }
+
+    /// Resolves if the driver dies (never while it runs, nor after a clean stop), with why.
+    /// The server has then begun to shut down by itself: it is unready, admits nothing new,
+    /// and [`RunningServer::stopped`] returns once it has drained.
+    pub async fn failed(&self) -> String {
+        match self.driver.ended().await {
+            DriverEnd::Failed(reason) => reason,
+            DriverEnd::Stopped => std::future::pending().await,
+        }
     }
 }
 
@@ -299,6 +313,7 @@ pub async fn start(
             std::future::pending(),
         )))
     });
+    let report_driver = driver.clone();
     let task = tokio::spawn(async move {
         let transport = super::run(endpoint, context, stopped(stop_rx)).await;
         let openpi = match openpi_task {
@@ -310,10 +325,23 @@ pub async fn start(
             transport,
             driver,
             openpi,
+            driver_failure: report_driver.failure(),
         }
     });
     // Listening, engines loaded, driver running: probes may send traffic.
     readiness.set(true);
+    // A dead driver is a dead server: unready at once (probes stop sending traffic), then the
+    // same drain as a shutdown, and the report says why.
+    {
+        let (driver, readiness, stop) = (driver.clone(), readiness.clone(), stop.clone());
+        tokio::spawn(async move {
+            if let DriverEnd::Failed(reason) = driver.ended().await {
+                tracing::error!(%reason, "the driver died: the server is not ready and stops");
+                readiness.set(false);
+                let _ = stop.send(true);
+            }
+        });
+    }
     Ok(RunningServer {
         local_addr,
         openpi_addr,

@@ -10,6 +10,7 @@ mod admission;
 mod auth;
 mod binaries;
 mod boundaries;
+mod dead_driver;
 mod demo;
 mod e2e;
 mod fuzz_replay;
