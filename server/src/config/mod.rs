@@ -486,6 +486,23 @@ pub struct ConnectionsConfig {
     /// `net.core.rmem_max`/`wmem_max`). The default 4 MiB absorbs a burst of a thousand robots'
     /// packets (e.g. everyone reconnecting at once) where the usual 208 KiB would drop them.
     pub socket_buffer_bytes: usize,
+    /// Most authenticated connections one robot (one token) may hold at once; over it the
+    /// connection is closed with `AT_CAPACITY` after its `Hello`. Unset: an equal share of
+    /// `max_connections` per configured robot (`max_connections / robots`, at least 1), so
+    /// every robot can always get its share; with the one generated robot, whose token a whole
+    /// fleet shares, that is every place.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_connections_per_robot: Option<usize>,
+    /// Rounds one connection may submit per second, sustained (a token bucket refilled at this
+    /// rate); a round over it is refused with a retryable `overloaded`.
+    pub rounds_per_s_per_connection: f64,
+    /// Rounds one connection may submit at once beyond its rate (the bucket's size).
+    pub round_burst_per_connection: u32,
+    /// Rounds one robot (one token), over all its connections, may submit per second,
+    /// sustained; QUIC and openpi rounds alike.
+    pub rounds_per_s_per_robot: f64,
+    /// Rounds one robot may submit at once beyond its rate.
+    pub round_burst_per_robot: u32,
 }
 
 impl Default for ConnectionsConfig {
@@ -502,6 +519,13 @@ impl Default for ConnectionsConfig {
             upload_grace_ms: 5_000,
             upload_buffer_frames: 2,
             socket_buffer_bytes: 4 << 20,
+            max_connections_per_robot: None,
+            // Far above what a robot needs (one round per control step at 1 kHz) and what a
+            // fleet of thousands on one token sends; they bound floods, not robots.
+            rounds_per_s_per_connection: 1_000.0,
+            round_burst_per_connection: 1_000,
+            rounds_per_s_per_robot: 10_000.0,
+            round_burst_per_robot: 10_000,
         }
     }
 }
@@ -735,6 +759,41 @@ impl Config {
                 "workers.max_attempts".into(),
                 "must be at least 1".into(),
             ));
+        }
+        let connections = &self.connections;
+        if connections.max_connections_per_robot == Some(0) {
+            return Err(invalid(
+                "connections.max_connections_per_robot".into(),
+                "must be at least 1".into(),
+            ));
+        }
+        for (key, rate) in [
+            (
+                "connections.rounds_per_s_per_connection",
+                connections.rounds_per_s_per_connection,
+            ),
+            (
+                "connections.rounds_per_s_per_robot",
+                connections.rounds_per_s_per_robot,
+            ),
+        ] {
+            if !(rate.is_finite() && rate > 0.0) {
+                return Err(invalid(key.into(), "must be a finite number > 0".into()));
+            }
+        }
+        for (key, burst) in [
+            (
+                "connections.round_burst_per_connection",
+                connections.round_burst_per_connection,
+            ),
+            (
+                "connections.round_burst_per_robot",
+                connections.round_burst_per_robot,
+            ),
+        ] {
+            if burst == 0 {
+                return Err(invalid(key.into(), "must be at least 1".into()));
+            }
         }
         if self.workers.max_batch_deadline_ms < self.workers.min_batch_deadline_ms {
             return Err(invalid(
@@ -1065,6 +1124,26 @@ mod tests {
             (
                 "[workers]\nmin_batch_deadline_ms = 5000\nmax_batch_deadline_ms = 4000\n",
                 "workers.max_batch_deadline_ms",
+            ),
+            (
+                "[connections]\nmax_connections_per_robot = 0\n",
+                "connections.max_connections_per_robot",
+            ),
+            (
+                "[connections]\nrounds_per_s_per_robot = 0.0\n",
+                "connections.rounds_per_s_per_robot",
+            ),
+            (
+                "[connections]\nrounds_per_s_per_connection = inf\n",
+                "connections.rounds_per_s_per_connection",
+            ),
+            (
+                "[connections]\nround_burst_per_connection = 0\n",
+                "connections.round_burst_per_connection",
+            ),
+            (
+                "[connections]\nround_burst_per_robot = 0\n",
+                "connections.round_burst_per_robot",
             ),
             (
                 "[[robot]]\nname = \"a\"\ntoken_sha256 = \"abc\"\n",

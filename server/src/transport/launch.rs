@@ -280,7 +280,9 @@ pub async fn start(
     };
     let validator = Validator { spec, limits };
     let decode = DecodePool::for_this_machine(validator.image_limits());
+    let fairness = super::fairness::Fairness::new(&config.connections, robots.len());
     let context = Arc::new(ServerContext {
+        fairness,
         robots: RobotTable::new(&robots),
         validator,
         decode,
