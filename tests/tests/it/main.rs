@@ -25,5 +25,6 @@ mod replay_horizon;
 mod sim_runner_agreement;
 mod sim_vs_live;
 mod smolvla_served;
+mod tenants;
 mod uploads;
 mod workers;
