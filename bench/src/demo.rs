@@ -154,7 +154,8 @@ pub fn fleet(args: &DemoOptions) -> Vec<FleetTask> {
             let z: f64 = rng.sample(StandardNormal);
             let actions = (median * (0.5 * z).exp()).clamp(0.25 * median, 3.0 * median);
             let task = FleetTask {
-                start: Duration::from_secs_f64(at),
+                // Arrival times are finite sums of exponential gaps.
+                start: Duration::try_from_secs_f64(at).unwrap_or(Duration::MAX),
                 actions: (actions.round() as u64).max(1),
             };
             let u: f64 = rng.random();

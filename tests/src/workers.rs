@@ -52,15 +52,16 @@ pub fn test_flow_engine(name: &str) -> Arc<dyn EngineInstance> {
     Arc::new(LocalEngine::start(name, Arc::new(TestFlow::new()), profile))
 }
 
-/// A well-behaved edge worker named `id` serving [`TestFlow`] for `server`, until the sender is
-/// used (then it drains and returns its report).
-pub fn spawn_worker(
-    server: &TestServer,
-    id: &str,
-) -> anyhow::Result<(
+/// A worker running in this process: send on the sender to stop it (it drains), then await
+/// its report.
+pub type RunningWorker = (
     oneshot::Sender<()>,
     JoinHandle<Result<WorkerReport, WorkerError>>,
-)> {
+);
+
+/// A well-behaved edge worker named `id` serving [`TestFlow`] for `server`, until the sender is
+/// used (then it drains and returns its report).
+pub fn spawn_worker(server: &TestServer, id: &str) -> anyhow::Result<RunningWorker> {
     let options = WorkerOptions {
         server: server.addr.to_string(),
         trust: ServerTrust::Pinned(server.pin),

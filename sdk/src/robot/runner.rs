@@ -15,6 +15,12 @@ use crate::protocol::{
     TaskOutcome, Timing,
 };
 
+/// The time between two actions at `control_hz` (at least 1 mHz; never a panic, whatever the
+/// rate).
+pub fn control_period(control_hz: f32) -> Duration {
+    Duration::try_from_secs_f64(1.0 / f64::from(control_hz.max(1e-3))).unwrap_or(Duration::MAX)
+}
+
 /// How a [`RobotRunner`] runs a task.
 #[derive(Clone, Debug, PartialEq)]
 pub struct RunnerConfig {
@@ -261,7 +267,7 @@ impl RobotRunner {
             config: &self.config,
             task: transport.task_id(),
             clock: transport.clock(),
-            period: Duration::from_secs_f64(1.0 / f64::from(self.config.control_hz.max(1e-3))),
+            period: control_period(self.config.control_hz),
             executor: ChunkExecutor::new(self.config.control_hz, self.config.trigger),
             robot,
             transport: Some(transport),

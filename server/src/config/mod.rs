@@ -354,7 +354,8 @@ impl Default for EngineConfig {
 impl EngineConfig {
     /// The emulated network round trip of this engine.
     pub fn rtt(&self) -> Duration {
-        Duration::from_secs_f64(self.rtt_ms.max(0.0) / 1e3)
+        // `check` refuses a non-finite or negative `rtt_ms`; a huge one saturates.
+        Duration::try_from_secs_f64(self.rtt_ms.max(0.0) / 1e3).unwrap_or(Duration::MAX)
     }
 
     /// How this engine's model runs: `device`, `kernels` and `threads` parsed. Whether the

@@ -215,7 +215,8 @@ mod tests {
             assert!(error.to_string().contains("latency_ms"), "{ms}: {error}");
         }
         assert_eq!(latency(600_000.0).validate(&limits), Ok(()));
-        let broken: Vec<(&str, fn(&mut Register))> = vec![
+        type Break = fn(&mut Register);
+        let broken: Vec<(&str, Break)> = vec![
             ("worker_id", |r| r.worker_id = "w".repeat(129)),
             ("worker_id", |r| r.worker_id.clear()),
             ("token", |r| r.token = "t".repeat(513)),
