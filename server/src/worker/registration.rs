@@ -15,7 +15,9 @@ use kairos_sdk::protocol::worker::{
     Refused, Register, Registered, WORKER_PROTOCOL_VERSION, WorkerMessage, WorkerTier,
     close_code as worker_close,
 };
-use kairos_sdk::protocol::{Limits, ReadBounds, Validate, read_frame_bounded, write_body};
+use kairos_sdk::protocol::{
+    Limits, ReadBounds, ReadFrameError, Validate, read_frame_bounded, write_body,
+};
 use quinn::{Connection, RecvStream, SendStream, VarInt};
 use tokio::sync::watch;
 use tokio::time::Instant;
@@ -135,9 +137,14 @@ async fn watch_worker(
                         connection.close(VarInt::from_u32(worker_close::DRAINED), b"drained");
                         return "drained";
                     }
-                    Ok(Err(error)) => {
+                    Ok(Err(ReadFrameError::Read(error))) => {
                         removal.remove(WorkerRemoval::ConnectionLost, &error.to_string());
                         return "connection lost";
+                    }
+                    // An oversized or malformed frame.
+                    Ok(Err(error)) => {
+                        removal.remove(WorkerRemoval::ProtocolError, &error.to_string());
+                        return "protocol error";
                     }
                 }
             }
