@@ -92,7 +92,8 @@ where
         return;
     }
     let delay = link.delay.as_secs_f64() + offset * link.jitter.as_secs_f64();
-    let deadline = Instant::now() + Duration::from_secs_f64(delay.max(0.0));
+    let delay = Duration::try_from_secs_f64(delay.max(0.0)).unwrap_or(Duration::ZERO);
+    let deadline = Instant::now() + delay;
     tokio::spawn(async move {
         tokio::time::sleep_until(deadline).await;
         send(packet).await;
@@ -126,7 +127,7 @@ async fn measure(
             let mut latencies = Vec::with_capacity(rounds);
             let mut failures = 0;
             // Spread the robots over the period, as independent robots would be.
-            let start = Instant::now() + PERIOD.mul_f64(robot as f64 / ROBOTS as f64);
+            let start = Instant::now() + PERIOD * robot as u32 / ROBOTS as u32;
             for round in 0..rounds {
                 tokio::time::sleep_until(start + PERIOD * round as u32).await;
                 let mut obs = observation(client.now_us());

@@ -368,7 +368,7 @@ struct Sim<'a> {
 }
 
 fn transfer(bytes: u32, mbps: f64) -> Duration {
-    Duration::from_secs_f64(f64::from(bytes) * 8.0 / (mbps * 1e6))
+    crate::workload::generate::transfer_time(bytes, mbps)
 }
 
 impl<'a> Sim<'a> {

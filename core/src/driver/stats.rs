@@ -228,8 +228,10 @@ pub struct DriverReport {
 pub struct RedispatchCounts {
     /// The worker's connection closed or timed out.
     pub connection_lost: u64,
-    /// The batch's stream was reset or answered unusably.
+    /// The batch's stream was reset or ended without an answer.
     pub stream_reset: u64,
+    /// The worker answered the batch unusably.
+    pub invalid_answer: u64,
     /// The batch's deadline passed.
     pub deadline: u64,
     /// The engine had left before the batch was sent.
@@ -247,6 +249,7 @@ impl RedispatchCounts {
         match reason {
             LossReason::ConnectionLost => self.connection_lost,
             LossReason::StreamReset => self.stream_reset,
+            LossReason::InvalidAnswer => self.invalid_answer,
             LossReason::Deadline => self.deadline,
             LossReason::Gone => self.gone,
         }
@@ -256,6 +259,7 @@ impl RedispatchCounts {
         match reason {
             LossReason::ConnectionLost => &mut self.connection_lost,
             LossReason::StreamReset => &mut self.stream_reset,
+            LossReason::InvalidAnswer => &mut self.invalid_answer,
             LossReason::Deadline => &mut self.deadline,
             LossReason::Gone => &mut self.gone,
         }

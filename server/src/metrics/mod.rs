@@ -9,6 +9,9 @@
 //!   fallbacks are read from it the same way;
 //! - the plugin host counts its fallbacks in the [`Counter`] handed to it
 //!   ([`Metrics::fallback_counter`]);
+//! - the scheduler's worker registration counts the workers it removes
+//!   (`kairos_worker_removed_total{reason}`), and the driver's shell says whether the driver
+//!   thread runs (`kairos_driver_alive`);
 //! - a `kairos worker` process ([`Metrics::for_worker`]) counts its own facts in typed families:
 //!   its connection state, batches answered, heartbeats sent, compute time per batch, its
 //!   engine's busy time and batch sizes, fed by `crate::worker`.
@@ -76,6 +79,53 @@ impl WorkerConnection {
             WorkerConnection::Registered => "registered",
             WorkerConnection::Draining => "draining",
             WorkerConnection::Disconnected => "disconnected",
+        }
+    }
+}
+
+/// Why the scheduler removed a worker (or refused its registration), as
+/// `kairos_worker_removed_total{reason}` labels it. A worker that drains is not removed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum WorkerRemoval {
+    /// Its `Register` broke the protocol's rules (an unusable profile, oversized strings).
+    InvalidRegistration,
+    /// It answered a batch with something unusable (wrong count or shapes, non-finite values,
+    /// oversized error text).
+    InvalidAnswer,
+    /// A batch's deadline passed without an answer.
+    Deadline,
+    /// A batch's stream was reset or finished without an answer.
+    StreamFailed,
+    /// No heartbeat for about three periods.
+    Silent,
+    /// A message its registration stream may not carry.
+    ProtocolError,
+    /// Its connection was lost.
+    ConnectionLost,
+}
+
+impl WorkerRemoval {
+    /// Every reason, in the order exported.
+    pub const ALL: [WorkerRemoval; 7] = [
+        WorkerRemoval::InvalidRegistration,
+        WorkerRemoval::InvalidAnswer,
+        WorkerRemoval::Deadline,
+        WorkerRemoval::StreamFailed,
+        WorkerRemoval::Silent,
+        WorkerRemoval::ProtocolError,
+        WorkerRemoval::ConnectionLost,
+    ];
+
+    /// The label value.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            WorkerRemoval::InvalidRegistration => "invalid_registration",
+            WorkerRemoval::InvalidAnswer => "invalid_answer",
+            WorkerRemoval::Deadline => "deadline",
+            WorkerRemoval::StreamFailed => "stream_failed",
+            WorkerRemoval::Silent => "silent",
+            WorkerRemoval::ProtocolError => "protocol_error",
+            WorkerRemoval::ConnectionLost => "connection_lost",
         }
     }
 }
@@ -187,6 +237,12 @@ impl Metrics {
     fn build(worker: bool) -> Metrics {
         let mut registry = Registry::default();
         let operations = operations::Operations::register(&mut registry, !worker);
+        if !worker {
+            // Every removal reason is a series from the start, so that `increase()` sees the first.
+            for reason in WorkerRemoval::ALL {
+                operations.removed_counter(reason.as_str());
+            }
+        }
         let driver = (!worker).then(|| {
             let export = DriverExport::default();
             registry.register_collector(Box::new(driver::DriverCollector(export.clone())));
@@ -273,6 +329,17 @@ impl Metrics {
         self.0.driver.as_ref()
     }
 
+    /// `kairos_worker_removed_total{reason}`: the scheduler removed a worker (or refused its
+    /// registration) for `reason`.
+    pub fn record_worker_removed(&self, reason: WorkerRemoval) {
+        self.0.operations.removed_counter(reason.as_str()).inc();
+    }
+
+    /// Workers removed for `reason` so far (`kairos_worker_removed_total`).
+    pub fn workers_removed_for(&self, reason: WorkerRemoval) -> u64 {
+        self.0.operations.removed_counter(reason.as_str()).get()
+    }
+
     /// `kairos_worker_connection{state}`: the worker is now in `state`. No-op in a scheduler.
     pub fn set_worker_connection(&self, state: WorkerConnection) {
         if let Some(w) = &self.0.worker {
@@ -332,12 +399,6 @@ impl Metrics {
     /// Both labels are chosen by the code, so the label set stays bounded.
     pub fn refusal_counter(&self, door: &'static str, reason: &'static str) -> Counter {
         self.0.operations.refusal_counter(door, reason)
-    }
-
-    /// The counter of remote workers removed from the pool for `reason`
-    /// (`kairos_worker_removed_total{reason}`; a scheduler's family).
-    pub fn worker_removed_counter(&self, reason: &'static str) -> Counter {
-        self.0.operations.removed_counter(reason)
     }
 
     /// Exports `door`'s places for authenticated robot connections (a semaphore of `capacity`
