@@ -10,7 +10,7 @@ use super::weights::{ExpertWeights, LinearWeights, time_embedding};
 use crate::EngineError;
 use crate::kernels::attention::{AttendScratch, KvSegment, Queries, QueryPositions, attend};
 use crate::kernels::gemm::{ActivationRows, gemm, gemm_par};
-use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
+use crate::kernels::{Init, MatMut, MatRef, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 
 /// A `Linear` layer packed for the GEMM, with its bias.
 pub(crate) struct Linear {
@@ -170,12 +170,9 @@ impl CpuExpert {
         let mut out = vec![0.0; rows * self.dims.vlm_hidden];
         gemm_par(
             pool,
-            states,
-            self.dims.state_pad,
-            rows,
+            MatRef::new(states, rows, self.state.w.k(), self.dims.state_pad),
             &self.state.w,
-            &mut out,
-            self.dims.vlm_hidden,
+            MatMut::new(&mut out, rows, self.state.w.n(), self.dims.vlm_hidden),
             self.state.init(),
         );
         out
@@ -193,16 +190,28 @@ impl CpuExpert {
                 let tokens = k.len() / kvw;
                 if let Some((wk, wv)) = &layer.kv_cross {
                     let (mut kp, mut vp) = (vec![0.0; tokens * kvw], vec![0.0; tokens * kvw]);
-                    gemm_par(pool, &k, kvw, tokens, wk, &mut kp, kvw, Init::Zero);
-                    gemm_par(pool, &v, kvw, tokens, wv, &mut vp, kvw, Init::Zero);
+                    gemm_par(
+                        pool,
+                        MatRef::new(&k, tokens, wk.k(), kvw),
+                        wk,
+                        MatMut::new(&mut kp, tokens, wk.n(), kvw),
+                        Init::Zero,
+                    );
+                    gemm_par(
+                        pool,
+                        MatRef::new(&v, tokens, wv.k(), kvw),
+                        wv,
+                        MatMut::new(&mut vp, tokens, wv.n(), kvw),
+                        Init::Zero,
+                    );
                     (k, v) = (kp, vp);
                 }
                 (0..d.kv_heads)
                     .map(|g| {
                         let mut kt = PackedMatrix::empty_in(self.precision);
-                        kt.pack_transposed(pool.isa(), &k[g * hd..], kvw, tokens, hd);
+                        kt.pack_transposed(pool.isa(), MatRef::new(&k[g * hd..], tokens, hd, kvw));
                         let mut vv = PackedMatrix::empty_in(self.precision);
-                        vv.pack_rows(pool.isa(), &v[g * hd..], kvw, tokens, hd);
+                        vv.pack_rows(pool.isa(), MatRef::new(&v[g * hd..], tokens, hd, kvw));
                         (kt, vv)
                     })
                     .collect()
@@ -283,45 +292,33 @@ impl CpuExpert {
         // Suffix embedding: action_time_mlp_out(silu(action_time_mlp_in([action_in_proj(x); time_emb]))).
         gemm_par(
             pool,
-            xt,
-            d.action_pad,
-            tokens,
+            MatRef::new(xt, tokens, self.action_in.w.k(), d.action_pad),
             &self.action_in.w,
-            &mut ws.h,
-            h,
+            MatMut::new(&mut ws.h, tokens, self.action_in.w.n(), h),
             self.action_in.init(),
         );
         let temb = time_embedding(t, h, d.min_period, d.max_period);
         gemm(
             isa,
-            &temb,
-            h,
-            1,
+            MatRef::new(&temb, 1, self.time_in_time.w.k(), h),
             &self.time_in_time.w,
-            &mut ws.time_bias,
-            h,
+            MatMut::new(&mut ws.time_bias, 1, self.time_in_time.w.n(), h),
             self.time_in_time.init(),
         );
         gemm_par(
             pool,
-            &ws.h,
-            h,
-            tokens,
+            MatRef::new(&ws.h, tokens, self.time_in_action.k(), h),
             &self.time_in_action,
-            &mut ws.x,
-            h,
+            MatMut::new(&mut ws.x, tokens, self.time_in_action.n(), h),
             Init::Bias(&ws.time_bias),
         );
         vecmath::silu_inplace(isa, &mut ws.x);
         std::mem::swap(&mut ws.x, &mut ws.h);
         gemm_par(
             pool,
-            &ws.h,
-            h,
-            tokens,
+            MatRef::new(&ws.h, tokens, self.time_out.w.k(), h),
             &self.time_out.w,
-            &mut ws.x,
-            h,
+            MatMut::new(&mut ws.x, tokens, self.time_out.w.n(), h),
             self.time_out.init(),
         );
 
@@ -333,22 +330,34 @@ impl CpuExpert {
                 vecmath::rms_norm(isa, &x[r * h..(r + 1) * h], &layer.post_norm, eps, out);
             });
             let gate_up = &mut ws.gate_up[..tokens * 2 * i];
-            ws.normed
-                .gemm_par(pool, tokens, &layer.gate_up, gate_up, 2 * i, Init::Zero);
+            ws.normed.gemm_par(
+                pool,
+                &layer.gate_up,
+                MatMut::new(gate_up, tokens, layer.gate_up.n(), 2 * i),
+                Init::Zero,
+            );
             let gate_up = &ws.gate_up;
             ws.act.fill(pool, tokens, |r, out| {
                 let (g, u) = gate_up[r * 2 * i..(r + 1) * 2 * i].split_at(i);
                 vecmath::silu_mul(isa, g, u, out);
             });
-            ws.act
-                .gemm_par(pool, tokens, &layer.down, &mut ws.x, h, Init::Accumulate);
+            ws.act.gemm_par(
+                pool,
+                &layer.down,
+                MatMut::new(&mut ws.x, tokens, layer.down.n(), h),
+                Init::Accumulate,
+            );
         }
         let x = &ws.x;
         ws.normed.fill(pool, tokens, |r, out| {
             vecmath::rms_norm(isa, &x[r * h..(r + 1) * h], &self.final_norm, eps, out);
         });
-        ws.normed
-            .gemm_par(pool, tokens, &self.out.w, v, d.action_pad, self.out.init());
+        ws.normed.gemm_par(
+            pool,
+            &self.out.w,
+            MatMut::new(v, tokens, self.out.w.n(), d.action_pad),
+            self.out.init(),
+        );
     }
 
     fn attention_block(
@@ -369,8 +378,12 @@ impl CpuExpert {
         });
         let ld = layer.qkv.n();
         let qkv = &mut ws.qkv[..tokens * ld];
-        ws.normed
-            .gemm_par(pool, tokens, &layer.qkv, qkv, ld, Init::Zero);
+        ws.normed.gemm_par(
+            pool,
+            &layer.qkv,
+            MatMut::new(qkv, tokens, layer.qkv.n(), ld),
+            Init::Zero,
+        );
         let rows = ctx.row_prefix.len();
         let groups = d.heads / d.kv_heads;
         // RoPE; the queries regrouped head-major per row, so that each head is one contiguous
@@ -422,9 +435,12 @@ impl CpuExpert {
                 if self_attention {
                     // SAFETY: `suffix_kv` holds `rows x kv_heads` pairs; this unit's is its own.
                     let (kt, vv) = unsafe { &mut *suffix_kv.ptr().add(r * d.kv_heads + g) };
-                    kt.pack_transposed(isa, &keys, hd, n, hd);
+                    kt.pack_transposed(isa, MatRef::new(&keys, n, hd, hd));
                     // The values need no RoPE: packed straight from the rows of `qkv`.
-                    vv.pack_rows(isa, &qkv[r * n * ld + qw + kvw + g * hd..], ld, n, hd);
+                    vv.pack_rows(
+                        isa,
+                        MatRef::new(&qkv[r * n * ld + qw + kvw + g * hd..], n, hd, ld),
+                    );
                 }
             }
         });
@@ -478,28 +494,22 @@ impl CpuExpert {
                         };
                         attend(
                             isa,
-                            Queries::F32(q, hd),
-                            i1 - i0,
-                            hd,
+                            Queries::F32(MatRef::new(q, i1 - i0, hd, hd)),
                             &[prefix, own],
                             positions,
                             scale,
                             scores,
-                            tmp,
-                            hd,
+                            MatMut::new(tmp, i1 - i0, hd, hd),
                         );
                     }
                     LayerKind::CrossAttention => attend(
                         isa,
-                        Queries::F32(q, hd),
-                        i1 - i0,
-                        hd,
+                        Queries::F32(MatRef::new(q, i1 - i0, hd, hd)),
                         &[prefix],
                         positions,
                         scale,
                         scores,
-                        tmp,
-                        hd,
+                        MatMut::new(tmp, i1 - i0, hd, hd),
                     ),
                 }
                 for (i, src) in (i0..i1).zip(tmp.chunks_exact(hd)) {
@@ -517,12 +527,9 @@ impl CpuExpert {
         });
         gemm_par(
             pool,
-            &ws.attn,
-            qw,
-            tokens,
+            MatRef::new(&ws.attn, tokens, layer.o.k(), qw),
             &layer.o,
-            &mut ws.x,
-            h,
+            MatMut::new(&mut ws.x, tokens, layer.o.n(), h),
             Init::Accumulate,
         );
     }

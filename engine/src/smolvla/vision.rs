@@ -16,8 +16,11 @@ use super::vlm_weights::{NormWeights, VlmWeights};
 use super::weights::LinearWeights;
 use crate::EngineError;
 use crate::kernels::attention::{AttendScratch, KvSegment, Queries, QueryPositions, attend};
-use crate::kernels::gemm::{ActivationRows, gemm_par, gemm_par_pairs, round_pairs};
-use crate::kernels::{FreeList, Init, PackedMatrix, Pool, Precision, SharedMut, grown, vecmath};
+use crate::kernels::bf16::round_pairs;
+use crate::kernels::gemm::{ActivationRows, gemm_par, gemm_par_pairs};
+use crate::kernels::{
+    FreeList, Init, MatMut, MatRef, PackedMatrix, Pool, Precision, SharedMut, grown, vecmath,
+};
 use std::sync::Mutex;
 
 /// A view of one prepared camera image: `channels x side x side` floats, row-major, in `[-1, 1]`
@@ -302,12 +305,9 @@ impl CpuVision {
         let x = grown(&mut buffers.x, rows * vh);
         gemm_par(
             pool,
-            unfolded,
-            kdim,
-            rows,
+            MatRef::new(unfolded, rows, self.patch.w.k(), kdim),
             &self.patch.w,
-            x,
-            vh,
+            MatMut::new(x, rows, self.patch.w.n(), vh),
             self.patch.init(),
         );
         // Position embedding, per transformers' bucketised fractional coordinates.
@@ -366,11 +366,22 @@ impl CpuVision {
         };
         for layer in &self.layers {
             norm(x, &layer.norm1, layer.out.bias.as_deref(), normed);
-            normed.gemm_par(pool, rows, &layer.qkv.w, qkv, 3 * vh, layer.qkv.init());
+            normed.gemm_par(
+                pool,
+                &layer.qkv.w,
+                MatMut::new(qkv, rows, layer.qkv.w.n(), 3 * vh),
+                layer.qkv.init(),
+            );
             if !pairs_out {
                 let src = AttentionIn::F32(qkv);
                 self.attention(pool, src, &counts, &starts, AttentionOut::F32(attn));
-                gemm_par(pool, attn, vh, rows, &layer.out.w, x, vh, Init::Accumulate);
+                gemm_par(
+                    pool,
+                    MatRef::new(attn, rows, layer.out.w.k(), vh),
+                    &layer.out.w,
+                    MatMut::new(x, rows, layer.out.w.n(), vh),
+                    Init::Accumulate,
+                );
             } else {
                 // `3 vh` is even, so no pair straddles two rows: the rows round as one run.
                 pool.for_row_chunks(qkv_pairs, 3 * vh / 2, |r0, chunk| {
@@ -382,10 +393,21 @@ impl CpuVision {
                 );
                 self.attention(pool, src, &counts, &starts, out);
                 let (w, acc) = (&layer.out.w, Init::Accumulate);
-                gemm_par_pairs(pool, attn_pairs, vh / 2, rows, w, x, vh, acc);
+                gemm_par_pairs(
+                    pool,
+                    MatRef::new(attn_pairs, rows, w.k().div_ceil(2), vh / 2),
+                    w,
+                    MatMut::new(x, rows, w.n(), vh),
+                    acc,
+                );
             }
             norm(x, &layer.norm2, layer.fc2.bias.as_deref(), normed);
-            normed.gemm_par(pool, rows, &layer.fc1.w, mlp, inter, layer.fc1.init());
+            normed.gemm_par(
+                pool,
+                &layer.fc1.w,
+                MatMut::new(mlp, rows, layer.fc1.w.n(), inter),
+                layer.fc1.init(),
+            );
             act.fill(pool, rows, |r, out| {
                 let row = &mlp[r * inter..(r + 1) * inter];
                 // In bf16 the GEMM rounds these to 2^-9: a GELU good to 1e-5 costs less.
@@ -394,7 +416,12 @@ impl CpuVision {
                     Precision::F32 => vecmath::gelu_tanh(isa, row, out),
                 }
             });
-            act.gemm_par(pool, rows, &layer.fc2.w, x, vh, Init::Accumulate);
+            act.gemm_par(
+                pool,
+                &layer.fc2.w,
+                MatMut::new(x, rows, layer.fc2.w.n(), vh),
+                Init::Accumulate,
+            );
         }
         layer_norm_par(pool, x, &self.post, eps, h);
 
@@ -425,12 +452,9 @@ impl CpuVision {
         let emb = grown(&mut buffers.emb, total * th);
         gemm_par(
             pool,
-            shuffled,
-            wide,
-            total,
+            MatRef::new(shuffled, total, self.connector.k(), wide),
             &self.connector,
-            emb,
-            th,
+            MatMut::new(emb, total, self.connector.n(), th),
             Init::Zero,
         );
         let mut t0 = 0;
@@ -474,13 +498,24 @@ impl CpuVision {
                 match qkv {
                     AttentionIn::F32(qkv) => {
                         let base = &qkv[start * ld..(start + n) * ld];
-                        kt.pack_transposed(isa, &base[vh + head * hd..], ld, n, hd);
-                        vv.pack_rows(isa, &base[2 * vh + head * hd..], ld, n, hd);
+                        kt.pack_transposed(isa, MatRef::new(&base[vh + head * hd..], n, hd, ld));
+                        vv.pack_rows(isa, MatRef::new(&base[2 * vh + head * hd..], n, hd, ld));
                     }
                     AttentionIn::Pairs(pairs) => {
                         let (base, ldp) = (&pairs[start * ld / 2..(start + n) * ld / 2], ld / 2);
-                        kt.pack_transposed_pairs(&base[(vh + head * hd) / 2..], ldp, n, hd);
-                        vv.pack_rows_pairs(&base[(2 * vh + head * hd) / 2..], ldp, n, hd);
+                        kt.pack_transposed_pairs(
+                            MatRef::new(&base[(vh + head * hd) / 2..], n, (hd).div_ceil(2), ldp),
+                            hd,
+                        );
+                        vv.pack_rows_pairs(
+                            MatRef::new(
+                                &base[(2 * vh + head * hd) / 2..],
+                                n,
+                                (hd).div_ceil(2),
+                                ldp,
+                            ),
+                            hd,
+                        );
                     }
                 }
                 tmp.resize(n * hd, 0.0);
@@ -496,16 +531,19 @@ impl CpuVision {
                     attend(
                         isa,
                         match qkv {
-                            AttentionIn::F32(qkv) => {
-                                Queries::F32(&qkv[(start + r0) * ld + head * hd..], ld)
-                            }
-                            AttentionIn::Pairs(pairs) => Queries::Pairs(
+                            AttentionIn::F32(qkv) => Queries::F32(MatRef::new(
+                                &qkv[(start + r0) * ld + head * hd..],
+                                rows,
+                                hd,
+                                ld,
+                            )),
+                            AttentionIn::Pairs(pairs) => Queries::Pairs(MatRef::new(
                                 &pairs[((start + r0) * ld + head * hd) / 2..],
+                                rows,
+                                hd / 2,
                                 ld / 2,
-                            ),
+                            )),
                         },
-                        rows,
-                        hd,
                         &[segment],
                         QueryPositions {
                             offset: 0,
@@ -513,8 +551,7 @@ impl CpuVision {
                         },
                         scale,
                         scores,
-                        &mut tmp[r0 * hd..(r0 + rows) * hd],
-                        hd,
+                        MatMut::dense(&mut tmp[r0 * hd..(r0 + rows) * hd], rows, hd),
                     );
                 }
                 match out {

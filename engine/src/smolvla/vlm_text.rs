@@ -19,7 +19,7 @@ use super::config::VlmTextConfig;
 use super::weights::{LayerWeights, LinearWeights};
 use crate::kernels::attention::{AttendScratch, KvSegment, Queries, QueryPositions, attend};
 use crate::kernels::gemm::{ActivationRows, gemm_par};
-use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
+use crate::kernels::{Init, MatMut, MatRef, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 use crate::weights::StoredTensor;
 
 struct TextLayer {
@@ -135,7 +135,12 @@ impl CpuText {
         let last = self.layers.len().saturating_sub(1);
         for (l, layer) in self.layers.iter().enumerate() {
             norm(&x, &layer.input_norm, &mut normed);
-            normed.gemm_par(pool, rows, &layer.qkv, &mut qkv, ld, Init::Zero);
+            normed.gemm_par(
+                pool,
+                &layer.qkv,
+                MatMut::new(&mut qkv, rows, layer.qkv.n(), ld),
+                Init::Zero,
+            );
             for (&n, &start) in counts.iter().zip(&starts) {
                 for t in 0..n {
                     let (cs, sn) = (&cos[t * half..][..half], &sin[t * half..][..half]);
@@ -158,21 +163,30 @@ impl CpuText {
                 break;
             }
             self.attention(pool, &qkv, &counts, &starts, &mut attn);
-            gemm_par(pool, &attn, qw, rows, &layer.o, &mut x, h, Init::Accumulate);
+            gemm_par(
+                pool,
+                MatRef::new(&attn, rows, layer.o.k(), qw),
+                &layer.o,
+                MatMut::new(&mut x, rows, layer.o.n(), h),
+                Init::Accumulate,
+            );
             norm(&x, &layer.post_norm, &mut normed);
             normed.gemm_par(
                 pool,
-                rows,
                 &layer.gate_up,
-                &mut gate_up,
-                2 * inter,
+                MatMut::new(&mut gate_up, rows, layer.gate_up.n(), 2 * inter),
                 Init::Zero,
             );
             act.fill(pool, rows, |r, out| {
                 let (g, u) = gate_up[r * 2 * inter..(r + 1) * 2 * inter].split_at(inter);
                 vecmath::silu_mul(isa, g, u, out);
             });
-            act.gemm_par(pool, rows, &layer.down, &mut x, h, Init::Accumulate);
+            act.gemm_par(
+                pool,
+                &layer.down,
+                MatMut::new(&mut x, rows, layer.down.n(), h),
+                Init::Accumulate,
+            );
         }
         out
     }
@@ -212,10 +226,10 @@ impl CpuText {
                 let [mk, mv, sk, sv] = &mut packed;
                 let k0 = qw + g * hd;
                 let v0 = qw + kvw + g * hd;
-                mk.pack_transposed(isa, &base[k0..], ld, main, hd);
-                mv.pack_rows(isa, &base[v0..], ld, main, hd);
-                sk.pack_transposed(isa, &base[main * ld + k0..], ld, 1, hd);
-                sv.pack_rows(isa, &base[main * ld + v0..], ld, 1, hd);
+                mk.pack_transposed(isa, MatRef::new(&base[k0..], main, hd, ld));
+                mv.pack_rows(isa, MatRef::new(&base[v0..], main, hd, ld));
+                sk.pack_transposed(isa, MatRef::new(&base[main * ld + k0..], 1, hd, ld));
+                sv.pack_rows(isa, MatRef::new(&base[main * ld + v0..], 1, hd, ld));
                 let main_seg = KvSegment {
                     keys_t: mk,
                     values: mv,
@@ -237,30 +251,24 @@ impl CpuText {
                     if main > 0 {
                         attend(
                             isa,
-                            Queries::F32(q, ld),
-                            main,
-                            hd,
+                            Queries::F32(MatRef::new(q, main, hd, ld)),
                             &[main_seg],
                             all,
                             scale,
                             &mut scores,
-                            &mut tmp,
-                            hd,
+                            MatMut::new(&mut tmp, main, hd, hd),
                         );
                     }
                     let (both, only) = ([main_seg, state_seg], [state_seg]);
                     let segs: &[KvSegment<'_>] = if main > 0 { &both } else { &only };
                     attend(
                         isa,
-                        Queries::F32(&q[main * ld..], ld),
-                        1,
-                        hd,
+                        Queries::F32(MatRef::new(&q[main * ld..], 1, hd, ld)),
                         segs,
                         all,
                         scale,
                         &mut scores,
-                        &mut tmp[main * hd..],
-                        hd,
+                        MatMut::new(&mut tmp[main * hd..], 1, hd, hd),
                     );
                     // SAFETY: this observation's rows of this head's columns are written by
                     // this task only.

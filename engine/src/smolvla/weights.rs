@@ -479,12 +479,18 @@ pub fn time_embedding(t: f32, dim: usize, min_period: f64, max_period: f64) -> V
 mod tests {
     use super::*;
     use crate::kernels::gemm::gemm;
-    use crate::kernels::{Init, Isa};
+    use crate::kernels::{Init, Isa, MatMut, MatRef};
 
     /// `A · B` for an `m x k` `A`.
     fn product(p: &PackedMatrix, a: &[f32], m: usize) -> Vec<f32> {
         let mut c = vec![f32::NAN; m * p.n()];
-        gemm(Isa::detect(), a, p.k(), m, p, &mut c, p.n(), Init::Zero);
+        gemm(
+            Isa::detect(),
+            MatRef::new(a, m, p.k(), p.k()),
+            p,
+            MatMut::new(&mut c, m, p.n(), p.n()),
+            Init::Zero,
+        );
         c
     }
 
