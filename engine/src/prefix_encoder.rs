@@ -9,7 +9,7 @@
 use crate::EngineError;
 use crate::kernels::gemm::gemm;
 use crate::kernels::{Init, Isa, MatMut, MatRef, PackedMatrix, vecmath};
-use crate::smolvla::weights::LinearWeights;
+use crate::smolvla::linear::LinearWeights;
 use crate::smolvla::{ExpertDims, PrefixKv};
 use crate::weights::Checkpoint;
 

@@ -15,11 +15,12 @@
 //! cache, which the expert never reads. The K/V of the last layer are all the expert needs from
 //! it, so its attention output and MLP are skipped; `text_model.norm` is never needed.
 
-use super::config::VlmTextConfig;
-use super::weights::{LayerWeights, LinearWeights};
 use crate::kernels::attention::{AttendScratch, KvSegment, Queries, QueryPositions, attend};
 use crate::kernels::gemm::{ActivationRows, gemm_par};
 use crate::kernels::{Init, MatMut, MatRef, PackedMatrix, Pool, Precision, SharedMut, vecmath};
+use crate::smolvla::config::VlmTextConfig;
+use crate::smolvla::linear::LinearWeights;
+use crate::smolvla::llama_layer::LayerWeights;
 use crate::weights::StoredTensor;
 
 struct TextLayer {
@@ -93,7 +94,7 @@ impl CpuText {
         let (qw, kvw) = (c.num_attention_heads * hd, c.num_key_value_heads * hd);
         let ld = qw + 2 * kvw;
         let counts: Vec<usize> = prefixes.iter().map(|p| p.embeddings.len() / h).collect();
-        let starts = super::vision::starts(&counts);
+        let starts = super::starts(&counts);
         let rows: usize = counts.iter().sum();
         let mut out: Vec<ValidKv> = counts
             .iter()
@@ -135,12 +136,8 @@ impl CpuText {
         let last = self.layers.len().saturating_sub(1);
         for (l, layer) in self.layers.iter().enumerate() {
             norm(&x, &layer.input_norm, &mut normed);
-            normed.gemm_par(
-                pool,
-                &layer.qkv,
-                MatMut::new(&mut qkv, rows, layer.qkv.n(), ld),
-                Init::Zero,
-            );
+            let qkv_rows = MatMut::dense(&mut qkv, rows, ld);
+            normed.gemm_par(pool, &layer.qkv, qkv_rows, Init::Zero);
             for (&n, &start) in counts.iter().zip(&starts) {
                 for t in 0..n {
                     let (cs, sn) = (&cos[t * half..][..half], &sin[t * half..][..half]);
@@ -163,20 +160,14 @@ impl CpuText {
                 break;
             }
             self.attention(pool, &qkv, &counts, &starts, &mut attn);
-            gemm_par(
-                pool,
-                MatRef::new(&attn, rows, layer.o.k(), qw),
-                &layer.o,
-                MatMut::new(&mut x, rows, layer.o.n(), h),
-                Init::Accumulate,
+            let (heads, residual) = (
+                MatRef::dense(&attn, rows, qw),
+                MatMut::dense(&mut x, rows, h),
             );
+            gemm_par(pool, heads, &layer.o, residual, Init::Accumulate);
             norm(&x, &layer.post_norm, &mut normed);
-            normed.gemm_par(
-                pool,
-                &layer.gate_up,
-                MatMut::new(&mut gate_up, rows, layer.gate_up.n(), 2 * inter),
-                Init::Zero,
-            );
+            let gate_up_rows = MatMut::dense(&mut gate_up, rows, 2 * inter);
+            normed.gemm_par(pool, &layer.gate_up, gate_up_rows, Init::Zero);
             act.fill(pool, rows, |r, out| {
                 let (g, u) = gate_up[r * 2 * inter..(r + 1) * 2 * inter].split_at(inter);
                 vecmath::silu_mul(isa, g, u, out);
@@ -184,7 +175,7 @@ impl CpuText {
             act.gemm_par(
                 pool,
                 &layer.down,
-                MatMut::new(&mut x, rows, layer.down.n(), h),
+                MatMut::dense(&mut x, rows, h),
                 Init::Accumulate,
             );
         }
@@ -256,7 +247,7 @@ impl CpuText {
                             all,
                             scale,
                             &mut scores,
-                            MatMut::new(&mut tmp, main, hd, hd),
+                            MatMut::dense(&mut tmp, main, hd),
                         );
                     }
                     let (both, only) = ([main_seg, state_seg], [state_seg]);
@@ -268,7 +259,7 @@ impl CpuText {
                         all,
                         scale,
                         &mut scores,
-                        MatMut::new(&mut tmp[main * hd..], 1, hd, hd),
+                        MatMut::dense(&mut tmp[main * hd..], 1, hd),
                     );
                     // SAFETY: this observation's rows of this head's columns are written by
                     // this task only.
