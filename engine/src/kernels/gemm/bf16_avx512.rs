@@ -42,7 +42,7 @@ pub(super) unsafe fn kernel_bf16_avx512<const R: usize>(t: &Tile) {
                 for r in 0..R {
                     // The A pair is broadcast from memory inside the instruction (`{1to16}`):
                     // LLVM emits a separate `vbroadcastss` for the intrinsic, which on Zen 4
-                    // costs a vector uop per product and 30% of the kernel's speed.
+                    // costs a vector uop per product, competing with the products themselves.
                     std::arch::asm!(
                         "vdpbf16ps {acc}, {b}, dword ptr [{p}]{{1to16}}",
                         acc = inout(zmm_reg) $acc[r],
@@ -70,8 +70,8 @@ pub(super) unsafe fn kernel_bf16_avx512<const R: usize>(t: &Tile) {
     if i < kp {
         step!(even, i);
     }
-    // Indexed, not zipped: borrowing the accumulator arrays as slices kept them in memory
-    // (a store after every `vdpbf16ps`) and cost a third of the kernel's speed.
+    // Indexed, not zipped: borrowing the accumulator arrays as slices keeps them in memory (a
+    // store after every `vdpbf16ps`) instead of in registers.
     #[allow(clippy::needless_range_loop)]
     for r in 0..R {
         // SAFETY: row r of the C tile has NR values.
