@@ -134,6 +134,7 @@ pub(crate) struct Linear {
 }
 
 impl Linear {
+    /// Pack `l`'s weight in `precision`, keeping its bias.
     pub(crate) fn new(l: &LinearWeights, precision: Precision) -> Self {
         Linear {
             w: PackedMatrix::from_linear_weight_in(precision, &l.weight, l.out_dim, l.in_dim),
@@ -141,6 +142,7 @@ impl Linear {
         }
     }
 
+    /// What the GEMM's output starts from: the bias, or zero.
     pub(crate) fn init(&self) -> Init<'_> {
         self.bias.as_deref().map_or(Init::Zero, Init::Bias)
     }
