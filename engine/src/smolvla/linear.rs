@@ -1,5 +1,5 @@
 //! `Linear` layers: their weights as loaded ([`LinearWeights`], widened to `f32` or as the
-//! checkpoint stores them) and packed for the GEMM with their bias ([`Linear`]), as the expert,
+//! checkpoint stores them) and packed for the GEMM with their bias (`Linear`), as the expert,
 //! the vision tower and the text layers all use them.
 
 use crate::EngineError;

@@ -5,13 +5,13 @@
 //! for every camera slot, its connector tokens `x sqrt(text hidden)` (padding for an empty
 //! camera); the language tokens `embed_tokens(t) x sqrt(text hidden)` (padding where the
 //! tokenizer's attention mask is 0); the state token `state_proj(state)`; then padding up to
-//! `prefix_length` if that is set. See [`text`] for the layers and masks.
+//! `prefix_length` if that is set. See `text` for the layers and masks.
 //!
 //! It runs on the engine's CPU kernels only (the vision tower is 212 GFLOP per 512x512 camera;
 //! see docs/ENGINE.md for why not Candle's `siglip`): the vision tower and connector in
-//! [`vision`], the text layers in [`text`], the weights in [`weights`].
+//! [`vision`], the text layers in `text`, the weights in [`weights`].
 
-pub mod text;
+mod text;
 pub mod vision;
 pub mod weights;
 

@@ -1,5 +1,5 @@
 //! SmolVLM's text layers (SmolLM2, Llama-style) over the SmolVLA prefix, on the engine's CPU
-//! kernels, producing the [`PrefixKv`] the expert consumes.
+//! kernels, producing the [`crate::smolvla::PrefixKv`] the expert consumes.
 //!
 //! LeRobot's prefix prefill (`VLAFlowMatching.sample_actions` -> `SmolVLMWithExpertModel.forward`
 //! with `fill_kv_cache=True`) runs every kept text layer as self-attention over the prefix
