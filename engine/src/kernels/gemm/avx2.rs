@@ -1,7 +1,7 @@
 //! The f32 micro-kernel for AVX2 with FMA: an `R x NR` tile in `2R` 256-bit accumulators.
 
 use super::NR;
-use super::tile::{Tile, unroll4};
+use super::tile::{Rows, Start, unroll4};
 
 /// An `R x NR` tile: per step of `k`, one panel row in two vectors and `R` broadcasts of `A`,
 /// one FMA per product, in increasing `k`.
@@ -9,19 +9,21 @@ use super::tile::{Tile, unroll4};
 /// # Safety
 /// See [`super::tile::tile`]; requires AVX2 and FMA.
 #[target_feature(enable = "avx2,fma")]
-pub(super) unsafe fn kernel_avx2<const R: usize>(t: &Tile) {
+pub(super) unsafe fn kernel_avx2<const R: usize>(
+    kc: usize,
+    a: Rows<*const f32>,
+    b: *const f32,
+    c: Rows<*mut f32>,
+    start: Start,
+) {
     use std::arch::x86_64::*;
-    let Tile {
-        kc,
-        a,
-        a_stride: ars,
-        b,
-        c,
-        c_stride: ldc,
-        start,
-    } = *t;
+    let (a, ars, c, ldc) = (a.ptr, a.stride, c.ptr, c.stride);
     let mut acc = [[_mm256_setzero_ps(); 2]; R];
-    if let Some((src, lds)) = start {
+    if let Some(Rows {
+        ptr: src,
+        stride: lds,
+    }) = start
+    {
         for (r, row) in acc.iter_mut().enumerate() {
             // SAFETY: start row r has NR values.
             unsafe {

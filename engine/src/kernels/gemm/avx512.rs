@@ -1,7 +1,7 @@
 //! The f32 micro-kernel for AVX-512F: an `R x NR` tile in `R` 512-bit accumulators.
 
 use super::NR;
-use super::tile::{Tile, unroll4};
+use super::tile::{Rows, Start, unroll4};
 
 /// One panel row is one 512-bit vector, so the tile is `R` accumulators; each `A` value is
 /// broadcast straight from memory into its FMA (`{1to16}`). Same order of operations as
@@ -10,19 +10,21 @@ use super::tile::{Tile, unroll4};
 /// # Safety
 /// See [`super::tile::tile`]; requires AVX-512F.
 #[target_feature(enable = "avx512f")]
-pub(super) unsafe fn kernel_avx512<const R: usize>(t: &Tile) {
+pub(super) unsafe fn kernel_avx512<const R: usize>(
+    kc: usize,
+    a: Rows<*const f32>,
+    b: *const f32,
+    c: Rows<*mut f32>,
+    start: Start,
+) {
     use std::arch::x86_64::*;
-    let Tile {
-        kc,
-        a,
-        a_stride: ars,
-        b,
-        c,
-        c_stride: ldc,
-        start,
-    } = *t;
+    let (a, ars, c, ldc) = (a.ptr, a.stride, c.ptr, c.stride);
     let mut acc = [_mm512_setzero_ps(); R];
-    if let Some((src, lds)) = start {
+    if let Some(Rows {
+        ptr: src,
+        stride: lds,
+    }) = start
+    {
         for (r, row) in acc.iter_mut().enumerate() {
             // SAFETY: start row r has NR values.
             *row = unsafe { _mm512_loadu_ps(src.add(r * lds)) };

@@ -2,7 +2,7 @@
 //! by side, with the `A` pair broadcast from memory inside the instruction.
 
 use super::NR;
-use super::tile::Tile;
+use super::tile::{Rows, Start};
 
 /// `ceil(kc / 2)` steps of one `vdpbf16ps` per row: the panel row (16 lanes of bf16 pairs) times
 /// the row's broadcast `A` pair, both products added to an f32 accumulator. Even and odd pairs
@@ -12,20 +12,22 @@ use super::tile::Tile;
 /// # Safety
 /// See [`super::tile::tile`], with bf16 pair rows; requires AVX-512F and AVX512_BF16.
 #[target_feature(enable = "avx512f,avx512bf16")]
-pub(super) unsafe fn kernel_bf16_avx512<const R: usize>(t: &Tile) {
+pub(super) unsafe fn kernel_bf16_avx512<const R: usize>(
+    kc: usize,
+    a: Rows<*const f32>,
+    b: *const f32,
+    c: Rows<*mut f32>,
+    start: Start,
+) {
     use std::arch::x86_64::*;
-    let Tile {
-        kc,
-        a,
-        a_stride: ars,
-        b,
-        c,
-        c_stride: ldc,
-        start,
-    } = *t;
+    let (a, ars, c, ldc) = (a.ptr, a.stride, c.ptr, c.stride);
     let mut even = [_mm512_setzero_ps(); R];
     let mut odd = [_mm512_setzero_ps(); R];
-    if let Some((src, lds)) = start {
+    if let Some(Rows {
+        ptr: src,
+        stride: lds,
+    }) = start
+    {
         for (r, row) in even.iter_mut().enumerate() {
             // SAFETY: start row r has NR values.
             *row = unsafe { _mm512_loadu_ps(src.add(r * lds)) };
@@ -86,22 +88,25 @@ pub(super) unsafe fn kernel_bf16_avx512<const R: usize>(t: &Tile) {
 /// # Safety
 /// See [`super::tile::tile_pair`], with bf16 pair rows; requires AVX-512F and AVX512_BF16.
 #[target_feature(enable = "avx512f,avx512bf16")]
-pub(super) unsafe fn kernel_bf16_avx512_pair<const R: usize>(t: &Tile, b2: *const f32) {
+pub(super) unsafe fn kernel_bf16_avx512_pair<const R: usize>(
+    kc: usize,
+    a: Rows<*const f32>,
+    b: *const f32,
+    b2: *const f32,
+    c: Rows<*mut f32>,
+    start: Start,
+) {
     use std::arch::x86_64::*;
-    let Tile {
-        kc,
-        a,
-        a_stride: ars,
-        b,
-        c,
-        c_stride: ldc,
-        start,
-    } = *t;
+    let (a, ars, c, ldc) = (a.ptr, a.stride, c.ptr, c.stride);
     let mut even = [_mm512_setzero_ps(); R];
     let mut odd = [_mm512_setzero_ps(); R];
     let mut even2 = [_mm512_setzero_ps(); R];
     let mut odd2 = [_mm512_setzero_ps(); R];
-    if let Some((src, lds)) = start {
+    if let Some(Rows {
+        ptr: src,
+        stride: lds,
+    }) = start
+    {
         for r in 0..R {
             // SAFETY: start row r has 2 * NR values.
             unsafe {

@@ -10,7 +10,7 @@ use super::super::{Isa, SharedMut, vecmath};
 use super::pack_a::ASource;
 use super::pack_b::PackedMatrix;
 use super::tile::{
-    Kernel, PairFn, Start, Tile, TileFn, full_tile_fn, pair_tile_fn, tile, tile_pair,
+    Kernel, PairFn, Rows, Start, Tile, TileFn, full_tile_fn, pair_tile_fn, tile, tile_pair,
 };
 use super::{Init, MC, MR, NR, depth, kc_of};
 
@@ -249,18 +249,28 @@ impl Blocked<'_> {
                 }
             }
             let start: Start = if blk.from_c {
-                Some((c.cast_const(), ldc))
+                Some(Rows {
+                    ptr: c.cast_const(),
+                    stride: ldc,
+                })
             } else {
                 // Stride 0: every row starts from the bias of these columns.
-                blk.bias.map(|bias| (bias[step.c0..].as_ptr(), 0))
+                blk.bias.map(|bias| Rows {
+                    ptr: bias[step.c0..].as_ptr(),
+                    stride: 0,
+                })
             };
             let operands = Tile {
                 kc: blk.kc,
-                a,
-                a_stride,
+                a: Rows {
+                    ptr: a,
+                    stride: a_stride,
+                },
                 b: step.b,
-                c,
-                c_stride: ldc,
+                c: Rows {
+                    ptr: c,
+                    stride: ldc,
+                },
                 start,
             };
             // The panel (both panels) hold kc rows, the A tile `rows` rows of kc values; C and
@@ -268,13 +278,13 @@ impl Blocked<'_> {
             // looked-up kernels are `kernel`'s.
             match (step.pair, rows == MR, self.whole_pair) {
                 // SAFETY: as above, two full panels, `MR` rows.
-                (true, true, Some(f)) => unsafe { f(&operands, step.b2) },
+                (true, true, Some(f)) => unsafe { operands.run_pair(f, step.b2) },
                 // SAFETY: as above, two full panels.
-                (true, _, _) => unsafe { tile_pair(kernel, rows, &operands, step.b2) },
+                (true, _, _) => unsafe { tile_pair(kernel, rows, operands, step.b2) },
                 // SAFETY: as above, one full panel, `MR` rows.
-                (false, true, _) if step.w == NR => unsafe { (self.whole_tile)(&operands) },
+                (false, true, _) if step.w == NR => unsafe { operands.run(self.whole_tile) },
                 // SAFETY: as above, one panel of `w` columns.
-                (false, _, _) => unsafe { tile(kernel, rows, step.w, &operands) },
+                (false, _, _) => unsafe { tile(kernel, rows, step.w, operands) },
             }
         }
     }

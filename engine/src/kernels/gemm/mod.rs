@@ -82,6 +82,7 @@ const KC_BF16: usize = 512;
 const MC: usize = 240;
 
 /// The depth of one cache block of a matrix stored in `precision`.
+#[inline]
 fn kc_of(precision: Precision) -> usize {
     match precision {
         Precision::F32 => KC,
@@ -90,6 +91,7 @@ fn kc_of(precision: Precision) -> usize {
 }
 
 /// Packed rows that `k` rows of a matrix take: one per row in f32, one per pair in bf16.
+#[inline]
 fn depth(precision: Precision, k: usize) -> usize {
     match precision {
         Precision::F32 => k,

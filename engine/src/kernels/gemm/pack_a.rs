@@ -64,6 +64,7 @@ thread_local! {
 }
 
 /// Rows of the `MC` block starting at `m0`, rounded up to whole tiles.
+#[inline]
 fn padded_rows(m: usize, m0: usize) -> usize {
     MC.min(m - m0).div_ceil(MR) * MR
 }
@@ -71,6 +72,7 @@ fn padded_rows(m: usize, m0: usize) -> usize {
 /// Where block `(m0, k0)` of packed (bf16) `A` starts: blocks are stored `MC` rows at a time,
 /// each as its `KC_BF16`-deep slices one after another (see [`pack_a_bf16`] for one slice).
 /// Only bf16 `A` is packed: f32 rows are read in place ([`ASource::Rows`]).
+#[inline]
 fn a_block(k: usize, m: usize, m0: usize, k0: usize) -> usize {
     m0 * depth(Precision::Bf16, k) + depth(Precision::Bf16, k0) * padded_rows(m, m0)
 }

@@ -58,21 +58,25 @@ impl PackedMatrix {
     }
 
     /// How the values are stored.
+    #[inline]
     pub fn precision(&self) -> Precision {
         self.precision
     }
 
     /// Depth (rows of `B`).
+    #[inline]
     pub fn k(&self) -> usize {
         self.k
     }
 
     /// Width (columns of `B`).
+    #[inline]
     pub fn n(&self) -> usize {
         self.n
     }
 
     /// Number of `NR`-column panels.
+    #[inline]
     pub(super) fn panels(&self) -> usize {
         self.n.div_ceil(NR)
     }
@@ -267,6 +271,7 @@ impl PackedMatrix {
 
     /// The rows of panel `p` from row `k0` (a multiple of `KC`) to the end of its block,
     /// contiguous.
+    #[inline]
     pub(super) fn panel_ptr(&self, p: usize, k0: usize) -> *const f32 {
         self.buf.as_slice()[offset(self.precision, self.k, self.panels(), p, k0)..].as_ptr()
     }
@@ -292,6 +297,7 @@ impl PackedMatrix {
 /// matrix is stored in `KC`-row blocks, each block all panels one after another, so the
 /// kernels' (block, panel) order reads memory sequentially and the hardware prefetcher streams
 /// the weights.
+#[inline]
 fn offset(precision: Precision, k: usize, panels: usize, p: usize, kk: usize) -> usize {
     let kcb = kc_of(precision);
     let block = kk / kcb;

@@ -2,7 +2,7 @@
 //! `vdpbf16ps` does.
 
 use super::NR;
-use super::tile::Tile;
+use super::tile::{Rows, Start};
 
 /// [`super::avx2::kernel_avx2`]'s products in scalar code, in the same order per element;
 /// without FMA each product is rounded before it is added, so its results differ from the
@@ -10,18 +10,20 @@ use super::tile::Tile;
 ///
 /// # Safety
 /// See [`super::tile::tile`].
-pub(super) unsafe fn kernel_portable<const R: usize>(t: &Tile) {
-    let Tile {
-        kc,
-        a,
-        a_stride: ars,
-        b,
-        c,
-        c_stride: ldc,
-        start,
-    } = *t;
+pub(super) unsafe fn kernel_portable<const R: usize>(
+    kc: usize,
+    a: Rows<*const f32>,
+    b: *const f32,
+    c: Rows<*mut f32>,
+    start: Start,
+) {
+    let (a, ars, c, ldc) = (a.ptr, a.stride, c.ptr, c.stride);
     let mut acc = [[0.0f32; NR]; R];
-    if let Some((src, lds)) = start {
+    if let Some(Rows {
+        ptr: src,
+        stride: lds,
+    }) = start
+    {
         for (r, row) in acc.iter_mut().enumerate() {
             for (j, v) in row.iter_mut().enumerate() {
                 // SAFETY: start row r has NR values.
@@ -58,16 +60,14 @@ pub(super) unsafe fn kernel_portable<const R: usize>(t: &Tile) {
 ///
 /// # Safety
 /// See [`super::tile::tile`], with bf16 pair rows.
-pub(super) unsafe fn kernel_bf16_portable<const R: usize>(t: &Tile) {
-    let Tile {
-        kc,
-        a,
-        a_stride: ars,
-        b,
-        c,
-        c_stride: ldc,
-        start,
-    } = *t;
+pub(super) unsafe fn kernel_bf16_portable<const R: usize>(
+    kc: usize,
+    a: Rows<*const f32>,
+    b: *const f32,
+    c: Rows<*mut f32>,
+    start: Start,
+) {
+    let (a, ars, c, ldc) = (a.ptr, a.stride, c.ptr, c.stride);
     let widen = |pair: f32| {
         let bits = pair.to_bits();
         (
@@ -76,7 +76,11 @@ pub(super) unsafe fn kernel_bf16_portable<const R: usize>(t: &Tile) {
         )
     };
     let mut acc = [[[0.0f32; NR]; R]; 2];
-    if let Some((src, lds)) = start {
+    if let Some(Rows {
+        ptr: src,
+        stride: lds,
+    }) = start
+    {
         for (r, row) in acc[0].iter_mut().enumerate() {
             for (j, v) in row.iter_mut().enumerate() {
                 // SAFETY: start row r has NR values.

@@ -13,9 +13,19 @@ use super::avx512::kernel_avx512;
 use super::bf16_avx512::{kernel_bf16_avx512, kernel_bf16_avx512_pair};
 use super::portable::{kernel_bf16_portable, kernel_portable};
 
-/// Where a micro-kernel's accumulators start: zero (`None`), or row `r` from the values at
-/// `ptr + r * stride` (`C` itself to accumulate into it; a bias, stride 0, for every row).
-pub(super) type Start = Option<(*const f32, usize)>;
+/// A pointer and the distance between the rows that start from it, in values: row `r` at
+/// `ptr + r * stride`. Two words, so a micro-kernel takes it in two registers.
+#[derive(Clone, Copy)]
+pub(super) struct Rows<P> {
+    /// Row 0.
+    pub(super) ptr: P,
+    /// Distance between consecutive rows.
+    pub(super) stride: usize,
+}
+
+/// Where a micro-kernel's accumulators start: zero (`None`), or row `r` from `ptr + r * stride`
+/// (`C` itself to accumulate into it; a bias, stride 0, for every row).
+pub(super) type Start = Option<Rows<*const f32>>;
 
 /// The operands of one micro-kernel call: `C = S + A · B` over `kc` values of `k` on a tile of
 /// `C`, where `S` is `start`'s rows (zero for `None`).
@@ -23,19 +33,38 @@ pub(super) type Start = Option<(*const f32, usize)>;
 pub(super) struct Tile {
     /// Depth: values of `k` (bf16: the panel has `ceil(kc / 2)` pair rows).
     pub(super) kc: usize,
-    /// Row `r` of the tile's `A` starts at `a + r * a_stride`: f32 rows in place, or bf16 pair
-    /// rows (packed, or in place).
-    pub(super) a: *const f32,
-    /// Distance between the tile's rows of `A`, in 32-bit values.
-    pub(super) a_stride: usize,
+    /// The tile's rows of `A`, in 32-bit values: f32 rows in place, or bf16 pair rows (packed,
+    /// or in place).
+    pub(super) a: Rows<*const f32>,
     /// The panel: `kc` rows of `NR` values (pair rows in bf16), 64-byte aligned.
     pub(super) b: *const f32,
-    /// Row `r` of the tile of `C` starts at `c + r * c_stride`.
-    pub(super) c: *mut f32,
-    /// Distance between the rows of `C`.
-    pub(super) c_stride: usize,
+    /// The tile's rows of `C`.
+    pub(super) c: Rows<*mut f32>,
     /// What the accumulators start from.
     pub(super) start: Start,
+}
+
+impl Tile {
+    /// `f` on these operands. The micro-kernels take them as separate arguments, in registers:
+    /// a call per tile through memory would cost the driver loop stores and the kernel loads.
+    ///
+    /// # Safety
+    /// As [`tile`] for the tile `f` is written for.
+    #[inline(always)]
+    pub(super) unsafe fn run(self, f: TileFn) {
+        // SAFETY: the caller's contract.
+        unsafe { f(self.kc, self.a, self.b, self.c, self.start) }
+    }
+
+    /// `f` on these operands and a second panel `b2` (see [`Self::run`]).
+    ///
+    /// # Safety
+    /// As [`tile_pair`] for the tile `f` is written for.
+    #[inline(always)]
+    pub(super) unsafe fn run_pair(self, f: PairFn, b2: *const f32) {
+        // SAFETY: the caller's contract.
+        unsafe { f(self.kc, self.a, self.b, b2, self.c, self.start) }
+    }
 }
 
 /// Which micro-kernel multiplies a tile.
@@ -94,43 +123,48 @@ pub(super) use unroll4;
 /// One `rows x w` tile (`rows <= MR`, `w <= NR`) with `kernel`.
 ///
 /// # Safety
-/// `t.a` has `rows` rows `t.a_stride` apart of `t.kc` values (bf16: `ceil(kc / 2)` pairs),
-/// `t.b` has `t.kc` rows of `NR` values (pair rows in bf16), `t.c` has `rows` rows of stride
-/// `t.c_stride` with `w` values, and so has `t.start` (rows `stride` apart) when given.
-pub(super) unsafe fn tile(kernel: Kernel, rows: usize, w: usize, t: &Tile) {
+/// `t.a` has `rows` rows of `t.kc` values (bf16: `ceil(kc / 2)` pairs), `t.b` has `t.kc` rows
+/// of `NR` values (pair rows in bf16), `t.c` has `rows` rows with `w` values, and so has
+/// `t.start` when given.
+pub(super) unsafe fn tile(kernel: Kernel, rows: usize, w: usize, t: Tile) {
     if w < NR {
         // Edge panel: run the full-width kernel on a scratch tile, copy the valid columns.
         let mut scratch = [0.0f32; MR * NR];
-        if let Some((src, lds)) = t.start {
+        if let Some(Rows { ptr: src, stride }) = t.start {
             for r in 0..rows {
                 for j in 0..w {
                     // SAFETY: inside the caller's start rows (`w` values each).
-                    scratch[r * NR + j] = unsafe { *src.add(r * lds + j) };
+                    scratch[r * NR + j] = unsafe { *src.add(r * stride + j) };
                 }
             }
         }
         let full = Tile {
-            c: scratch.as_mut_ptr(),
-            c_stride: NR,
-            start: t.start.map(|_| (scratch.as_ptr(), NR)),
-            ..*t
+            c: Rows {
+                ptr: scratch.as_mut_ptr(),
+                stride: NR,
+            },
+            start: t.start.map(|_| Rows {
+                ptr: scratch.as_ptr(),
+                stride: NR,
+            }),
+            ..t
         };
         // SAFETY: scratch is a full MR x NR tile; `A` and `B` are the caller's.
-        unsafe { tile(kernel, rows, NR, &full) };
+        unsafe { tile(kernel, rows, NR, full) };
         for r in 0..rows {
             for j in 0..w {
                 // SAFETY: inside the caller's C tile.
-                unsafe { *t.c.add(r * t.c_stride + j) = scratch[r * NR + j] };
+                unsafe { *t.c.ptr.add(r * t.c.stride + j) = scratch[r * NR + j] };
             }
         }
         return;
     }
     // SAFETY: the caller's contract, for a full-width tile of `rows` rows.
-    unsafe { full_tile_fn(kernel, rows)(t) }
+    unsafe { t.run(full_tile_fn(kernel, rows)) }
 }
 
-/// A micro-kernel on a full-width tile.
-pub(super) type TileFn = unsafe fn(&Tile);
+/// A micro-kernel on a full-width tile: [`Tile`]'s fields, in its order.
+pub(super) type TileFn = unsafe fn(usize, Rows<*const f32>, *const f32, Rows<*mut f32>, Start);
 
 /// The micro-kernel of `kernel` for full-width tiles of `rows` rows (`1..=MR`). The driver
 /// loop looks it up once per GEMM for whole tiles and calls it directly, rather than going
@@ -164,8 +198,10 @@ pub(super) fn full_tile_fn(kernel: Kernel, rows: usize) -> TileFn {
     }
 }
 
-/// A micro-kernel on two full-width panels side by side: `t.b` and the second panel.
-pub(super) type PairFn = unsafe fn(&Tile, *const f32);
+/// A micro-kernel on two full-width panels side by side: [`Tile`]'s fields with the second
+/// panel after the first.
+pub(super) type PairFn =
+    unsafe fn(usize, Rows<*const f32>, *const f32, *const f32, Rows<*mut f32>, Start);
 
 /// The two-panel micro-kernel of `kernel` for `rows` rows, where it has one
 /// ([`Kernel::pairs`]; the CPU requirement as in [`full_tile_fn`]).
@@ -190,21 +226,27 @@ pub(super) fn pair_tile_fn(kernel: Kernel, rows: usize) -> Option<PairFn> {
 /// # Safety
 /// As [`tile`] for each panel (`t.b` and `b2` each hold `t.kc` rows of `NR` values); `t.c` has
 /// `rows` rows of `2 * NR` values, and so has `t.start` when given.
-pub(super) unsafe fn tile_pair(kernel: Kernel, rows: usize, t: &Tile, b2: *const f32) {
+pub(super) unsafe fn tile_pair(kernel: Kernel, rows: usize, t: Tile, b2: *const f32) {
     match pair_tile_fn(kernel, rows) {
         // SAFETY: the caller's contract.
-        Some(f) => unsafe { f(t, b2) },
+        Some(f) => unsafe { t.run_pair(f, b2) },
         _ => {
             let second = Tile {
                 b: b2,
-                c: t.c.wrapping_add(NR),
-                start: t.start.map(|(p, s)| (p.wrapping_add(NR), s)),
-                ..*t
+                c: Rows {
+                    ptr: t.c.ptr.wrapping_add(NR),
+                    ..t.c
+                },
+                start: t.start.map(|s| Rows {
+                    ptr: s.ptr.wrapping_add(NR),
+                    ..s
+                }),
+                ..t
             };
             // SAFETY: the caller's contract, one panel at a time.
             unsafe {
                 tile(kernel, rows, NR, t);
-                tile(kernel, rows, NR, &second);
+                tile(kernel, rows, NR, second);
             }
         }
     }
