@@ -25,7 +25,7 @@ use super::vars::Vars;
 use super::vision::{SiglipTower, VisionOutput};
 use crate::EngineError;
 use crate::smolvla::ExpertSample;
-use crate::smolvla::weights::time_embedding;
+use crate::smolvla::expert::weights::time_embedding;
 use crate::weights::Checkpoint;
 
 /// One observation as the prefix reads it (after the processors).

@@ -1,5 +1,5 @@
 //! SmolVLM's text layers (SmolLM2, Llama-style) over the SmolVLA prefix, on the engine's CPU
-//! kernels, producing the [`PrefixKv`] the expert consumes.
+//! kernels, producing the [`crate::smolvla::PrefixKv`] the expert consumes.
 //!
 //! LeRobot's prefix prefill (`VLAFlowMatching.sample_actions` -> `SmolVLMWithExpertModel.forward`
 //! with `fill_kv_cache=True`) runs every kept text layer as self-attention over the prefix
@@ -15,11 +15,12 @@
 //! cache, which the expert never reads. The K/V of the last layer are all the expert needs from
 //! it, so its attention output and MLP are skipped; `text_model.norm` is never needed.
 
-use super::config::VlmTextConfig;
-use super::weights::{LayerWeights, LinearWeights};
 use crate::kernels::attention::{AttendScratch, KvSegment, Queries, QueryPositions, attend};
 use crate::kernels::gemm::{ActivationRows, gemm_par};
-use crate::kernels::{Init, PackedMatrix, Pool, Precision, SharedMut, vecmath};
+use crate::kernels::{Init, MatMut, MatRef, PackedMatrix, Pool, Precision, SharedMut, vecmath};
+use crate::smolvla::config::VlmTextConfig;
+use crate::smolvla::linear::LinearWeights;
+use crate::smolvla::llama_layer::LayerWeights;
 use crate::weights::StoredTensor;
 
 struct TextLayer {
@@ -93,7 +94,7 @@ impl CpuText {
         let (qw, kvw) = (c.num_attention_heads * hd, c.num_key_value_heads * hd);
         let ld = qw + 2 * kvw;
         let counts: Vec<usize> = prefixes.iter().map(|p| p.embeddings.len() / h).collect();
-        let starts = super::vision::starts(&counts);
+        let starts = super::starts(&counts);
         let rows: usize = counts.iter().sum();
         let mut out: Vec<ValidKv> = counts
             .iter()
@@ -135,7 +136,8 @@ impl CpuText {
         let last = self.layers.len().saturating_sub(1);
         for (l, layer) in self.layers.iter().enumerate() {
             norm(&x, &layer.input_norm, &mut normed);
-            normed.gemm_par(pool, rows, &layer.qkv, &mut qkv, ld, Init::Zero);
+            let qkv_rows = MatMut::dense(&mut qkv, rows, ld);
+            normed.gemm_par(pool, &layer.qkv, qkv_rows, Init::Zero);
             for (&n, &start) in counts.iter().zip(&starts) {
                 for t in 0..n {
                     let (cs, sn) = (&cos[t * half..][..half], &sin[t * half..][..half]);
@@ -158,21 +160,24 @@ impl CpuText {
                 break;
             }
             self.attention(pool, &qkv, &counts, &starts, &mut attn);
-            gemm_par(pool, &attn, qw, rows, &layer.o, &mut x, h, Init::Accumulate);
-            norm(&x, &layer.post_norm, &mut normed);
-            normed.gemm_par(
-                pool,
-                rows,
-                &layer.gate_up,
-                &mut gate_up,
-                2 * inter,
-                Init::Zero,
+            let (heads, residual) = (
+                MatRef::dense(&attn, rows, qw),
+                MatMut::dense(&mut x, rows, h),
             );
+            gemm_par(pool, heads, &layer.o, residual, Init::Accumulate);
+            norm(&x, &layer.post_norm, &mut normed);
+            let gate_up_rows = MatMut::dense(&mut gate_up, rows, 2 * inter);
+            normed.gemm_par(pool, &layer.gate_up, gate_up_rows, Init::Zero);
             act.fill(pool, rows, |r, out| {
                 let (g, u) = gate_up[r * 2 * inter..(r + 1) * 2 * inter].split_at(inter);
                 vecmath::silu_mul(isa, g, u, out);
             });
-            act.gemm_par(pool, rows, &layer.down, &mut x, h, Init::Accumulate);
+            act.gemm_par(
+                pool,
+                &layer.down,
+                MatMut::dense(&mut x, rows, h),
+                Init::Accumulate,
+            );
         }
         out
     }
@@ -212,10 +217,10 @@ impl CpuText {
                 let [mk, mv, sk, sv] = &mut packed;
                 let k0 = qw + g * hd;
                 let v0 = qw + kvw + g * hd;
-                mk.pack_transposed(isa, &base[k0..], ld, main, hd);
-                mv.pack_rows(isa, &base[v0..], ld, main, hd);
-                sk.pack_transposed(isa, &base[main * ld + k0..], ld, 1, hd);
-                sv.pack_rows(isa, &base[main * ld + v0..], ld, 1, hd);
+                mk.pack_transposed(isa, MatRef::new(&base[k0..], main, hd, ld));
+                mv.pack_rows(isa, MatRef::new(&base[v0..], main, hd, ld));
+                sk.pack_transposed(isa, MatRef::new(&base[main * ld + k0..], 1, hd, ld));
+                sv.pack_rows(isa, MatRef::new(&base[main * ld + v0..], 1, hd, ld));
                 let main_seg = KvSegment {
                     keys_t: mk,
                     values: mv,
@@ -237,30 +242,24 @@ impl CpuText {
                     if main > 0 {
                         attend(
                             isa,
-                            Queries::F32(q, ld),
-                            main,
-                            hd,
+                            Queries::F32(MatRef::new(q, main, hd, ld)),
                             &[main_seg],
                             all,
                             scale,
                             &mut scores,
-                            &mut tmp,
-                            hd,
+                            MatMut::dense(&mut tmp, main, hd),
                         );
                     }
                     let (both, only) = ([main_seg, state_seg], [state_seg]);
                     let segs: &[KvSegment<'_>] = if main > 0 { &both } else { &only };
                     attend(
                         isa,
-                        Queries::F32(&q[main * ld..], ld),
-                        1,
-                        hd,
+                        Queries::F32(MatRef::new(&q[main * ld..], 1, hd, ld)),
                         segs,
                         all,
                         scale,
                         &mut scores,
-                        &mut tmp[main * hd..],
-                        hd,
+                        MatMut::dense(&mut tmp[main * hd..], 1, hd),
                     );
                     // SAFETY: this observation's rows of this head's columns are written by
                     // this task only.

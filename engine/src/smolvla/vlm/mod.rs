@@ -5,22 +5,27 @@
 //! for every camera slot, its connector tokens `x sqrt(text hidden)` (padding for an empty
 //! camera); the language tokens `embed_tokens(t) x sqrt(text hidden)` (padding where the
 //! tokenizer's attention mask is 0); the state token `state_proj(state)`; then padding up to
-//! `prefix_length` if that is set. See [`super::vlm_text`] for the layers and masks.
+//! `prefix_length` if that is set. See `text` for the layers and masks.
 //!
 //! It runs on the engine's CPU kernels only (the vision tower is 212 GFLOP per 512x512 camera;
-//! see docs/ENGINE.md for why not Candle's `siglip`).
+//! see docs/ENGINE.md for why not Candle's `siglip`): the vision tower and connector in
+//! [`vision`], the text layers in `text`, the weights in [`weights`].
+
+mod text;
+pub mod vision;
+pub mod weights;
 
 use std::path::Path;
 
-use super::config::{ExpertDims, SmolVlaConfig, VlmConfig, kept_vlm_layers};
+use super::config::{self, ExpertDims, SmolVlaConfig, VlmConfig, kept_vlm_layers};
 use super::prefix::PrefixKv;
-use super::vision::{CpuVision, VisionImage, VisionOutput};
-use super::vlm_text::{CpuText, ValidPrefix};
-use super::vlm_weights::VlmWeights;
 use crate::EngineError;
 use crate::kernels::Pool;
 use crate::options::{EngineOptions, Target};
 use crate::weights::{Checkpoint, StoredTensor};
+use text::{CpuText, ValidPrefix};
+use vision::{CpuVision, VisionImage, VisionOutput};
+use weights::VlmWeights;
 
 /// One observation as the VLM takes it (after LeRobot's processors and `prepare_images`).
 #[derive(Clone, Debug)]
@@ -71,7 +76,7 @@ impl SmolVlaVlm {
     /// Load from a LeRobot SmolVLA checkpoint directory (`config.json`, `model.safetensors`,
     /// and `vlm_config.json` for a VLM other than SmolVLM2-500M).
     pub fn load(dir: &Path, options: &EngineOptions) -> Result<Self, EngineError> {
-        let cfg: SmolVlaConfig = super::config::read_json(&dir.join("config.json"))?;
+        let cfg: SmolVlaConfig = config::read_json(&dir.join("config.json"))?;
         let vlm = VlmConfig::for_checkpoint(dir, &cfg)?;
         let ckpt = Checkpoint::open(&dir.join("model.safetensors"))?;
         Self::load_from(&ckpt, &cfg, &vlm, options)
@@ -305,4 +310,16 @@ impl SmolVlaVlm {
             })
             .collect()
     }
+}
+
+/// Where each of several blocks of `counts[i]` rows starts when they are stacked.
+fn starts(counts: &[usize]) -> Vec<usize> {
+    counts
+        .iter()
+        .scan(0, |acc, &n| {
+            let s = *acc;
+            *acc += n;
+            Some(s)
+        })
+        .collect()
 }

@@ -7,18 +7,24 @@
 //! group of `scale²` patches to the text width (transformers' `SmolVLMConnector`).
 //!
 //! All images of a batch go through every GEMM together (one row per patch), and attention runs
-//! per image and head; since each GEMM output row depends on its own input row only, in a fixed
-//! order (see [`crate::kernels::gemm`]), an image gets bit-identical results alone or batched.
+//! per image and head (in `attention`); since each GEMM output row depends on its own input row
+//! only, in a fixed order (see [`crate::kernels::gemm`]), an image gets bit-identical results
+//! alone or batched.
 
-use super::config::VlmConfig;
-use super::cpu::Linear;
-use super::vlm_weights::{NormWeights, VlmWeights};
-use super::weights::LinearWeights;
-use crate::EngineError;
-use crate::kernels::attention::{AttendScratch, KvSegment, Queries, QueryPositions, attend};
-use crate::kernels::gemm::{ActivationRows, gemm_par, gemm_par_pairs, round_pairs};
-use crate::kernels::{FreeList, Init, PackedMatrix, Pool, Precision, SharedMut, grown, vecmath};
+mod attention;
+
 use std::sync::Mutex;
+
+use super::weights::{NormWeights, VlmWeights};
+use crate::EngineError;
+use crate::kernels::bf16::round_pairs;
+use crate::kernels::gemm::{ActivationRows, gemm_par, gemm_par_pairs};
+use crate::kernels::{
+    FreeList, Init, MatMut, MatRef, PackedMatrix, Pool, Precision, SharedMut, grown, vecmath,
+};
+use crate::smolvla::config::VlmConfig;
+use crate::smolvla::linear::{Linear, LinearWeights};
+use attention::{AttentionIn, AttentionOut, HeadScratch};
 
 /// A view of one prepared camera image: `channels x side x side` floats, row-major, in `[-1, 1]`
 /// (after LeRobot's `resize_with_pad` and `x * 2 - 1`).
@@ -79,14 +85,22 @@ pub(crate) struct CpuVision {
 }
 
 /// A group's activations (~40 MB in bf16, ~50 MB in f32, for 1 024 patch rows), kept resident
-/// between groups and calls. Allocated afresh for every group, each buffer was zeroed (`memset`)
-/// and, when it came from `mmap`, faulted in a page at a time, then returned. Every value is
-/// written before it is read, so reuse changes no result.
+/// between groups and calls, rather than allocated afresh for every group: each allocation
+/// would be zeroed and, coming from `mmap`, faulted in a page at a time. Every value is written
+/// before it is read, so reuse changes no result.
 #[derive(Default)]
 struct TowerBuffers {
     unfolded: Vec<f32>,
     x: Vec<f32>,
     h: Vec<f32>,
+    encoder: EncoderBuffers,
+    shuffled: Vec<f32>,
+    emb: Vec<f32>,
+}
+
+/// The encoder layers' activations (see [`TowerBuffers`]).
+#[derive(Default)]
+struct EncoderBuffers {
     qkv: Vec<f32>,
     /// `qkv` rounded to bf16 pairs, in bf16 mode.
     qkv_pairs: Vec<u32>,
@@ -95,8 +109,28 @@ struct TowerBuffers {
     mlp: Vec<f32>,
     normed: Option<ActivationRows>,
     act: Option<ActivationRows>,
-    shuffled: Vec<f32>,
-    emb: Vec<f32>,
+}
+
+/// How a group's images stack into its rows: image `i` is a `grids[i] x grids[i]` patch grid,
+/// `counts[i]` rows from row `starts[i]`.
+struct GroupRows<'a> {
+    grids: &'a [usize],
+    counts: Vec<usize>,
+    starts: Vec<usize>,
+    /// All of them.
+    rows: usize,
+}
+
+impl<'a> GroupRows<'a> {
+    fn new(grids: &'a [usize]) -> Self {
+        let counts: Vec<usize> = grids.iter().map(|g| g * g).collect();
+        GroupRows {
+            grids,
+            starts: super::starts(&counts),
+            rows: counts.iter().sum(),
+            counts,
+        }
+    }
 }
 
 /// `rows` activation rows of `width` in `precision`, reusing `slot`'s where it has room.
@@ -271,22 +305,48 @@ impl CpuVision {
         out: &mut VisionOutput,
     ) {
         let v = &self.config.vision_config;
-        let (vh, p, c) = (v.hidden_size, v.patch_size, v.num_channels);
-        let counts: Vec<usize> = grids.iter().map(|g| g * g).collect();
-        let starts = starts(&counts);
-        let rows: usize = counts.iter().sum();
-        if rows == 0 {
+        let group = GroupRows::new(grids);
+        if group.rows == 0 {
             for _ in images {
                 out.hidden.push(Vec::new());
                 out.embeddings.push(Vec::new());
             }
             return;
         }
+        let TowerBuffers {
+            unfolded,
+            x,
+            h,
+            encoder,
+            shuffled,
+            emb,
+        } = buffers;
+        let x = grown(x, group.rows * v.hidden_size);
+        self.embed_patches(pool, images, &group, unfolded, x);
+        for layer in &self.layers {
+            self.encoder_layer(pool, &group, layer, encoder, x);
+        }
+        let h = grown(h, group.rows * v.hidden_size);
+        layer_norm_par(pool, x, &self.post, v.layer_norm_eps as f32, h);
+        self.connect(pool, &group, h, (shuffled, emb), out);
+    }
 
-        // Patch conv: unfold every patch to `[C][p][p]` (the conv weight's order), one GEMM.
+    /// `x` = the patch embeddings of the group's images: the patch conv as one GEMM over the
+    /// unfolded patches (`unfolded` holds them), plus the position embedding.
+    fn embed_patches(
+        &self,
+        pool: &Pool,
+        images: &[VisionImage<'_>],
+        group: &GroupRows<'_>,
+        unfolded: &mut Vec<f32>,
+        x: &mut [f32],
+    ) {
+        let v = &self.config.vision_config;
+        let (vh, p, c) = (v.hidden_size, v.patch_size, v.num_channels);
+        // Unfold every patch to `[C][p][p]` (the conv weight's order).
         let kdim = c * p * p;
-        let unfolded = grown(&mut buffers.unfolded, rows * kdim);
-        for ((im, &g), &start) in images.iter().zip(grids).zip(&starts) {
+        let unfolded = grown(unfolded, group.rows * kdim);
+        for ((im, &g), &start) in images.iter().zip(group.grids).zip(&group.starts) {
             for py in 0..g {
                 for px in 0..g {
                     let row = &mut unfolded[(start + py * g + px) * kdim..][..kdim];
@@ -299,53 +359,52 @@ impl CpuVision {
                 }
             }
         }
-        let x = grown(&mut buffers.x, rows * vh);
-        gemm_par(
-            pool,
-            unfolded,
-            kdim,
-            rows,
-            &self.patch.w,
-            x,
-            vh,
-            self.patch.init(),
+        let (patches, rows) = (
+            MatRef::dense(unfolded, group.rows, kdim),
+            MatMut::dense(x, group.rows, vh),
         );
+        gemm_par(pool, patches, &self.patch.w, rows, self.patch.init());
         // Position embedding, per transformers' bucketised fractional coordinates.
         let per_side = v.image_size / p;
-        for (&g, &start) in grids.iter().zip(&starts) {
+        for (&g, &start) in group.grids.iter().zip(&group.starts) {
             let ids = position_ids(g, per_side);
             for (t, &id) in ids.iter().enumerate() {
                 let row = &mut x[(start + t) * vh..][..vh];
                 vecmath::add_assign(pool.isa(), row, &self.positions[id * vh..][..vh]);
             }
         }
+    }
 
+    /// One pre-LN encoder layer on the group's rows `x`:
+    /// `x += out_proj(attn(ln1(x)))`, then `x += fc2(gelu_tanh(fc1(ln2(x))))`.
+    fn encoder_layer(
+        &self,
+        pool: &Pool,
+        group: &GroupRows<'_>,
+        layer: &VisionLayer,
+        buffers: &mut EncoderBuffers,
+        x: &mut [f32],
+    ) {
+        let v = &self.config.vision_config;
+        let (vh, inter, rows, isa) = (v.hidden_size, v.intermediate_size, group.rows, pool.isa());
         let eps = v.layer_norm_eps as f32;
-        let inter = v.intermediate_size;
-        let h = grown(&mut buffers.h, rows * vh);
-        let qkv = grown(&mut buffers.qkv, rows * 3 * vh);
         // In bf16 (with whole pairs per head) each head's output rows are rounded straight into
         // the out projection's `A`.
         let hd = vh / v.num_attention_heads;
         let pairs_out = self.precision == Precision::Bf16 && hd.is_multiple_of(2);
-        let attn = grown(&mut buffers.attn, if pairs_out { 0 } else { rows * vh });
-        let attn_pairs = grown(
-            &mut buffers.attn_pairs,
-            if pairs_out { rows * vh / 2 } else { 0 },
-        );
-        let mlp = grown(&mut buffers.mlp, rows * inter);
-        // In bf16 the attention reads `q`, `k` and `v` rounded once, row by row, into pairs:
-        // rounding each head's queries per block and packing its keys and values from the f32
-        // rows read every head's columns down 1 024 rows 9 KiB apart, three times a head.
-        let qkv_pairs = grown(
-            &mut buffers.qkv_pairs,
-            if pairs_out { rows * 3 * vh / 2 } else { 0 },
-        );
+        let EncoderBuffers {
+            qkv,
+            qkv_pairs,
+            attn,
+            attn_pairs,
+            mlp,
+            normed,
+            act,
+        } = buffers;
         // The layer norms and the GELU make the `A` of the GEMM they feed row by row (in bf16
         // rounded as they go, see `ActivationRows`).
-        let normed = activation_rows(&mut buffers.normed, self.precision, rows, vh);
-        let act = activation_rows(&mut buffers.act, self.precision, rows, inter);
-        let isa = pool.isa();
+        let normed = activation_rows(normed, self.precision, rows, vh);
+        let act = activation_rows(act, self.precision, rows, inter);
         // Layer norm of every row of `x`; then, while the row is in L1, the bias of the
         // residual GEMM that accumulates into `x` next is added to it (`x += bias + A · B`
         // in that order, as `Init::AccumulateBias` would, without a pass of its own over `x`).
@@ -364,48 +423,74 @@ impl CpuVision {
                 }
             });
         };
-        for layer in &self.layers {
-            norm(x, &layer.norm1, layer.out.bias.as_deref(), normed);
-            normed.gemm_par(pool, rows, &layer.qkv.w, qkv, 3 * vh, layer.qkv.init());
-            if !pairs_out {
-                let src = AttentionIn::F32(qkv);
-                self.attention(pool, src, &counts, &starts, AttentionOut::F32(attn));
-                gemm_par(pool, attn, vh, rows, &layer.out.w, x, vh, Init::Accumulate);
-            } else {
-                // `3 vh` is even, so no pair straddles two rows: the rows round as one run.
-                pool.for_row_chunks(qkv_pairs, 3 * vh / 2, |r0, chunk| {
-                    round_pairs(isa, &qkv[r0 * 3 * vh..][..2 * chunk.len()], chunk);
-                });
-                let (src, out) = (
-                    AttentionIn::Pairs(qkv_pairs),
-                    AttentionOut::Pairs(attn_pairs),
-                );
-                self.attention(pool, src, &counts, &starts, out);
-                let (w, acc) = (&layer.out.w, Init::Accumulate);
-                gemm_par_pairs(pool, attn_pairs, vh / 2, rows, w, x, vh, acc);
-            }
-            norm(x, &layer.norm2, layer.fc2.bias.as_deref(), normed);
-            normed.gemm_par(pool, rows, &layer.fc1.w, mlp, inter, layer.fc1.init());
-            act.fill(pool, rows, |r, out| {
-                let row = &mlp[r * inter..(r + 1) * inter];
-                // In bf16 the GEMM rounds these to 2^-9: a GELU good to 1e-5 costs less.
-                match self.precision {
-                    Precision::Bf16 => vecmath::gelu_tanh_bf16_grade(isa, row, out),
-                    Precision::F32 => vecmath::gelu_tanh(isa, row, out),
-                }
+        norm(x, &layer.norm1, layer.out.bias.as_deref(), normed);
+        let qkv = grown(qkv, rows * 3 * vh);
+        let qkv_rows = MatMut::dense(qkv, rows, 3 * vh);
+        normed.gemm_par(pool, &layer.qkv.w, qkv_rows, layer.qkv.init());
+        let residual = MatMut::dense(x, rows, vh);
+        if !pairs_out {
+            let attn = grown(attn, rows * vh);
+            let (src, out) = (AttentionIn::F32(qkv), AttentionOut::F32(attn));
+            self.attention(pool, src, &group.counts, &group.starts, out);
+            let attn = MatRef::dense(attn, rows, vh);
+            gemm_par(pool, attn, &layer.out.w, residual, Init::Accumulate);
+        } else {
+            // In bf16 the attention reads `q`, `k` and `v` rounded once, row by row, into
+            // pairs, rather than rounding each head's queries per block and packing its keys
+            // and values from the f32 rows (reading every head's columns down all the rows,
+            // three times a head). `3 vh` is even, so no pair straddles two rows: the rows
+            // round as one run.
+            let qkv_pairs = grown(qkv_pairs, rows * 3 * vh / 2);
+            pool.for_row_chunks(qkv_pairs, 3 * vh / 2, |r0, chunk| {
+                round_pairs(isa, &qkv[r0 * 3 * vh..][..2 * chunk.len()], chunk);
             });
-            act.gemm_par(pool, rows, &layer.fc2.w, x, vh, Init::Accumulate);
+            let attn_pairs = grown(attn_pairs, rows * vh / 2);
+            let (src, out) = (
+                AttentionIn::Pairs(qkv_pairs),
+                AttentionOut::Pairs(attn_pairs),
+            );
+            self.attention(pool, src, &group.counts, &group.starts, out);
+            let attn = MatRef::dense(attn_pairs, rows, vh / 2);
+            gemm_par_pairs(pool, attn, &layer.out.w, residual, Init::Accumulate);
         }
-        layer_norm_par(pool, x, &self.post, eps, h);
+        norm(x, &layer.norm2, layer.fc2.bias.as_deref(), normed);
+        let mlp = grown(mlp, rows * inter);
+        let mlp_rows = MatMut::dense(mlp, rows, inter);
+        normed.gemm_par(pool, &layer.fc1.w, mlp_rows, layer.fc1.init());
+        act.fill(pool, rows, |r, out| {
+            let row = &mlp[r * inter..(r + 1) * inter];
+            // In bf16 the GEMM rounds these to 2^-9: a GELU good to 1e-5 costs less.
+            match self.precision {
+                Precision::Bf16 => vecmath::gelu_tanh_bf16_grade(isa, row, out),
+                Precision::F32 => vecmath::gelu_tanh(isa, row, out),
+            }
+        });
+        act.gemm_par(
+            pool,
+            &layer.fc2.w,
+            MatMut::dense(x, rows, vh),
+            Init::Accumulate,
+        );
+    }
 
-        // Connector: pixel shuffle, then one GEMM for all images.
+    /// The connector on the post-LayerNorm rows `h`: pixel shuffle (into `shuffled`), then one
+    /// GEMM for all images (into `emb`); each image's `h` rows and embeddings go to `out`.
+    fn connect(
+        &self,
+        pool: &Pool,
+        group: &GroupRows<'_>,
+        h: &[f32],
+        (shuffled, emb): (&mut Vec<f32>, &mut Vec<f32>),
+        out: &mut VisionOutput,
+    ) {
+        let vh = self.config.vision_config.hidden_size;
         let s = self.config.scale_factor;
         let wide = vh * s * s;
-        let tokens: Vec<usize> = grids.iter().map(|g| (g / s) * (g / s)).collect();
+        let tokens: Vec<usize> = group.grids.iter().map(|g| (g / s) * (g / s)).collect();
         let total: usize = tokens.iter().sum();
-        let shuffled = grown(&mut buffers.shuffled, total * wide);
+        let shuffled = grown(shuffled, total * wide);
         let mut t0 = 0;
-        for (&g, &start) in grids.iter().zip(&starts) {
+        for (&g, &start) in group.grids.iter().zip(&group.starts) {
             let n = g / s;
             for i2 in 0..n {
                 for j2 in 0..n {
@@ -422,203 +507,29 @@ impl CpuVision {
             t0 += n * n;
         }
         let th = self.connector.n();
-        let emb = grown(&mut buffers.emb, total * th);
-        gemm_par(
-            pool,
-            shuffled,
-            wide,
-            total,
-            &self.connector,
-            emb,
-            th,
-            Init::Zero,
+        let emb = grown(emb, total * th);
+        let (groups, tokens_out) = (
+            MatRef::dense(shuffled, total, wide),
+            MatMut::dense(emb, total, th),
         );
+        gemm_par(pool, groups, &self.connector, tokens_out, Init::Zero);
         let mut t0 = 0;
-        for ((&n, &start), &tk) in counts.iter().zip(&starts).zip(&tokens) {
+        for ((&n, &start), &tk) in group.counts.iter().zip(&group.starts).zip(&tokens) {
             out.hidden.push(h[start * vh..(start + n) * vh].to_vec());
             out.embeddings.push(emb[t0 * th..(t0 + tk) * th].to_vec());
             t0 += tk;
         }
     }
-
-    /// Bidirectional multi-head attention within each image: `attn = softmax(q kᵀ / sqrt(d)) v`
-    /// per head, from the `[q | k | v]` rows.
-    fn attention(
-        &self,
-        pool: &Pool,
-        qkv: AttentionIn<'_>,
-        counts: &[usize],
-        starts: &[usize],
-        attn: AttentionOut<'_>,
-    ) {
-        let v = &self.config.vision_config;
-        let (vh, heads) = (v.hidden_size, v.num_attention_heads);
-        let hd = vh / heads;
-        let scale = (hd as f64).powf(-0.5) as f32;
-        let ld = 3 * vh;
-        let tasks = counts.len() * heads;
-        let parts = pool.parts_per_unit(tasks);
-        let out = attn.shared();
-        let isa = pool.isa();
-        pool.run(parts, |part| {
-            let mut scratch = self.head_scratch.take(|| HeadScratch::new(self.precision));
-            let HeadScratch {
-                scores,
-                out: tmp,
-                keys_t: kt,
-                values: vv,
-            } = &mut scratch;
-            for task in tasks * part / parts..tasks * (part + 1) / parts {
-                let (img, head) = (task / heads, task % heads);
-                let (n, start) = (counts[img], starts[img]);
-                match qkv {
-                    AttentionIn::F32(qkv) => {
-                        let base = &qkv[start * ld..(start + n) * ld];
-                        kt.pack_transposed(isa, &base[vh + head * hd..], ld, n, hd);
-                        vv.pack_rows(isa, &base[2 * vh + head * hd..], ld, n, hd);
-                    }
-                    AttentionIn::Pairs(pairs) => {
-                        let (base, ldp) = (&pairs[start * ld / 2..(start + n) * ld / 2], ld / 2);
-                        kt.pack_transposed_pairs(&base[(vh + head * hd) / 2..], ldp, n, hd);
-                        vv.pack_rows_pairs(&base[(2 * vh + head * hd) / 2..], ldp, n, hd);
-                    }
-                }
-                tmp.resize(n * hd, 0.0);
-                let segment = KvSegment {
-                    keys_t: kt,
-                    values: vv,
-                    causal: false,
-                };
-                // Queries in blocks, so that a block's scores (`QUERY_BLOCK x n`) stay in L2;
-                // every query row is computed the same way whatever the block.
-                for r0 in (0..n).step_by(QUERY_BLOCK) {
-                    let rows = QUERY_BLOCK.min(n - r0);
-                    attend(
-                        isa,
-                        match qkv {
-                            AttentionIn::F32(qkv) => {
-                                Queries::F32(&qkv[(start + r0) * ld + head * hd..], ld)
-                            }
-                            AttentionIn::Pairs(pairs) => Queries::Pairs(
-                                &pairs[((start + r0) * ld + head * hd) / 2..],
-                                ld / 2,
-                            ),
-                        },
-                        rows,
-                        hd,
-                        &[segment],
-                        QueryPositions {
-                            offset: 0,
-                            period: rows,
-                        },
-                        scale,
-                        scores,
-                        &mut tmp[r0 * hd..(r0 + rows) * hd],
-                        hd,
-                    );
-                }
-                match out {
-                    // SAFETY: this image's rows of this head's columns are written by this task
-                    // only.
-                    SharedOut::F32(out) => unsafe { out.write_rows(tmp, hd, vh, start, head * hd) },
-                    SharedOut::Pairs(pairs) => {
-                        let (kp, ldp) = (hd / 2, vh / 2);
-                        for (t, row) in tmp.chunks_exact(hd).enumerate() {
-                            // SAFETY: as above, this head's `hd / 2` pairs of the row (`hd` is
-                            // even, so they are whole pairs of this head's columns only).
-                            let dst = unsafe {
-                                std::slice::from_raw_parts_mut(
-                                    pairs.ptr().add((start + t) * ldp + head * kp),
-                                    kp,
-                                )
-                            };
-                            round_pairs(isa, row, dst);
-                        }
-                    }
-                }
-            }
-            self.head_scratch.put(scratch);
-        });
-    }
-}
-
-/// The buffers of one attention head of one image: its scores, its output rows and its packed
-/// keys and values. Every value is written before it is read, so reuse changes no result.
-struct HeadScratch {
-    scores: AttendScratch,
-    out: Vec<f32>,
-    keys_t: PackedMatrix,
-    values: PackedMatrix,
-}
-
-impl HeadScratch {
-    /// Empty buffers, for keys and values packed in `precision`. Each attention part used to
-    /// allocate its own, ~1 MB for a 1 024-patch image, which `malloc` took from `mmap` and the
-    /// kernel zeroed page by page, twelve times a layer; they are now kept in a [`FreeList`].
-    fn new(precision: Precision) -> Self {
-        HeadScratch {
-            scores: AttendScratch::default(),
-            out: Vec::new(),
-            keys_t: PackedMatrix::empty_in(precision),
-            values: PackedMatrix::empty_in(precision),
-        }
-    }
-}
-
-/// What the vision attention reads: the `[q | k | v]` rows in f32, or rounded to bf16 pairs
-/// (`hd` even, so each head's columns are whole pairs).
-#[derive(Clone, Copy)]
-enum AttentionIn<'a> {
-    F32(&'a [f32]),
-    Pairs(&'a [u32]),
-}
-
-/// Where the vision attention writes its output: f32 rows, or bf16 pair rows (the out
-/// projection's `A`, rounded as each head's rows are made).
-enum AttentionOut<'a> {
-    F32(&'a mut [f32]),
-    Pairs(&'a mut [u32]),
-}
-
-impl AttentionOut<'_> {
-    /// The output as a pointer the attention's parts share (each writes its own heads' columns).
-    fn shared(self) -> SharedOut {
-        match self {
-            AttentionOut::F32(rows) => SharedOut::F32(SharedMut::new(rows)),
-            AttentionOut::Pairs(rows) => SharedOut::Pairs(SharedMut::new(rows)),
-        }
-    }
-}
-
-/// [`AttentionOut`] shared by the attention's parts.
-#[derive(Clone, Copy)]
-enum SharedOut {
-    F32(SharedMut<f32>),
-    Pairs(SharedMut<u32>),
 }
 
 /// Images run through the tower together while their patches add up to at most this many
 /// rows (a single larger image runs alone). Every operation of the tower is per row or per
 /// image, so the grouping changes no result; it bounds the activations (a group of one
-/// 512 x 512 camera keeps its ~25 MB in the last-level cache), where stacking the eight cameras of
-/// four requests made each image 13% slower (measured with `vision_timing --cameras 1|8`).
+/// 512 x 512 camera keeps its ~25 MB in the last-level cache) instead of stacking every camera
+/// of a batch into activations that spill to memory.
 const GROUP_ROWS: usize = 1024;
 
-/// Where each of several blocks of `counts[i]` rows starts when they are stacked.
-pub(crate) fn starts(counts: &[usize]) -> Vec<usize> {
-    counts
-        .iter()
-        .scan(0, |acc, &n| {
-            let s = *acc;
-            *acc += n;
-            Some(s)
-        })
-        .collect()
-}
-
-/// Query rows per attention call: 96 x 1024 scores = 384 KiB.
-const QUERY_BLOCK: usize = 96;
-
+/// LayerNorm of each row of `x` into `out`, on the pool's threads.
 fn layer_norm_par(pool: &Pool, x: &[f32], norm: &NormWeights, eps: f32, out: &mut [f32]) {
     let h = norm.weight.len();
     pool.for_row_chunks(out, h, |r0, rows| {
@@ -663,7 +574,6 @@ mod tests {
     use super::*;
     use crate::kernels::Isa;
     use crate::smolvla::config::{VlmConfig, VlmTextConfig, VlmVisionConfig};
-    use crate::smolvla::vlm_weights::VlmWeights;
 
     /// Images of 1024 patch rows run alone and four of 256 rows run together (see
     /// [`GROUP_ROWS`]); each image's outputs must be exactly those of running it by itself.

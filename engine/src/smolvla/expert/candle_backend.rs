@@ -7,10 +7,11 @@
 
 use candle_core::{DType, Device, Tensor};
 
-use super::config::{ExpertDims, LayerKind};
-use super::prefix::PrefixKv;
-use super::weights::{ExpertWeights, LinearWeights, time_embedding};
+use super::weights::{ExpertWeights, time_embedding};
 use crate::EngineError;
+use crate::smolvla::config::{ExpertDims, LayerKind};
+use crate::smolvla::linear::LinearWeights;
+use crate::smolvla::prefix::PrefixKv;
 
 struct Linear {
     /// `[in][out]` (transposed once at load so the matmul needs no strided view).
@@ -118,13 +119,84 @@ impl CandleExpert {
     ) -> Result<(), EngineError> {
         let d = &self.dims;
         let dev = &self.device;
-        let rows = row_prefix.len();
-        let (kvh, hd, n) = (d.kv_heads, d.head_dim, d.chunk);
+        let (rows, n) = (row_prefix.len(), d.chunk);
+        let context = self.attention_context(prefixes, row_prefix)?;
+        let len = n * d.action_pad;
+        let steps = d.steps;
+        crate::sampler::integrate(
+            crate::sampler::Schedule { steps },
+            rows,
+            len,
+            x,
+            updates,
+            |k, t, xt, v| {
+                let xt = Tensor::from_slice(xt, (rows, n, d.action_pad), dev)?;
+                let out = self.velocity(&xt, t, &context)?;
+                let out: Vec<f32> = out.flatten_all()?.to_vec1()?;
+                v.copy_from_slice(&out);
+                for r in 0..rows {
+                    velocities[(r * steps + k) * len..(r * steps + k + 1) * len]
+                        .copy_from_slice(&out[r * len..(r + 1) * len]);
+                }
+                Ok(())
+            },
+        )
+    }
+
+    /// The prefix keys and values, masks and RoPE tables that every step of a `sample` call
+    /// attends with (row `r` is a sample of the request `row_prefix[r]`).
+    fn attention_context(
+        &self,
+        prefixes: &[&PrefixKv],
+        row_prefix: &[usize],
+    ) -> Result<AttentionContext, EngineError> {
+        let d = &self.dims;
+        let dev = &self.device;
+        let (rows, hd, n) = (row_prefix.len(), d.head_dim, d.chunk);
         let max_len = prefixes.iter().map(|p| p.len()).max().unwrap_or(0);
+        // Masks (additive, [rows, 1, chunk, keys]) with LeRobot's rules: action tokens see every
+        // valid prefix token, and each other causally (cumsum of all-ones att_masks).
+        let mut cross_mask = vec![f32::NEG_INFINITY; rows * n * max_len];
+        let mut self_mask = vec![f32::NEG_INFINITY; rows * n * (max_len + n)];
+        let mut positions = vec![0.0f32; rows * n];
+        for (r, &p) in row_prefix.iter().enumerate() {
+            let prefix = prefixes[p];
+            for i in 0..n {
+                for (j, &valid) in prefix.valid().iter().enumerate() {
+                    if valid {
+                        cross_mask[(r * n + i) * max_len + j] = 0.0;
+                        self_mask[(r * n + i) * (max_len + n) + j] = 0.0;
+                    }
+                }
+                for j in 0..=i {
+                    self_mask[(r * n + i) * (max_len + n) + max_len + j] = 0.0;
+                }
+                positions[r * n + i] = (prefix.valid_len() + i) as f32;
+            }
+        }
+        let cross_positions: Vec<f32> = (0..rows).flat_map(|_| (0..n).map(|i| i as f32)).collect();
+        Ok(AttentionContext {
+            prefix_kv: self.padded_prefix_kv(prefixes, row_prefix, max_len)?,
+            self_mask: Tensor::from_vec(self_mask, (rows, 1, n, max_len + n), dev)?,
+            cross_mask: Tensor::from_vec(cross_mask, (rows, 1, n, max_len), dev)?,
+            self_rope: rope_tables(&positions, rows, n, hd, dev)?,
+            cross_rope: rope_tables(&cross_positions, rows, n, hd, dev)?,
+        })
+    }
+
+    /// Prefix K/V per layer, padded to `max_len` tokens, `[rows, kv_heads, max_len, head_dim]`
+    /// (row `r` from prefix `row_prefix[r]`).
+    fn padded_prefix_kv(
+        &self,
+        prefixes: &[&PrefixKv],
+        row_prefix: &[usize],
+        max_len: usize,
+    ) -> Result<Vec<(Tensor, Tensor)>, EngineError> {
+        let d = &self.dims;
+        let dev = &self.device;
+        let (rows, kvh, hd) = (row_prefix.len(), d.kv_heads, d.head_dim);
         let idx: Vec<u32> = row_prefix.iter().map(|&p| p as u32).collect();
         let idx = Tensor::from_slice(&idx, rows, dev)?;
-
-        // Prefix K/V per layer, padded to the longest prefix, [rows, kv_heads, len, head_dim].
         let mut prefix_kv = Vec::with_capacity(self.layers.len());
         for (l, layer) in self.layers.iter().enumerate() {
             let pad = |get: &dyn Fn(&PrefixKv) -> &[f32]| -> Result<Tensor, EngineError> {
@@ -153,74 +225,23 @@ impl CandleExpert {
             };
             prefix_kv.push((heads(k)?, heads(v)?));
         }
-
-        // Masks (additive, [rows, 1, chunk, keys]) with LeRobot's rules: action tokens see every
-        // valid prefix token, and each other causally (cumsum of all-ones att_masks).
-        let mut cross_mask = vec![f32::NEG_INFINITY; rows * n * max_len];
-        let mut self_mask = vec![f32::NEG_INFINITY; rows * n * (max_len + n)];
-        let mut positions = vec![0.0f32; rows * n];
-        for (r, &p) in row_prefix.iter().enumerate() {
-            let prefix = prefixes[p];
-            for i in 0..n {
-                for (j, &valid) in prefix.valid().iter().enumerate() {
-                    if valid {
-                        cross_mask[(r * n + i) * max_len + j] = 0.0;
-                        self_mask[(r * n + i) * (max_len + n) + j] = 0.0;
-                    }
-                }
-                for j in 0..=i {
-                    self_mask[(r * n + i) * (max_len + n) + max_len + j] = 0.0;
-                }
-                positions[r * n + i] = (prefix.valid_len() + i) as f32;
-            }
-        }
-        let cross_mask = Tensor::from_vec(cross_mask, (rows, 1, n, max_len), dev)?;
-        let self_mask = Tensor::from_vec(self_mask, (rows, 1, n, max_len + n), dev)?;
-        let self_rope = rope_tables(&positions, rows, n, hd, dev)?;
-        let cross_positions: Vec<f32> = (0..rows).flat_map(|_| (0..n).map(|i| i as f32)).collect();
-        let cross_rope = rope_tables(&cross_positions, rows, n, hd, dev)?;
-
-        let len = n * d.action_pad;
-        let steps = d.steps;
-        crate::sampler::integrate(
-            crate::sampler::Schedule { steps },
-            rows,
-            len,
-            x,
-            updates,
-            |k, t, xt, v| {
-                let xt = Tensor::from_slice(xt, (rows, n, d.action_pad), dev)?;
-                let out = self.velocity(
-                    &xt,
-                    t,
-                    &prefix_kv,
-                    &self_mask,
-                    &cross_mask,
-                    &self_rope,
-                    &cross_rope,
-                )?;
-                let out: Vec<f32> = out.flatten_all()?.to_vec1()?;
-                v.copy_from_slice(&out);
-                for r in 0..rows {
-                    velocities[(r * steps + k) * len..(r * steps + k + 1) * len]
-                        .copy_from_slice(&out[r * len..(r + 1) * len]);
-                }
-                Ok(())
-            },
-        )
+        Ok(prefix_kv)
     }
 
-    #[allow(clippy::too_many_arguments)]
+    /// The velocity of the action tokens `xt` (`[rows, chunk, action_pad]`) at time `t`.
     fn velocity(
         &self,
         xt: &Tensor,
         t: f32,
-        prefix_kv: &[(Tensor, Tensor)],
-        self_mask: &Tensor,
-        cross_mask: &Tensor,
-        self_rope: &(Tensor, Tensor),
-        cross_rope: &(Tensor, Tensor),
+        context: &AttentionContext,
     ) -> Result<Tensor, EngineError> {
+        let AttentionContext {
+            prefix_kv,
+            self_mask,
+            cross_mask,
+            self_rope,
+            cross_rope,
+        } = context;
         let d = &self.dims;
         let (rows, n, _) = xt.dims3()?;
         let (heads, kvh, hd) = (d.heads, d.kv_heads, d.head_dim);
@@ -280,6 +301,17 @@ impl CandleExpert {
         // LeRobot upcasts the expert output to f32 before action_out_proj (a no-op in f32).
         self.out.forward(&h.to_dtype(DType::F32)?)
     }
+}
+
+/// What every step of one `sample` call attends with: per layer the prefix keys and values
+/// (`[rows, kv_heads, len, head_dim]`), the additive masks and the RoPE tables of the self- and
+/// cross-attention layers.
+struct AttentionContext {
+    prefix_kv: Vec<(Tensor, Tensor)>,
+    self_mask: Tensor,
+    cross_mask: Tensor,
+    self_rope: (Tensor, Tensor),
+    cross_rope: (Tensor, Tensor),
 }
 
 /// LeRobot's RoPE cos/sin for `[rows][n]` positions, `[rows, n, head_dim/2]`.

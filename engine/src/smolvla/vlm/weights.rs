@@ -3,9 +3,10 @@
 //! ([`StoredTensor`]: a bf16 checkpoint's bits, half the memory of `f32`) until they are packed;
 //! norms, biases and the position embedding (small) are widened to `f32` (exactly).
 
-use super::config::{LayerKind, VlmConfig};
-use super::weights::{LayerWeights, LinearWeights, LlamaShape};
 use crate::EngineError;
+use crate::smolvla::config::{LayerKind, VlmConfig};
+use crate::smolvla::linear::LinearWeights;
+use crate::smolvla::llama_layer::{LayerWeights, LlamaShape};
 use crate::weights::{Checkpoint, StoredTensor};
 
 /// Prefix of the VLM's parameters in a SmolVLA checkpoint.
