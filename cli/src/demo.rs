@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use anyhow::bail;
@@ -13,6 +13,8 @@ use kairos_bench::demo::{
     QUICK_ENV, RunResult, SchedulerRun, execute,
 };
 use kairos_server::pool::BuildEvent;
+
+use kairos_core::sync::lock;
 
 /// Which horizon policy each scheduler's robots ask for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -151,10 +153,7 @@ impl Terminal {
 
     fn bar(&self) -> ProgressBar {
         // A bar is a handle; a poisoned lock still holds a usable one.
-        self.bar
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone()
+        lock(&self.bar).clone()
     }
 }
 
@@ -229,7 +228,7 @@ impl DemoProgress for Terminal {
         next.set_prefix(run.label.clone());
         next.set_message("connecting");
         self.rounds.store(0, Ordering::Relaxed);
-        *self.bar.lock().unwrap_or_else(PoisonError::into_inner) = next;
+        *lock(&self.bar) = next;
     }
 
     fn event(&self, event: DemoEvent) {

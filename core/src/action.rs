@@ -11,7 +11,7 @@
 //! calls [`ActionManager::answer_batch`] on tokio's blocking pool, never on a runtime worker.
 
 use std::collections::BTreeMap;
-use std::sync::{Mutex, PoisonError};
+use std::sync::Mutex;
 
 use kairos_engine_types::ActionChunk;
 use kairos_protocol::{ErrorReply, Reply, Tensor, Timing};
@@ -22,6 +22,7 @@ use crate::horizon::{
 };
 use crate::registry::{Factory, HorizonRegistry};
 use crate::scheduler::{RequestId, RobotId, ServerLoad};
+use crate::sync::lock;
 
 /// The horizon policy a round asked for, already built (its parameters validated).
 pub struct RoundPolicy {
@@ -223,10 +224,7 @@ impl ActionManager {
 
     /// How many times the fallback answered since start, by the policy that failed.
     pub fn fallbacks_by_policy(&self) -> BTreeMap<String, u64> {
-        self.fallbacks
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone()
+        lock(&self.fallbacks).clone()
     }
 
     /// Chooses `H` for `chunk` with the round's policy, falling back to the native default.
@@ -272,10 +270,7 @@ impl ActionManager {
             }
             Err(error) => error,
         };
-        *self
-            .fallbacks
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
+        *lock(&self.fallbacks)
             .entry(round.policy.name().to_string())
             .or_insert(0) += 1;
         tracing::warn!(policy = round.policy.name(), error = %requested_error,

@@ -12,7 +12,8 @@
 //!   effects out, and the statistics it reports as data;
 //! - [`round`], [`clock_map`], [`error`]: validated rounds, robot clocks on the server clock,
 //!   and the failures the core decides itself with their wire codes;
-//! - [`time`], [`stats`]: timestamps, and the one percentile definition.
+//! - [`time`], [`stats`], [`sync`]: timestamps, the one percentile definition, and the one way
+//!   to take a shared lock.
 //!
 //! Nothing here reads a clock, touches a socket or needs an async runtime: the live server
 //! (`kairos-server`) drives this code from its shell, and the simulator (`kairos-bench`) drives
@@ -29,4 +30,5 @@ pub mod registry;
 pub mod round;
 pub mod scheduler;
 pub mod stats;
+pub mod sync;
 pub mod time;

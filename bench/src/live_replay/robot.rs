@@ -20,7 +20,7 @@
 //! recorded chunk, meant for the recorded steps, so the replayed work is the recording's (as in
 //! the simulator, `sim` module doc).
 
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use kairos_sdk::client::{Client, ClientError, RoundReply, RoundRequest};
@@ -33,6 +33,8 @@ use kairos_sdk::trace::{RoundTrace, TaskTrace};
 use tokio::time::Instant;
 
 use kairos_server::pool::replay::replay_state;
+
+use kairos_core::sync::lock;
 
 /// Why a replayed task failed.
 #[derive(Debug, thiserror::Error)]
@@ -216,7 +218,7 @@ pub async fn replay_task(
     let finished_at = loop {
         // Send the next round if it is due.
         let due = {
-            let e = executor.lock().unwrap_or_else(PoisonError::into_inner);
+            let e = lock(&executor);
             let covered = e.executed_total() + e.remaining() as u64;
             let index = u64::from(requests.round(sent).issued_at_action);
             in_flight.is_none()
@@ -227,10 +229,7 @@ pub async fn replay_task(
             let now = Instant::now();
             let now_us = clock.to_us(now);
             started_at.get_or_insert(now);
-            let last_exec = executor
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner)
-                .request_sent(round_task.next_round(), now_us);
+            let last_exec = lock(&executor).request_sent(round_task.next_round(), now_us);
             let request = requests.request(sent, now_us, last_exec);
             let index = sent;
             sent += 1;
@@ -274,7 +273,7 @@ pub async fn replay_task(
             }
             () = sleep_until_some(next_tick) => {
                 let tick = next_tick.unwrap_or_else(Instant::now);
-                let mut e = executor.lock().unwrap_or_else(PoisonError::into_inner);
+                let mut e = lock(&executor);
                 if e.next_action(clock.to_us(tick)).is_none() {
                     next_tick = None;
                     continue;
@@ -293,9 +292,7 @@ pub async fn replay_task(
         handle.abort();
     }
     let next_round = task.as_ref().map_or(sent as u64, |t| t.next_round());
-    let last_exec = executor
-        .lock()
-        .unwrap_or_else(PoisonError::into_inner)
+    let last_exec = lock(&executor)
         .last_exec(clock.to_us(finished_at))
         .map(|info| LastExecInfo {
             actions_remaining: 0,
@@ -350,10 +347,7 @@ fn apply_reply(
         .chunks(values.len() / horizon)
         .map(<[f32]>::to_vec)
         .collect();
-    executor
-        .lock()
-        .unwrap_or_else(PoisonError::into_inner)
-        .reply_arrived(round, actions);
+    lock(executor).reply_arrived(round, actions);
     Ok(RoundOutcome {
         horizon: r.horizon,
         round_trip_us: reply.received_at_us.saturating_sub(reply.sent_at_us),

@@ -6,13 +6,14 @@
 //! fact. The action manager's fallbacks are read from the manager the same way.
 
 use std::collections::BTreeMap;
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use kairos_core::action::ActionManager;
 use kairos_core::driver::{DriverReport, EngineState, Histogram};
 use kairos_core::error::LossReason;
 use kairos_core::scheduler::Tier;
+use kairos_core::sync::lock;
 use prometheus_client::collector::Collector;
 use prometheus_client::encoding::{DescriptorEncoder, EncodeLabelSet, EncodeMetric};
 use prometheus_client::metrics::MetricType;
@@ -95,7 +96,7 @@ impl DriverExport {
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Published> {
-        self.0.lock().unwrap_or_else(PoisonError::into_inner)
+        lock(&self.0)
     }
 
     /// Recomputes each engine's busy ratio over the time since its previous recomputation (at

@@ -13,11 +13,12 @@
 //! changes meaning or goes away.
 
 use std::collections::{BTreeMap, VecDeque};
-use std::sync::{Mutex, PoisonError};
+use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use kairos_core::driver::{DriverReport, Histogram};
 use kairos_core::error::LossReason;
+use kairos_core::sync::lock;
 use serde::Serialize;
 
 use super::driver::tier_label;
@@ -248,7 +249,7 @@ impl FleetView {
     }
 
     fn samples(&self) -> std::sync::MutexGuard<'_, VecDeque<Sample>> {
-        self.samples.lock().unwrap_or_else(PoisonError::into_inner)
+        lock(&self.samples)
     }
 
     /// Records the report's cumulative quantities at `now`, and forgets samples the window no

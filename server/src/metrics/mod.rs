@@ -20,6 +20,8 @@
 //! Label values are engine instances, worker ids, tiers, re-dispatch reasons and policy names,
 //! all bounded by the deployment's configuration.
 
+use crate::plugin::PluginKind;
+
 pub mod driver;
 pub mod fleet;
 pub mod http;
@@ -28,7 +30,7 @@ mod operations;
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use prometheus_client::encoding::EncodeLabelSet;
@@ -37,6 +39,8 @@ use prometheus_client::metrics::family::Family;
 use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::{Registry, Unit};
+
+use kairos_core::sync::lock;
 
 pub use self::driver::DriverExport;
 pub use self::operations::{DoorConnections, PluginHealth, RefusalCount};
@@ -126,25 +130,6 @@ impl WorkerRemoval {
             WorkerRemoval::Silent => "silent",
             WorkerRemoval::ProtocolError => "protocol_error",
             WorkerRemoval::ConnectionLost => "connection_lost",
-        }
-    }
-}
-
-/// Which policy fell back, as `kairos_plugin_fallbacks_total` labels it.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum PolicyKind {
-    /// A horizon policy (per round, on the return path).
-    Horizon,
-    /// A priority policy (the scheduler's, per decision).
-    Priority,
-}
-
-impl PolicyKind {
-    /// The label value.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            PolicyKind::Horizon => "horizon",
-            PolicyKind::Priority => "priority",
         }
     }
 }
@@ -384,13 +369,13 @@ impl Metrics {
 
     /// The counter of fallbacks of `policy` (`kairos_plugin_fallbacks_total{kind,policy}`),
     /// for its owner to count in. Handles to the same labels share one value.
-    pub fn fallback_counter(&self, kind: PolicyKind, policy: &str) -> Counter {
+    pub fn fallback_counter(&self, kind: PluginKind, policy: &str) -> Counter {
         self.0.operations.plugin(kind, policy).fallbacks
     }
 
     /// The gauge of `policy`'s quarantine (`kairos_plugin_quarantined{kind,policy}`, 1 while
     /// quarantined), for its owner to set.
-    pub fn quarantine_gauge(&self, kind: PolicyKind, policy: &str) -> Gauge {
+    pub fn quarantine_gauge(&self, kind: PluginKind, policy: &str) -> Gauge {
         self.0.operations.plugin(kind, policy).quarantined
     }
 
@@ -534,10 +519,6 @@ impl Readiness {
     }
 }
 
-fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    mutex.lock().unwrap_or_else(PoisonError::into_inner)
-}
-
 #[cfg(test)]
 mod tests {
     use kairos_core::action::ActionManager;
@@ -599,7 +580,7 @@ mod tests {
         let metrics = Metrics::new();
         let export = metrics.driver().expect("a scheduler's registry");
         export.publish(report());
-        metrics.fallback_counter(PolicyKind::Priority, "plas").inc();
+        metrics.fallback_counter(PluginKind::Priority, "plas").inc();
         let text = metrics.encode();
         for (series, value) in [
             ("kairos_queue_depth", 7.0),
@@ -712,12 +693,12 @@ mod tests {
     #[test]
     fn fallback_counters_of_the_same_labels_share_one_value() {
         let metrics = Metrics::new();
-        let a = metrics.fallback_counter(PolicyKind::Horizon, "wasm-threshold");
-        let b = metrics.fallback_counter(PolicyKind::Horizon, "wasm-threshold");
+        let a = metrics.fallback_counter(PluginKind::Horizon, "wasm-threshold");
+        let b = metrics.fallback_counter(PluginKind::Horizon, "wasm-threshold");
         a.inc();
         b.inc_by(2);
         assert_eq!(a.get(), 3);
-        let other = metrics.fallback_counter(PolicyKind::Priority, "wasm-threshold");
+        let other = metrics.fallback_counter(PluginKind::Priority, "wasm-threshold");
         assert_eq!(other.get(), 0, "kind is part of the series");
     }
 

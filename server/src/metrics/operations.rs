@@ -9,7 +9,7 @@
 //! bounded by the program and the deployment, never by what a client sends.
 
 use std::collections::BTreeMap;
-use std::sync::{Arc, Mutex, PoisonError, Weak};
+use std::sync::{Arc, Mutex, Weak};
 
 use prometheus_client::collector::Collector;
 use prometheus_client::encoding::{DescriptorEncoder, EncodeLabelSet, EncodeMetric};
@@ -20,7 +20,9 @@ use prometheus_client::metrics::gauge::{ConstGauge, Gauge};
 use prometheus_client::registry::Registry;
 use tokio::sync::Semaphore;
 
-use super::PolicyKind;
+use crate::plugin::PluginKind;
+
+use kairos_core::sync::lock;
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct DoorReason {
@@ -150,7 +152,7 @@ impl Operations {
     }
 
     fn known(&self) -> std::sync::MutexGuard<'_, Known> {
-        self.known.lock().unwrap_or_else(PoisonError::into_inner)
+        lock(&self.known)
     }
 
     /// The counter of refusals at `door` for `reason`; it exists (at zero) from this call on.
@@ -177,7 +179,7 @@ impl Operations {
     }
 
     /// The handles of the plugin `policy` of `kind`.
-    pub(super) fn plugin(&self, kind: PolicyKind, policy: &str) -> PluginHandles {
+    pub(super) fn plugin(&self, kind: PluginKind, policy: &str) -> PluginHandles {
         let labels = PluginLabels {
             kind: kind.as_str(),
             policy: policy.to_string(),
@@ -274,7 +276,7 @@ struct ConnectionsCollector(Arc<Mutex<Known>>);
 
 impl Collector for ConnectionsCollector {
     fn encode(&self, mut encoder: DescriptorEncoder) -> Result<(), std::fmt::Error> {
-        let doors = connections(&self.0.lock().unwrap_or_else(PoisonError::into_inner));
+        let doors = connections(&lock(&self.0));
         if doors.is_empty() {
             return Ok(());
         }

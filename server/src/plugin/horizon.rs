@@ -17,6 +17,7 @@ use kairos_core::horizon::{
     HorizonError, HorizonInput, HorizonPolicy, PolicyParams, validate_horizon,
 };
 use kairos_core::scheduler::{RobotId, ServerLoad};
+use kairos_core::sync::lock;
 
 use since_v0_1_0::horizon as v0_1;
 use since_v0_2_0::horizon as v0_2;
@@ -260,14 +261,6 @@ impl std::fmt::Debug for HorizonPlugin {
             .field(&self.meta().name)
             .finish()
     }
-}
-
-fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    // A panic while holding one of these locks leaves consistent data (counters, a pool):
-    // keep serving rather than poisoning every later decision.
-    mutex
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 impl HorizonPlugin {

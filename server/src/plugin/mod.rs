@@ -57,12 +57,19 @@ pub enum PluginKind {
     Priority,
 }
 
-impl std::fmt::Display for PluginKind {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
+impl PluginKind {
+    /// Its name in the configuration and in `/metrics` labels (`kind`).
+    pub fn as_str(self) -> &'static str {
+        match self {
             PluginKind::Horizon => "horizon",
             PluginKind::Priority => "priority",
-        })
+        }
+    }
+}
+
+impl std::fmt::Display for PluginKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
     }
 }
 

@@ -1,6 +1,6 @@
 //! One connection: `Hello`/`Welcome`, then a task per round stream.
 
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use kairos_sdk::client::{STREAM_REFUSED, close_code};
@@ -19,6 +19,7 @@ use crate::driver::RefetchAsk;
 use crate::validation::RequestError;
 use kairos_core::clock_map::{ClockEstimator, ClockMap};
 use kairos_core::scheduler::RobotId;
+use kairos_core::sync::lock;
 use kairos_core::time::Timestamp;
 
 /// How long the server waits, after a stream's final frame, for the client to acknowledge it or
@@ -64,7 +65,7 @@ struct Peer {
 impl Peer {
     fn rounds(&self) -> std::sync::MutexGuard<'_, TokenBucket> {
         // A bucket is two numbers: a panic while holding the lock leaves it usable.
-        self.rounds.lock().unwrap_or_else(PoisonError::into_inner)
+        lock(&self.rounds)
     }
 }
 

@@ -16,10 +16,11 @@
 //! the configuration allows.
 
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use kairos_core::scheduler::RobotId;
+use kairos_core::sync::lock;
 
 use crate::config::ConnectionsConfig;
 
@@ -116,7 +117,7 @@ impl RobotPlaces {
 
     fn held(&self) -> std::sync::MutexGuard<'_, HashMap<RobotId, usize>> {
         // Counters only: a panic while holding the lock leaves them usable.
-        self.held.lock().unwrap_or_else(PoisonError::into_inner)
+        lock(&self.held)
     }
 
     /// A place for one more connection of `robot`, if it holds fewer than the cap.
@@ -171,7 +172,7 @@ impl RobotRounds {
 
     /// One round of `robot` at `now`; if its bucket is empty, how long until it is not.
     pub fn try_take(&self, robot: RobotId, now: Instant) -> Result<(), Duration> {
-        let mut buckets = self.buckets.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut buckets = lock(&self.buckets);
         buckets
             .entry(robot)
             .or_insert_with(|| TokenBucket::new(self.rate, self.burst))

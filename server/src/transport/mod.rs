@@ -60,6 +60,7 @@ use crate::driver::DriverHandle;
 use crate::validation::{DecodePool, Validator};
 use kairos_core::action::ActionManager;
 use kairos_core::scheduler::RobotId;
+use kairos_core::sync::lock;
 
 /// How long shutdown waits for connections to deliver the answers of accepted rounds.
 pub const DRAIN_TIMEOUT: Duration = Duration::from_secs(10);
@@ -217,9 +218,7 @@ impl Gate {
 
     fn limiter(&self) -> std::sync::MutexGuard<'_, admission::FailedAuthLimiter> {
         // A panic while holding this lock leaves at worst one bucket stale.
-        self.failed_tokens
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
+        lock(&self.failed_tokens)
     }
 
     /// Whether `ip` may try a token now.

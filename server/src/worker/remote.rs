@@ -29,6 +29,7 @@ use crate::metrics::WorkerRemoval;
 use crate::pool::{BatchChunks, BatchLabel, EngineInstance, PoolError, check_output};
 use kairos_core::error::LossReason;
 use kairos_core::scheduler::Tier;
+use kairos_core::sync::lock;
 
 /// A moving average of a worker's round trip: end-to-end batch time minus the compute time the
 /// worker reports, so payload transfer counts. Seeded from QUIC's smoothed RTT. Pure.
@@ -149,12 +150,6 @@ impl RemoteEngine {
     fn link(&self) -> Link {
         *lock(&self.link)
     }
-}
-
-fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    mutex
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 impl EngineInstance for RemoteEngine {
