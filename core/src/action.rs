@@ -87,8 +87,9 @@ pub struct ActionManager {
     fallback_params: PolicyParams,
     /// Always the native factory, even if a plugin shadows its name for requests.
     fallback_factory: Factory<dyn HorizonPolicy, PolicyParams, HorizonError>,
-    /// Decisions the fallback answered, by the policy that failed (names are bounded by the
-    /// registry). The server exports these counts; nothing else counts them.
+    /// Decisions the fallback answered, by the policy that failed: every registered policy from
+    /// the start, at zero (names are bounded by the registry), so that a rate over them sees the
+    /// first fallback. The server exports these counts; nothing else counts them.
     fallbacks: Mutex<BTreeMap<String, u64>>,
 }
 
@@ -160,6 +161,7 @@ impl ActionManager {
                 error,
             });
         }
+        let fallbacks = merged.names().map(|name| (name.to_string(), 0)).collect();
         Ok(ActionManager {
             registry: merged,
             default_policy: default_policy.to_string(),
@@ -167,7 +169,7 @@ impl ActionManager {
             fallback_policy,
             fallback_params,
             fallback_factory,
-            fallbacks: Mutex::new(BTreeMap::new()),
+            fallbacks: Mutex::new(fallbacks),
         })
     }
 

@@ -103,7 +103,8 @@ pub struct FleetSnapshot {
     pub refusals: Vec<RefusalCount>,
     /// Policy plugins: fallbacks and quarantine.
     pub plugins: Vec<PluginHealth>,
-    /// Rounds whose horizon policy fell back to the server's native one, by policy.
+    /// Rounds whose horizon policy fell back to the server's native one, by policy (only the
+    /// policies that fell back at least once).
     pub horizon_fallbacks: BTreeMap<String, u64>,
 }
 
@@ -402,7 +403,10 @@ impl FleetView {
                 .metrics
                 .driver()
                 .map(super::DriverExport::horizon_fallbacks)
-                .unwrap_or_default(),
+                .unwrap_or_default()
+                .into_iter()
+                .filter(|&(_, count)| count > 0)
+                .collect(),
         }
     }
 

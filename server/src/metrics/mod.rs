@@ -632,10 +632,11 @@ mod tests {
             ActionManager::new(natives.clone(), &natives, "threshold", BTreeMap::new()).unwrap(),
         );
         metrics.driver().unwrap().attach_actions(actions.clone());
-        assert!(
-            !metrics.encode().contains("kairos_horizon_fallbacks"),
-            "no fallback yet: no series, no family"
-        );
+        let text = metrics.encode();
+        for policy in natives.names() {
+            let series = format!("kairos_horizon_fallbacks_total{{policy=\"{policy}\"}} 0");
+            assert!(text.contains(&series), "{series} from the start: {text}");
+        }
         assert_eq!(actions.fallback_count(), 0);
     }
 
