@@ -9,6 +9,8 @@
 //!   fallbacks are read from it the same way;
 //! - the plugin host counts its fallbacks in the [`Counter`] handed to it
 //!   ([`Metrics::fallback_counter`]);
+//! - the transport and the openpi endpoint count their refusals in [`Refusals`]
+//!   (`kairos_refusals_total{door, reason}`, [`Metrics::refusals`]);
 //! - a `kairos worker` process ([`Metrics::for_worker`]) counts its own facts in typed families:
 //!   its connection state, batches answered, heartbeats sent, compute time per batch, its
 //!   engine's busy time and batch sizes, fed by `crate::worker`.
@@ -33,6 +35,7 @@ use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::{Registry, Unit};
 
 pub use self::driver::DriverExport;
+use crate::transport::refusals::Refusals;
 
 /// `Content-Type` of [`Metrics::encode`]'s output (OpenMetrics text, which Prometheus scrapes).
 pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
@@ -130,6 +133,8 @@ struct EngineBusy {
 struct Inner {
     registry: Registry,
     plugin_fallbacks: Family<FallbackLabels, Counter>,
+    /// Clients the scheduler's guards turned away (registered in a scheduler's registry only).
+    refusals: Refusals,
     /// The scheduler's: the driver core's latest report, encoded at every scrape. `None` in a
     /// worker.
     driver: Option<DriverExport>,
@@ -191,6 +196,10 @@ impl Metrics {
             "Decisions a policy plugin answered through its fallback policy because it failed",
             plugin_fallbacks.clone(),
         );
+        let refusals = Refusals::new();
+        if !worker {
+            refusals.register(&mut registry);
+        }
         let driver = (!worker).then(|| {
             let export = DriverExport::default();
             registry.register_collector(Box::new(driver::DriverCollector(export.clone())));
@@ -266,6 +275,7 @@ impl Metrics {
         Metrics(Arc::new(Inner {
             registry,
             plugin_fallbacks,
+            refusals,
             driver,
             worker,
         }))
@@ -274,6 +284,12 @@ impl Metrics {
     /// Where the driver's shell publishes the core's reports (`None` in a worker process).
     pub fn driver(&self) -> Option<&DriverExport> {
         self.0.driver.as_ref()
+    }
+
+    /// Where the transport and the openpi endpoint count refusals
+    /// (`kairos_refusals_total{door, reason}`; exported by a scheduler only).
+    pub fn refusals(&self) -> &Refusals {
+        &self.0.refusals
     }
 
     /// `kairos_worker_connection{state}`: the worker is now in `state`. No-op in a scheduler.

@@ -130,6 +130,8 @@ pub struct ServerReport {
     pub driver: DriverStats,
     /// The openpi endpoint's connections.
     pub openpi: crate::openpi::OpenpiStats,
+    /// Clients every endpoint's guards turned away (`kairos_refusals_total`).
+    pub refusals: super::refusals::RefusalCounts,
 }
 
 impl RunningServer {
@@ -284,7 +286,10 @@ pub async fn start(
             token_hash: worker_token_hash,
             config: config.workers.clone(),
         },
+        wrong_tokens: Arc::new(super::admission::WrongTokens::new(&config.connections)),
+        refusals: metrics.refusals().clone(),
     });
+    let refusals = context.refusals.clone();
     let openpi_task = openpi_listener.map(|listener| {
         tokio::spawn(crate::openpi::run(
             listener,
@@ -315,6 +320,7 @@ pub async fn start(
             transport,
             driver,
             openpi,
+            refusals: refusals.counts(),
         }
     });
     // Listening, engines loaded, driver running: probes may send traffic.
