@@ -1,11 +1,13 @@
 //! Cross-crate test support: a server started in-process with simulated robots
 //! ([`harness`]), a UDP impairment proxy for lossy links and added delay ([`proxy`]), a network
 //! namespace joined by a veth pair for traffic that must cross a real interface ([`netns`]),
-//! and a small flow model ([`model`]) so the tests measure the server rather than a network's
-//! forward pass.
+//! a raw openpi client for probing the websocket endpoint byte by byte ([`openpi_wire`]), and a
+//! small flow model ([`model`]) so the tests measure the server rather than a network's forward
+//! pass.
 
 pub mod harness;
 pub mod model;
 pub mod netns;
+pub mod openpi_wire;
 pub mod plugins;
 pub mod proxy;

@@ -9,6 +9,7 @@ mod bench_plugins;
 mod bench_scale;
 mod deploy;
 mod predict;
+mod serve_refusals;
 mod worker_processes;
 
 pub use kairos_tests::plugins::repo_root;

@@ -18,6 +18,7 @@ mod lossy;
 mod malformed;
 mod metrics;
 mod openpi;
+mod openpi_guards;
 mod plugins_served;
 mod replay_horizon;
 mod sim_runner_agreement;
