@@ -92,13 +92,27 @@ pub struct OpenpiStats {
     pub connections: u64,
 }
 
+/// Connections the kernel may queue before the endpoint accepts them (the kernel caps it at
+/// `net.core.somaxconn`): under a connection flood the accept loop refuses fast, and a longer
+/// queue keeps a real client's connection in line instead of dropping its SYN (which would cost
+/// it a retransmission, a second or more).
+const LISTEN_BACKLOG: u32 = 4096;
+
 /// Binds the endpoint's TCP listener.
 pub async fn bind(addr: SocketAddr) -> std::io::Result<TcpListener> {
-    TcpListener::bind(addr).await
+    let socket = if addr.is_ipv4() {
+        tokio::net::TcpSocket::new_v4()?
+    } else {
+        tokio::net::TcpSocket::new_v6()?
+    };
+    socket.set_reuseaddr(true)?;
+    socket.bind(addr)?;
+    socket.listen(LISTEN_BACKLOG)
 }
 
-/// The websocket layer's read buffer: one budget step, so that an idle connection costs little.
-const READ_BUFFER: usize = upload::READ_STEP;
+/// The websocket layer's read buffer (tungstenite's default is 128 KiB): an idle connection
+/// costs this much.
+const READ_BUFFER: usize = 64 << 10;
 
 /// The endpoint's admission state, shared by its accept loop and its connections.
 struct Endpoint {
@@ -321,16 +335,18 @@ fn authorize(request: &Request, context: &ServerContext) -> Result<RobotId, &'st
 }
 
 /// Whether a failed upgrade was the client's malformed request (as opposed to a connection that
-/// went away, or the server's own refusal).
+/// went away before its request was complete, or the server's own refusal).
 fn bad_upgrade(error: &WsError) -> bool {
-    matches!(
-        error,
+    use tokio_tungstenite::tungstenite::error::ProtocolError;
+    match error {
+        WsError::Protocol(ProtocolError::HandshakeIncomplete) => false,
         WsError::Protocol(_)
-            | WsError::HttpFormat(_)
-            | WsError::Utf8(_)
-            | WsError::AttackAttempt
-            | WsError::Capacity(_)
-    )
+        | WsError::HttpFormat(_)
+        | WsError::Utf8(_)
+        | WsError::AttackAttempt
+        | WsError::Capacity(_) => true,
+        _ => false,
+    }
 }
 
 /// Serves one TCP connection: the authenticated upgrade, then the session. `place` is its
@@ -516,7 +532,7 @@ impl Session {
                     message = ws.next() => message,
                     _ = stop.wait_for(|stopping| *stopping) => break End::Shutdown,
                 };
-                if let Some(Ok(_)) = &message {
+                if let Some(Ok(Message::Binary(_) | Message::Text(_))) = &message {
                     ws.get_mut().message_done();
                 }
                 match message {
@@ -696,9 +712,7 @@ impl Session {
             tokio::select! {
                 answer = &mut pending.answer => break answer,
                 message = ws.next() => match message {
-                    Some(Ok(Message::Ping(_) | Message::Pong(_) | Message::Frame(_))) => {
-                        ws.get_mut().message_done();
-                    }
+                    Some(Ok(Message::Ping(_) | Message::Pong(_) | Message::Frame(_))) => {}
                     Some(Ok(Message::Binary(_) | Message::Text(_))) => {
                         self.context.driver.detach(&pending).await;
                         return Err(End::Refused {
