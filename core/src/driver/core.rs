@@ -213,6 +213,7 @@ impl DriverCore {
             stats: DriverStats {
                 round_latency: Histogram::round_latency(),
                 batch_size: Histogram::batch_size(),
+                horizon: Histogram::horizon(),
                 ..DriverStats::default()
             },
             latencies: RecentLatencies::default(),
@@ -933,6 +934,7 @@ impl DriverCore {
                     self.stats
                         .round_latency
                         .observe(now.saturating_since(req.received).as_secs_f64());
+                    self.stats.horizon.observe(f64::from(reply.horizon));
                     // The server's own work: reading to acceptance, and dispatch to reply, less
                     // the re-fetch wait and the forward pass.
                     let own = req.accepted.saturating_since(req.received)

@@ -63,7 +63,8 @@ pub struct MinRate {
 
 impl MinRate {
     /// The moment by which more than `received` bytes must have arrived, for a read that began
-    /// at `start`; `None` if there is no minimum.
+    /// at `start`; `None` if there is no minimum (or the deadline is beyond what an `Instant`
+    /// holds).
     pub fn deadline(&self, start: Instant, received: u64) -> Option<Instant> {
         if self.bytes_per_s == 0 {
             return None;
@@ -72,10 +73,8 @@ impl MinRate {
         // credit could overflow, and that saturates.
         let allowed = Duration::try_from_secs_f64(received as f64 / self.bytes_per_s as f64)
             .unwrap_or(Duration::MAX);
-        // Beyond what an `Instant` holds is never: about 30 years, as tokio's own far future.
-        let never = Duration::from_secs(86_400 * 365 * 30);
-        let wait = self.grace.saturating_add(allowed).min(never);
-        Some(start + wait)
+        // Past the end of time: no deadline at all.
+        start.checked_add(self.grace.saturating_add(allowed))
     }
 
     /// The error of a read that began at `start` and gave up with `received` bytes.

@@ -33,7 +33,9 @@
 //! - the upgrade must be done within `hello_timeout_ms`;
 //! - a source over its wrong-token budget (the server's [`WrongTokens`], shared with QUIC) is
 //!   answered 429 before its key is looked at; a wrong or missing key is 401 and counts against
-//!   that budget; an accepted key takes one of `max_connections` places (503 when none is free);
+//!   that budget; an accepted key takes one of `max_connections` places and one of its robot's
+//!   `max_connections_per_robot` places, shared with its QUIC connections (503 when either is
+//!   full);
 //! - every message must arrive at `min_upload_bytes_per_s` after `upload_grace_ms`, from its
 //!   first byte ([`upload`]); all openpi connections of one robot share one budget of
 //!   `upload_buffer_frames × max_frame` bytes of partly received messages;
@@ -75,6 +77,7 @@ use self::upload::BoundedStream;
 use crate::config::OpenpiConfig;
 use crate::driver::RefetchAsk;
 use crate::transport::admission::{HandshakePlace, HandshakeRefusal, Handshakes};
+use crate::transport::fairness::RobotPlace;
 use crate::transport::refusals::{Door, Reason};
 use crate::transport::{DRAIN_TIMEOUT, Gate, ServerContext};
 use crate::validation::RequestError;
@@ -133,8 +136,10 @@ impl Endpoint {
         let budget_bytes = context
             .connections
             .upload_buffer_bytes(context.limits().max_frame);
+        let gate = Gate::new(&context);
+        gate.export_places("openpi", &context);
         Endpoint {
-            gate: Gate::new(&context),
+            gate,
             handshakes: Handshakes::for_door(&context.connections),
             budgets: Mutex::new(HashMap::new()),
             budget_bytes: usize::try_from(budget_bytes)
@@ -176,7 +181,7 @@ impl Endpoint {
         &self,
         request: &Request,
         remote: SocketAddr,
-    ) -> Result<(RobotId, OwnedSemaphorePermit), ErrorResponse> {
+    ) -> Result<(RobotId, Places), ErrorResponse> {
         let ip = remote.ip();
         if !self.gate.source_allowed(ip) {
             let detail = "too many wrong keys from this address; retry later";
@@ -215,8 +220,37 @@ impl Endpoint {
                 Some(1),
             ));
         };
-        Ok((robot, place))
+        let robot_places = &self.context.fairness.places;
+        let Some(robot_place) = robot_places.take(robot) else {
+            self.gate.robot_at_capacity();
+            let detail = format!(
+                "robot `{}` is at its capacity of {} connections \
+                 ([connections] max_connections_per_robot); retry later",
+                self.context.robots.name(robot),
+                robot_places.cap()
+            );
+            self.refuse(Reason::RobotAtCapacity, remote, &detail);
+            return Err(http_refusal(
+                StatusCode::SERVICE_UNAVAILABLE,
+                &detail,
+                Some(1),
+            ));
+        };
+        Ok((
+            robot,
+            Places {
+                _robot: robot_place,
+                _all: place,
+            },
+        ))
     }
+}
+
+/// An authenticated connection's places: one of its robot's (shared with its QUIC
+/// connections), one of the endpoint's `max_connections`. Given back when dropped.
+struct Places {
+    _robot: RobotPlace,
+    _all: OwnedSemaphorePermit,
 }
 
 /// `Retry-After` in whole seconds, at least 1, at most a day.

@@ -9,8 +9,10 @@
 //!   handshake (a QUIC `CONNECTION_REFUSED`); over half of it, an attempt from an address QUIC has
 //!   not validated gets a Retry first, so spoofed or half-open handshakes take no place at all,
 //!   and a validated source holds at most `max_unauthenticated_per_source` places.
-//! - A `Hello` with a valid token moves the connection to one of `connections.max_connections`
-//!   places; over that the connection is closed with `close_code::AT_CAPACITY` and a reason.
+//! - A `Hello` with a valid token moves the connection to one of its robot's
+//!   `connections.max_connections_per_robot` places and to one of `connections.max_connections`
+//!   places; over either the connection is closed with `close_code::AT_CAPACITY` and a reason
+//!   ([`fairness`]: one tenant cannot take every place).
 //! - Wrong tokens are rate-limited per source address ([`admission::WrongTokens`], one for the
 //!   whole server): a source over its budget is refused before its token is looked at, at the
 //!   first packet.
@@ -40,11 +42,11 @@
 pub mod admission;
 mod admit;
 mod connection;
+pub mod fairness;
 pub mod launch;
 pub mod log_throttle;
 pub mod refusals;
 pub mod tls;
-pub mod workers;
 
 use std::collections::HashMap;
 use std::future::Future;
@@ -134,7 +136,11 @@ pub struct ServerContext {
     /// Connection limits.
     pub connections: ConnectionsConfig,
     /// Remote engine workers: their token and `[workers]`.
-    pub workers: workers::WorkerGate,
+    pub workers: crate::worker::registration::WorkerGate,
+    /// What one robot may take: connection places and round rates, on every transport.
+    pub fairness: fairness::Fairness,
+    /// The server's metrics, for the counts the connection tasks own.
+    pub metrics: crate::metrics::Metrics,
     /// Wrong tokens per source, counted across every endpoint.
     pub wrong_tokens: Arc<WrongTokens>,
     /// Where every endpoint counts and logs its refusals.
@@ -228,6 +234,22 @@ impl Gate {
         Some(permit)
     }
 
+    /// Exports its places as `kairos_robot_connections{door}` in `context`'s metrics.
+    pub(crate) fn export_places(&self, door: &'static str, context: &ServerContext) {
+        context.metrics.watch_connection_places(
+            door,
+            &self.authenticated,
+            context.connections.max_connections,
+        );
+    }
+
+    /// Takes back the count of an authenticated connection refused because its robot held all
+    /// its places (it was counted as admitted when it took a place among all robots'); the
+    /// refusal itself is counted by the caller, in [`Refusals`].
+    pub(crate) fn robot_at_capacity(&self) {
+        self.admitted.fetch_sub(1, Ordering::Relaxed);
+    }
+
     /// Connections given an authenticated place so far.
     pub(crate) fn admitted(&self) -> u64 {
         self.admitted.load(Ordering::Relaxed)
@@ -241,6 +263,7 @@ pub async fn run(
     shutdown: impl Future<Output = ()>,
 ) -> TransportStats {
     let gate = Arc::new(Gate::new(&context));
+    gate.export_places("quic", &context);
     let handshakes = Handshakes::for_door(&context.connections);
     let refusals = context.refusals.clone();
     let (stop_tx, stop_rx) = watch::channel(false);

@@ -2,24 +2,23 @@
 //! (`kairos_refusals_total{door, reason}`), logged at warn level at most once per door and
 //! reason per [`LOG_INTERVAL`] (the line says how many went unlogged, [`LogThrottle`]), and
 //! summed in the shutdown report ([`RefusalCounts`]). One counter per fact: the transport and
-//! the openpi endpoint count here and nowhere else.
+//! the openpi endpoint count here and nowhere else, in the server's one `kairos_refusals_total`
+//! family ([`Metrics::refusal_counter`], where the metrics listener counts its own refusals).
 //!
-//! Both labels come from closed enums, so the family has a fixed, small set of series (every
-//! door's reasons exist at zero from the start, so a dashboard sees them before the first
-//! refusal).
+//! Both labels come from closed enums, so these doors add a fixed, small set of series (every
+//! door's reasons exist at zero from the server's start, so a dashboard sees them before the
+//! first refusal).
 
 use std::fmt;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
-use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
-use prometheus_client::metrics::family::Family;
-use prometheus_client::registry::Registry;
 
 use super::admission::now;
 use super::log_throttle::LogThrottle;
+use crate::metrics::Metrics;
 
 /// Shortest interval between two log lines of the same door and reason.
 pub const LOG_INTERVAL: Duration = Duration::from_secs(10);
@@ -58,6 +57,7 @@ impl Door {
                 HelloTimeout,
                 BadHello,
                 AtCapacity,
+                RobotAtCapacity,
                 TooSlow,
                 TooLarge,
             ],
@@ -69,6 +69,7 @@ impl Door {
                 HandshakeTimeout,
                 BadUpgrade,
                 AtCapacity,
+                RobotAtCapacity,
                 TooSlow,
                 TooLarge,
             ],
@@ -100,6 +101,8 @@ pub enum Reason {
     BadUpgrade,
     /// The door's `max_connections` authenticated places were taken.
     AtCapacity,
+    /// The robot held `max_connections_per_robot` connections (on every door together).
+    RobotAtCapacity,
     /// An upload fell behind `min_upload_bytes_per_s` after `upload_grace_ms`.
     TooSlow,
     /// A frame or message over `limits.max_frame`.
@@ -119,20 +122,16 @@ impl Reason {
             Reason::BadHello => "bad_hello",
             Reason::BadUpgrade => "bad_upgrade",
             Reason::AtCapacity => "at_capacity",
+            Reason::RobotAtCapacity => "robot_at_capacity",
             Reason::TooSlow => "too_slow",
             Reason::TooLarge => "too_large",
         }
     }
 }
 
-#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
-struct RefusalLabels {
-    door: &'static str,
-    reason: &'static str,
-}
-
 struct Inner {
-    family: Family<RefusalLabels, Counter>,
+    /// Where the counters live; a pair outside its door's list is counted there too.
+    metrics: Metrics,
     /// Every door's reasons, each with its counter; a position here is its log throttle key.
     counters: Vec<(Door, Reason, Counter)>,
     log: LogThrottle,
@@ -150,43 +149,24 @@ impl fmt::Debug for Refusals {
     }
 }
 
-impl Default for Refusals {
-    fn default() -> Self {
-        Refusals::new()
-    }
-}
-
 impl Refusals {
-    /// Every door's reasons, at zero.
-    pub fn new() -> Refusals {
-        let family = Family::<RefusalLabels, Counter>::default();
+    /// Every door's reasons, at zero, counted in `metrics`' `kairos_refusals_total`.
+    pub fn new(metrics: &Metrics) -> Refusals {
         let counters: Vec<(Door, Reason, Counter)> = Door::ALL
             .iter()
             .flat_map(|&door| door.reasons().iter().map(move |&reason| (door, reason)))
             .map(|(door, reason)| {
-                let labels = RefusalLabels {
-                    door: door.as_str(),
-                    reason: reason.as_str(),
-                };
-                (door, reason, family.get_or_create(&labels).clone())
+                let counter = metrics.refusal_counter(door.as_str(), reason.as_str());
+                (door, reason, counter)
             })
             .collect();
         let log = LogThrottle::new(counters.len(), LOG_INTERVAL);
         Refusals(Arc::new(Inner {
-            family,
+            metrics: metrics.clone(),
             counters,
             log,
             logged: AtomicU64::new(0),
         }))
-    }
-
-    /// Adds `kairos_refusals_total` to `registry`.
-    pub fn register(&self, registry: &mut Registry) {
-        registry.register(
-            "kairos_refusals",
-            "Clients a guard turned away, by door (quic, openpi) and reason",
-            self.0.family.clone(),
-        );
     }
 
     fn position(&self, door: Door, reason: Reason) -> Option<usize> {
@@ -213,11 +193,8 @@ impl Refusals {
             // A pair outside the door's list: still counted (its own series), logged every time.
             None => {
                 self.0
-                    .family
-                    .get_or_create(&RefusalLabels {
-                        door: door.as_str(),
-                        reason: reason.as_str(),
-                    })
+                    .metrics
+                    .refusal_counter(door.as_str(), reason.as_str())
                     .inc();
                 usize::MAX
             }
@@ -245,11 +222,8 @@ impl Refusals {
             Some(key) => self.0.counters[key].2.get(),
             None => self
                 .0
-                .family
-                .get_or_create(&RefusalLabels {
-                    door: door.as_str(),
-                    reason: reason.as_str(),
-                })
+                .metrics
+                .refusal_counter(door.as_str(), reason.as_str())
                 .get(),
         }
     }
@@ -331,9 +305,8 @@ mod tests {
 
     #[test]
     fn refusals_are_counted_by_door_and_reason_and_exported() {
-        let refusals = Refusals::new();
-        let mut registry = Registry::default();
-        refusals.register(&mut registry);
+        let metrics = Metrics::new();
+        let refusals = Refusals::new(&metrics);
         for _ in 0..3 {
             refusals.refuse(Door::Openpi, Reason::Unauthorized, remote(), &"unknown key");
         }
@@ -341,20 +314,31 @@ mod tests {
         assert_eq!(refusals.count(Door::Openpi, Reason::Unauthorized), 3);
         assert_eq!(refusals.count(Door::Quic, Reason::Unauthorized), 0);
 
-        let mut text = String::new();
-        prometheus_client::encoding::text::encode(&mut text, &registry).unwrap();
+        let text = metrics.encode();
         assert!(
             text.contains(r#"kairos_refusals_total{door="openpi",reason="unauthorized"} 3"#),
             "{text}"
         );
         assert!(text.contains(r#"kairos_refusals_total{door="quic",reason="too_slow"} 1"#));
-        // Every door's reasons exist from the start, and no others.
+        // Every door's reasons exist from the start, and no others of these doors.
         let series = text
             .lines()
             .filter(|l| l.starts_with("kairos_refusals_total{"))
+            .filter(|l| {
+                Door::ALL
+                    .iter()
+                    .any(|d| l.contains(&format!("door=\"{}\"", d.as_str())))
+            })
             .count();
         let expected: usize = Door::ALL.iter().map(|d| d.reasons().len()).sum();
         assert_eq!(series, expected);
+        // The same counts as the metrics' own listing (the fleet page's).
+        let listed = metrics
+            .refusals()
+            .into_iter()
+            .find(|r| r.door == "openpi" && r.reason == "unauthorized")
+            .map(|r| r.total);
+        assert_eq!(listed, Some(3));
         assert!(text.contains(r#"kairos_refusals_total{door="quic",reason="at_capacity"} 0"#));
 
         let counts = refusals.counts();

@@ -14,6 +14,14 @@
 //! - For every batch the scheduler opens a bidirectional stream, sends [`RunBatch`] and finishes
 //!   its side; the worker answers exactly one [`Chunks`] (or resets the stream). The first
 //!   `Chunks` for a `(batch_id, attempt)` wins; anything else is dropped.
+//!
+//! A worker's messages are untrusted input: `Register`, `Heartbeat`, `Drain` and `Chunks`
+//! implement [`Validate`](crate::Validate) (string sizes, tensor bounds, finite and bounded
+//! profile numbers), and the scheduler checks them before it uses them.
+
+mod validate;
+
+pub use validate::{MAX_PROFILE_LATENCY_MS, MAX_PROFILE_POINTS, MAX_WORKER_BATCH};
 
 use serde::{Deserialize, Serialize};
 

@@ -26,9 +26,10 @@ use kairos_sdk::transport::{TransportTuning, worker_client_config};
 use quinn::{Connection, RecvStream, SendStream, VarInt};
 use tokio::sync::Notify;
 
+use super::removal::truncated;
+use super::wire::{chunk_to_wire, model_info, profile_to_wire, request_from_wire};
 use crate::metrics::{Metrics, WorkerConnection};
 use crate::pool::EngineInstance;
-use crate::pool::remote::{chunk_to_wire, model_info, profile_to_wire, request_from_wire};
 
 /// Where and as whom a worker registers.
 #[derive(Clone, Debug)]
@@ -450,6 +451,14 @@ async fn serve_batch(
             },
         };
         results.push(result);
+    }
+    // The scheduler removes a worker whose error texts are over the protocol's limit.
+    let max_text = Limits::default().max_message_bytes as usize;
+    for result in &mut results {
+        if let Some(error) = &mut result.error {
+            let keep = truncated(error, max_text).len();
+            error.truncate(keep);
+        }
     }
     let chunks = Chunks {
         batch_id,

@@ -4,32 +4,29 @@
 //!
 //! The future a batch returns only waits on the network; the worker runs the model on its own
 //! engine thread. A batch that cannot be answered because the worker is gone, its stream was
-//! reset, or its deadline passed ends as [`PoolError::Lost`]: the connection is closed (the
-//! worker leaves the pool) and the driver runs the batch's rounds again elsewhere. Errors the
-//! worker's engine reports for single requests are ordinary per-request errors and are not
-//! retried.
+//! reset, its deadline passed, or it was answered with anything unusable (a count that is not
+//! the batch's, a chunk of the wrong shape, a value that is not finite, text over the
+//! protocol's limits) ends as [`PoolError::Lost`]: the worker is removed (its connection closed,
+//! the reason counted, [`Removal`]) and the driver runs the batch's rounds again elsewhere.
+//! Nothing a worker sent reaches a robot before it passed these checks. Errors the worker's
+//! engine reports for single requests are ordinary per-request errors and are not retried.
 //!
-//! Also here, shared by both ends: the conversions between engine types and their wire forms.
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use futures::FutureExt;
 use futures::future::BoxFuture;
-use kairos_engine::{
-    ActionChunk, ActionRequest, EngineProfile, ImageFormat, ImageInput, ModelSpec, ProfilePoint,
-};
-use kairos_sdk::protocol::worker::{
-    Chunks, ProfilePointWire, ProfileWire, RunBatch, WORKER_MAX_FRAME, WorkChunk, WorkRequest,
-    WorkResult, WorkerMessage, close_code as worker_close,
-};
-use kairos_sdk::protocol::{
-    DType, Image, ImagePayload, Limits, ModelInfo, ReadFrameError, Tensor, read_frame, write_body,
-};
-use quinn::{Connection, ConnectionError, ReadError, VarInt, WriteError};
+use kairos_engine::{ActionRequest, EngineProfile, ModelSpec};
+use kairos_sdk::protocol::worker::{Chunks, RunBatch, WORKER_MAX_FRAME, WorkResult, WorkerMessage};
+use kairos_sdk::protocol::{Limits, ReadFrameError, Validate, read_frame, write_body};
+use quinn::{Connection, ConnectionError, ReadError, WriteError};
 
-use super::{BatchChunks, BatchLabel, EngineInstance, PoolError, check_output};
+use super::removal::Removal;
+use super::wire::{chunk_from_wire, request_to_wire};
 use crate::config::WorkersConfig;
+use crate::metrics::WorkerRemoval;
+use crate::pool::{BatchChunks, BatchLabel, EngineInstance, PoolError, check_output};
 use kairos_core::error::LossReason;
 use kairos_core::scheduler::Tier;
 
@@ -58,7 +55,9 @@ impl RttEstimate {
         let sample = end_to_end.saturating_sub(compute).as_secs_f64();
         let current = self.value.as_secs_f64();
         let next = current + Self::ALPHA * (sample - current);
-        self.value = Duration::from_secs_f64(next.max(0.0));
+        // Both terms are durations already, so `next` is finite and in range; keep the old
+        // estimate rather than panic should that ever not hold.
+        self.value = Duration::try_from_secs_f64(next.max(0.0)).unwrap_or(self.value);
         self.samples += 1;
     }
 
@@ -111,6 +110,8 @@ pub struct RemoteEngine {
     /// Whether the tier follows the measured round trip (the worker registered as `auto`).
     auto_tier: bool,
     connection: Connection,
+    /// Removes the worker (once) when a batch shows it unusable.
+    removal: Removal,
     link: Arc<Mutex<Link>>,
     workers: WorkersConfig,
 }
@@ -119,13 +120,15 @@ impl RemoteEngine {
     /// The worker on `connection`, registered as `name` with its spec, profile (its `max_batch`
     /// already capped to the worker's) and tier (`None`: `auto`, classified by
     /// [`tier_from_rtt`] against `workers.cloud_rtt()`, first from QUIC's estimate). Its round
-    /// trip starts at QUIC's estimate.
+    /// trip starts at QUIC's estimate. A batch that is lost, or answered with anything but a
+    /// valid `Chunks`, removes the worker through `removal`.
     pub fn new(
         name: String,
         spec: ModelSpec,
         profile: EngineProfile,
         tier: Option<Tier>,
         connection: Connection,
+        removal: Removal,
         workers: WorkersConfig,
     ) -> RemoteEngine {
         let rtt = RttEstimate::new(connection.rtt());
@@ -137,6 +140,7 @@ impl RemoteEngine {
             profile,
             auto_tier,
             connection,
+            removal,
             link: Arc::new(Mutex::new(Link { rtt, tier })),
             workers,
         }
@@ -199,13 +203,17 @@ impl EngineInstance for RemoteEngine {
         let name = self.name.clone();
         let spec = self.spec.clone();
         let connection = self.connection.clone();
+        let removal = self.removal.clone();
         let link = self.link.clone();
         let cloud_rtt = self.auto_tier.then(|| self.workers.cloud_rtt());
         async move {
-            let lost = |reason: LossReason, detail: String| PoolError::Lost {
-                engine: name.clone(),
-                reason,
-                detail,
+            let lost = |reason: LossReason, detail: String| {
+                removal.remove(removal_for(reason), &detail);
+                PoolError::Lost {
+                    engine: name.clone(),
+                    reason,
+                    detail,
+                }
             };
             let requests = batch
                 .iter()
@@ -225,18 +233,21 @@ impl EngineInstance for RemoteEngine {
             let exchange = exchange(&connection, &run);
             let chunks = match tokio::time::timeout(deadline, exchange).await {
                 Ok(Ok(chunks)) => chunks,
-                Ok(Err((reason, detail))) => {
-                    connection.close(
-                        VarInt::from_u32(worker_close::BATCH_LOST),
-                        detail.as_bytes(),
-                    );
-                    return Err(lost(reason, detail));
-                }
+                Ok(Err((reason, detail))) => return Err(lost(reason, detail)),
                 Err(_) => {
                     let detail = format!("no answer within the deadline of {deadline:?}");
-                    connection.close(VarInt::from_u32(worker_close::DEADLINE), detail.as_bytes());
                     return Err(lost(LossReason::Deadline, detail));
                 }
+            };
+            // Everything in the answer is checked before any of it is used: the protocol's
+            // rules, then the batch's counts, shapes and values.
+            let results = chunks
+                .validate(&Limits::default())
+                .map_err(|error| error.to_string())
+                .and_then(|()| chunks_from_wire(&name, &spec, &batch, chunks.results));
+            let results = match results {
+                Ok(results) => results,
+                Err(detail) => return Err(lost(LossReason::InvalidAnswer, detail)),
             };
             let compute = Duration::from_micros(chunks.compute_us);
             {
@@ -246,9 +257,19 @@ impl EngineInstance for RemoteEngine {
                     link.tier = tier_from_rtt(Some(link.tier), link.rtt.get(), threshold);
                 }
             }
-            chunks_from_wire(&name, &spec, &batch, chunks.results)
+            Ok(results)
         }
         .boxed()
+    }
+}
+
+/// How a worker that lost a batch this way is removed.
+fn removal_for(reason: LossReason) -> WorkerRemoval {
+    match reason {
+        LossReason::ConnectionLost | LossReason::Gone => WorkerRemoval::ConnectionLost,
+        LossReason::StreamReset => WorkerRemoval::StreamFailed,
+        LossReason::InvalidAnswer => WorkerRemoval::InvalidAnswer,
+        LossReason::Deadline => WorkerRemoval::Deadline,
     }
 }
 
@@ -275,7 +296,7 @@ async fn exchange(connection: &Connection, run: &RunBatch) -> Result<Chunks, (Lo
             ));
         }
         Err(ReadFrameError::Read(error)) => return Err(read_error(error)),
-        Err(error) => return Err((LossReason::StreamReset, error.to_string())),
+        Err(error) => return Err((LossReason::InvalidAnswer, error.to_string())),
     };
     match WorkerMessage::decode(&frame) {
         Ok(WorkerMessage::Chunks(chunks))
@@ -284,13 +305,15 @@ async fn exchange(connection: &Connection, run: &RunBatch) -> Result<Chunks, (Lo
             Ok(chunks)
         }
         Ok(other) => Err((
-            LossReason::StreamReset,
-            format!("expected the Chunks of this batch, got {other:?}")
-                .chars()
-                .take(200)
-                .collect(),
+            LossReason::InvalidAnswer,
+            format!(
+                "expected the Chunks of batch {} attempt {}, got {}",
+                run.batch_id,
+                run.attempt,
+                other.kind()
+            ),
         )),
-        Err(error) => Err((LossReason::StreamReset, error.to_string())),
+        Err(error) => Err((LossReason::InvalidAnswer, error.to_string())),
     }
 }
 
@@ -312,291 +335,57 @@ fn write_error(error: WriteError) -> (LossReason, String) {
     }
 }
 
-/// The worker's answers as the pool's per-request results, checked against the batch.
+/// The worker's answers as the pool's per-request results, checked against the batch: one
+/// result per request, each chunk of the request's exact shape with finite values (an error
+/// text is the request's own answer, not retried). Any violation makes the whole answer
+/// unusable: the reason.
 fn chunks_from_wire(
     name: &str,
     spec: &ModelSpec,
     batch: &[ActionRequest],
     results: Vec<WorkResult>,
-) -> Result<BatchChunks, PoolError> {
-    let bad = |reason: String| PoolError::BadOutput {
-        engine: name.to_string(),
-        reason,
-    };
+) -> Result<BatchChunks, String> {
     if results.len() != batch.len() {
-        return Err(bad(format!(
+        return Err(format!(
             "{} results for {} requests",
             results.len(),
             batch.len()
-        )));
+        ));
     }
     let mut out = Vec::with_capacity(results.len());
     for (i, (result, request)) in results.into_iter().zip(batch).enumerate() {
         let entry = match (result.chunk, result.error) {
             (Some(chunk), None) => {
                 let chunk = chunk_from_wire(spec, request.samples.max(1), &chunk)
-                    .map_err(|reason| bad(format!("result {i}: {reason}")))?;
+                    .map_err(|reason| format!("result {i}: {reason}"))?;
                 check_output(
                     name,
                     spec,
                     std::slice::from_ref(request),
                     std::slice::from_ref(&chunk),
-                )?;
+                )
+                .map_err(|error| format!("result {i}: {error}"))?;
                 Ok(chunk)
             }
             (None, Some(message)) => Err(PoolError::Remote {
                 engine: name.to_string(),
                 message,
             }),
-            _ => {
-                return Err(bad(format!(
-                    "result {i} has neither or both of chunk and error"
-                )));
-            }
+            _ => return Err(format!("result {i} has neither or both of chunk and error")),
         };
         out.push(entry);
     }
     Ok(out)
 }
 
-fn usize_u32(value: usize) -> u32 {
-    u32::try_from(value).unwrap_or(u32::MAX)
-}
-
-/// A model request in its wire form (a request without camera names names its images
-/// `camera0`, `camera1`, ... by position).
-pub fn request_to_wire(request: &ActionRequest) -> Result<WorkRequest, String> {
-    let state = Tensor::from_f32(vec![usize_u32(request.state.len())], &request.state)
-        .map_err(|e| e.to_string())?;
-    let images = request
-        .images
-        .iter()
-        .enumerate()
-        .map(|(i, image)| {
-            let payload = match image {
-                ImageInput::Encoded {
-                    format: ImageFormat::Jpeg,
-                    bytes,
-                } => ImagePayload::Jpeg {
-                    data: bytes.clone(),
-                },
-                ImageInput::Encoded {
-                    format: ImageFormat::Png,
-                    bytes,
-                } => ImagePayload::Png {
-                    data: bytes.clone(),
-                },
-                ImageInput::RawU8 {
-                    height,
-                    width,
-                    channels,
-                    data,
-                } => ImagePayload::Raw {
-                    tensor: Tensor::from_u8(
-                        vec![usize_u32(*height), usize_u32(*width), usize_u32(*channels)],
-                        data.clone(),
-                    )
-                    .map_err(|e| e.to_string())?,
-                },
-                ImageInput::RawF32 {
-                    height,
-                    width,
-                    channels,
-                    data,
-                } => ImagePayload::Raw {
-                    tensor: Tensor::from_f32(
-                        vec![usize_u32(*height), usize_u32(*width), usize_u32(*channels)],
-                        data,
-                    )
-                    .map_err(|e| e.to_string())?,
-                },
-            };
-            Ok(Image {
-                camera: request
-                    .cameras
-                    .get(i)
-                    .cloned()
-                    .unwrap_or_else(|| format!("camera{i}")),
-                payload,
-            })
-        })
-        .collect::<Result<Vec<_>, String>>()?;
-    Ok(WorkRequest {
-        state,
-        images,
-        instruction: request.instruction.clone(),
-        samples: usize_u32(request.samples),
-        seed: request.seed,
-    })
-}
-
-/// A wire request as a model request (the worker's side). Shapes are checked; the model's own
-/// `check_request` still refuses what it cannot serve, one request at a time.
-pub fn request_from_wire(request: WorkRequest) -> Result<ActionRequest, String> {
-    let state = request.state.to_f32().map_err(|e| e.to_string())?;
-    let cameras = request.images.iter().map(|i| i.camera.clone()).collect();
-    let images = request
-        .images
-        .into_iter()
-        .map(|image| match image.payload {
-            ImagePayload::Jpeg { data } => Ok(ImageInput::Encoded {
-                format: ImageFormat::Jpeg,
-                bytes: data,
-            }),
-            ImagePayload::Png { data } => Ok(ImageInput::Encoded {
-                format: ImageFormat::Png,
-                bytes: data,
-            }),
-            ImagePayload::Raw { tensor } => {
-                tensor.check_len().map_err(|e| e.to_string())?;
-                let [height, width, channels] = tensor.shape[..] else {
-                    return Err(format!("raw image of shape {:?}", tensor.shape));
-                };
-                let (height, width, channels) =
-                    (height as usize, width as usize, channels as usize);
-                match tensor.dtype {
-                    DType::U8 => Ok(ImageInput::RawU8 {
-                        height,
-                        width,
-                        channels,
-                        data: tensor.data,
-                    }),
-                    _ => Ok(ImageInput::RawF32 {
-                        height,
-                        width,
-                        channels,
-                        data: tensor.to_f32().map_err(|e| e.to_string())?,
-                    }),
-                }
-            }
-        })
-        .collect::<Result<Vec<_>, String>>()?;
-    Ok(ActionRequest {
-        cameras,
-        state,
-        images,
-        instruction: request.instruction,
-        samples: request.samples as usize,
-        seed: request.seed,
-    })
-}
-
-/// A generated chunk in its wire form.
-pub fn chunk_to_wire(chunk: &ActionChunk) -> Result<WorkChunk, String> {
-    let (s, k, n, d) = (
-        usize_u32(chunk.samples),
-        usize_u32(chunk.steps),
-        usize_u32(chunk.chunk_len),
-        usize_u32(chunk.action_dim),
-    );
-    let tensor = |shape: Vec<u32>, values: &[f32]| {
-        Tensor::from_f32(shape, values).map_err(|e| e.to_string())
-    };
-    Ok(WorkChunk {
-        actions: tensor(vec![s, n, d], &chunk.actions)?,
-        updates: tensor(vec![s, k, n, d], &chunk.updates)?,
-        noise: tensor(vec![s, n, d], &chunk.noise)?,
-    })
-}
-
-/// A wire chunk as the engine's, for a request of `samples` samples of a `spec` model.
-pub fn chunk_from_wire(
-    spec: &ModelSpec,
-    samples: usize,
-    chunk: &WorkChunk,
-) -> Result<ActionChunk, String> {
-    let values = |t: &Tensor| {
-        if t.dtype != DType::F32 {
-            return Err(format!("{:?} tensor where f32 is expected", t.dtype));
-        }
-        t.to_f32().map_err(|e| e.to_string())
-    };
-    Ok(ActionChunk {
-        samples,
-        steps: spec.steps,
-        chunk_len: spec.chunk_len,
-        action_dim: spec.action_dim,
-        actions: values(&chunk.actions)?,
-        updates: values(&chunk.updates)?,
-        noise: values(&chunk.noise)?,
-    })
-}
-
-/// A profile in its wire form.
-pub fn profile_to_wire(profile: &EngineProfile) -> ProfileWire {
-    ProfileWire {
-        model: profile.model.clone(),
-        device: profile.device.clone(),
-        points: profile
-            .points
-            .iter()
-            .map(|p| ProfilePointWire {
-                batch: p.batch,
-                latency_ms: p.latency_ms,
-            })
-            .collect(),
-        max_batch: profile.max_batch,
-    }
-}
-
-/// A wire profile as the engine's; refused when it has no usable point.
-pub fn profile_from_wire(profile: ProfileWire) -> Result<EngineProfile, String> {
-    let mut points: Vec<ProfilePoint> = profile
-        .points
-        .iter()
-        .map(|p| ProfilePoint {
-            batch: p.batch,
-            latency_ms: p.latency_ms,
-        })
-        .collect();
-    if points.is_empty()
-        || points
-            .iter()
-            .any(|p| p.batch == 0 || !(p.latency_ms.is_finite() && p.latency_ms >= 0.0))
-    {
-        return Err("the profile needs points with batch >= 1 and a finite latency >= 0".into());
-    }
-    points.sort_by_key(|p| p.batch);
-    Ok(EngineProfile {
-        model: profile.model,
-        device: profile.device,
-        points,
-        max_batch: profile.max_batch.max(1),
-    })
-}
-
-/// A model's shapes as the wire's `ModelInfo`.
-pub fn model_info(spec: &ModelSpec) -> ModelInfo {
-    ModelInfo {
-        name: spec.name.clone(),
-        chunk_len: usize_u32(spec.chunk_len),
-        action_dim: usize_u32(spec.action_dim),
-        state_dim: usize_u32(spec.state_dim),
-        steps: usize_u32(spec.steps),
-        max_images: usize_u32(spec.max_images),
-        cameras: spec.cameras.clone(),
-    }
-}
-
-/// The wire's `ModelInfo` as a model spec.
-pub fn model_spec(info: &ModelInfo) -> ModelSpec {
-    ModelSpec {
-        cameras: info.cameras.clone(),
-        camera_aliases: Default::default(),
-        name: info.name.clone(),
-        chunk_len: info.chunk_len as usize,
-        action_dim: info.action_dim as usize,
-        state_dim: info.state_dim as usize,
-        steps: info.steps as usize,
-        max_images: info.max_images as usize,
-    }
-}
-
 #[cfg(test)]
 mod tests {
-    use super::super::test_model::{LinearFlow, request};
+    use super::super::wire::{chunk_to_wire, request_from_wire};
     use super::*;
-    use kairos_engine::ActionModel;
+    use crate::pool::test_model::{LinearFlow, request};
+    use kairos_engine::{ActionModel, ImageFormat, ImageInput};
+    use kairos_sdk::protocol::Tensor;
+    use kairos_sdk::protocol::worker::WorkChunk;
 
     #[test]
     fn rtt_is_a_moving_average_of_end_to_end_less_compute() {
@@ -709,18 +498,45 @@ mod tests {
             .remove(0);
         let wire = chunk_to_wire(&chunk).unwrap();
         assert_eq!(chunk_from_wire(&model.spec, 2, &wire).unwrap(), chunk);
-        // A worker that answers a wrong shape is caught before the action manager sees it.
-        let results = vec![WorkResult {
-            chunk: Some(WorkChunk {
-                actions: Tensor::from_f32(vec![1], &[0.0]).unwrap(),
-                ..wire
-            }),
-            error: None,
-        }];
-        assert!(matches!(
-            chunks_from_wire("w", &model.spec, std::slice::from_ref(&req), results),
-            Err(PoolError::BadOutput { .. })
-        ));
+        // A worker that answers a wrong shape, a value that is not finite or the wrong number
+        // of results is caught before the action manager sees anything of it.
+        let answer = |chunk: WorkChunk| {
+            vec![WorkResult {
+                chunk: Some(chunk),
+                error: None,
+            }]
+        };
+        let unusable = |results: Vec<WorkResult>| {
+            chunks_from_wire("w", &model.spec, std::slice::from_ref(&req), results)
+                .map(|_| ())
+                .unwrap_err()
+        };
+        let short = WorkChunk {
+            actions: Tensor::from_f32(vec![1], &[0.0]).unwrap(),
+            ..wire.clone()
+        };
+        assert!(unusable(answer(short)).contains("shape"));
+        let flat = WorkChunk {
+            actions: Tensor::from_f32(vec![chunk.actions.len() as u32], &chunk.actions).unwrap(),
+            ..wire.clone()
+        };
+        assert!(unusable(answer(flat)).contains("shape"));
+        for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+            for tensor in 0..3 {
+                let mut values = chunk.clone();
+                match tensor {
+                    0 => values.actions[3] = bad,
+                    1 => values.updates[5] = bad,
+                    _ => values.noise[0] = bad,
+                }
+                let reason = unusable(answer(chunk_to_wire(&values).unwrap()));
+                assert!(reason.contains("not a finite number"), "{reason}");
+            }
+        }
+        let mut two = answer(wire.clone());
+        two.push(two[0].clone());
+        assert!(unusable(two).contains("2 results for 1 requests"));
+        assert!(unusable(Vec::new()).contains("0 results"));
         // An engine error for one request stays that request's, not retried.
         let results = vec![WorkResult {
             chunk: None,
@@ -729,33 +545,5 @@ mod tests {
         let answered =
             chunks_from_wire("w", &model.spec, std::slice::from_ref(&req), results).unwrap();
         assert!(matches!(answered[0], Err(PoolError::Remote { .. })));
-    }
-
-    #[test]
-    fn profiles_and_specs_round_trip_and_empty_profiles_are_refused() {
-        let profile = EngineProfile {
-            model: "m".into(),
-            device: "cpu".into(),
-            points: vec![
-                ProfilePoint {
-                    batch: 1,
-                    latency_ms: 2.0,
-                },
-                ProfilePoint {
-                    batch: 4,
-                    latency_ms: 5.0,
-                },
-            ],
-            max_batch: 4,
-        };
-        assert_eq!(
-            profile_from_wire(profile_to_wire(&profile)).unwrap(),
-            profile
-        );
-        let mut empty = profile_to_wire(&profile);
-        empty.points.clear();
-        assert!(profile_from_wire(empty).is_err());
-        let spec = LinearFlow::new().spec;
-        assert_eq!(model_spec(&model_info(&spec)), spec);
     }
 }

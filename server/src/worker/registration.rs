@@ -1,8 +1,11 @@
 //! The scheduler's side of a remote engine worker's connection (ALPN `kairos-worker/1`,
-//! `kairos_sdk::protocol::worker`): `Register` checked against the worker token and the site's
-//! model shapes, the worker added to the pool as a [`RemoteEngine`], then heartbeats until it
-//! drains, goes silent or disconnects, when it leaves the pool. Its batches run on streams the
-//! [`RemoteEngine`] opens; this task only watches the registration stream.
+//! `kairos_sdk::protocol::worker`): `Register` checked against the worker token, the protocol's
+//! rules (a worker is untrusted input: string sizes, a finite, positive and bounded profile)
+//! and the site's model shapes, the worker added to the pool as a [`RemoteEngine`], then
+//! heartbeats until it drains, goes silent, breaks the protocol or disconnects, when it leaves
+//! the pool. Its batches run on streams the [`RemoteEngine`] opens; this task only watches the
+//! registration stream. Every removal, and every registration refused for breaking the
+//! protocol's rules, is counted once by reason ([`Removal`]).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -12,16 +15,21 @@ use kairos_sdk::protocol::worker::{
     Refused, Register, Registered, WORKER_PROTOCOL_VERSION, WorkerMessage, WorkerTier,
     close_code as worker_close,
 };
-use kairos_sdk::protocol::{Limits, ReadBounds, read_frame_bounded, write_body};
+use kairos_sdk::protocol::{
+    Limits, ReadBounds, ReadFrameError, Validate, read_frame_bounded, write_body,
+};
 use quinn::{Connection, RecvStream, SendStream, VarInt};
 use tokio::sync::watch;
 use tokio::time::Instant;
 
-use super::{Gate, ServerContext};
+use super::RemoteEngine;
+use super::removal::{Removal, truncated};
+use super::wire::{model_spec, profile_from_wire};
 use crate::config::WorkersConfig;
 use crate::credentials::hash_token;
-use crate::pool::remote::{model_spec, profile_from_wire};
-use crate::pool::{EngineInstance, RemoteEngine, same_shapes};
+use crate::metrics::{Metrics, WorkerRemoval};
+use crate::pool::{EngineInstance, same_shapes};
+use crate::transport::{Gate, ServerContext};
 use kairos_core::scheduler::Tier;
 
 /// Who may register as a worker, and how workers are treated.
@@ -31,6 +39,8 @@ pub struct WorkerGate {
     pub token_hash: Option<[u8; 32]>,
     /// `[workers]`.
     pub config: WorkersConfig,
+    /// Where removed workers are counted (`kairos_worker_removed_total`).
+    pub metrics: Metrics,
 }
 
 /// The largest `Register` body read: names, a token and a profile of a few dozen points.
@@ -38,7 +48,7 @@ const REGISTER_MAX_FRAME: u32 = 64 << 10;
 
 /// Serves one worker connection until it leaves. Registration must complete by `deadline`
 /// (the robot's `hello_timeout_ms`).
-pub(super) async fn serve(
+pub(crate) async fn serve(
     connection: Connection,
     unauthenticated: tokio::sync::OwnedSemaphorePermit,
     context: Arc<ServerContext>,
@@ -51,11 +61,11 @@ pub(super) async fn serve(
         registered = tokio::time::timeout_at(deadline, register(&connection, &context, &gate)) => registered,
         _ = stop.wait_for(|stopping| *stopping) => return,
     };
-    let (engine, send, recv) = match registered {
+    let (engine, removal, send, recv) = match registered {
         Ok(Ok(registered)) => registered,
         Ok(Err((code, reason))) => {
             tracing::info!(%remote, %reason, "worker refused");
-            connection.close(VarInt::from_u32(code), reason.as_bytes());
+            connection.close(VarInt::from_u32(code), truncated(&reason, 200).as_bytes());
             return;
         }
         Err(_) => {
@@ -68,19 +78,21 @@ pub(super) async fn serve(
     };
     drop(unauthenticated);
     let _send = send;
-    let why = watch_worker(&connection, recv, &context, engine, &mut stop).await;
+    let why = watch_worker(&connection, recv, &context, engine, &removal, &mut stop).await;
     context.driver.remove_engine(engine).await;
     tracing::info!(%remote, ?engine, why, "worker left the pool");
 }
 
-/// Heartbeats until the worker leaves; returns why. A `Drain` takes the worker out of
-/// placement at once; its running batch still finishes and the connection is closed once the
-/// worker finishes its registration stream.
+/// Heartbeats until the worker leaves; returns why, for the log (a removal is counted by
+/// [`Removal`]). A `Drain` takes the worker out of placement at once; its running batch still finishes and the connection is closed once the
+/// worker finishes its registration stream. A worker that goes silent, sends anything but a
+/// valid `Heartbeat` or `Drain`, or loses its connection is removed.
 async fn watch_worker(
     connection: &Connection,
     mut recv: RecvStream,
     context: &ServerContext,
     engine: kairos_core::scheduler::EngineId,
+    removal: &Removal,
     stop: &mut watch::Receiver<bool>,
 ) -> &'static str {
     let idle = context.workers.config.idle_timeout();
@@ -95,52 +107,96 @@ async fn watch_worker(
             frame = tokio::time::timeout(idle, read_frame_bounded(&mut recv, &limits, &ReadBounds::UNBOUNDED)) => {
                 match frame {
                     Err(_) if !draining => {
-                        connection.close(VarInt::from_u32(worker_close::SILENT), b"no heartbeat");
+                        removal.remove(WorkerRemoval::Silent, "no heartbeat");
                         return "silent";
                     }
                     // A draining worker is finishing its batch; its connection's keep-alive
                     // and the batch deadline watch it from here.
                     Err(_) => {}
-                    Ok(Ok(Some(frame))) => match WorkerMessage::decode(&frame) {
+                    Ok(Ok(Some(frame))) => match decode_checked(&frame, &limits) {
                         Ok(WorkerMessage::Heartbeat(_)) => {}
                         Ok(WorkerMessage::Drain(drain)) => {
                             tracing::info!(?engine, reason = %drain.reason, "worker draining");
                             draining = true;
                             context.driver.remove_engine(engine).await;
                         }
-                        other => {
-                            let reason = format!("unexpected on the registration stream: {other:?}");
-                            let reason: String = reason.chars().take(200).collect();
-                            connection.close(VarInt::from_u32(close_code::PROTOCOL_ERROR), reason.as_bytes());
+                        Ok(other) => {
+                            let reason = format!("unexpected on the registration stream: {}", other.kind());
+                            removal.remove(WorkerRemoval::ProtocolError, &reason);
+                            return "protocol error";
+                        }
+                        Err(reason) => {
+                            removal.remove(WorkerRemoval::ProtocolError, &reason);
                             return "protocol error";
                         }
                     },
                     // The worker finished its registration stream: it is done.
                     Ok(Ok(None)) => {
+                        removal.left();
                         let _ = tokio::time::timeout(Duration::from_secs(1), connection.closed()).await;
                         connection.close(VarInt::from_u32(worker_close::DRAINED), b"drained");
                         return "drained";
                     }
-                    Ok(Err(_)) => return "connection lost",
+                    Ok(Err(ReadFrameError::Read(error))) => {
+                        removal.remove(WorkerRemoval::ConnectionLost, &error.to_string());
+                        return "connection lost";
+                    }
+                    // An oversized or malformed frame.
+                    Ok(Err(error)) => {
+                        removal.remove(WorkerRemoval::ProtocolError, &error.to_string());
+                        return "protocol error";
+                    }
                 }
             }
-            _ = connection.closed() => return "connection closed",
+            closed = connection.closed() => {
+                // Already counted if a batch removed it.
+                if !draining && !stopping {
+                    removal.remove(WorkerRemoval::ConnectionLost, &closed.to_string());
+                }
+                return "connection closed";
+            }
             // The scheduler stops: the worker keeps serving while the driver answers the rounds
             // it accepted; the transport closes the connection when it is done draining.
             () = async { let _ = stop.wait_for(|stopping| *stopping).await; }, if !stopping => {
                 stopping = true;
+                removal.left();
             }
             // Every accepted round is answered: the worker is told at once (it reconnects to
             // the next scheduler) instead of holding the shutdown until the drain timeout.
             () = context.driver.stopped(), if stopping => {
                 connection.close(VarInt::from_u32(close_code::SHUTTING_DOWN), b"scheduler stopped");
-                return "scheduler stopped";
+                return "scheduler_stopped";
             }
         }
     }
 }
 
-type Registration = (kairos_core::scheduler::EngineId, SendStream, RecvStream);
+/// A message of the registration stream, decoded and checked against the protocol's rules.
+fn decode_checked(
+    frame: &kairos_sdk::protocol::Frame,
+    limits: &Limits,
+) -> Result<WorkerMessage, String> {
+    let message = WorkerMessage::decode(frame).map_err(|e| e.to_string())?;
+    let checked = match &message {
+        WorkerMessage::Register(m) => m.validate(limits),
+        WorkerMessage::Heartbeat(m) => m.validate(limits),
+        WorkerMessage::Drain(m) => m.validate(limits),
+        WorkerMessage::Chunks(m) => m.validate(limits),
+        // Sent by the scheduler, never to it: the caller refuses them by kind.
+        WorkerMessage::Registered(_) | WorkerMessage::Refused(_) | WorkerMessage::RunBatch(_) => {
+            Ok(())
+        }
+    };
+    checked.map_err(|error| format!("{}: {error}", message.kind()))?;
+    Ok(message)
+}
+
+type Registration = (
+    kairos_core::scheduler::EngineId,
+    Removal,
+    SendStream,
+    RecvStream,
+);
 
 /// `Register` → checks → the pool → `Registered`; or the close code and reason after `Refused`.
 async fn register(
@@ -178,13 +234,18 @@ async fn register(
         Ok(()) => {
             let profile = match profile_from_wire(register.profile.clone()) {
                 Ok(mut profile) => {
-                    profile.max_batch = profile.max_batch.min(register.max_batch.max(1));
+                    profile.max_batch = profile.max_batch.min(register.max_batch);
                     profile
                 }
                 Err(reason) => {
-                    return refuse(send, close_code::PROTOCOL_ERROR, reason, false).await;
+                    context
+                        .workers
+                        .metrics
+                        .record_worker_removed(WorkerRemoval::InvalidRegistration);
+                    return refuse(send, worker_close::REFUSED, reason, false).await;
                 }
             };
+            let removal = Removal::new(connection.clone(), context.workers.metrics.clone());
             let declared = match register.tier {
                 WorkerTier::Edge => Some(Tier::Edge),
                 WorkerTier::Cloud => Some(Tier::Cloud),
@@ -205,6 +266,7 @@ async fn register(
                 profile,
                 declared,
                 connection.clone(),
+                removal.clone(),
                 context.workers.config.clone(),
             );
             let tier = engine.tier();
@@ -221,7 +283,7 @@ async fn register(
                         return Err(protocol_error(error.to_string()));
                     }
                     tracing::info!(engine = %name, ?id, ?tier, "worker registered");
-                    return Ok((id, send, recv));
+                    return Ok((id, removal, send, recv));
                 }
                 Ok(Err(error)) => (close_code::PROTOCOL_ERROR, error.to_string(), false),
                 Err(gone) => (close_code::SHUTTING_DOWN, gone.to_string(), true),
@@ -259,6 +321,18 @@ fn check(
         return Err((
             close_code::UNAUTHORIZED,
             "unknown worker token (robot tokens cannot register workers)".into(),
+            false,
+        ));
+    }
+    // The token was right: from here on the worker learns why it is refused.
+    if let Err(error) = register.validate(&Limits::default()) {
+        context
+            .workers
+            .metrics
+            .record_worker_removed(WorkerRemoval::InvalidRegistration);
+        return Err((
+            worker_close::REFUSED,
+            format!("Register breaks the protocol's rules: {error}"),
             false,
         ));
     }
