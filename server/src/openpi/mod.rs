@@ -740,7 +740,14 @@ impl Session {
             .context
             .admit(submit, self.robot, identity, received, link)
             .await
-            .map_err(|e| End::refused(&e))?;
+            .map_err(|e| {
+                if matches!(e, RequestError::RateLimited { .. }) {
+                    self.context
+                        .refusals
+                        .refuse(Door::Openpi, Reason::RoundRate, self.remote, &e);
+                }
+                End::refused(&e)
+            })?;
         self.next_round = round + 1;
         let answer = loop {
             tokio::select! {

@@ -474,12 +474,21 @@ async fn round(
     send: &mut SendStream,
     recv: &mut RecvStream,
 ) -> Result<(), RequestError> {
+    let over_rate = |error: RequestError| {
+        let remote = peer.connection.remote_address();
+        context
+            .refusals
+            .refuse(Door::Quic, Reason::RoundRate, remote, &error);
+        error
+    };
     peer.rounds()
         .try_take(super::fairness::now())
-        .map_err(|retry_after| RequestError::RateLimited {
-            who: "this connection".into(),
-            limit: "rounds_per_s_per_connection",
-            retry_after,
+        .map_err(|retry_after| {
+            over_rate(RequestError::RateLimited {
+                who: "this connection".into(),
+                limit: "rounds_per_s_per_connection",
+                retry_after,
+            })
         })?;
     let clock = peer.clock(context, submit.sent_at_us, submit.attempt == 0);
     let (task, round) = (submit.task, submit.round);
@@ -493,6 +502,7 @@ async fn round(
             if matches!(error, RequestError::RateLimited { .. }) {
                 // Refused for its robot's rate, not this connection's.
                 peer.rounds().give_back();
+                return Err(over_rate(error));
             }
             return Err(error);
         }

@@ -30,17 +30,20 @@ pub enum Door {
     Quic,
     /// The openpi websocket endpoint.
     Openpi,
+    /// Remote workers' registrations, once their QUIC handshake (counted at `Quic`) is done.
+    Workers,
 }
 
 impl Door {
     /// Every door, in the order reported.
-    pub const ALL: [Door; 2] = [Door::Quic, Door::Openpi];
+    pub const ALL: [Door; 3] = [Door::Quic, Door::Openpi, Door::Workers];
 
     /// The `door` label value.
     pub fn as_str(self) -> &'static str {
         match self {
             Door::Quic => "quic",
             Door::Openpi => "openpi",
+            Door::Workers => "workers",
         }
     }
 
@@ -58,6 +61,7 @@ impl Door {
                 BadHello,
                 AtCapacity,
                 RobotAtCapacity,
+                RoundRate,
                 TooSlow,
                 TooLarge,
             ],
@@ -70,9 +74,13 @@ impl Door {
                 BadUpgrade,
                 AtCapacity,
                 RobotAtCapacity,
+                RoundRate,
                 TooSlow,
                 TooLarge,
             ],
+            // What a worker breaks after its token is accepted removes it instead
+            // (`kairos_worker_removed_total{reason}`).
+            Door::Workers => &[WrongTokenLimit, Unauthorized, RegisterTimeout],
         }
     }
 }
@@ -99,10 +107,15 @@ pub enum Reason {
     BadHello,
     /// The request was not a websocket upgrade (openpi).
     BadUpgrade,
+    /// No `Register` within `hello_timeout_ms` of the first packet (workers).
+    RegisterTimeout,
     /// The door's `max_connections` authenticated places were taken.
     AtCapacity,
     /// The robot held `max_connections_per_robot` connections (on every door together).
     RobotAtCapacity,
+    /// A round over its connection's or its robot's round rate (`rounds_per_s_per_connection`,
+    /// `rounds_per_s_per_robot`), refused `overloaded` before validation.
+    RoundRate,
     /// An upload fell behind `min_upload_bytes_per_s` after `upload_grace_ms`.
     TooSlow,
     /// A frame or message over `limits.max_frame`.
@@ -121,8 +134,10 @@ impl Reason {
             Reason::HelloTimeout => "hello_timeout",
             Reason::BadHello => "bad_hello",
             Reason::BadUpgrade => "bad_upgrade",
+            Reason::RegisterTimeout => "register_timeout",
             Reason::AtCapacity => "at_capacity",
             Reason::RobotAtCapacity => "robot_at_capacity",
+            Reason::RoundRate => "round_rate",
             Reason::TooSlow => "too_slow",
             Reason::TooLarge => "too_large",
         }

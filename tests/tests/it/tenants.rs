@@ -141,7 +141,9 @@ async fn rounds_are_rate_limited_per_connection_and_per_robot() {
     for client in [a1, a2, b] {
         client.close().await;
     }
-    server.shutdown().await;
+    let report = server.shutdown().await;
+    // Both refusals are counted (`kairos_refusals_total{door="quic",reason="round_rate"}`).
+    assert_eq!(report.refusals.get(Door::Quic, Reason::RoundRate), 2);
 }
 
 /// A horizon plugin that traps whenever the round passes it parameters, and answers `h_max`
