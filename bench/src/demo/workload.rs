@@ -110,7 +110,7 @@ pub fn fleet(args: &DemoOptions, sizing: &FleetSizing) -> Vec<FleetTask> {
         .into_iter()
         .map(|(actions, gap)| {
             let task = FleetTask {
-                start: Duration::from_secs_f64(at),
+                start: Duration::try_from_secs_f64(at).unwrap_or(Duration::MAX),
                 actions,
             };
             at += gap * sizing.stagger_s;

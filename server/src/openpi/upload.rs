@@ -485,15 +485,15 @@ impl<S: AsyncRead + Unpin> BoundedStream<S> {
                     held.bytes[held.len..held.len + got.len()].copy_from_slice(got);
                     held.len += got.len();
                     // A complete header goes on unless its payload must be reserved first.
-                    held.ready = match self.cursor {
-                        FrameCursor::Header { .. } => false,
-                        FrameCursor::Payload {
-                            data: true,
-                            reserved: false,
-                            ..
-                        } => false,
-                        _ => true,
-                    };
+                    held.ready = !matches!(
+                        self.cursor,
+                        FrameCursor::Header { .. }
+                            | FrameCursor::Payload {
+                                data: true,
+                                reserved: false,
+                                ..
+                            }
+                    );
                 }
                 FrameCursor::Payload { left, .. } => return self.read_through(cx, buf, Some(left)),
                 FrameCursor::HttpHead { .. } => return self.read_through(cx, buf, None),
