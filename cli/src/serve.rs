@@ -136,11 +136,12 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         report.driver.failed,
         report.driver.tasks_ended
     );
-    let t = report.transport;
     println!(
-        "  connections refused: {} at capacity, {} before the handshake (unauthenticated budget), \
-         {} rate-limited (wrong tokens); {} Retry answers",
-        t.refused, t.refused_unauthenticated, t.rate_limited, t.retried
+        "  refused: {} ({} of {} logged); {} QUIC Retry answers",
+        report.refusals,
+        report.refusals.logged,
+        report.refusals.total(),
+        report.transport.retried
     );
     let latency = |name: &str, s: kairos_server::driver::LatencySummary| {
         println!(

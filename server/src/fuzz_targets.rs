@@ -3,8 +3,8 @@
 //! Each target runs the real server code on `data` and panics only when an invariant breaks
 //! (a parser panics, or a round trip disagrees with itself); an input that is merely invalid
 //! returns `false`, one that passes every check returns `true` (the replay test uses that to
-//! show that the seeds reach the deep end of each parser). Two callers share these functions, so what the fuzzer explores is what CI
-//! replays:
+//! show that the seeds reach the deep end of each parser). Two callers share these functions,
+//! so what the fuzzer explores is what CI replays:
 //! - the coverage-guided fuzzer, `tests/fuzz/` (a crate outside the workspace, built with
 //!   `cargo afl`; `scripts/fuzz.sh` runs it);
 //! - the corpus replay test (`tests/tests/it/fuzz_replay.rs`), which feeds every committed seed
@@ -19,15 +19,20 @@ use std::sync::OnceLock;
 use std::time::Duration;
 
 use kairos_engine::image_features::pooled_features;
-use kairos_engine::{ImageInput, ModelSpec};
+use kairos_engine::{ActionRequest, ImageInput, ModelSpec};
+use kairos_sdk::protocol::worker::{WORKER_MAX_FRAME, WorkerMessage};
 use kairos_sdk::protocol::{
-    Image, ImagePayload, Limits, Message, Observation, Submit, Tensor, Validate,
+    HorizonSelection, Image, ImagePayload, Limits, Message, Observation, Submit, Tensor, Validate,
+    check_raw_image,
 };
 use kairos_sdk::trace::TraceSet;
 
-use crate::config::Config;
+use crate::config::{Config, OpenpiConfig, WorkersConfig};
+use crate::openpi::{self, msgpack, observation};
 use crate::plugin::factory::spec_params;
+use crate::pool::check_output;
 use crate::validation::{Validator, decode_images};
+use crate::worker::wire::{chunk_from_wire, model_spec, profile_from_wire, request_from_wire};
 use kairos_core::action::ActionManager;
 use kairos_core::clock_map::ClockMap;
 use kairos_core::horizon::{self, PolicyParams};
@@ -46,6 +51,9 @@ pub const TARGETS: &[(&str, Target)] = &[
     ("config", config),
     ("plugin_params", plugin_params),
     ("image", image),
+    ("openpi_msgpack", openpi_msgpack),
+    ("openpi_observation", openpi_observation),
+    ("worker", worker),
     ("http", http),
 ];
 
@@ -338,6 +346,186 @@ pub fn image(data: &[u8]) -> bool {
         );
     }
     true
+}
+
+/// The openpi endpoint's msgpack decoder (`openpi::msgpack`): `data` is one websocket message.
+/// A frame that decodes must encode back to bytes that decode to the same encoding (the
+/// decoder neither invents nor drops values), within the same bounds.
+pub fn openpi_msgpack(data: &[u8]) -> bool {
+    let Ok(value) = msgpack::decode(data, openpi::MAX_VALUES) else {
+        return false;
+    };
+    let mut writer = msgpack::Writer::new();
+    writer.value(&value);
+    let encoded = writer.finish();
+    let again = msgpack::decode(&encoded, openpi::MAX_VALUES)
+        .unwrap_or_else(|e| panic!("a re-encoded msgpack value does not decode: {e}"));
+    let mut writer = msgpack::Writer::new();
+    writer.value(&again);
+    assert!(
+        writer.finish() == encoded,
+        "msgpack encoding is not stable across a round trip"
+    );
+    // What the key map reads from any value must not panic either.
+    let _ = msgpack::NdArray::from_value(&value);
+    let _ = msgpack::number_count(&value);
+    let _ = msgpack::numbers(&value);
+    true
+}
+
+/// The openpi key map with its default keys (`observation/image`, `observation/wrist_image`,
+/// `observation/state`, `prompt`).
+fn openpi_config() -> &'static OpenpiConfig {
+    static CONFIG: OnceLock<OpenpiConfig> = OnceLock::new();
+    CONFIG.get_or_init(OpenpiConfig::default)
+}
+
+/// An openpi request as the endpoint handles it: `data` is one websocket message. It is
+/// decoded, mapped through the key map (size checks before any copy or transpose), built into
+/// a `Submit` and validated as the endpoint does, and its images decoded. Whatever the key map
+/// accepted must be within the limits it checked: every image passes the protocol's raw-image
+/// checks with a byte length that matches its shape, and the state fits `max_state_len`.
+pub fn openpi_observation(data: &[u8]) -> bool {
+    let validator = validator();
+    let limits = &validator.limits;
+    let Ok(dict) = msgpack::decode(data, openpi::MAX_VALUES) else {
+        return false;
+    };
+    let config = openpi_config();
+    let Ok(mut observation) = observation::observation(&dict, config, 1_000, limits) else {
+        return false;
+    };
+    assert!(
+        observation.state.shape.iter().product::<u32>() <= limits.max_state_len,
+        "the key map built a state over max_state_len"
+    );
+    assert!(
+        observation.images.len() <= limits.max_images as usize,
+        "the key map built more images than max_images"
+    );
+    for image in &observation.images {
+        let ImagePayload::Raw { tensor } = &image.payload else {
+            panic!("the key map built an image that is not raw");
+        };
+        assert!(
+            tensor.check_len().is_ok(),
+            "the key map built an image whose bytes do not match its shape"
+        );
+        assert!(
+            check_raw_image(&image.camera, &tensor.shape, tensor.dtype, limits).is_ok(),
+            "the key map built an image over the limits it checked"
+        );
+    }
+    observation::name_cameras(&mut observation, config, &validator.spec.cameras);
+    let submit = Submit {
+        task: 1,
+        round: 0,
+        sent_at_us: 1_000,
+        observation,
+        last_exec: None,
+        horizon: Some(HorizonSelection {
+            policy: "static".into(),
+            params: BTreeMap::from([("h".to_string(), validator.spec.chunk_len as f64)]),
+            samples: 1,
+        }),
+        remaining: None,
+        attempt: 0,
+        control_hz: None,
+        seed: None,
+    };
+    let Ok(valid) = validator.submit(submit, RobotId(1), actions(), clock(1_000)) else {
+        return false;
+    };
+    decode_images(&valid.observation.request.images, &validator.image_limits()).is_ok()
+}
+
+/// The worker protocol (`kairos_protocol::worker`), every message: `data` is a frame stream on
+/// a worker connection. The first frame is decoded with the worker protocol's frame limit and
+/// must re-encode stably (as `wire`); then it goes where each side takes it: a `Register`'s
+/// profile into the scheduler's engine profile and the batch deadlines it sets, a `RunBatch`'s
+/// requests into the worker's model requests and the model's own check, a `Chunks`' results
+/// into the scheduler's chunks.
+pub fn worker(data: &[u8]) -> bool {
+    let Ok((message, used)) = WorkerMessage::decode_from(data, WORKER_MAX_FRAME) else {
+        return false;
+    };
+    assert!(
+        used <= data.len(),
+        "the decoder used bytes it was not given"
+    );
+    let encoded = message
+        .encode(u32::MAX)
+        .unwrap_or_else(|e| panic!("a decoded {:?} does not encode: {e}", message.kind()));
+    let (again, again_used) = WorkerMessage::decode_from(&encoded, u32::MAX)
+        .unwrap_or_else(|e| panic!("a re-encoded {:?} does not decode: {e}", message.kind()));
+    assert_eq!(
+        again_used,
+        encoded.len(),
+        "a re-encoded frame has trailing bytes"
+    );
+    let reencoded = again.encode(u32::MAX).unwrap_or_else(|e| panic!("{e}"));
+    assert!(
+        reencoded == encoded,
+        "encoding is not stable across a round trip"
+    );
+    let validator = validator();
+    let spec = &validator.spec;
+    match message {
+        WorkerMessage::Register(register) => {
+            let _ = model_spec(&register.model);
+            let Ok(profile) = profile_from_wire(register.profile) else {
+                return false;
+            };
+            let workers = WorkersConfig::default();
+            for batch in 1..=profile.max_batch.clamp(1, 64) {
+                let _ = workers.batch_deadline(profile.latency(batch));
+            }
+            true
+        }
+        WorkerMessage::RunBatch(batch) => {
+            let mut served = true;
+            for request in batch.requests {
+                let Ok(request) = request_from_wire(request) else {
+                    served = false;
+                    continue;
+                };
+                served &= spec
+                    .check_request(&request, &validator.image_limits())
+                    .is_ok();
+            }
+            served
+        }
+        WorkerMessage::Chunks(chunks) => {
+            let mut usable = true;
+            for result in chunks.results {
+                match (result.chunk, result.error) {
+                    (Some(chunk), None) => {
+                        let Ok(chunk) = chunk_from_wire(spec, 1, &chunk) else {
+                            usable = false;
+                            continue;
+                        };
+                        let request = ActionRequest {
+                            cameras: Vec::new(),
+                            state: vec![0.0; spec.state_dim],
+                            images: Vec::new(),
+                            instruction: String::new(),
+                            samples: 1,
+                            seed: 0,
+                        };
+                        usable &= check_output("fuzz", spec, &[request], &[chunk]).is_ok();
+                    }
+                    (None, Some(_)) => {}
+                    _ => usable = false,
+                }
+            }
+            usable
+        }
+        WorkerMessage::Registered(registered) => {
+            let _ = std::time::Duration::from_millis(u64::from(registered.heartbeat_ms));
+            true
+        }
+        WorkerMessage::Refused(_) | WorkerMessage::Heartbeat(_) | WorkerMessage::Drain(_) => true,
+    }
 }
 
 /// The metrics listener's request heads (`crate::metrics::http`): `data` is what a client

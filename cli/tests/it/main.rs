@@ -14,6 +14,7 @@ mod live_fleet;
 mod openpi_pi05;
 mod predict;
 mod prometheus;
+mod serve_refusals;
 mod worker_processes;
 
 pub use kairos_tests::plugins::repo_root;

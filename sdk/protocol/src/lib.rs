@@ -25,7 +25,7 @@ pub mod worker;
 
 pub use codec::{EncodeError, MAX_DEPTH, Message, WireBody, encode_body};
 pub use frame::{Frame, FrameError, HEADER_LEN};
-pub use limits::{Limits, MAX_ROUND, Validate, ValidationError};
+pub use limits::{Limits, MAX_ROUND, Validate, ValidationError, check_raw_image};
 pub use messages::*;
 pub use tensor::TensorError;
 

@@ -175,6 +175,23 @@ fn invalid_observation(field: impl Into<String>, reason: impl Into<String>) -> V
     }
 }
 
+/// Rank and dimensions within limits.
+fn check_shape(field: &str, shape: &[u32], limits: &Limits) -> Result<(), ValidationError> {
+    check_size(
+        || format!("{field}.shape (rank)"),
+        shape.len(),
+        limits.max_tensor_rank,
+    )?;
+    for (axis, dim) in shape.iter().enumerate() {
+        check_size(
+            || format!("{field}.shape[{axis}]"),
+            *dim as usize,
+            limits.max_tensor_dim,
+        )?;
+    }
+    Ok(())
+}
+
 /// Rank and dimensions within limits, and `data` exactly `product(shape) × dtype.size()` bytes.
 /// A byte-length mismatch is reported through `mismatch`, so each caller picks its error kind.
 pub(crate) fn check_tensor(
@@ -183,22 +200,73 @@ pub(crate) fn check_tensor(
     limits: &Limits,
     mismatch: fn(String, String) -> ValidationError,
 ) -> Result<(), ValidationError> {
-    check_size(
-        || format!("{field}.shape (rank)"),
-        tensor.shape.len(),
-        limits.max_tensor_rank,
-    )?;
-    for (axis, dim) in tensor.shape.iter().enumerate() {
-        check_size(
-            || format!("{field}.shape[{axis}]"),
-            *dim as usize,
-            limits.max_tensor_dim,
-        )?;
-    }
+    check_shape(field, &tensor.shape, limits)?;
     tensor
         .check_len()
         .map_err(|error| mismatch(format!("{field}.data"), error.to_string()))?;
     Ok(())
+}
+
+/// What a raw image's shape and dtype must be, beyond a tensor's: `[height, width, channels]`,
+/// `u8` or `f32`, at most `max_image_pixels` pixels.
+fn check_image_shape(
+    field: &str,
+    shape: &[u32],
+    dtype: DType,
+    limits: &Limits,
+) -> Result<(), ValidationError> {
+    if shape.len() != 3 {
+        return Err(invalid_observation(
+            format!("{field}.shape"),
+            format!(
+                "a raw image is [height, width, channels], got rank {}",
+                shape.len()
+            ),
+        ));
+    }
+    if !matches!(dtype, DType::U8 | DType::F32) {
+        return Err(invalid_observation(
+            format!("{field}.dtype"),
+            "a raw image is u8 or f32",
+        ));
+    }
+    let pixels = u64::from(shape[0]) * u64::from(shape[1]);
+    if pixels > u64::from(limits.max_image_pixels) {
+        return Err(ValidationError::TooLarge {
+            field: format!("{field}.shape (pixels)"),
+            len: pixels,
+            max: u64::from(limits.max_image_pixels),
+        });
+    }
+    Ok(())
+}
+
+/// Every check [`Validate`] makes of a raw image tensor (`field`) of `shape` and `dtype`, from
+/// the shape alone: its byte size against `max_image_bytes`, rank and dimensions, the image
+/// layout and pixel count. A reader that builds such a tensor from another layout (the server's
+/// openpi endpoint transposes channel-first arrays) runs it before it copies a byte, so an
+/// oversized image costs nothing to refuse.
+pub fn check_raw_image(
+    field: &str,
+    shape: &[u32],
+    dtype: DType,
+    limits: &Limits,
+) -> Result<(), ValidationError> {
+    let bytes = shape
+        .iter()
+        .try_fold(dtype.size() as u64, |bytes, &dim| {
+            bytes.checked_mul(u64::from(dim))
+        })
+        .unwrap_or(u64::MAX);
+    if bytes > u64::from(limits.max_image_bytes) {
+        return Err(ValidationError::TooLarge {
+            field: format!("{field}.data"),
+            len: bytes,
+            max: u64::from(limits.max_image_bytes),
+        });
+    }
+    check_shape(field, shape, limits)?;
+    check_image_shape(field, shape, dtype, limits)
 }
 
 pub(crate) fn check_name(field: &str, name: &str, limits: &Limits) -> Result<(), ValidationError> {
@@ -229,29 +297,7 @@ fn check_image(field: &str, image: &Image, limits: &Limits) -> Result<(), Valida
                 limits.max_image_bytes,
             )?;
             check_tensor(&field, tensor, limits, invalid_observation)?;
-            if tensor.shape.len() != 3 {
-                return Err(invalid_observation(
-                    format!("{field}.shape"),
-                    format!(
-                        "a raw image is [height, width, channels], got rank {}",
-                        tensor.shape.len()
-                    ),
-                ));
-            }
-            if !matches!(tensor.dtype, DType::U8 | DType::F32) {
-                return Err(invalid_observation(
-                    format!("{field}.dtype"),
-                    "a raw image is u8 or f32",
-                ));
-            }
-            let pixels = u64::from(tensor.shape[0]) * u64::from(tensor.shape[1]);
-            if pixels > u64::from(limits.max_image_pixels) {
-                return Err(ValidationError::TooLarge {
-                    field: format!("{field}.shape (pixels)"),
-                    len: pixels,
-                    max: u64::from(limits.max_image_pixels),
-                });
-            }
+            check_image_shape(&field, &tensor.shape, tensor.dtype, limits)?;
         }
     }
     Ok(())
@@ -499,5 +545,76 @@ impl Validate for Message {
             Message::TaskEnded(message) => message.validate(limits),
             Message::Error(message) => message.validate(limits),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::messages::{Image, ImagePayload, Observation, Tensor};
+
+    /// An observation with one raw image of `shape` and `dtype` (zeros).
+    fn with_image(shape: &[u32], dtype: DType) -> Observation {
+        let len = shape.iter().map(|&d| d as usize).product::<usize>() * dtype.size();
+        Observation {
+            captured_at_us: 0,
+            state: Tensor::from_f32(vec![1], &[0.0]).unwrap(),
+            images: vec![Image {
+                camera: "cam".into(),
+                payload: ImagePayload::Raw {
+                    tensor: Tensor {
+                        dtype,
+                        shape: shape.to_vec(),
+                        data: vec![0; len],
+                    },
+                },
+            }],
+            instruction: String::new(),
+        }
+    }
+
+    #[test]
+    fn the_raw_image_check_from_the_shape_agrees_with_validation() {
+        let limits = Limits {
+            max_image_bytes: 4096,
+            max_image_pixels: 600,
+            max_tensor_dim: 100,
+            ..Limits::default()
+        };
+        let shapes: [&[u32]; 9] = [
+            &[16, 16, 3],
+            &[20, 20, 3],
+            &[30, 30, 1],
+            &[24, 25, 1],
+            &[101, 1, 1],
+            &[8, 8],
+            &[4, 4, 3, 1],
+            &[0, 4, 3],
+            &[1, 1, 5000],
+        ];
+        for shape in shapes {
+            for dtype in [DType::U8, DType::F32, DType::F16] {
+                let from_shape = check_raw_image(
+                    "observation.images[0].payload.tensor",
+                    shape,
+                    dtype,
+                    &limits,
+                );
+                let validated = with_image(shape, dtype).validate(&limits);
+                assert_eq!(
+                    from_shape.is_ok(),
+                    validated.is_ok(),
+                    "{shape:?} {dtype:?}: {from_shape:?} vs {validated:?}"
+                );
+                if let (Err(a), Err(b)) = (&from_shape, &validated) {
+                    assert_eq!(a.code(), b.code(), "{shape:?} {dtype:?}");
+                }
+            }
+        }
+        // A shape whose byte size overflows is refused, not wrapped.
+        assert!(matches!(
+            check_raw_image("x", &[u32::MAX, u32::MAX, u32::MAX], DType::F32, &limits),
+            Err(ValidationError::TooLarge { len: u64::MAX, .. })
+        ));
     }
 }

@@ -26,20 +26,27 @@ pub enum ReadFrameError {
     #[error("stream read failed: {0}")]
     Read(#[from] ReadError),
     /// The peer sent slower than the reader's [`MinRate`].
-    #[error(
-        "upload too slow: {received} bytes in {elapsed_ms} ms, under the minimum of \
-         {bytes_per_s} bytes/s after a grace of {grace_ms} ms"
-    )]
-    TooSlow {
-        /// Bytes of the frame (header included) received when the reader gave up.
-        received: u64,
-        /// Time since the read began, ms.
-        elapsed_ms: u64,
-        /// The minimum rate.
-        bytes_per_s: u64,
-        /// The grace period.
-        grace_ms: u64,
-    },
+    #[error(transparent)]
+    TooSlow(#[from] TooSlow),
+}
+
+/// An upload fell behind its [`MinRate`]: what the reader had when it gave up. Every reader
+/// that enforces a `MinRate` (frames on QUIC streams here, the openpi endpoint's websocket
+/// messages in the server) reports it with this one error, so both say the same thing.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "upload too slow: {received} bytes in {elapsed_ms} ms, under the minimum of {bytes_per_s} \
+     bytes/s after a grace of {grace_ms} ms"
+)]
+pub struct TooSlow {
+    /// Bytes of the frame or message (header included) received when the reader gave up.
+    pub received: u64,
+    /// Time since the read began, ms.
+    pub elapsed_ms: u64,
+    /// The minimum rate.
+    pub bytes_per_s: u64,
+    /// The grace period.
+    pub grace_ms: u64,
 }
 
 /// The slowest a peer may send: after `grace`, a frame must have arrived at `bytes_per_s` or
@@ -56,22 +63,36 @@ pub struct MinRate {
 
 impl MinRate {
     /// The moment by which more than `received` bytes must have arrived, for a read that began
-    /// at `start`; `None` if there is no minimum.
+    /// at `start`; `None` if there is no minimum (or the deadline is beyond what an `Instant`
+    /// holds).
     pub fn deadline(&self, start: Instant, received: u64) -> Option<Instant> {
         if self.bytes_per_s == 0 {
             return None;
         }
+        // A byte count over any rate is finite and non-negative; only a count beyond ~10^19 s of
+        // credit could overflow, and that saturates.
         let allowed = Duration::try_from_secs_f64(received as f64 / self.bytes_per_s as f64)
             .unwrap_or(Duration::MAX);
         // Past the end of time: no deadline at all.
         start.checked_add(self.grace.saturating_add(allowed))
     }
+
+    /// The error of a read that began at `start` and gave up with `received` bytes.
+    pub fn too_slow(&self, start: Instant, received: u64) -> TooSlow {
+        TooSlow {
+            received,
+            elapsed_ms: u64::try_from(start.elapsed().as_millis()).unwrap_or(u64::MAX),
+            bytes_per_s: self.bytes_per_s,
+            grace_ms: u64::try_from(self.grace.as_millis()).unwrap_or(u64::MAX),
+        }
+    }
 }
 
 /// How a server reads frames from an untrusted peer: a minimum upload rate, and a budget of
-/// bytes of partly received frames shared by all streams of one connection. A frame takes its
+/// bytes of partly received frames shared by whoever holds the same budget (all streams of one
+/// QUIC connection here; all openpi connections of one robot in the server). A frame takes its
 /// announced length from the budget before its body is read, and gives it back when it is
-/// complete (or fails); while the budget is empty the stream is not read, so QUIC flow control
+/// complete (or fails); while the budget is empty the stream is not read, so flow control
 /// stops the peer, and the time waiting counts against the minimum rate.
 #[derive(Clone, Debug)]
 pub struct ReadBounds {
@@ -100,12 +121,7 @@ async fn before<T>(
     let (Some(deadline), Some(rate)) = (deadline, rate) else {
         return read.await;
     };
-    let too_slow = || ReadFrameError::TooSlow {
-        received,
-        elapsed_ms: u64::try_from(start.elapsed().as_millis()).unwrap_or(u64::MAX),
-        bytes_per_s: rate.bytes_per_s,
-        grace_ms: u64::try_from(rate.grace.as_millis()).unwrap_or(u64::MAX),
-    };
+    let too_slow = || ReadFrameError::TooSlow(rate.too_slow(start, received));
     // Checked first: a stream that is already behind does not get to read what happens to be
     // buffered (the timeout below polls `read` once before it looks at the clock).
     if Instant::now() >= deadline {

@@ -5,7 +5,7 @@
 pub mod io;
 
 pub use io::{
-    MinRate, ReadBounds, ReadFrameError, WriteFrameError, read_frame, read_frame_bounded,
+    MinRate, ReadBounds, ReadFrameError, TooSlow, WriteFrameError, read_frame, read_frame_bounded,
     read_message, read_message_bounded, write_body, write_frame, write_message,
 };
 pub use kairos_protocol::*;

@@ -459,30 +459,39 @@ pub struct ConnectionsConfig {
     /// its `Hello`. Connections still in the handshake count against `max_unauthenticated`
     /// instead, so clients that never authenticate cannot take robots' slots.
     pub max_connections: usize,
-    /// Most concurrent connections between the first packet and an authenticated `Hello`. Over
-    /// it new connection attempts are refused without a handshake; over half of it, attempts
-    /// from an address QUIC has not validated are answered with a Retry first.
+    /// Most concurrent connections between the first packet and an authenticated `Hello` (or,
+    /// on the openpi endpoint, an accepted upgrade), per endpoint. Over it new connection
+    /// attempts are refused without a handshake; over half of it, attempts from an address QUIC
+    /// has not validated are answered with a Retry first.
     pub max_unauthenticated: usize,
+    /// Most of those places one source address (an IPv4 address, an IPv6 /64) may hold at once.
+    /// Counted for validated sources only: every openpi (TCP) connection, and QUIC attempts that
+    /// answered a Retry (an unvalidated QUIC source may be spoofed).
+    pub max_unauthenticated_per_source: usize,
     /// Most concurrent round streams per connection (QUIC stream credit).
     pub max_streams_per_connection: u32,
     /// Time a client has, from its first packet, to finish the handshake and send an accepted
-    /// `Hello`, in ms.
+    /// `Hello` (openpi: to finish its websocket upgrade), in ms.
     pub hello_timeout_ms: u64,
-    /// Wrong tokens a source address (an IPv4 address or an IPv6 /64) may send in a burst;
-    /// after that its connections are refused before their token is looked at.
+    /// Wrong tokens a source address (an IPv4 address or an IPv6 /64) may send in a burst,
+    /// through any endpoint; after that its connections are refused before their token is looked
+    /// at.
     pub failed_token_burst: u32,
     /// Wrong tokens a source regains per minute after its burst.
     pub failed_tokens_per_minute: u32,
     /// Sources the failed-token limiter remembers at most (bounded memory).
     pub failed_token_sources: usize,
-    /// Slowest upload the server waits for, bytes per second: a stream whose frame arrives
-    /// slower (after `upload_grace_ms`) is stopped with `STOP_SENDING` and a `too_slow` error.
+    /// Slowest upload the server waits for, bytes per second: a stream whose frame (an openpi
+    /// connection whose message, from its first byte) arrives slower, after `upload_grace_ms`,
+    /// is stopped with a `too_slow` error.
     pub min_upload_bytes_per_s: u64,
     /// Time a stream has before `min_upload_bytes_per_s` applies, in ms.
     pub upload_grace_ms: u64,
-    /// Frames of `[limits] max_frame` bytes one connection may have partly received at once;
-    /// the connection's QUIC receive window is the same size, so a robot can hold at most twice
-    /// this many frames' bytes in the server.
+    /// Frames of `[limits] max_frame` bytes one QUIC connection may have partly received at
+    /// once; the connection's QUIC receive window is the same size, so a robot can hold at most
+    /// twice this many frames' bytes in the server. On the openpi endpoint, where a robot spreads
+    /// its requests over connections of one message each, the budget is the robot's: all its
+    /// openpi connections together.
     pub upload_buffer_frames: u32,
     /// Receive and send buffer of the server's UDP socket, bytes (the kernel caps it at
     /// `net.core.rmem_max`/`wmem_max`). The default 4 MiB absorbs a burst of a thousand robots'
@@ -512,6 +521,7 @@ impl Default for ConnectionsConfig {
         ConnectionsConfig {
             max_connections: 4096,
             max_unauthenticated: 256,
+            max_unauthenticated_per_source: 32,
             max_streams_per_connection: 64,
             hello_timeout_ms: 5_000,
             failed_token_burst: 10,
@@ -547,6 +557,14 @@ impl ConnectionsConfig {
     /// `max_frame` (at least one).
     pub fn upload_buffer_bytes(&self, max_frame: u32) -> u64 {
         u64::from(self.upload_buffer_frames.max(1)) * u64::from(max_frame)
+    }
+
+    /// The minimum upload rate every endpoint reads with, if any.
+    pub fn min_upload_rate(&self) -> Option<kairos_sdk::protocol::MinRate> {
+        (self.min_upload_bytes_per_s > 0).then(|| kairos_sdk::protocol::MinRate {
+            bytes_per_s: self.min_upload_bytes_per_s,
+            grace: self.upload_grace(),
+        })
     }
 }
 
@@ -890,6 +908,10 @@ impl Config {
             (
                 "connections.max_unauthenticated",
                 c.max_unauthenticated as u64,
+            ),
+            (
+                "connections.max_unauthenticated_per_source",
+                c.max_unauthenticated_per_source as u64,
             ),
             (
                 "connections.failed_token_sources",

@@ -24,26 +24,45 @@
 //! ends (`done`) when the websocket closes, and (`failed`) when the server closes it over an
 //! error.
 //!
-//! Bounds: a message over `limits.max_frame` bytes is refused by the websocket layer before it is
-//! buffered whole; msgpack decoding is bounded in depth and value count ([`MAX_VALUES`]) and runs
-//! on the connection's task (a bounded, linear pass); image decoding, validation and inference
-//! run where they do for QUIC rounds, never on a runtime worker. A bad frame fails only its own
-//! connection.
+//! **Guards**, the QUIC endpoint's, from the same code ([`crate::transport::admission`],
+//! [`kairos_sdk::protocol::ReadBounds`]), each refusal counted and logged through
+//! [`Refusals`](crate::transport::refusals::Refusals) with `door="openpi"`:
+//! - a TCP connection takes one of the endpoint's `max_unauthenticated` handshake places from
+//!   its accept until its upgrade is answered, at most `max_unauthenticated_per_source` per
+//!   source address; over either it is answered 503 and closed at once, before a byte is read;
+//! - the upgrade must be done within `hello_timeout_ms`;
+//! - a source over its wrong-token budget (the server's [`WrongTokens`], shared with QUIC) is
+//!   answered 429 before its key is looked at; a wrong or missing key is 401 and counts against
+//!   that budget; an accepted key takes one of `max_connections` places and one of its robot's
+//!   `max_connections_per_robot` places, shared with its QUIC connections (503 when either is
+//!   full);
+//! - every message must arrive at `min_upload_bytes_per_s` after `upload_grace_ms`, from its
+//!   first byte ([`upload`]); all openpi connections of one robot share one budget of
+//!   `upload_buffer_frames × max_frame` bytes of partly received messages;
+//! - a message over `limits.max_frame` bytes is refused by the websocket layer before it is
+//!   buffered whole; msgpack decoding is bounded in depth and value count ([`MAX_VALUES`]); the
+//!   key map checks sizes against `[limits]` before it copies, converts or transposes an array
+//!   ([`observation`]); image decoding, validation and inference run where they do for QUIC
+//!   rounds, never on a runtime worker. A bad frame fails only its own connection.
+//!
+//! [`WrongTokens`]: crate::transport::admission::WrongTokens
 
 pub mod exec;
 pub mod msgpack;
 pub mod observation;
+pub mod upload;
 
+use std::collections::HashMap;
 use std::net::SocketAddr;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
 use futures::{SinkExt, StreamExt};
 use kairos_sdk::protocol::{
-    EndTask, ErrorCode, ErrorReply, HorizonSelection, Reply, Submit, TaskOutcome,
+    EndTask, ErrorCode, ErrorReply, HorizonSelection, ReadBounds, Reply, Submit, TaskOutcome,
 };
 use tokio::net::{TcpListener, TcpStream};
-use tokio::sync::{Semaphore, mpsc, watch};
+use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, watch};
 use tokio::task::JoinSet;
 use tokio_tungstenite::WebSocketStream;
 use tokio_tungstenite::tungstenite::handshake::server::{ErrorResponse, Request, Response};
@@ -54,9 +73,13 @@ use tokio_tungstenite::tungstenite::{Error as WsError, Message};
 
 use self::exec::ExecEstimate;
 use self::msgpack::Writer;
+use self::upload::BoundedStream;
 use crate::config::OpenpiConfig;
 use crate::driver::RefetchAsk;
-use crate::transport::{DRAIN_TIMEOUT, ServerContext};
+use crate::transport::admission::{HandshakePlace, HandshakeRefusal, Handshakes};
+use crate::transport::fairness::RobotPlace;
+use crate::transport::refusals::{Door, Reason};
+use crate::transport::{DRAIN_TIMEOUT, Gate, ServerContext};
 use crate::validation::RequestError;
 use kairos_core::clock_map::ClockMap;
 use kairos_core::scheduler::RobotId;
@@ -64,19 +87,197 @@ use kairos_core::scheduler::RobotId;
 /// Most msgpack values one request may hold (an observation dict has tens).
 pub const MAX_VALUES: usize = 4096;
 
-/// What the endpoint did, returned when it stops.
+/// What the endpoint did, returned when it stops (its refusals are in
+/// [`ServerContext::refusals`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct OpenpiStats {
     /// Websocket connections accepted (authenticated).
     pub connections: u64,
-    /// Connections refused: unauthorised, a failed handshake, or over `max_connections`.
-    pub refused: u64,
 }
+
+/// Connections the kernel may queue before the endpoint accepts them (the kernel caps it at
+/// `net.core.somaxconn`): under a connection flood the accept loop refuses fast, and a longer
+/// queue keeps a real client's connection in line instead of dropping its SYN (which would cost
+/// it a retransmission, a second or more).
+const LISTEN_BACKLOG: u32 = 4096;
 
 /// Binds the endpoint's TCP listener.
 pub async fn bind(addr: SocketAddr) -> std::io::Result<TcpListener> {
-    TcpListener::bind(addr).await
+    let socket = if addr.is_ipv4() {
+        tokio::net::TcpSocket::new_v4()?
+    } else {
+        tokio::net::TcpSocket::new_v6()?
+    };
+    socket.set_reuseaddr(true)?;
+    socket.bind(addr)?;
+    socket.listen(LISTEN_BACKLOG)
 }
+
+/// The websocket layer's read buffer (tungstenite's default is 128 KiB): an idle connection
+/// costs this much.
+const READ_BUFFER: usize = 64 << 10;
+
+/// The endpoint's admission state, shared by its accept loop and its connections.
+struct Endpoint {
+    context: Arc<ServerContext>,
+    config: Arc<OpenpiConfig>,
+    /// Places for authenticated connections, and the server's wrong-token limiter.
+    gate: Gate,
+    /// Connections between their accept and an answered upgrade.
+    handshakes: Handshakes,
+    /// Per robot, the budget of partly received messages all its connections share.
+    budgets: Mutex<HashMap<RobotId, Arc<Semaphore>>>,
+    /// Each budget's size, bytes.
+    budget_bytes: usize,
+}
+
+impl Endpoint {
+    fn new(context: Arc<ServerContext>, config: Arc<OpenpiConfig>) -> Endpoint {
+        let budget_bytes = context
+            .connections
+            .upload_buffer_bytes(context.limits().max_frame);
+        let gate = Gate::new(&context);
+        gate.export_places("openpi", &context);
+        Endpoint {
+            gate,
+            handshakes: Handshakes::for_door(&context.connections),
+            budgets: Mutex::new(HashMap::new()),
+            budget_bytes: usize::try_from(budget_bytes)
+                .unwrap_or(Semaphore::MAX_PERMITS)
+                .min(Semaphore::MAX_PERMITS),
+            context,
+            config,
+        }
+    }
+
+    fn refuse(&self, reason: Reason, remote: SocketAddr, detail: &dyn std::fmt::Display) {
+        self.context
+            .refusals
+            .refuse(Door::Openpi, reason, remote, detail);
+    }
+
+    /// How `robot`'s messages are read: the minimum rate, and its budget (one per robot; the
+    /// table holds at most one entry per configured robot).
+    fn read_bounds(&self, robot: RobotId) -> ReadBounds {
+        let budget = self
+            .budgets
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .entry(robot)
+            .or_insert_with(|| Arc::new(Semaphore::new(self.budget_bytes)))
+            .clone();
+        ReadBounds {
+            min_rate: self.context.connections.min_upload_rate(),
+            budget: Some(budget),
+        }
+    }
+
+    /// The upgrade request's verdict: the robot and its place among the authenticated
+    /// connections, or the HTTP response that refuses it (see the module docs for the order).
+    // The error is what tungstenite's `Callback` returns: the response to send, built once per
+    // refused upgrade.
+    #[allow(clippy::result_large_err)]
+    fn admit(
+        &self,
+        request: &Request,
+        remote: SocketAddr,
+    ) -> Result<(RobotId, Places), ErrorResponse> {
+        let ip = remote.ip();
+        if !self.gate.source_allowed(ip) {
+            let detail = "too many wrong keys from this address; retry later";
+            self.refuse(Reason::WrongTokenLimit, remote, &detail);
+            let wait = self.context.wrong_tokens.retry_after(ip);
+            return Err(http_refusal(
+                StatusCode::TOO_MANY_REQUESTS,
+                detail,
+                Some(retry_after_secs(wait)),
+            ));
+        }
+        let robot = match authorize(request, &self.context) {
+            Ok(robot) => robot,
+            Err(reason) => {
+                self.gate.token_failed(ip);
+                self.refuse(Reason::Unauthorized, remote, &reason);
+                let mut refusal = http_refusal(
+                    StatusCode::UNAUTHORIZED,
+                    &format!("unauthorized: {reason}"),
+                    None,
+                );
+                refusal.headers_mut().insert(
+                    header::WWW_AUTHENTICATE,
+                    header::HeaderValue::from_static("Api-Key"),
+                );
+                return Err(refusal);
+            }
+        };
+        let Some(place) = self.gate.authenticated() else {
+            let limit = self.context.connections.max_connections;
+            let detail = format!("server at capacity ({limit} openpi connections); retry later");
+            self.refuse(Reason::AtCapacity, remote, &detail);
+            return Err(http_refusal(
+                StatusCode::SERVICE_UNAVAILABLE,
+                &detail,
+                Some(1),
+            ));
+        };
+        let robot_places = &self.context.fairness.places;
+        let Some(robot_place) = robot_places.take(robot) else {
+            self.gate.robot_at_capacity();
+            let detail = format!(
+                "robot `{}` is at its capacity of {} connections \
+                 ([connections] max_connections_per_robot); retry later",
+                self.context.robots.name(robot),
+                robot_places.cap()
+            );
+            self.refuse(Reason::RobotAtCapacity, remote, &detail);
+            return Err(http_refusal(
+                StatusCode::SERVICE_UNAVAILABLE,
+                &detail,
+                Some(1),
+            ));
+        };
+        Ok((
+            robot,
+            Places {
+                _robot: robot_place,
+                _all: place,
+            },
+        ))
+    }
+}
+
+/// An authenticated connection's places: one of its robot's (shared with its QUIC
+/// connections), one of the endpoint's `max_connections`. Given back when dropped.
+struct Places {
+    _robot: RobotPlace,
+    _all: OwnedSemaphorePermit,
+}
+
+/// `Retry-After` in whole seconds, at least 1, at most a day.
+fn retry_after_secs(wait: Duration) -> u64 {
+    wait.as_secs()
+        .saturating_add(u64::from(wait.subsec_nanos() > 0))
+        .clamp(1, 86_400)
+}
+
+/// An HTTP refusal of an upgrade: `status`, `text` as the body, `Retry-After` when given.
+// The type is tungstenite's `Callback` error: the response to send.
+#[allow(clippy::result_large_err)]
+fn http_refusal(status: StatusCode, text: &str, retry_after: Option<u64>) -> ErrorResponse {
+    let mut refusal = ErrorResponse::new(Some(format!("{text}\n")));
+    *refusal.status_mut() = status;
+    if let Some(secs) = retry_after
+        && let Ok(value) = header::HeaderValue::from_str(&secs.to_string())
+    {
+        refusal.headers_mut().insert(header::RETRY_AFTER, value);
+    }
+    refusal
+}
+
+/// The answer to a connection refused at its accept, written without waiting (the socket's send
+/// buffer is empty) and without reading the request.
+const BUSY: &[u8] = b"HTTP/1.1 503 Service Unavailable\r\nRetry-After: 1\r\n\
+Content-Length: 32\r\nConnection: close\r\n\r\ntoo many connections; retry later\n";
 
 /// Serves openpi clients on `listener` until `stop` is set, then lets the connections answer
 /// their pending request and close (`going away`), for up to [`DRAIN_TIMEOUT`].
@@ -86,7 +287,7 @@ pub async fn run(
     config: Arc<OpenpiConfig>,
     mut stop: watch::Receiver<bool>,
 ) -> OpenpiStats {
-    let permits = Arc::new(Semaphore::new(context.connections.max_connections));
+    let endpoint = Arc::new(Endpoint::new(context, config));
     let mut connections = JoinSet::new();
     let mut stats = OpenpiStats::default();
     let sessions_stop = stop.clone();
@@ -98,18 +299,27 @@ pub async fn run(
         tokio::select! {
             accepted = listener.accept() => match accepted {
                 Ok((stream, remote)) => {
-                    let Ok(permit) = permits.clone().try_acquire_owned() else {
-                        tracing::info!(%remote, "openpi connection refused: at capacity");
-                        stats.refused += 1;
-                        continue;
+                    let place = match endpoint.handshakes.try_take(Some(remote.ip())) {
+                        Ok(place) => place,
+                        Err(refusal) => {
+                            let (reason, detail) = match refusal {
+                                HandshakeRefusal::Full => (
+                                    Reason::HandshakeBudget,
+                                    "every handshake place is taken",
+                                ),
+                                HandshakeRefusal::SourceBusy => (
+                                    Reason::SourceHandshakes,
+                                    "this address has its share of handshakes in progress",
+                                ),
+                            };
+                            endpoint.refuse(reason, remote, &detail);
+                            let _ = stream.try_write(BUSY);
+                            continue;
+                        }
                     };
-                    let (context, config) = (context.clone(), config.clone());
+                    let endpoint = endpoint.clone();
                     let stop = sessions_stop.clone();
-                    connections.spawn(async move {
-                        let served = connection(stream, remote, context, config, stop).await;
-                        drop(permit);
-                        served
-                    });
+                    connections.spawn(connection(stream, remote, place, endpoint, stop));
                 }
                 Err(error) => {
                     // Out of file descriptors, say: back off instead of spinning.
@@ -137,9 +347,8 @@ pub async fn run(
 }
 
 fn count(stats: &mut OpenpiStats, joined: Result<bool, tokio::task::JoinError>) {
-    match joined {
-        Ok(true) => stats.connections += 1,
-        _ => stats.refused += 1,
+    if let Ok(true) = joined {
+        stats.connections += 1;
     }
 }
 
@@ -159,65 +368,94 @@ fn authorize(request: &Request, context: &ServerContext) -> Result<RobotId, &'st
     context.robots.authenticate(key).ok_or("unknown key")
 }
 
-/// Serves one TCP connection: the authenticated upgrade, then the session. Returns whether the
-/// upgrade was accepted.
+/// Whether a failed upgrade was the client's malformed request (as opposed to a connection that
+/// went away before its request was complete, or the server's own refusal).
+fn bad_upgrade(error: &WsError) -> bool {
+    use tokio_tungstenite::tungstenite::error::ProtocolError;
+    match error {
+        WsError::Protocol(ProtocolError::HandshakeIncomplete) => false,
+        WsError::Protocol(_)
+        | WsError::HttpFormat(_)
+        | WsError::Utf8(_)
+        | WsError::AttackAttempt
+        | WsError::Capacity(_) => true,
+        _ => false,
+    }
+}
+
+/// Serves one TCP connection: the authenticated upgrade, then the session. `place` is its
+/// handshake place, held until the upgrade is answered. Returns whether the upgrade was accepted.
 async fn connection(
     stream: TcpStream,
     remote: SocketAddr,
-    context: Arc<ServerContext>,
-    config: Arc<OpenpiConfig>,
+    place: HandshakePlace,
+    endpoint: Arc<Endpoint>,
     stop: watch::Receiver<bool>,
 ) -> bool {
     let _ = stream.set_nodelay(true);
+    let context = endpoint.context.clone();
     let max = context.limits().max_frame as usize;
     let ws_config = WebSocketConfig::default()
         .max_message_size(Some(max))
-        .max_frame_size(Some(max));
-    let mut robot = None;
+        .max_frame_size(Some(max))
+        .read_buffer_size(READ_BUFFER);
+    let mut admitted = None;
+    let mut refused = false;
     // The signature is tungstenite's `Callback`; its error is the HTTP response to send.
     #[allow(clippy::result_large_err)]
     let callback = |request: &Request, response: Response| -> Result<Response, ErrorResponse> {
-        match authorize(request, &context) {
-            Ok(id) => {
-                robot = Some(id);
+        match endpoint.admit(request, remote) {
+            Ok(robot_and_place) => {
+                admitted = Some(robot_and_place);
                 Ok(response)
             }
-            Err(reason) => {
-                tracing::info!(%remote, reason, "openpi connection refused");
-                let mut refusal = ErrorResponse::new(Some(format!("unauthorized: {reason}\n")));
-                *refusal.status_mut() = StatusCode::UNAUTHORIZED;
-                refusal.headers_mut().insert(
-                    header::WWW_AUTHENTICATE,
-                    header::HeaderValue::from_static("Api-Key"),
-                );
+            Err(refusal) => {
+                refused = true;
                 Err(refusal)
             }
         }
     };
     let upgrade = tokio::time::timeout(
         context.connections.hello_timeout(),
-        tokio_tungstenite::accept_hdr_async_with_config(stream, callback, Some(ws_config)),
+        tokio_tungstenite::accept_hdr_async_with_config(
+            BoundedStream::new(stream),
+            callback,
+            Some(ws_config),
+        ),
     )
     .await;
-    let ws = match upgrade {
+    drop(place);
+    let mut ws = match upgrade {
         Ok(Ok(ws)) => ws,
         Ok(Err(error)) => {
-            tracing::debug!(%remote, %error, "openpi handshake failed");
+            if !refused && bad_upgrade(&error) {
+                endpoint.refuse(Reason::BadUpgrade, remote, &error);
+            } else {
+                tracing::debug!(%remote, %error, "openpi handshake failed");
+            }
             return false;
         }
         Err(_) => {
-            tracing::debug!(%remote, "openpi handshake timed out");
+            endpoint.refuse(
+                Reason::HandshakeTimeout,
+                remote,
+                &"websocket upgrade not done within hello_timeout_ms",
+            );
             return false;
         }
     };
-    let Some(robot) = robot else {
+    let Some((robot, _place)) = admitted else {
         return false;
     };
+    ws.get_mut()
+        .arm(endpoint.read_bounds(robot), endpoint.budget_bytes);
     tracing::debug!(%remote, robot = context.robots.name(robot), "openpi client connected");
+    let config = endpoint.config.clone();
     let exec = ExecEstimate::new(config.control_hz);
     Session {
         context,
         config,
+        remote,
         robot,
         task: rand::random::<u64>() >> 1,
         next_round: 0,
@@ -247,6 +485,10 @@ enum End {
 impl End {
     fn refused(error: &RequestError) -> End {
         End::from(ErrorReply::from(error))
+    }
+
+    fn too_slow(slow: &kairos_sdk::protocol::TooSlow) -> End {
+        End::refused(&RequestError::TooSlow(slow.to_string()))
     }
 
     fn too_large(error: impl std::fmt::Display, max: usize) -> End {
@@ -286,6 +528,8 @@ const LINGER: Duration = Duration::from_secs(1);
 /// discarded instead.
 async fn linger(ws: &mut Ws, raw: bool) {
     use tokio::io::AsyncReadExt;
+    // The session is over: what is left is discarded, outside the budget and the rate.
+    ws.get_mut().disarm();
     let drain = async {
         if raw {
             let mut buf = vec![0u8; 64 << 10];
@@ -301,6 +545,7 @@ async fn linger(ws: &mut Ws, raw: bool) {
 struct Session {
     context: Arc<ServerContext>,
     config: Arc<OpenpiConfig>,
+    remote: SocketAddr,
     robot: RobotId,
     task: u64,
     next_round: u64,
@@ -309,7 +554,7 @@ struct Session {
     prev_total: Option<Duration>,
 }
 
-type Ws = WebSocketStream<TcpStream>;
+type Ws = WebSocketStream<BoundedStream<TcpStream>>;
 
 impl Session {
     async fn run(mut self, mut ws: Ws, mut stop: watch::Receiver<bool>) {
@@ -321,9 +566,12 @@ impl Session {
                     message = ws.next() => message,
                     _ = stop.wait_for(|stopping| *stopping) => break End::Shutdown,
                 };
+                if let Some(Ok(Message::Binary(_) | Message::Text(_))) = &message {
+                    ws.get_mut().message_done();
+                }
                 match message {
                     Some(Ok(Message::Binary(frame))) => {
-                        if let Err(end) = self.round(&mut ws, &frame).await {
+                        if let Err(end) = self.round(&mut ws, frame).await {
                             break end;
                         }
                     }
@@ -336,14 +584,11 @@ impl Session {
                             code: CloseCode::Unsupported,
                         };
                     }
-                    Some(Ok(Message::Close(_))) | None => break End::Closed,
+                    Some(Ok(Message::Close(_))) => break End::Closed,
                     // Pings are answered by the websocket layer.
                     Some(Ok(Message::Ping(_) | Message::Pong(_) | Message::Frame(_))) => {}
-                    Some(Err(WsError::Capacity(error))) => {
-                        let max = self.context.limits().max_frame as usize;
-                        break End::too_large(error, max);
-                    }
-                    Some(Err(_)) => break End::Closed,
+                    Some(Err(error)) => break self.read_failed(error),
+                    None => break End::Closed,
                 }
             },
         };
@@ -373,6 +618,31 @@ impl Session {
             }
         }
         self.end_task(failed).await;
+    }
+
+    /// How a failed read ends the session: a message over the frame limit or one that fell
+    /// behind the minimum rate is refused (and counted); anything else means the connection is
+    /// gone.
+    fn read_failed(&self, error: WsError) -> End {
+        let refuse = |reason: Reason, detail: &dyn std::fmt::Display| {
+            self.context
+                .refusals
+                .refuse(Door::Openpi, reason, self.remote, detail);
+        };
+        match error {
+            WsError::Capacity(error) => {
+                refuse(Reason::TooLarge, &error);
+                End::too_large(error, self.context.limits().max_frame as usize)
+            }
+            WsError::Io(error) => match upload::too_slow(&error) {
+                Some(slow) => {
+                    refuse(Reason::TooSlow, slow);
+                    End::too_slow(slow)
+                }
+                None => End::Closed,
+            },
+            _ => End::Closed,
+        }
     }
 
     /// The metadata map sent on connect.
@@ -419,19 +689,25 @@ impl Session {
         }
     }
 
-    /// One request: decode, map, admit, wait (answering pings, noticing a close), reply.
-    async fn round(&mut self, ws: &mut Ws, frame: &[u8]) -> Result<(), End> {
+    /// One request: decode, map, admit, wait (answering pings, noticing a close), reply. The
+    /// frame is dropped once mapped: only the observation waits in the queue.
+    async fn round(
+        &mut self,
+        ws: &mut Ws,
+        frame: tokio_tungstenite::tungstenite::Bytes,
+    ) -> Result<(), End> {
         let clock = self.context.driver.clock();
         let received = clock.now();
         let at_us = received.as_micros();
         let observation = {
-            let dict = msgpack::decode(frame, MAX_VALUES).map_err(|e| {
+            let dict = msgpack::decode(&frame, MAX_VALUES).map_err(|e| {
                 End::refused(&RequestError::Invalid {
                     field: "message".into(),
                     reason: e.to_string(),
                 })
             })?;
-            let mut observation = observation::observation(&dict, &self.config, at_us)
+            let limits = self.context.limits();
+            let mut observation = observation::observation(&dict, &self.config, at_us, limits)
                 .map_err(|e| End::refused(&e))?;
             observation::name_cameras(
                 &mut observation,
@@ -440,6 +716,7 @@ impl Session {
             );
             observation
         };
+        drop(frame);
         let round = self.next_round;
         let submit = Submit {
             task: self.task,
@@ -463,7 +740,14 @@ impl Session {
             .context
             .admit(submit, self.robot, identity, received, link)
             .await
-            .map_err(|e| End::refused(&e))?;
+            .map_err(|e| {
+                if matches!(e, RequestError::RateLimited { .. }) {
+                    self.context
+                        .refusals
+                        .refuse(Door::Openpi, Reason::RoundRate, self.remote, &e);
+                }
+                End::refused(&e)
+            })?;
         self.next_round = round + 1;
         let answer = loop {
             tokio::select! {
@@ -481,7 +765,11 @@ impl Session {
                             code: CloseCode::Policy,
                         });
                     }
-                    _ => {
+                    Some(Err(error)) => {
+                        self.context.driver.detach(&pending).await;
+                        return Err(self.read_failed(error));
+                    }
+                    Some(Ok(Message::Close(_))) | None => {
                         self.context.driver.detach(&pending).await;
                         return Err(End::Closed);
                     }

@@ -293,7 +293,7 @@ impl DType {
     }
 
     /// Reads item `bytes` (exactly `size` of them) as a number.
-    fn read(&self, bytes: &[u8]) -> f64 {
+    pub(crate) fn read(&self, bytes: &[u8]) -> f64 {
         let mut b = [0u8; 8];
         b[..self.size].copy_from_slice(bytes);
         if !self.little_endian {
@@ -468,6 +468,20 @@ pub fn numbers(value: &Value<'_>) -> Result<Vec<f32>, ArrayError> {
     Ok(NdArray::from_value(value)?.to_f32())
 }
 
+/// How many numbers [`numbers`] would read from `value`, without reading them: a bound a caller
+/// checks before it allocates.
+pub fn number_count(value: &Value<'_>) -> Result<usize, ArrayError> {
+    match value {
+        Value::UInt(_) | Value::Int(_) | Value::Float(_) | Value::Bool(_) => Ok(1),
+        _ if value.get("__npgeneric__").is_some() => Ok(1),
+        Value::Array(items) => Ok(items.len()),
+        _ => {
+            let array = NdArray::from_value(value)?;
+            Ok(array.data.len() / array.dtype.size)
+        }
+    }
+}
+
 /// Builds one msgpack frame (the subset the replies need).
 #[derive(Debug, Default)]
 pub struct Writer {
@@ -555,6 +569,69 @@ impl Writer {
     /// A bool.
     pub fn bool(&mut self, v: bool) -> &mut Self {
         self.buf.push(if v { 0xc3 } else { 0xc2 });
+        self
+    }
+
+    /// A negative integer (`int 64`).
+    pub fn int(&mut self, v: i64) -> &mut Self {
+        self.buf.push(0xd3);
+        self.buf.extend_from_slice(&v.to_be_bytes());
+        self
+    }
+
+    /// An `ext` of type `kind`.
+    pub fn ext(&mut self, kind: i8, data: &[u8]) -> &mut Self {
+        match data.len() {
+            1 => self.buf.push(0xd4),
+            2 => self.buf.push(0xd5),
+            4 => self.buf.push(0xd6),
+            8 => self.buf.push(0xd7),
+            16 => self.buf.push(0xd8),
+            len => self.header(len, (0, 0), 0xc8, 0xc9),
+        }
+        self.buf.extend_from_slice(&kind.to_be_bytes());
+        self.buf.extend_from_slice(data);
+        self
+    }
+
+    /// Any decoded value, recursively: what [`decode`] reads back as the same value.
+    pub fn value(&mut self, value: &Value<'_>) -> &mut Self {
+        match value {
+            Value::Nil => self.buf.push(0xc0),
+            Value::Bool(b) => {
+                self.bool(*b);
+            }
+            Value::UInt(v) => {
+                self.uint(*v);
+            }
+            Value::Int(v) => {
+                self.int(*v);
+            }
+            Value::Float(v) => {
+                self.float(*v);
+            }
+            Value::Str(s) => {
+                self.str(s);
+            }
+            Value::Bin(b) => {
+                self.bin(b);
+            }
+            Value::Array(items) => {
+                self.array(items.len());
+                for item in items {
+                    self.value(item);
+                }
+            }
+            Value::Map(entries) => {
+                self.map(entries.len());
+                for (key, item) in entries {
+                    self.value(key).value(item);
+                }
+            }
+            Value::Ext(kind, data) => {
+                self.ext(*kind, data);
+            }
+        }
         self
     }
 

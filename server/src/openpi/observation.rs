@@ -2,11 +2,17 @@
 //!
 //! Only the mapping happens here; every check against the served model (state length, image
 //! count, image sizes, finite numbers) is the [`Validator`](crate::validation::Validator)'s, the
-//! same one QUIC rounds go through.
+//! same one QUIC rounds go through. The size checks that the mapping's own copies depend on run
+//! first, from the arrays' shapes, against the same [`Limits`] (the protocol's
+//! [`check_raw_image`] and `max_state_len`, `max_images`): a request that would be refused costs
+//! no copy, no conversion and no transpose.
 
-use kairos_sdk::protocol::{DType as WireDType, Image, ImagePayload, Observation, Tensor};
+use kairos_sdk::protocol::{
+    DType as WireDType, Image, ImagePayload, Limits, Observation, Tensor, ValidationError,
+    check_raw_image,
+};
 
-use super::msgpack::{NdArray, Value, numbers};
+use super::msgpack::{NdArray, Value, number_count, numbers};
 use crate::config::OpenpiConfig;
 use crate::validation::RequestError;
 
@@ -17,7 +23,16 @@ fn field_error(field: &str, reason: impl std::fmt::Display) -> RequestError {
     }
 }
 
-/// Builds the observation of one openpi request `dict`, captured at `captured_at_us`.
+fn too_large(field: String, len: usize, max: u32) -> RequestError {
+    RequestError::Protocol(ValidationError::TooLarge {
+        field,
+        len: len as u64,
+        max: u64::from(max),
+    })
+}
+
+/// Builds the observation of one openpi request `dict`, captured at `captured_at_us`, within
+/// `limits`.
 ///
 /// - `state`: the arrays under `config.state`, in order, flattened and concatenated to `f32`;
 ///   every key must be present.
@@ -27,11 +42,13 @@ fn field_error(field: &str, reason: impl std::fmt::Display) -> RequestError {
 ///   transposed.
 /// - `instruction`: the text under `config.prompt`, empty when absent.
 ///
-/// Other keys are ignored.
+/// Other keys are ignored. The state's length, the number of images and each image's size (as
+/// it will be sent on, after conversion) are checked against `limits` before anything is copied.
 pub fn observation(
     dict: &Value<'_>,
     config: &OpenpiConfig,
     captured_at_us: u64,
+    limits: &Limits,
 ) -> Result<Observation, RequestError> {
     if !matches!(dict, Value::Map(_)) {
         return Err(RequestError::Invalid {
@@ -39,32 +56,71 @@ pub fn observation(
             reason: format!("expected a msgpack map (a dict), got a {}", dict.kind()),
         });
     }
-    let mut state = Vec::new();
+    let mut state_len = 0usize;
     for key in &config.state {
         let value = dict
             .get(key)
             .ok_or_else(|| field_error(key, "missing (the key map's `state`)"))?;
-        state.extend(numbers(value).map_err(|e| field_error(key, e))?);
+        state_len = state_len.saturating_add(number_count(value).map_err(|e| field_error(key, e))?);
+    }
+    if state_len > limits.max_state_len as usize {
+        return Err(too_large(
+            "observation.state".into(),
+            state_len,
+            limits.max_state_len,
+        ));
+    }
+    let mut state = Vec::with_capacity(state_len);
+    for key in &config.state {
+        if let Some(value) = dict.get(key) {
+            state.extend(numbers(value).map_err(|e| field_error(key, e))?);
+        }
     }
     let state = Tensor::from_f32(vec![u32::try_from(state.len()).unwrap_or(u32::MAX)], &state)
         .map_err(|e| field_error("state", e))?;
-    let mut images = Vec::new();
-    for key in &config.cameras {
-        if let Some(value) = dict.get(key) {
-            let array = NdArray::from_value(value).map_err(|e| field_error(key, e))?;
-            images.push(Image {
-                camera: key.clone(),
-                payload: ImagePayload::Raw {
-                    tensor: image_tensor(&array).map_err(|e| field_error(key, e))?,
-                },
-            });
-        }
+    let present: Vec<(&String, &Value<'_>)> = config
+        .cameras
+        .iter()
+        .filter_map(|key| dict.get(key).map(|value| (key, value)))
+        .collect();
+    if present.len() > limits.max_images as usize {
+        return Err(too_large(
+            "observation.images (count)".into(),
+            present.len(),
+            limits.max_images,
+        ));
     }
+    // Every image is checked before the first is copied.
+    let mut layouts = Vec::with_capacity(present.len());
+    for &(key, value) in &present {
+        let array = NdArray::from_value(value).map_err(|e| field_error(key, e))?;
+        let layout = ImageLayout::of(&array).map_err(|e| field_error(key, e))?;
+        check_raw_image(key, &layout.wire_shape(), layout.dtype, limits)?;
+        layouts.push((key, array, layout));
+    }
+    let images = layouts
+        .into_iter()
+        .map(|(key, array, layout)| Image {
+            camera: key.clone(),
+            payload: ImagePayload::Raw {
+                tensor: layout.tensor(&array),
+            },
+        })
+        .collect();
     let instruction = match dict.get(&config.prompt) {
         None | Some(Value::Nil) => String::new(),
-        Some(value) => prompt_text(value)
-            .ok_or_else(|| field_error(&config.prompt, "expected a string"))?
-            .to_string(),
+        Some(value) => {
+            let text = prompt_text(value)
+                .ok_or_else(|| field_error(&config.prompt, "expected a string"))?;
+            if text.len() > limits.max_instruction_bytes as usize {
+                return Err(too_large(
+                    "observation.instruction".into(),
+                    text.len(),
+                    limits.max_instruction_bytes,
+                ));
+            }
+            text.to_string()
+        }
     };
     Ok(Observation {
         captured_at_us,
@@ -82,48 +138,84 @@ fn prompt_text<'a>(value: &Value<'a>) -> Option<&'a str> {
     value.as_text()
 }
 
-fn image_tensor(array: &NdArray<'_>) -> Result<Tensor, String> {
-    let &[a, b, c] = array.shape.as_slice() else {
-        return Err(format!(
-            "an image is [height, width, channels] (or [channels, height, width]), got shape {:?}",
-            array.shape
-        ));
-    };
-    // [C, H, W] with few channels first and many last: transpose to [H, W, C].
-    let chw = matches!(a, 1 | 3) && !matches!(c, 1 | 3 | 4);
-    let (height, width, channels) = if chw { (b, c, a) } else { (a, b, c) };
-    let dims = [height, width, channels].map(|d| u32::try_from(d).unwrap_or(u32::MAX));
-    // For a [C, H, W] source, the source index of each [H, W, C] output position, in order.
-    let order: Option<Vec<usize>> = chw.then(|| {
-        (0..height * width * channels)
-            .map(|i| (i % channels) * height * width + i / channels)
-            .collect()
-    });
-    if array.dtype.kind == 'u' && array.dtype.size == 1 {
-        let data = match &order {
-            Some(order) => order.iter().map(|&i| array.data[i]).collect(),
-            None => array.data.to_vec(),
+/// How an image array becomes a raw `[height, width, channels]` tensor, decided from its shape
+/// and dtype alone.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct ImageLayout {
+    height: usize,
+    width: usize,
+    channels: usize,
+    /// The source is `[channels, height, width]`.
+    channels_first: bool,
+    /// The tensor's dtype: `u8` for `uint8` sources, `f32` for any other numeric dtype.
+    dtype: WireDType,
+}
+
+impl ImageLayout {
+    fn of(array: &NdArray<'_>) -> Result<ImageLayout, String> {
+        let &[a, b, c] = array.shape.as_slice() else {
+            return Err(format!(
+                "an image is [height, width, channels] (or [channels, height, width]), got shape {:?}",
+                array.shape
+            ));
         };
-        return Ok(Tensor {
-            dtype: WireDType::U8,
-            shape: dims.to_vec(),
+        // [C, H, W] with few channels first and many last.
+        let channels_first = matches!(a, 1 | 3) && !matches!(c, 1 | 3 | 4);
+        let (height, width, channels) = if channels_first { (b, c, a) } else { (a, b, c) };
+        let dtype = if array.dtype.kind == 'u' && array.dtype.size == 1 {
+            WireDType::U8
+        } else {
+            WireDType::F32
+        };
+        Ok(ImageLayout {
+            height,
+            width,
+            channels,
+            channels_first,
+            dtype,
+        })
+    }
+
+    /// The tensor's shape as the wire carries it (a side beyond `u32` saturates, which the
+    /// limits refuse).
+    fn wire_shape(&self) -> [u32; 3] {
+        [self.height, self.width, self.channels].map(|d| u32::try_from(d).unwrap_or(u32::MAX))
+    }
+
+    /// The tensor, copied (and transposed, for a channel-first source) in one pass. Only called
+    /// after the shape passed the limits, so its size is bounded.
+    fn tensor(&self, array: &NdArray<'_>) -> Tensor {
+        let (height, width, channels) = (self.height, self.width, self.channels);
+        let plane = height * width;
+        // The source index of output position `i` ([H, W, C] order).
+        let source = |i: usize| {
+            if self.channels_first {
+                (i % channels) * plane + i / channels
+            } else {
+                i
+            }
+        };
+        let len = plane * channels;
+        let data = match self.dtype {
+            WireDType::U8 if !self.channels_first => array.data.to_vec(),
+            WireDType::U8 => (0..len).map(|i| array.data[source(i)]).collect(),
+            _ => {
+                let size = array.dtype.size;
+                let mut data = Vec::with_capacity(len * 4);
+                for i in 0..len {
+                    let at = source(i) * size;
+                    let value = array.dtype.read(&array.data[at..at + size]) as f32;
+                    data.extend_from_slice(&value.to_le_bytes());
+                }
+                data
+            }
+        };
+        Tensor {
+            dtype: self.dtype,
+            shape: self.wire_shape().to_vec(),
             data,
-        });
+        }
     }
-    let values = array.to_f32();
-    let values: Vec<f32> = match &order {
-        Some(order) => order.iter().map(|&i| values[i]).collect(),
-        None => values,
-    };
-    let mut data = Vec::with_capacity(values.len() * 4);
-    for v in values {
-        data.extend_from_slice(&v.to_le_bytes());
-    }
-    Ok(Tensor {
-        dtype: WireDType::F32,
-        shape: dims.to_vec(),
-        data,
-    })
 }
 
 /// The key map's `cameras` are the model's cameras in order. For a model that matches images
@@ -169,7 +261,13 @@ mod tests {
         let pixels: Vec<u8> = (0..2 * 2 * 3).collect();
         let frame = libero_like(&[0.5, -1.0], (&[2, 2, 3], &pixels));
         let config = OpenpiConfig::default();
-        let obs = observation(&decode(&frame, 1000).unwrap(), &config, 7).unwrap();
+        let obs = observation(
+            &decode(&frame, 1000).unwrap(),
+            &config,
+            7,
+            &Limits::default(),
+        )
+        .unwrap();
         assert_eq!(obs.captured_at_us, 7);
         assert_eq!(obs.state.to_f32().unwrap(), [0.5, -1.0]);
         assert_eq!(obs.instruction, "pick up the cup");
@@ -193,7 +291,13 @@ mod tests {
             cameras: vec!["observation/wrist_image".into(), "observation/image".into()],
             ..OpenpiConfig::default()
         };
-        let mut obs = observation(&decode(&frame, 1000).unwrap(), &config, 7).unwrap();
+        let mut obs = observation(
+            &decode(&frame, 1000).unwrap(),
+            &config,
+            7,
+            &Limits::default(),
+        )
+        .unwrap();
         let unnamed = obs.clone();
         name_cameras(&mut obs, &config, &[]);
         assert_eq!(obs, unnamed, "a positional model keeps the keys");
@@ -207,7 +311,13 @@ mod tests {
     fn channel_first_images_are_transposed() {
         // [C=3, H=1, W=2]: channel planes [0 1], [10 11], [20 21].
         let frame = libero_like(&[0.0], (&[3, 1, 2], &[0, 1, 10, 11, 20, 21]));
-        let obs = observation(&decode(&frame, 1000).unwrap(), &OpenpiConfig::default(), 0).unwrap();
+        let obs = observation(
+            &decode(&frame, 1000).unwrap(),
+            &OpenpiConfig::default(),
+            0,
+            &Limits::default(),
+        )
+        .unwrap();
         let ImagePayload::Raw { tensor } = &obs.images[0].payload else {
             panic!("raw image expected")
         };
@@ -227,10 +337,11 @@ mod tests {
             ..OpenpiConfig::default()
         };
         let dict = decode(&frame, 100).unwrap();
-        let obs = observation(&dict, &config, 0).unwrap();
+        let obs = observation(&dict, &config, 0, &Limits::default()).unwrap();
         assert_eq!(obs.state.to_f32().unwrap(), [1.0, 2.0, 3.0, 0.5]);
         assert_eq!(obs.instruction, "");
-        let missing = observation(&dict, &OpenpiConfig::default(), 0).unwrap_err();
+        let missing =
+            observation(&dict, &OpenpiConfig::default(), 0, &Limits::default()).unwrap_err();
         assert!(
             missing.to_string().contains("observation/state: missing"),
             "{missing}"
@@ -240,13 +351,24 @@ mod tests {
     #[test]
     fn wrong_shapes_and_types_are_refused_with_the_key() {
         let frame = libero_like(&[0.0], (&[4, 3], &[0; 12]));
-        let error =
-            observation(&decode(&frame, 100).unwrap(), &OpenpiConfig::default(), 0).unwrap_err();
+        let error = observation(
+            &decode(&frame, 100).unwrap(),
+            &OpenpiConfig::default(),
+            0,
+            &Limits::default(),
+        )
+        .unwrap_err();
         assert!(
             error.to_string().contains("observation/image") && error.to_string().contains("[4, 3]"),
             "{error}"
         );
-        let error = observation(&Value::UInt(3), &OpenpiConfig::default(), 0).unwrap_err();
+        let error = observation(
+            &Value::UInt(3),
+            &OpenpiConfig::default(),
+            0,
+            &Limits::default(),
+        )
+        .unwrap_err();
         assert!(
             error.to_string().contains("expected a msgpack map"),
             "{error}"

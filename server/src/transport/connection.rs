@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use kairos_sdk::client::{STREAM_REFUSED, close_code};
 use kairos_sdk::protocol::{
-    ErrorReply, FetchObservation, HEADER_LEN, Limits, Message, MinRate, PROTOCOL_VERSION,
+    ErrorReply, FetchObservation, FrameError, HEADER_LEN, Limits, Message, PROTOCOL_VERSION,
     ReadBounds, ReadFrameError, Welcome, read_message_bounded, write_message,
 };
 use quinn::{Connection, RecvStream, SendStream, VarInt};
@@ -13,7 +13,9 @@ use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, watch};
 use tokio::task::JoinSet;
 use tokio::time::Instant;
 
+use super::admission::HandshakePlace;
 use super::fairness::{RobotPlace, TokenBucket};
+use super::refusals::{Door, Reason};
 use super::{Gate, ServerContext};
 use crate::driver::RefetchAsk;
 use crate::validation::RequestError;
@@ -40,15 +42,6 @@ fn hello_limits(limits: &Limits) -> Limits {
             .saturating_add(256),
         ..limits.clone()
     }
-}
-
-/// The minimum upload rate of `[connections]`, if any.
-fn min_rate(context: &ServerContext) -> Option<MinRate> {
-    let connections = &context.connections;
-    (connections.min_upload_bytes_per_s > 0).then(|| MinRate {
-        bytes_per_s: connections.min_upload_bytes_per_s,
-        grace: connections.upload_grace(),
-    })
 }
 
 /// The per-connection state shared by its stream tasks.
@@ -90,7 +83,7 @@ impl Peer {
 /// it has no round to drain.
 pub(super) async fn serve(
     incoming: quinn::Incoming,
-    unauthenticated: OwnedSemaphorePermit,
+    unauthenticated: HandshakePlace,
     context: Arc<ServerContext>,
     gate: Arc<Gate>,
     mut stop: watch::Receiver<bool>,
@@ -103,10 +96,11 @@ pub(super) async fn serve(
     let (connection, robot, _places) = match admitted {
         Some(Admitted::Robot(connection, robot, places)) => (connection, robot, places),
         Some(Admitted::Worker(connection, deadline)) => {
-            // A worker takes no robot place; its registration shares the handshake budget.
+            // A worker takes no robot place; its registration holds the handshake budget's place
+            // (its source's share is given back: the handshake that share guarded is done).
             crate::worker::registration::serve(
                 connection,
-                unauthenticated,
+                unauthenticated.into_door_place(),
                 context,
                 gate,
                 deadline,
@@ -127,7 +121,7 @@ pub(super) async fn serve(
         robot,
         clock: Mutex::new(ClockEstimator::default()),
         bounds: ReadBounds {
-            min_rate: min_rate(&context),
+            min_rate: context.connections.min_upload_rate(),
             budget: Some(Arc::new(Semaphore::new(
                 usize::try_from(budget).unwrap_or(Semaphore::MAX_PERMITS),
             ))),
@@ -209,7 +203,12 @@ async fn admit(
             return None;
         }
         Err(_) => {
-            tracing::debug!(%remote, "handshake not done in time");
+            context.refusals.refuse(
+                Door::Quic,
+                Reason::HandshakeTimeout,
+                remote,
+                &"handshake not done within hello_timeout_ms",
+            );
             return None;
         }
     };
@@ -223,6 +222,12 @@ async fn admit(
             None
         }
         Err(_) => {
+            context.refusals.refuse(
+                Door::Quic,
+                Reason::HelloTimeout,
+                remote,
+                &"no accepted Hello within hello_timeout_ms",
+            );
             connection.close(
                 VarInt::from_u32(close_code::PROTOCOL_ERROR),
                 b"no Hello in time",
@@ -258,42 +263,44 @@ async fn hello(
         .accept_bi()
         .await
         .map_err(|e| protocol_error(e.to_string()))?;
-    let ip = connection.remote_address().ip();
+    let remote = connection.remote_address();
+    let ip = remote.ip();
     let bounds = ReadBounds {
-        min_rate: min_rate(context),
+        min_rate: context.connections.min_upload_rate(),
         budget: None,
     };
     let limits = hello_limits(context.limits());
+    let refuse = |reason: Reason, detail: &dyn std::fmt::Display| {
+        context.refusals.refuse(Door::Quic, reason, remote, detail);
+    };
     let refused = match read_message_bounded(&mut recv, &limits, &bounds).await {
         Ok(Some(Message::Hello(hello))) => match context.validator.hello(&hello) {
             Ok(_) if !gate.source_allowed(ip) => {
                 // Not even hashed: this source has used up its wrong tokens.
-                return Err((
-                    close_code::UNAUTHORIZED,
-                    "too many wrong tokens from this address; retry later".into(),
-                ));
+                let reason = "too many wrong tokens from this address; retry later";
+                refuse(Reason::WrongTokenLimit, &reason);
+                return Err((close_code::UNAUTHORIZED, reason.into()));
             }
             Ok(_) => match context.robots.authenticate(&hello.token) {
                 Some(robot) => {
                     let Some(place) = gate.authenticated() else {
                         let limit = context.connections.max_connections;
-                        return Err((
-                            close_code::AT_CAPACITY,
-                            format!("server at capacity ({limit} connections); retry later"),
-                        ));
+                        let reason =
+                            format!("server at capacity ({limit} connections); retry later");
+                        refuse(Reason::AtCapacity, &reason);
+                        return Err((close_code::AT_CAPACITY, reason));
                     };
                     let places = &context.fairness.places;
                     let Some(robot_place) = places.take(robot) else {
                         gate.robot_at_capacity();
-                        return Err((
-                            close_code::AT_CAPACITY,
-                            format!(
-                                "robot `{}` is at its capacity of {} connections \
-                                 ([connections] max_connections_per_robot); retry later",
-                                context.robots.name(robot),
-                                places.cap()
-                            ),
-                        ));
+                        let reason = format!(
+                            "robot `{}` is at its capacity of {} connections \
+                             ([connections] max_connections_per_robot); retry later",
+                            context.robots.name(robot),
+                            places.cap()
+                        );
+                        refuse(Reason::RobotAtCapacity, &reason);
+                        return Err((close_code::AT_CAPACITY, reason));
                     };
                     let places = Places {
                         _robot: robot_place,
@@ -315,28 +322,39 @@ async fn hello(
                 }
                 None => {
                     gate.token_failed(ip);
+                    refuse(Reason::Unauthorized, &"unknown token");
                     (close_code::UNAUTHORIZED, RequestError::Unauthorized)
                 }
             },
-            Err(error) => (close_code::PROTOCOL_ERROR, error),
+            Err(error) => {
+                refuse(Reason::BadHello, &error);
+                (close_code::PROTOCOL_ERROR, error)
+            }
         },
-        Ok(Some(other)) => (
-            close_code::PROTOCOL_ERROR,
-            RequestError::UnexpectedMessage {
+        Ok(Some(other)) => {
+            let error = RequestError::UnexpectedMessage {
                 expected: "Hello",
                 got: other.kind().to_string(),
-            },
-        ),
+            };
+            refuse(Reason::BadHello, &error);
+            (close_code::PROTOCOL_ERROR, error)
+        }
         Ok(None) => return Err(protocol_error("stream closed before Hello".into())),
-        Err(ReadFrameError::Frame(error)) => (close_code::PROTOCOL_ERROR, error.into()),
-        Err(error @ ReadFrameError::TooSlow { .. }) => (
-            close_code::PROTOCOL_ERROR,
-            RequestError::TooSlow(error.to_string()),
-        ),
+        Err(ReadFrameError::Frame(error)) => {
+            let error = RequestError::from(error);
+            refuse(Reason::BadHello, &error);
+            (close_code::PROTOCOL_ERROR, error)
+        }
+        Err(ReadFrameError::TooSlow(slow)) => {
+            refuse(Reason::TooSlow, &slow);
+            (
+                close_code::PROTOCOL_ERROR,
+                RequestError::TooSlow(slow.to_string()),
+            )
+        }
         Err(ReadFrameError::Read(error)) => return Err(protocol_error(error.to_string())),
     };
     let (code, error) = refused;
-    tracing::info!(remote = %connection.remote_address(), %error, "connection refused");
     let _ = recv.stop(VarInt::from_u32(STREAM_REFUSED));
     send_error(&mut send, &error, context).await;
     let _ = tokio::time::timeout(LINGER, send.stopped()).await;
@@ -401,9 +419,21 @@ async fn stream(
             got: other.kind().to_string(),
         }),
         Ok(None) => Ok(()),
-        Err(ReadFrameError::Frame(error)) => Err(error.into()),
-        Err(error @ ReadFrameError::TooSlow { .. }) => {
-            Err(RequestError::TooSlow(error.to_string()))
+        Err(ReadFrameError::Frame(error)) => {
+            if matches!(error, FrameError::FrameTooLarge { .. }) {
+                let remote = peer.connection.remote_address();
+                context
+                    .refusals
+                    .refuse(Door::Quic, Reason::TooLarge, remote, &error);
+            }
+            Err(error.into())
+        }
+        Err(ReadFrameError::TooSlow(slow)) => {
+            let remote = peer.connection.remote_address();
+            context
+                .refusals
+                .refuse(Door::Quic, Reason::TooSlow, remote, &slow);
+            Err(RequestError::TooSlow(slow.to_string()))
         }
         // The stream or the connection is gone; nobody to answer.
         Err(ReadFrameError::Read(_)) => Ok(()),
@@ -445,12 +475,21 @@ async fn round(
     send: &mut SendStream,
     recv: &mut RecvStream,
 ) -> Result<(), RequestError> {
+    let over_rate = |error: RequestError| {
+        let remote = peer.connection.remote_address();
+        context
+            .refusals
+            .refuse(Door::Quic, Reason::RoundRate, remote, &error);
+        error
+    };
     peer.rounds()
         .try_take(super::fairness::now())
-        .map_err(|retry_after| RequestError::RateLimited {
-            who: "this connection".into(),
-            limit: "rounds_per_s_per_connection",
-            retry_after,
+        .map_err(|retry_after| {
+            over_rate(RequestError::RateLimited {
+                who: "this connection".into(),
+                limit: "rounds_per_s_per_connection",
+                retry_after,
+            })
         })?;
     let clock = peer.clock(context, submit.sent_at_us, submit.attempt == 0);
     let (task, round) = (submit.task, submit.round);
@@ -464,6 +503,7 @@ async fn round(
             if matches!(error, RequestError::RateLimited { .. }) {
                 // Refused for its robot's rate, not this connection's.
                 peer.rounds().give_back();
+                return Err(over_rate(error));
             }
             return Err(error);
         }

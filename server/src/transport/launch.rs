@@ -133,6 +133,8 @@ pub struct ServerReport {
     pub driver: DriverStats,
     /// The openpi endpoint's connections.
     pub openpi: crate::openpi::OpenpiStats,
+    /// Clients every endpoint's guards turned away (`kairos_refusals_total`).
+    pub refusals: super::refusals::RefusalCounts,
     /// Why the driver died, when it did: the server stopped because of it (and `kairos serve`
     /// exits with an error, so that an orchestrator restarts it).
     pub driver_failure: Option<String>,
@@ -296,7 +298,10 @@ pub async fn start(
             metrics: metrics.clone(),
         },
         metrics: metrics.clone(),
+        wrong_tokens: Arc::new(super::admission::WrongTokens::new(&config.connections)),
+        refusals: super::refusals::Refusals::new(&metrics),
     });
+    let refusals = context.refusals.clone();
     let openpi_task = openpi_listener.map(|listener| {
         tokio::spawn(crate::openpi::run(
             listener,
@@ -328,6 +333,7 @@ pub async fn start(
             transport,
             driver,
             openpi,
+            refusals: refusals.counts(),
             driver_failure: report_driver.failure(),
         }
     });

@@ -2,18 +2,22 @@
 //!
 //! [`run`] takes a bound quinn endpoint and a shutdown future (mini-redis's `run(listener,
 //! shutdown)`). Admission has two budgets, so that clients that never authenticate cannot take
-//! robots' places:
+//! robots' places (the guards in [`admission`] are shared with the openpi endpoint):
 //! - A connection attempt takes one of `connections.max_unauthenticated` places for its
 //!   handshake and `Hello`, which must both be done within `connections.hello_timeout_ms` of its
-//!   first packet. Over that budget the attempt is refused without a handshake (a QUIC
-//!   `CONNECTION_REFUSED`); over half of it, an attempt from an address QUIC has not validated
-//!   gets a Retry first, so spoofed or half-open handshakes take no place at all.
+//!   first packet ([`admission::Handshakes`]). Over that budget the attempt is refused without a
+//!   handshake (a QUIC `CONNECTION_REFUSED`); over half of it, an attempt from an address QUIC has
+//!   not validated gets a Retry first, so spoofed or half-open handshakes take no place at all,
+//!   and a validated source holds at most `max_unauthenticated_per_source` places.
 //! - A `Hello` with a valid token moves the connection to one of its robot's
 //!   `connections.max_connections_per_robot` places and to one of `connections.max_connections`
 //!   places; over either the connection is closed with `close_code::AT_CAPACITY` and a reason
 //!   ([`fairness`]: one tenant cannot take every place).
-//! - Wrong tokens are rate-limited per source address ([`admission::FailedAuthLimiter`]): a
-//!   source over its budget is refused before its token is looked at, at the first packet.
+//! - Wrong tokens are rate-limited per source address ([`admission::WrongTokens`], one for the
+//!   whole server): a source over its budget is refused before its token is looked at, at the
+//!   first packet.
+//!
+//! Every refusal is counted and logged through [`refusals::Refusals`].
 //!
 //! Before `Hello`, a connection may open one stream and have a few KiB in flight; after it, the
 //! robot gets `max_streams_per_connection` streams and a receive window of
@@ -40,12 +44,14 @@ mod admit;
 mod connection;
 pub mod fairness;
 pub mod launch;
+pub mod log_throttle;
+pub mod refusals;
 pub mod tls;
 
 use std::collections::HashMap;
 use std::future::Future;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use kairos_sdk::client::close_code;
@@ -60,7 +66,9 @@ use crate::driver::DriverHandle;
 use crate::validation::{DecodePool, Validator};
 use kairos_core::action::ActionManager;
 use kairos_core::scheduler::RobotId;
-use kairos_core::sync::lock;
+
+use self::admission::{HandshakeRefusal, Handshakes, WrongTokens};
+use self::refusals::{Door, Reason, Refusals};
 
 /// How long shutdown waits for connections to deliver the answers of accepted rounds.
 pub const DRAIN_TIMEOUT: Duration = Duration::from_secs(10);
@@ -133,6 +141,10 @@ pub struct ServerContext {
     pub fairness: fairness::Fairness,
     /// The server's metrics, for the counts the connection tasks own.
     pub metrics: crate::metrics::Metrics,
+    /// Wrong tokens per source, counted across every endpoint.
+    pub wrong_tokens: Arc<WrongTokens>,
+    /// Where every endpoint counts and logs its refusals.
+    pub refusals: Refusals,
 }
 
 impl ServerContext {
@@ -142,20 +154,13 @@ impl ServerContext {
     }
 }
 
-/// What [`run`] saw.
+/// What [`run`] saw (its refusals are in [`ServerContext::refusals`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct TransportStats {
     /// Connections authenticated and admitted.
     pub admitted: u64,
-    /// Authenticated connections closed at once because `max_connections` were open, or their
-    /// robot held `max_connections_per_robot`.
-    pub refused: u64,
-    /// Connection attempts refused without a handshake: `max_unauthenticated` were in progress.
-    pub refused_unauthenticated: u64,
     /// Connection attempts answered with a Retry (address validation under load).
     pub retried: u64,
-    /// Connection attempts refused because their source sent too many wrong tokens.
-    pub rate_limited: u64,
 }
 
 /// What to do with a connection attempt.
@@ -192,70 +197,63 @@ pub fn admission(
     }
 }
 
-/// Admission state shared by [`run`] and the connection tasks.
+/// Admission state of one endpoint, shared by its accept loop and its connection tasks: its
+/// places for authenticated connections, and the server's wrong-token limiter.
 pub(crate) struct Gate {
     /// Places for authenticated connections (`max_connections`).
     authenticated: Arc<Semaphore>,
-    /// Failed tokens per source.
-    failed_tokens: Mutex<admission::FailedAuthLimiter>,
+    /// Failed tokens per source (the server's, shared by every endpoint).
+    wrong_tokens: Arc<WrongTokens>,
     admitted: AtomicU64,
-    refused: AtomicU64,
 }
 
 impl Gate {
-    fn new(config: &ConnectionsConfig) -> Gate {
+    /// `max_connections` places, and `context`'s wrong-token limiter.
+    pub(crate) fn new(context: &ServerContext) -> Gate {
         Gate {
-            authenticated: Arc::new(Semaphore::new(config.max_connections)),
-            failed_tokens: Mutex::new(admission::FailedAuthLimiter::new(
-                config.failed_token_burst,
-                config.failed_tokens_per_minute,
-                config.failed_token_sources,
-            )),
+            authenticated: Arc::new(Semaphore::new(context.connections.max_connections)),
+            wrong_tokens: context.wrong_tokens.clone(),
             admitted: AtomicU64::new(0),
-            refused: AtomicU64::new(0),
         }
-    }
-
-    fn limiter(&self) -> std::sync::MutexGuard<'_, admission::FailedAuthLimiter> {
-        // A panic while holding this lock leaves at worst one bucket stale.
-        lock(&self.failed_tokens)
     }
 
     /// Whether `ip` may try a token now.
     pub(crate) fn source_allowed(&self, ip: std::net::IpAddr) -> bool {
-        self.limiter().allows(ip, now())
+        self.wrong_tokens.allows(ip)
     }
 
     /// Counts a wrong token from `ip`.
     pub(crate) fn token_failed(&self, ip: std::net::IpAddr) {
-        self.limiter().record_failure(ip, now());
+        self.wrong_tokens.failed(ip);
     }
 
     /// A place for an authenticated connection, if one is free.
     pub(crate) fn authenticated(&self) -> Option<tokio::sync::OwnedSemaphorePermit> {
-        match self.authenticated.clone().try_acquire_owned() {
-            Ok(permit) => {
-                self.admitted.fetch_add(1, Ordering::Relaxed);
-                Some(permit)
-            }
-            Err(_) => {
-                self.refused.fetch_add(1, Ordering::Relaxed);
-                None
-            }
-        }
+        let permit = self.authenticated.clone().try_acquire_owned().ok()?;
+        self.admitted.fetch_add(1, Ordering::Relaxed);
+        Some(permit)
     }
 
-    /// Counts an authenticated connection refused because its robot held all its places (it
-    /// had been counted as admitted when it took a place among all robots', given back now).
+    /// Exports its places as `kairos_robot_connections{door}` in `context`'s metrics.
+    pub(crate) fn export_places(&self, door: &'static str, context: &ServerContext) {
+        context.metrics.watch_connection_places(
+            door,
+            &self.authenticated,
+            context.connections.max_connections,
+        );
+    }
+
+    /// Takes back the count of an authenticated connection refused because its robot held all
+    /// its places (it was counted as admitted when it took a place among all robots'); the
+    /// refusal itself is counted by the caller, in [`Refusals`].
     pub(crate) fn robot_at_capacity(&self) {
         self.admitted.fetch_sub(1, Ordering::Relaxed);
-        self.refused.fetch_add(1, Ordering::Relaxed);
     }
-}
 
-/// The limiter's clock: tokio's, so tests with a paused clock control it.
-fn now() -> std::time::Instant {
-    tokio::time::Instant::now().into_std()
+    /// Connections given an authenticated place so far.
+    pub(crate) fn admitted(&self) -> u64 {
+        self.admitted.load(Ordering::Relaxed)
+    }
 }
 
 /// Serves `endpoint` until `shutdown` resolves, then drains (see the module docs).
@@ -264,14 +262,10 @@ pub async fn run(
     context: Arc<ServerContext>,
     shutdown: impl Future<Output = ()>,
 ) -> TransportStats {
-    let gate = Arc::new(Gate::new(&context.connections));
-    context.metrics.watch_connection_places(
-        "quic",
-        &gate.authenticated,
-        context.connections.max_connections,
-    );
-    let max_unauthenticated = context.connections.max_unauthenticated;
-    let unauthenticated = Arc::new(Semaphore::new(max_unauthenticated));
+    let gate = Arc::new(Gate::new(&context));
+    gate.export_places("quic", &context);
+    let handshakes = Handshakes::for_door(&context.connections);
+    let refusals = context.refusals.clone();
     let (stop_tx, stop_rx) = watch::channel(false);
     let mut connections = JoinSet::new();
     let mut stats = TransportStats::default();
@@ -280,24 +274,28 @@ pub async fn run(
         tokio::select! {
             incoming = endpoint.accept() => {
                 let Some(incoming) = incoming else { break };
+                let remote = incoming.remote_address();
+                let validated = incoming.remote_address_validated();
                 let decision = admission(
-                    gate.source_allowed(incoming.remote_address().ip()),
-                    incoming.remote_address_validated(),
+                    gate.source_allowed(remote.ip()),
+                    validated,
                     incoming.may_retry(),
-                    max_unauthenticated - unauthenticated.available_permits(),
-                    max_unauthenticated,
+                    handshakes.in_progress(),
+                    handshakes.max(),
                 );
-                let permit = match decision {
-                    Admission::Handshake => unauthenticated.clone().try_acquire_owned().ok(),
+                let place = match decision {
+                    Admission::Handshake => {
+                        Some(handshakes.try_take(validated.then_some(remote.ip())))
+                    }
                     _ => None,
                 };
-                match (decision, permit) {
-                    (Admission::Handshake, Some(permit)) => {
+                match (decision, place) {
+                    (Admission::Handshake, Some(Ok(place))) => {
                         let context = context.clone();
                         let gate = gate.clone();
                         let stop = stop_rx.clone();
                         connections.spawn(async move {
-                            connection::serve(incoming, permit, context, gate, stop).await;
+                            connection::serve(incoming, place, context, gate, stop).await;
                         });
                     }
                     (Admission::Retry, _) => {
@@ -307,11 +305,30 @@ pub async fn run(
                         }
                     }
                     (Admission::RateLimited, _) => {
-                        stats.rate_limited += 1;
+                        refusals.refuse(
+                            Door::Quic,
+                            Reason::WrongTokenLimit,
+                            remote,
+                            &"too many wrong tokens from this address",
+                        );
+                        incoming.refuse();
+                    }
+                    (_, Some(Err(HandshakeRefusal::SourceBusy))) => {
+                        refusals.refuse(
+                            Door::Quic,
+                            Reason::SourceHandshakes,
+                            remote,
+                            &"this address has its share of handshakes in progress",
+                        );
                         incoming.refuse();
                     }
                     (Admission::Refuse | Admission::Handshake, _) => {
-                        stats.refused_unauthenticated += 1;
+                        refusals.refuse(
+                            Door::Quic,
+                            Reason::HandshakeBudget,
+                            remote,
+                            &"every handshake place is taken",
+                        );
                         incoming.refuse();
                     }
                 }
@@ -342,8 +359,7 @@ pub async fn run(
         b"server shutting down",
     );
     let _ = tokio::time::timeout(Duration::from_secs(1), endpoint.wait_idle()).await;
-    stats.admitted = gate.admitted.load(Ordering::Relaxed);
-    stats.refused = gate.refused.load(Ordering::Relaxed);
+    stats.admitted = gate.admitted();
     stats
 }
 

@@ -29,6 +29,7 @@ use crate::config::WorkersConfig;
 use crate::credentials::hash_token;
 use crate::metrics::{Metrics, WorkerRemoval};
 use crate::pool::{EngineInstance, same_shapes};
+use crate::transport::refusals::{Door, Reason};
 use crate::transport::{Gate, ServerContext};
 use kairos_core::scheduler::Tier;
 
@@ -69,6 +70,12 @@ pub(crate) async fn serve(
             return;
         }
         Err(_) => {
+            context.refusals.refuse(
+                Door::Workers,
+                Reason::RegisterTimeout,
+                remote,
+                &"no Register within hello_timeout_ms",
+            );
             connection.close(
                 VarInt::from_u32(close_code::PROTOCOL_ERROR),
                 b"no Register in time",
@@ -228,8 +235,7 @@ async fn register(
         }
         Err(error) => return Err(protocol_error(error.to_string())),
     };
-    let ip = connection.remote_address().ip();
-    let verdict = check(context, gate, ip, &register);
+    let verdict = check(context, gate, connection.remote_address(), &register);
     let (code, reason, retryable) = match verdict {
         Ok(()) => {
             let profile = match profile_from_wire(register.profile.clone()) {
@@ -299,9 +305,10 @@ async fn register(
 fn check(
     context: &ServerContext,
     gate: &Gate,
-    ip: std::net::IpAddr,
+    remote: std::net::SocketAddr,
     register: &Register,
 ) -> Result<(), (u32, String, bool)> {
+    let ip = remote.ip();
     let Some(expected) = context.workers.token_hash else {
         return Err((
             worker_close::REFUSED,
@@ -310,14 +317,20 @@ fn check(
         ));
     };
     if !gate.source_allowed(ip) {
-        return Err((
-            close_code::UNAUTHORIZED,
-            "too many wrong tokens from this address; retry later".into(),
-            true,
-        ));
+        let reason = "too many wrong tokens from this address; retry later";
+        context
+            .refusals
+            .refuse(Door::Workers, Reason::WrongTokenLimit, remote, &reason);
+        return Err((close_code::UNAUTHORIZED, reason.into(), true));
     }
     if hash_token(&register.token) != expected {
         gate.token_failed(ip);
+        context.refusals.refuse(
+            Door::Workers,
+            Reason::Unauthorized,
+            remote,
+            &"unknown worker token",
+        );
         return Err((
             close_code::UNAUTHORIZED,
             "unknown worker token (robot tokens cannot register workers)".into(),

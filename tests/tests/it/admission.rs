@@ -11,6 +11,7 @@ use kairos_sdk::client::{ClientError, close_code};
 use kairos_sdk::protocol::{Hello, Message, PROTOCOL_VERSION};
 use kairos_sdk::tls::ServerTrust;
 use kairos_sdk::transport::{TransportTuning, client_config};
+use kairos_server::transport::refusals::{Door, Reason};
 use kairos_tests::harness::{RawConnection, ServerOptions, TestServer, one_round};
 
 use super::auth::application_close_code;
@@ -124,7 +125,7 @@ async fn full_handshakes_that_never_say_hello_do_not_take_robots_places() {
     }
     let report = server.shutdown().await;
     assert_eq!(report.transport.admitted, 1);
-    assert_eq!(report.transport.refused, 0);
+    assert_eq!(report.refusals.get(Door::Quic, Reason::AtCapacity), 0);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -166,7 +167,9 @@ async fn max_connections_counts_authenticated_robots_only() {
     b.close().await;
     let report = server.shutdown().await;
     assert_eq!(report.transport.admitted, 2);
-    assert_eq!(report.transport.refused, 1);
+    assert_eq!(report.refusals.get(Door::Quic, Reason::AtCapacity), 1);
+    // The silent connection's missing Hello is counted too.
+    assert_eq!(report.refusals.get(Door::Quic, Reason::HelloTimeout), 1);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -214,5 +217,11 @@ async fn a_source_that_sends_wrong_tokens_is_refused_before_its_token_is_read() 
     one_round(&robot, 1, 0).await.unwrap();
     robot.close().await;
     let report = server.shutdown().await;
-    assert_eq!(report.transport.rate_limited, 1, "{:?}", report.transport);
+    assert_eq!(
+        report.refusals.get(Door::Quic, Reason::WrongTokenLimit),
+        1,
+        "{}",
+        report.refusals
+    );
+    assert_eq!(report.refusals.get(Door::Quic, Reason::Unauthorized), 3);
 }

@@ -9,6 +9,10 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use kairos_sdk::protocol::worker::{
+    Chunks, Drain, Heartbeat, ProfilePointWire, ProfileWire, Refused, Register, Registered,
+    RunBatch, WorkChunk, WorkRequest, WorkResult, WorkerMessage, WorkerTier,
+};
 use kairos_sdk::protocol::{
     DType, EndTask, ErrorCode, ErrorReply, FetchObservation, FreshObservation, Hello,
     HorizonSelection, Image, ImagePayload, IntervalUs, LastExecInfo, Limits, Message, ModelInfo,
@@ -20,6 +24,7 @@ use kairos_sdk::trace::{
 };
 use kairos_server::config::Config;
 use kairos_server::fuzz_targets::{TARGETS, Target};
+use kairos_server::openpi::msgpack::{Value, Writer};
 
 fn fuzz_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz")
@@ -118,6 +123,16 @@ fn seeds() -> Vec<(&'static str, &'static str, Vec<u8>)> {
     let mut jpeg = vec![0];
     jpeg.extend(encoded(image::ImageFormat::Jpeg));
     seeds.push(("image", "rgb8x8.jpg", jpeg));
+    seeds.push(("openpi_msgpack", "libero.msgpack", openpi_libero()));
+    seeds.push(("openpi_msgpack", "every_kind.msgpack", msgpack_every_kind()));
+    seeds.push(("openpi_observation", "libero.msgpack", openpi_libero()));
+    seeds.push(("openpi_observation", "aloha_chw.msgpack", openpi_aloha()));
+    for (file, message) in worker_messages() {
+        let bytes = message
+            .encode(u32::MAX)
+            .expect("a seed worker message encodes");
+        seeds.push(("worker", file, bytes));
+    }
     for (file, head) in [
         (
             "scrape.txt",
@@ -137,6 +152,189 @@ fn seeds() -> Vec<(&'static str, &'static str, Vec<u8>)> {
         seeds.push(("http", file, head.as_bytes().to_vec()));
     }
     seeds
+}
+
+/// A LIBERO-style openpi request as `openpi-client` sends it: an `f32` state of the fuzz
+/// model's four values, an 8x8 RGB `uint8` image in `[H, W, C]`, a prompt.
+fn openpi_libero() -> Vec<u8> {
+    let mut w = Writer::new();
+    w.map(3);
+    w.str("observation/state")
+        .ndarray_f32(&[4], &[0.1, -0.2, 0.3, 0.4]);
+    let pixels: Vec<u8> = (0..8 * 8 * 3).map(|i| (i * 5 % 256) as u8).collect();
+    w.str("observation/image")
+        .ndarray_raw(&[8, 8, 3], "|u1", &pixels);
+    w.str("prompt").str("pick up the black bowl");
+    w.finish()
+}
+
+/// An ALOHA-style request: a channel-first `f32` image (transposed by the key map), a wrist
+/// image in `uint16` (converted to `f32`), the state as two keys' worth in one `f64` array, a
+/// numpy string scalar as the prompt.
+fn openpi_aloha() -> Vec<u8> {
+    let mut w = Writer::new();
+    w.map(4);
+    w.str("observation/state");
+    let state: Vec<u8> = [0.5f64, -0.5, 0.25, 1.0]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    w.ndarray_raw(&[4], "<f8", &state);
+    let chw: Vec<f32> = (0..3 * 4 * 5).map(|i| i as f32 / 60.0).collect();
+    w.str("observation/image").ndarray_f32(&[3, 4, 5], &chw);
+    let wrist: Vec<u8> = (0..4 * 4u16)
+        .flat_map(|v| (v * 1000).to_le_bytes())
+        .collect();
+    w.str("observation/wrist_image")
+        .ndarray_raw(&[4, 4, 1], "<u2", &wrist);
+    w.str("prompt").map(3);
+    w.bin(b"__npgeneric__").bool(true);
+    w.bin(b"data").str("fold the towel");
+    w.bin(b"dtype").str("<U14");
+    w.finish()
+}
+
+/// One value of every msgpack kind the decoder reads.
+fn msgpack_every_kind() -> Vec<u8> {
+    let mut w = Writer::new();
+    w.map(9);
+    w.str("nil").value(&Value::Nil);
+    w.str("bool").bool(false);
+    w.str("uint").uint(1 << 40);
+    w.str("int").int(-300);
+    w.str("float").float(-0.125);
+    w.str("bin").bin(&[0, 1, 2, 255]);
+    w.str("ext").ext(5, &[1, 2, 3]);
+    w.str("nested").array(2);
+    w.array(1).map(1);
+    w.str("deep").str(&"x".repeat(40));
+    w.uint(7);
+    w.str("scalar").map(3);
+    w.bin(b"__npgeneric__").bool(true);
+    w.bin(b"data").float(2.5);
+    w.bin(b"dtype").str("<f8");
+    w.finish()
+}
+
+/// One worker-protocol message of every kind, shaped for the fuzz targets' model (state of 4,
+/// chunks of 16 actions of 4, 4 steps).
+fn worker_messages() -> Vec<(&'static str, WorkerMessage)> {
+    let model = ModelInfo {
+        name: "fuzz".into(),
+        chunk_len: 16,
+        action_dim: 4,
+        state_dim: 4,
+        steps: 4,
+        max_images: 2,
+        cameras: Vec::new(),
+    };
+    let f32s = |shape: Vec<u32>| {
+        let len: u32 = shape.iter().product();
+        let values: Vec<f32> = (0..len).map(|i| i as f32 / 100.0).collect();
+        Tensor::from_f32(shape, &values).expect("a tensor")
+    };
+    vec![
+        (
+            "register.bin",
+            WorkerMessage::Register(Register {
+                protocol: 1,
+                token: "kairos_worker_0123456789abcdef".into(),
+                worker_id: "gpu-0".into(),
+                model,
+                profile: ProfileWire {
+                    model: "fuzz".into(),
+                    device: "cuda:0".into(),
+                    points: vec![
+                        ProfilePointWire {
+                            batch: 1,
+                            latency_ms: 30.0,
+                        },
+                        ProfilePointWire {
+                            batch: 4,
+                            latency_ms: 60.0,
+                        },
+                    ],
+                    max_batch: 4,
+                },
+                max_batch: 4,
+                tier: WorkerTier::Auto,
+            }),
+        ),
+        (
+            "registered.bin",
+            WorkerMessage::Registered(Registered {
+                protocol: 1,
+                engine: "worker-gpu-0".into(),
+                heartbeat_ms: 500,
+            }),
+        ),
+        (
+            "refused.bin",
+            WorkerMessage::Refused(Refused {
+                reason: "the worker serves another model".into(),
+                retryable: false,
+            }),
+        ),
+        (
+            "heartbeat.bin",
+            WorkerMessage::Heartbeat(Heartbeat {
+                load: 1,
+                batches: 12,
+            }),
+        ),
+        (
+            "drain.bin",
+            WorkerMessage::Drain(Drain {
+                reason: "SIGTERM".into(),
+            }),
+        ),
+        (
+            "run_batch.bin",
+            WorkerMessage::RunBatch(RunBatch {
+                batch_id: 9,
+                attempt: 0,
+                deadline_ms: 2_000,
+                requests: vec![WorkRequest {
+                    state: f32s(vec![4]),
+                    images: vec![Image {
+                        camera: "cam0".into(),
+                        payload: ImagePayload::Raw {
+                            tensor: Tensor {
+                                dtype: DType::U8,
+                                shape: vec![4, 4, 3],
+                                data: (0..48).collect(),
+                            },
+                        },
+                    }],
+                    instruction: "pick".into(),
+                    samples: 1,
+                    seed: 42,
+                }],
+            }),
+        ),
+        (
+            "chunks.bin",
+            WorkerMessage::Chunks(Chunks {
+                batch_id: 9,
+                attempt: 0,
+                compute_us: 25_000,
+                results: vec![
+                    WorkResult {
+                        chunk: Some(WorkChunk {
+                            actions: f32s(vec![1, 16, 4]),
+                            updates: f32s(vec![1, 4, 16, 4]),
+                            noise: f32s(vec![1, 16, 4]),
+                        }),
+                        error: None,
+                    },
+                    WorkResult {
+                        chunk: None,
+                        error: Some("state[1] is not finite".into()),
+                    },
+                ],
+            }),
+        ),
+    ]
 }
 
 /// An 8x8 RGB gradient as a file.

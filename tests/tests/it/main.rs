@@ -21,6 +21,7 @@ mod malformed;
 mod metrics;
 mod metrics_listener;
 mod openpi;
+mod openpi_guards;
 mod plugins_served;
 mod replay_horizon;
 mod sim_runner_agreement;

@@ -11,6 +11,7 @@ use std::sync::{Arc, Mutex, mpsc};
 
 use kairos_engine::{ActionChunk, ActionModel, ActionRequest, EngineError, ModelSpec};
 use kairos_server::config::Config;
+use kairos_server::transport::refusals::{Door, Reason};
 use kairos_tests::harness::{ServerOptions, TestServer};
 use kairos_tests::model::TestFlow;
 use serde_json::Value;
@@ -259,7 +260,7 @@ async fn a_wrong_or_missing_key_is_refused_before_any_observation() {
     let ok = check(&server, "basic", &["token-two", "1"]).await;
     assert_eq!(ok["metadata"]["robot"], "arm-2");
     let report = server.shutdown().await;
-    assert_eq!(report.openpi.refused, 2);
+    assert_eq!(report.refusals.get(Door::Openpi, Reason::Unauthorized), 2);
     assert_eq!(report.openpi.connections, 1);
 }
 

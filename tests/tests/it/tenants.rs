@@ -14,6 +14,7 @@ use kairos_sdk::protocol::{ErrorCode, Hello, HorizonSelection, Message, PROTOCOL
 use kairos_server::config::PluginConfig;
 use kairos_server::plugin::PluginKind;
 use kairos_server::plugin::componentize::componentize;
+use kairos_server::transport::refusals::{Door, Reason};
 use kairos_tests::harness::{
     RawConnection, RobotPlan, ServerOptions, TestServer, one_round, run_task,
 };
@@ -94,7 +95,7 @@ async fn one_robot_cannot_take_every_connection_place() {
         client.close().await;
     }
     let report = server.shutdown().await;
-    assert_eq!(report.transport.refused, 1);
+    assert_eq!(report.refusals.get(Door::Quic, Reason::RobotAtCapacity), 1);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -140,7 +141,9 @@ async fn rounds_are_rate_limited_per_connection_and_per_robot() {
     for client in [a1, a2, b] {
         client.close().await;
     }
-    server.shutdown().await;
+    let report = server.shutdown().await;
+    // Both refusals are counted (`kairos_refusals_total{door="quic",reason="round_rate"}`).
+    assert_eq!(report.refusals.get(Door::Quic, Reason::RoundRate), 2);
 }
 
 /// A horizon plugin that traps whenever the round passes it parameters, and answers `h_max`

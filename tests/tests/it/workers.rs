@@ -20,6 +20,7 @@ use kairos_server::data_dir::DataDir;
 use kairos_server::driver::EngineView;
 use kairos_server::metrics::{Metrics, Readiness};
 use kairos_server::pool::{EngineInstance, LocalEngine};
+use kairos_server::transport::refusals::{Door, Reason};
 use kairos_server::worker::{WorkerError, WorkerOptions, WorkerReport, run};
 use kairos_tests::harness::{RobotPlan, ServerOptions, TestServer, run_fleet};
 use kairos_tests::model::TestFlow;
@@ -156,7 +157,11 @@ async fn only_the_worker_token_registers_and_the_worker_checks_the_pin() {
     let _ = stop.send(());
     let report = task.await.unwrap().unwrap();
     assert!(report.batches >= 1, "{report:?}");
-    server.shutdown().await;
+    let report = server.shutdown().await;
+    // The robot token's registration was a refusal at the workers' door; the robot connection
+    // with the worker token one at the robots'.
+    assert_eq!(report.refusals.get(Door::Workers, Reason::Unauthorized), 1);
+    assert_eq!(report.refusals.get(Door::Quic, Reason::Unauthorized), 1);
 }
 
 /// GETs `path` from a metrics endpoint (real TCP, `Connection: close`); the body.
