@@ -54,7 +54,7 @@ pub mod upload;
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use futures::{SinkExt, StreamExt};
@@ -83,6 +83,7 @@ use crate::transport::{DRAIN_TIMEOUT, Gate, ServerContext};
 use crate::validation::RequestError;
 use kairos_core::clock_map::ClockMap;
 use kairos_core::scheduler::RobotId;
+use kairos_core::sync::lock;
 
 /// Most msgpack values one request may hold (an observation dict has tens).
 pub const MAX_VALUES: usize = 4096;
@@ -159,10 +160,7 @@ impl Endpoint {
     /// How `robot`'s messages are read: the minimum rate, and its budget (one per robot; the
     /// table holds at most one entry per configured robot).
     fn read_bounds(&self, robot: RobotId) -> ReadBounds {
-        let budget = self
-            .budgets
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
+        let budget = lock(&self.budgets)
             .entry(robot)
             .or_insert_with(|| Arc::new(Semaphore::new(self.budget_bytes)))
             .clone();

@@ -18,12 +18,13 @@
 
 use std::collections::HashMap;
 use std::net::IpAddr;
-use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 use crate::config::ConnectionsConfig;
+use kairos_core::sync::lock;
 
 /// The key a source address is counted under: the IPv4 address, or the IPv6 /64 prefix.
 /// IPv4-mapped IPv6 addresses count as their IPv4 address.
@@ -155,11 +156,6 @@ impl FailedAuthLimiter {
 /// The limiters' clock: tokio's, so tests with a paused clock control it.
 pub(crate) fn now() -> Instant {
     tokio::time::Instant::now().into_std()
-}
-
-fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
-    // A panic while holding one of these locks leaves at worst one count or bucket stale.
-    mutex.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
 /// The failed-token limiter of the whole server ([`FailedAuthLimiter`] on tokio's clock), shared

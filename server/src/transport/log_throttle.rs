@@ -4,8 +4,10 @@
 //! key) may write one line, then none for `interval`; the next line says how many events went
 //! unlogged in between. Time is an argument, so the rule is tested without a clock.
 
-use std::sync::{Mutex, PoisonError};
+use std::sync::Mutex;
 use std::time::{Duration, Instant};
+
+use kairos_core::sync::lock;
 
 #[derive(Clone, Copy, Debug, Default)]
 struct Slot {
@@ -36,7 +38,7 @@ impl LogThrottle {
     /// A key out of range is always silent.
     pub fn admit(&self, key: usize, now: Instant) -> Option<u64> {
         // A panic while holding this lock leaves at worst one count stale.
-        let mut slots = self.slots.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut slots = lock(&self.slots);
         let slot = slots.get_mut(key)?;
         let due = slot
             .last
