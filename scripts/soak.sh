@@ -3,6 +3,9 @@
 #
 #   scripts/soak.sh [MINUTES] [ROBOTS]           soak (defaults: 10 minutes, 1000 robots)
 #   scripts/soak.sh --faults [ROBOTS] [ROUNDS]   fault run (defaults: 100 robots, 8 rounds, 2 Hz)
+#   scripts/soak.sh --mixed [MINUTES] [BASELINE_MINUTES]
+#                                                mixed run with attackers, then a baseline
+#                                                without them (defaults: 10 and MINUTES; 0: none)
 #
 # Soak: starts `kairos serve` (the built-in model, a fresh data directory in a temp dir), runs
 # fleets of ROBOTS simulated robots (`kairos robot`, one QUIC connection and one task each)
@@ -16,6 +19,26 @@
 # SIGKILL mid-round; 40 s in, the server is stopped with SIGINT while the others are connected
 # and started again on the same address and data directory. Prints what each surviving robot
 # process reports (rounds lost, retried, tasks whose EndTask failed) and what the server did.
+#
+# Mixed (docs/RELIABILITY.md, "Mixed soak"): one `kairos serve` with no local engine, the openpi
+# endpoint and the metrics listener on loopback, served by one healthy `kairos worker`; the
+# well-behaved load is fleets of ROBOTS QUIC robots (`kairos robot`, robot token `fleet`, back to
+# back as in the soak, each recorded as traces for the round latencies) and OPENPI_CLIENTS openpi
+# clients (the real openpi-client, tests/python/openpi_soak.py, token `openpi`, one call every
+# OPENPI_PERIOD_S, a new connection every OPENPI_CALLS calls). With attackers, also running
+# the whole time: `kairos-hostile-worker` (the worker token; every answer unusable, registers
+# again after each removal) and `kairos-attack` (a slowloris on the QUIC, openpi and metrics
+# listeners; robot token `hog` opening every connection it can). Three robot tokens share
+# MAX_CONNECTIONS (default 96) equally. The baseline is the same without the hostile worker and
+# `kairos-attack`. Verdict: PASS when, with attackers, the robots and openpi clients lost 0
+# rounds (openpi: failed, hung or refused connects included) and got 0 duplicate answers, the
+# server sent exactly the replies they received, RSS is flat (as in the soak), and the p99 round
+# latency of the robots and of the openpi clients is within 2x the baseline's. Prints the
+# server's refusal and worker-removal counters from /metrics. Env as below, plus ROBOTS (16),
+# CONTROL_HZ (10), ROUNDS (20), OPENPI_CLIENTS (3), OPENPI_PERIOD_S (1), OPENPI_CALLS (30),
+# QUIC_SLOTS and TCP_SLOTS (slowloris connections per listener, 64), KAIROS_TOOLS (directory of
+# `kairos-attack` and `kairos-hostile-worker`, default: KAIROS_BIN's), KAIROS_OPENPI_PYTHON (a
+# python with openpi-client==0.1.2, default .venv-openpi/bin/python as scripts/test.sh makes it).
 #
 # Env: KAIROS_BIN (default: target/debug/kairos, built here), CONTROL_HZ (default 0.5; faults 2),
 # ROUNDS (soak: rounds per task of each fleet, default 5), STAGGER_MS (delay between robot
@@ -34,8 +57,17 @@ mode=soak
 if [ "${1:-}" = "--faults" ]; then
     mode=faults
     shift
+elif [ "${1:-}" = "--mixed" ]; then
+    mode=mixed
+    shift
 fi
-if [ "$mode" = soak ]; then
+if [ "$mode" = mixed ]; then
+    minutes=${1:-10}
+    baseline_minutes=${2:-$minutes}
+    robots=${ROBOTS:-16}
+    rounds=${ROUNDS:-20}
+    hz=${CONTROL_HZ:-10}
+elif [ "$mode" = soak ]; then
     minutes=${1:-10}
     robots=${2:-1000}
     rounds=${ROUNDS:-5}
@@ -60,8 +92,10 @@ work=$(mktemp -d "${TMPDIR:-/tmp}/kairos-soak.XXXXXX")
 server_pid=""
 sampler_pid=""
 robot_pids=()
+# Mixed mode's other processes: workers, attackers, openpi clients.
+other_pids=()
 cleanup() {
-    for pid in "${robot_pids[@]}" $sampler_pid $server_pid; do
+    for pid in "${robot_pids[@]}" "${other_pids[@]}" $sampler_pid $server_pid; do
         kill "$pid" 2>/dev/null || true
     done
     wait 2>/dev/null || true
@@ -136,6 +170,11 @@ account() {
 }
 
 echo "kairos: $bin; work dir $work; $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), $(nproc) cores"
+if [ "$mode" = mixed ]; then
+    # shellcheck source=scripts/soak-mixed.sh
+    . "$root/scripts/soak-mixed.sh"
+    exit
+fi
 start_server
 echo "server pid $server_pid on $addr"
 

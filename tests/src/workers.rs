@@ -3,6 +3,7 @@
 //! worker ALPN, but every message written by the test), to play a worker that lies, stalls or
 //! answers nonsense.
 
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -141,13 +142,25 @@ impl RawWorker {
         server: &TestServer,
         register: &Register,
     ) -> anyhow::Result<(RawWorker, WorkerMessage)> {
-        let config = worker_client_config(
-            &ServerTrust::Pinned(server.pin),
-            &TransportTuning::default(),
-        )?;
-        let mut endpoint = quinn::Endpoint::client("127.0.0.1:0".parse()?)?;
+        RawWorker::dial(server.addr, &ServerTrust::Pinned(server.pin), register).await
+    }
+
+    /// [`RawWorker::register`] with a scheduler at `addr` trusted as `trust`: a worker process
+    /// outside the test harness (`kairos-hostile-worker`).
+    pub async fn dial(
+        addr: SocketAddr,
+        trust: &ServerTrust,
+        register: &Register,
+    ) -> anyhow::Result<(RawWorker, WorkerMessage)> {
+        let config = worker_client_config(trust, &TransportTuning::default())?;
+        let bind: SocketAddr = if addr.is_ipv4() {
+            "0.0.0.0:0".parse()?
+        } else {
+            "[::]:0".parse()?
+        };
+        let mut endpoint = quinn::Endpoint::client(bind)?;
         endpoint.set_default_client_config(config);
-        let connection = endpoint.connect(server.addr, "kairos")?.await?;
+        let connection = endpoint.connect(addr, "kairos")?.await?;
         let (mut send, mut recv) = connection.open_bi().await?;
         write_body(&mut send, register, WORKER_MAX_FRAME).await?;
         let frame = read_frame(&mut recv, &Limits::default())

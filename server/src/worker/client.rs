@@ -17,8 +17,8 @@ use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use std::time::Duration;
 
 use kairos_sdk::protocol::worker::{
-    Chunks, Drain, Heartbeat, Register, RunBatch, WORKER_MAX_FRAME, WORKER_PROTOCOL_VERSION,
-    WorkResult, WorkerMessage, WorkerTier,
+    Chunks, Drain, Heartbeat, MAX_WORKER_BATCH, Register, RunBatch, WORKER_MAX_FRAME,
+    WORKER_PROTOCOL_VERSION, WorkResult, WorkerMessage, WorkerTier,
 };
 use kairos_sdk::protocol::{Limits, read_frame, write_body};
 use kairos_sdk::tls::ServerTrust;
@@ -355,7 +355,11 @@ async fn register(
         worker_id: options.worker_id.clone(),
         model: model_info(engine.spec()),
         profile: profile_to_wire(engine.profile()),
-        max_batch: options.max_batch.max(1),
+        // `options.max_batch` caps the profile's (`kairos worker` without `--max-batch` passes
+        // u32::MAX), and the protocol allows at most MAX_WORKER_BATCH.
+        max_batch: options
+            .max_batch
+            .clamp(1, engine.profile().max_batch.clamp(1, MAX_WORKER_BATCH)),
         tier: options.tier,
     };
     write_body(&mut send, &register, WORKER_MAX_FRAME)

@@ -7,6 +7,7 @@
 //! here, not a new file in `tests/`.
 
 mod admission;
+mod attackers;
 mod auth;
 mod binaries;
 mod boundaries;

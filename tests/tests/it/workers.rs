@@ -424,3 +424,22 @@ async fn a_worker_reconnects_by_name_after_its_scheduler_restarts() {
     assert_eq!(metrics.worker_batches(), 2 * rounds);
     server.shutdown().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_without_a_batch_cap_registers_with_its_profiles_largest_batch() {
+    // `kairos worker` without `--max-batch` passes u32::MAX, over the protocol's 1..=1024: the
+    // Register must carry the profile's largest batch instead, or every such worker is refused.
+    let server = TestServer::start(no_engine()).await.unwrap();
+    let mut uncapped = options(&server, server.addr, &worker_token(&server), "uncapped");
+    uncapped.max_batch = u32::MAX;
+    let (stop, task) = spawn_worker(uncapped);
+    wait_engines(&server, |e| e.iter().any(|e| e.live)).await;
+    let logs = run_fleet(&server, vec![RobotPlan::static_horizon(0, 2, 4)])
+        .await
+        .unwrap();
+    assert_eq!(logs.len(), 1);
+    let _ = stop.send(());
+    let report = task.await.unwrap().unwrap();
+    assert!(report.batches >= 1, "{report:?}");
+    server.shutdown().await;
+}
