@@ -68,12 +68,12 @@ while [ "$running" -gt 0 ]; do
 done
 
 echo
-printf '%-14s %8s %12s %10s %10s %14s %8s %8s %7s\n' target run_s execs execs/s corpus edges bitmap crashes hangs
+printf '%-19s %8s %12s %10s %10s %14s %8s %8s %7s\n' target run_s execs execs/s corpus edges bitmap crashes hangs
 findings=0
 for target in "${targets[@]}"; do
     stats="out/$target/default/fuzzer_stats"
     if [ ! -f "$stats" ]; then
-        printf '%-14s no stats (did afl-fuzz start?)\n' "$target"
+        printf '%-19s no stats (did afl-fuzz start?)\n' "$target"
         status=1
         continue
     fi
@@ -81,7 +81,7 @@ for target in "${targets[@]}"; do
     crashes=$(get saved_crashes)
     hangs=$(get saved_hangs)
     findings=$((findings + crashes + hangs))
-    printf '%-14s %8s %12s %10s %10s %14s %8s %8s %7s\n' "$target" "$(get run_time)" \
+    printf '%-19s %8s %12s %10s %10s %14s %8s %8s %7s\n' "$target" "$(get run_time)" \
         "$(get execs_done)" "$(get execs_per_sec)" "$(get corpus_count)" \
         "$(get edges_found)/$(get total_edges)" "$(get bitmap_cvg)" "$crashes" "$hangs"
 done
