@@ -48,6 +48,13 @@ pub struct DriverStats {
     pub round_latency: Histogram,
     /// Requests per batch given to an engine instance.
     pub batch_size: Histogram,
+    /// Rounds per chunking strategy applied, and those that fell back to `skip`.
+    pub chunking: crate::chunking::StrategyCounts,
+    /// The predicted `d` of answered rounds, control steps.
+    pub delay_predicted: Histogram,
+    /// Predicted − actual `d`, control steps, of rounds whose robot said what it was (its
+    /// next Last Exec Info).
+    pub delay_error: Histogram,
     /// Server-added latency of recent replies: `timing.total − timing.inference` (queueing
     /// behind other batches included).
     pub overhead: LatencySummary,
@@ -91,6 +98,27 @@ impl Histogram {
     /// Batch size: 1 .. 512 requests.
     pub fn batch_size() -> Histogram {
         Histogram::exponential(1.0, 2.0, 10)
+    }
+
+    /// Buckets at the given upper bounds (ascending).
+    pub fn with_bounds(bounds: &[f64]) -> Histogram {
+        Histogram {
+            bounds: bounds.to_vec(),
+            counts: vec![0; bounds.len()],
+            sum: 0.0,
+            count: 0,
+        }
+    }
+
+    /// A delay in control steps: 0 .. 64.
+    pub fn delay_steps() -> Histogram {
+        Histogram::with_bounds(&[0.0, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 32.0, 64.0])
+    }
+
+    /// A delay's prediction error in control steps (predicted − actual): −8 .. 8; the sum over
+    /// the count is the bias.
+    pub fn delay_error() -> Histogram {
+        Histogram::with_bounds(&[-8.0, -4.0, -2.0, -1.0, 0.0, 1.0, 2.0, 4.0, 8.0])
     }
 
     /// Counts `value` (a non-finite value counts in `count` and the `+Inf` bucket only).
