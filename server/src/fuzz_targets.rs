@@ -64,6 +64,7 @@ fn validator() -> &'static Validator {
             max_images: 2,
         },
         limits: Limits::default(),
+        chunking: Default::default(),
     })
 }
 
@@ -304,6 +305,7 @@ pub fn image(data: &[u8]) -> bool {
         control_hz: None,
         attempt: 0,
         seed: None,
+        chunking: None,
     };
     let validator = validator();
     let Ok(valid) = validator.submit(submit, RobotId(1), actions(), clock(1_000)) else {

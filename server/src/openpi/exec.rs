@@ -82,6 +82,8 @@ impl ExecEstimate {
             exec_started_at_us: replied_at.as_micros(),
             actions_remaining: 0,
             control_hz: self.control_hz()?,
+            round: None,
+            delay: None,
         })
     }
 }

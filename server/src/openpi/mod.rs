@@ -454,6 +454,7 @@ impl Session {
             // client executes before its next call, from the first round on.
             control_hz: self.exec.control_hz(),
             seed: None,
+            chunking: None,
         };
         // The server clock is the "robot" clock here: the identity mapping.
         let identity = ClockMap::new(received, at_us, Duration::ZERO);

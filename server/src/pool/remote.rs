@@ -17,14 +17,16 @@ use std::time::Duration;
 use futures::FutureExt;
 use futures::future::BoxFuture;
 use kairos_engine::{
-    ActionChunk, ActionRequest, EngineProfile, ImageFormat, ImageInput, ModelSpec, ProfilePoint,
+    ActionChunk, ActionRequest, EngineProfile, Guidance, GuidanceMode, ImageFormat, ImageInput,
+    ModelSpec, PrefixSchedule, ProfilePoint,
 };
 use kairos_sdk::protocol::worker::{
-    Chunks, ProfilePointWire, ProfileWire, RunBatch, WORKER_MAX_FRAME, WorkChunk, WorkRequest,
-    WorkResult, WorkerMessage, close_code as worker_close,
+    Chunks, ProfilePointWire, ProfileWire, RunBatch, WORKER_MAX_FRAME, WorkChunk, WorkGuidance,
+    WorkRequest, WorkResult, WorkerMessage, close_code as worker_close,
 };
 use kairos_sdk::protocol::{
-    DType, Image, ImagePayload, Limits, ModelInfo, ReadFrameError, Tensor, read_frame, write_body,
+    ChunkingStrategy, DType, Image, ImagePayload, Limits, ModelInfo,
+    PrefixSchedule as WirePrefixSchedule, ReadFrameError, Tensor, read_frame, write_body,
 };
 use quinn::{Connection, ConnectionError, ReadError, VarInt, WriteError};
 
@@ -427,6 +429,55 @@ pub fn request_to_wire(request: &ActionRequest) -> Result<WorkRequest, String> {
         instruction: request.instruction.clone(),
         samples: usize_u32(request.samples),
         seed: request.seed,
+        guidance: request
+            .guidance
+            .as_ref()
+            .map(guidance_to_wire)
+            .transpose()?,
+    })
+}
+
+fn guidance_to_wire(guidance: &Guidance) -> Result<WorkGuidance, String> {
+    Ok(WorkGuidance {
+        mode: match guidance.mode {
+            GuidanceMode::Rtc => ChunkingStrategy::Rtc,
+            GuidanceMode::RtcVjp => ChunkingStrategy::RtcVjp,
+            GuidanceMode::Inpaint => ChunkingStrategy::Inpaint,
+        },
+        prefix: Tensor::from_f32(vec![usize_u32(guidance.prefix.len())], &guidance.prefix)
+            .map_err(|e| e.to_string())?,
+        delay: usize_u32(guidance.delay),
+        execution_horizon: usize_u32(guidance.execution_horizon),
+        schedule: match guidance.schedule {
+            PrefixSchedule::Zeros => WirePrefixSchedule::Zeros,
+            PrefixSchedule::Ones => WirePrefixSchedule::Ones,
+            PrefixSchedule::Linear => WirePrefixSchedule::Linear,
+            PrefixSchedule::Exp => WirePrefixSchedule::Exp,
+        },
+        max_guidance_weight: guidance.max_guidance_weight,
+    })
+}
+
+fn guidance_from_wire(guidance: WorkGuidance) -> Result<Guidance, String> {
+    let mode = match guidance.mode {
+        ChunkingStrategy::Rtc => GuidanceMode::Rtc,
+        ChunkingStrategy::RtcVjp => GuidanceMode::RtcVjp,
+        ChunkingStrategy::Inpaint => GuidanceMode::Inpaint,
+        other => return Err(format!("`{other}` is not a guidance mode")),
+    };
+    if guidance.prefix.shape.len() != 1 {
+        return Err(format!(
+            "a guidance prefix is flat [rows × action_dim], got shape {:?}",
+            guidance.prefix.shape
+        ));
+    }
+    Ok(Guidance {
+        mode,
+        prefix: guidance.prefix.to_f32().map_err(|e| e.to_string())?,
+        delay: guidance.delay as usize,
+        execution_horizon: guidance.execution_horizon as usize,
+        schedule: kairos_core::chunking::engine_schedule(guidance.schedule),
+        max_guidance_weight: guidance.max_guidance_weight,
     })
 }
 
@@ -478,6 +529,7 @@ pub fn request_from_wire(request: WorkRequest) -> Result<ActionRequest, String> 
         instruction: request.instruction,
         samples: request.samples as usize,
         seed: request.seed,
+        guidance: request.guidance.map(guidance_from_wire).transpose()?,
     })
 }
 
@@ -703,6 +755,18 @@ mod tests {
         req.cameras = vec!["top".into(), "observation.images.wrist".into()];
         let back = request_from_wire(request_to_wire(&req).unwrap()).unwrap();
         assert_eq!(back, req);
+        // So does a request's guidance.
+        let mut guided = req.clone();
+        guided.guidance = Some(Guidance {
+            mode: GuidanceMode::Inpaint,
+            prefix: vec![0.5; 6],
+            delay: 2,
+            execution_horizon: 3,
+            schedule: PrefixSchedule::Exp,
+            max_guidance_weight: 4.0,
+        });
+        let back = request_from_wire(request_to_wire(&guided).unwrap()).unwrap();
+        assert_eq!(back, guided);
         let chunk = model
             .generate(std::slice::from_ref(&req))
             .unwrap()
