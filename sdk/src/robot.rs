@@ -10,17 +10,21 @@
 //!   once if the robot has no actions. With `trigger = 1.0` inference is synchronous; with `0.0` a
 //!   request goes out as soon as a chunk arrives. At most one request per task is in flight.
 //! - **Alignment.** A chunk's action 0 is the action for the instant its observation was captured
-//!   (the latest observation sent, re-fetches included). Every action the robot executed since
-//!   that capture has used up one of the chunk's time slots, so when the chunk arrives its first
-//!   `executed since capture` actions are discarded and execution continues at the next one.
+//!   (the latest observation sent, re-fetches included), whatever the round's chunking strategy
+//!   (docs/PROTOCOL.md §12). Every action the robot executed since that capture has used up one
+//!   of the chunk's time slots, so when the chunk arrives its first `executed since capture`
+//!   actions are discarded and execution continues at the next one ([`Alignment::Executed`]).
+//!   The reply's `start` is the server's prediction of that count; [`Alignment::ServerStart`]
+//!   follows it instead of the robot's own count.
 //!   Actions of the previous chunk still queued are dropped: the new chunk, planned from a newer
 //!   observation, replaces them (LeRobot instead blends the overlap, 0.3 old + 0.7 new; Kairos
 //!   replaces so that `H` means what the horizon policy chose). A robot that sat idle executed
 //!   nothing, so nothing is discarded. If every action of the new chunk is already in the past,
 //!   the old chunk keeps running and the next request goes out at once.
-//! - **Last Exec Info.** Each request reports the chunk being executed: when its first action
-//!   executed, how many of its actions are still to execute, and the control frequency. The first
-//!   request of a task has none.
+//! - **Last Exec Info.** Each request reports the chunk being executed: its round, when its
+//!   first action executed, how many of its actions are still to execute, the control frequency,
+//!   and its actual `d` (actions executed between its observation's capture and its arrival), which
+//!   the server compares with the `d` it predicted. The first request of a task has none.
 //!
 //! [`ChunkExecutor`] holds these rules with time as an argument; [`RobotRunner`] drives it with the
 //! tokio clock, a [`Robot`], and a [`RoundTransport`] (normally a [`Task`]).
@@ -33,8 +37,8 @@ use tokio::time::Instant;
 
 use crate::client::{ClientError, Clock, ObservationSource, RoundReply, RoundRequest, Task};
 use crate::protocol::{
-    FetchObservation, HorizonSelection, Image, ImagePayload, LastExecInfo, Observation,
-    RemainingHint, TaskEnded, TaskOutcome, Tensor, Timing,
+    ChunkingSelection, FetchObservation, HorizonSelection, Image, ImagePayload, LastExecInfo,
+    Observation, RemainingHint, TaskEnded, TaskOutcome, Tensor, Timing,
 };
 
 /// A failure reported by a robot's shim.
@@ -122,6 +126,9 @@ struct ActiveChunk {
     /// Index of the next action to execute.
     next: usize,
     started_at_us: Option<u64>,
+    /// Actions the robot executed between the capture of the chunk's observation and its
+    /// arrival (the round's actual `d`).
+    delay: u32,
 }
 
 impl ActiveChunk {
@@ -142,6 +149,18 @@ impl ActiveChunk {
 struct Pending {
     round: u64,
     executed_at_capture: u64,
+}
+
+/// Where a robot starts executing a chunk that arrives (module docs, "Alignment").
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Alignment {
+    /// At the robot's own count of the actions it executed since the chunk's observation was
+    /// captured: exact, whatever the server predicted.
+    #[default]
+    Executed,
+    /// At the reply's `start`, the server's prediction of that count (the robot's own count
+    /// when the server sends none).
+    ServerStart,
 }
 
 /// How a new chunk was applied.
@@ -174,6 +193,7 @@ pub struct ActionStep<'a> {
 pub struct ChunkExecutor {
     control_hz: f32,
     trigger: f32,
+    alignment: Alignment,
     chunk: Option<ActiveChunk>,
     executed_total: u64,
     pending: Option<Pending>,
@@ -185,10 +205,17 @@ impl ChunkExecutor {
         ChunkExecutor {
             control_hz,
             trigger: trigger.clamp(0.0, 1.0),
+            alignment: Alignment::default(),
             chunk: None,
             executed_total: 0,
             pending: None,
         }
+    }
+
+    /// The same executor aligning arriving chunks by `alignment`.
+    pub fn with_alignment(mut self, alignment: Alignment) -> ChunkExecutor {
+        self.alignment = alignment;
+        self
     }
 
     /// The robot's control rate, actions per second.
@@ -242,6 +269,8 @@ impl ChunkExecutor {
             exec_started_at_us: chunk.started_at_us.unwrap_or(now_us),
             actions_remaining: u32::try_from(chunk.remaining()).unwrap_or(u32::MAX),
             control_hz: self.control_hz,
+            round: Some(chunk.round),
+            delay: Some(chunk.delay),
         })
     }
 
@@ -257,17 +286,36 @@ impl ChunkExecutor {
         self.pending = None;
     }
 
-    /// Applies the chunk of `round` that arrived now.
+    /// Applies the chunk of `round` that arrived now, aligned by the robot's own count.
     pub fn reply_arrived(&mut self, round: u64, actions: Vec<Vec<f32>>) -> ChunkApplied {
+        self.reply_arrived_from(round, actions, None)
+    }
+
+    /// Applies the chunk of `round` that arrived now; `server_start` is the reply's `start`,
+    /// which [`Alignment::ServerStart`] follows.
+    pub fn reply_arrived_from(
+        &mut self,
+        round: u64,
+        actions: Vec<Vec<f32>>,
+        server_start: Option<u32>,
+    ) -> ChunkApplied {
         let executed_at_capture = match self.pending.take() {
-            Some(pending) if pending.round == round => pending.executed_at_capture,
+            Some(pending) if pending.round == round => Some(pending.executed_at_capture),
             // A reply nobody waits for: treat its observation as captured now.
-            _ => self.executed_total,
+            _ => None,
         };
-        let since_capture = self.executed_total.saturating_sub(executed_at_capture);
-        let discarded = usize::try_from(since_capture)
-            .unwrap_or(usize::MAX)
-            .min(actions.len());
+        let since_capture =
+            executed_at_capture.map_or(0, |at| self.executed_total.saturating_sub(at));
+        let own = usize::try_from(since_capture).unwrap_or(usize::MAX);
+        let first = match (self.alignment, server_start) {
+            (Alignment::ServerStart, Some(start)) => usize::try_from(start).unwrap_or(usize::MAX),
+            // A reply nobody waits for has no capture to count from: the server's index.
+            (Alignment::Executed, Some(start)) if executed_at_capture.is_none() => {
+                usize::try_from(start).unwrap_or(usize::MAX)
+            }
+            _ => own,
+        };
+        let discarded = first.min(actions.len());
         let as_u32 = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
         if discarded == actions.len() {
             return ChunkApplied {
@@ -289,6 +337,7 @@ impl ChunkExecutor {
             first: discarded,
             next: discarded,
             started_at_us: None,
+            delay: u32::try_from(since_capture).unwrap_or(u32::MAX),
         });
         ChunkApplied {
             discarded: as_u32(discarded),
@@ -357,6 +406,10 @@ pub struct RunnerConfig {
     pub max_consecutive_failures: u32,
     /// Wait before re-requesting after a retryable failure, unless the server says otherwise.
     pub retry_delay: Duration,
+    /// Chunking strategy sent with every round; `None` = the server's default.
+    pub chunking: Option<ChunkingSelection>,
+    /// Where an arriving chunk starts executing.
+    pub alignment: Alignment,
 }
 
 impl Default for RunnerConfig {
@@ -369,6 +422,8 @@ impl Default for RunnerConfig {
             refetch: true,
             max_consecutive_failures: 5,
             retry_delay: Duration::from_millis(100),
+            chunking: None,
+            alignment: Alignment::default(),
         }
     }
 }
@@ -586,7 +641,8 @@ impl RobotRunner {
             task: transport.task_id(),
             clock: transport.clock(),
             period: Duration::from_secs_f64(1.0 / f64::from(self.config.control_hz.max(1e-3))),
-            executor: ChunkExecutor::new(self.config.control_hz, self.config.trigger),
+            executor: ChunkExecutor::new(self.config.control_hz, self.config.trigger)
+                .with_alignment(self.config.alignment),
             robot,
             transport: Some(transport),
             in_flight: None,
@@ -706,6 +762,7 @@ impl<R: Robot, T: RoundTransport, E: FnMut(&RunnerEvent) + Send> Run<'_, R, T, E
             }),
             control_hz: Some(self.config.control_hz),
             seed: None,
+            chunking: self.config.chunking.clone(),
         };
         let refetch = self.config.refetch;
         let requests = self.fetch_tx.clone();
@@ -754,7 +811,9 @@ impl<R: Robot, T: RoundTransport, E: FnMut(&RunnerEvent) + Send> Run<'_, R, T, E
                 self.replies += 1;
                 let actions =
                     chunk_rows(&reply).map_err(|reason| RunnerError::BadChunk { round, reason })?;
-                let applied = self.executor.reply_arrived(round, actions);
+                let applied = self
+                    .executor
+                    .reply_arrived_from(round, actions, reply.reply.start);
                 if let Some((old, executed, dropped)) = applied.replaced {
                     self.chunk_ended(old, executed, dropped);
                 }

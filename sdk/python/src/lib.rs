@@ -572,6 +572,7 @@ impl Client {
                 // The server accounts the first chunk's execution at this rate (no last_exec yet).
                 control_hz: Some(task.executor.control_hz()),
                 seed: None,
+                chunking: None,
             },
             id,
             source: Refetch {

@@ -118,6 +118,9 @@ impl RoundTransport for Scripted {
                 actions: Tensor::from_f32(vec![self.horizon, 2], &values).unwrap(),
                 policy: "static".to_owned(),
                 timing: Timing::default(),
+                start: None,
+                delay: None,
+                chunking: None,
             },
             sent_at_us,
             received_at_us: self.clock.now_us(),
@@ -211,6 +214,8 @@ async fn async_inference_triggers_at_half_and_aligns_chunks() {
             exec_started_at_us: started_ms * 1000,
             actions_remaining: remaining,
             control_hz: 10.0,
+            round: None,
+            delay: None,
         })
     };
     assert_eq!(
