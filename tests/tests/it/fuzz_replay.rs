@@ -153,6 +153,8 @@ fn last_exec() -> LastExecInfo {
         exec_started_at_us: 900_000,
         actions_remaining: 4,
         control_hz: 50.0,
+        round: None,
+        delay: None,
     }
 }
 
@@ -175,6 +177,7 @@ fn submit(images: Vec<ImagePayload>) -> Submit {
         attempt: 0,
         control_hz: Some(50.0),
         seed: None,
+        chunking: None,
     }
 }
 
@@ -265,6 +268,9 @@ fn wire_messages() -> Vec<(&'static str, Message)> {
                     total_us: 2_100,
                     batch_size: 1,
                 },
+                start: None,
+                delay: None,
+                chunking: None,
             }),
         ),
         (
