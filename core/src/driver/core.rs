@@ -656,9 +656,10 @@ impl DriverCore {
                         .exec_delay
                         .unwrap_or_else(|| actual_delay_from_times(captured, &exec));
                     facts.delay_errors.record(predicted, actual);
-                    self.stats
-                        .delay_error
-                        .observe(f64::from(predicted) - f64::from(actual));
+                    let error = i64::from(predicted) - i64::from(actual);
+                    self.stats.delay_error.observe(error.unsigned_abs() as f64);
+                    self.stats.delay_error_signed =
+                        self.stats.delay_error_signed.saturating_add(error);
                     facts.predicted = None;
                 }
                 if submit.control_hz.is_some() {

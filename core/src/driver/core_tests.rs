@@ -759,7 +759,8 @@ fn the_driver_predicts_d_plans_the_strategy_and_scores_the_prediction() {
     );
     let report = b.core.report();
     assert_eq!(report.stats.delay_error.count(), 3);
-    assert_eq!(report.stats.delay_error.sum(), -1.0);
+    assert_eq!(report.stats.delay_error.sum(), 3.0);
+    assert_eq!(report.stats.delay_error_signed, -1);
     assert_eq!(report.stats.delay_predicted.count(), 4);
     let counts: Vec<(String, u64)> = report
         .stats

@@ -52,9 +52,12 @@ pub struct DriverStats {
     pub chunking: crate::chunking::StrategyCounts,
     /// The predicted `d` of answered rounds, control steps.
     pub delay_predicted: Histogram,
-    /// Predicted − actual `d`, control steps, of rounds whose robot said what it was (its
+    /// |predicted − actual| `d`, control steps, of rounds whose robot said what it was (its
     /// next Last Exec Info).
     pub delay_error: Histogram,
+    /// Σ (predicted − actual) `d` over the same rounds: the prediction's bias, with
+    /// `delay_error`'s count.
+    pub delay_error_signed: i64,
     /// Server-added latency of recent replies: `timing.total − timing.inference` (queueing
     /// behind other batches included).
     pub overhead: LatencySummary,
@@ -115,10 +118,9 @@ impl Histogram {
         Histogram::with_bounds(&[0.0, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 32.0, 64.0])
     }
 
-    /// A delay's prediction error in control steps (predicted − actual): −8 .. 8; the sum over
-    /// the count is the bias.
+    /// A delay's absolute prediction error in control steps: 0 .. 16.
     pub fn delay_error() -> Histogram {
-        Histogram::with_bounds(&[-8.0, -4.0, -2.0, -1.0, 0.0, 1.0, 2.0, 4.0, 8.0])
+        Histogram::with_bounds(&[0.0, 1.0, 2.0, 3.0, 4.0, 8.0, 16.0])
     }
 
     /// Counts `value` (a non-finite value counts in `count` and the `+Inf` bucket only).
