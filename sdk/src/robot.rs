@@ -1140,6 +1140,41 @@ mod tests {
         assert_eq!(step.action, &[1.0, 3.0]);
     }
 
+    /// Last Exec Info names the chunk's round and its actual d; `ServerStart` follows the
+    /// reply's start index, `Executed` the robot's own count, and a reply nobody waited for takes
+    /// the server's index either way.
+    #[test]
+    fn alignment_follows_the_own_count_or_the_servers_start() {
+        let run = |alignment: Alignment, start: Option<u32>| {
+            let mut executor = ChunkExecutor::new(10.0, 0.5).with_alignment(alignment);
+            executor.request_sent(0, 0);
+            executor.reply_arrived(0, chunk(0, 8));
+            executor.next_action(0);
+            executor.request_sent(1, 1);
+            // Two actions while round 1 is in flight: its actual d is 2.
+            executor.next_action(1);
+            executor.next_action(2);
+            let applied = executor.reply_arrived_from(1, chunk(1, 8), start);
+            let info = executor.last_exec(3).unwrap();
+            (applied.discarded, info.round, info.delay)
+        };
+        assert_eq!(run(Alignment::Executed, Some(3)), (2, Some(1), Some(2)));
+        assert_eq!(run(Alignment::ServerStart, Some(3)), (3, Some(1), Some(2)));
+        assert_eq!(run(Alignment::ServerStart, None), (2, Some(1), Some(2)));
+        let mut executor = ChunkExecutor::new(10.0, 0.5);
+        executor.request_sent(0, 0);
+        executor.reply_arrived(0, chunk(0, 8));
+        // Round 5 was never requested here (a reply to a round resent after a reconnect).
+        assert_eq!(
+            executor
+                .reply_arrived_from(5, chunk(5, 8), Some(4))
+                .discarded,
+            4
+        );
+        let info = executor.last_exec(10).unwrap();
+        assert_eq!((info.round, info.delay), (Some(5), Some(0)));
+    }
+
     #[test]
     fn a_refetch_moves_the_alignment_point() {
         let mut executor = ChunkExecutor::new(10.0, 0.0);
