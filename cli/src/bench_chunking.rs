@@ -78,6 +78,10 @@ pub struct ChunkingArgs {
     /// --live: episodes per (execution, alignment).
     #[arg(long, default_value_t = 40)]
     pub live_episodes: usize,
+    /// --live: the least time of one forward pass of the served model, ms (the bench policy
+    /// itself takes well under one; a VLA on a GPU tens).
+    #[arg(long, default_value_t = 20)]
+    pub live_forward_ms: u64,
 }
 
 fn parse_execution(name: &str) -> Result<Execution, String> {
@@ -178,6 +182,7 @@ pub fn run(a: ChunkingArgs) -> anyhow::Result<()> {
             robots: a.live_robots,
             control_hz: a.live_hz,
             period: a.live_period,
+            forward: std::time::Duration::from_millis(a.live_forward_ms),
         };
         let bar = progress(
             (live_plan.executions.len() * live_plan.alignments.len() * a.live_episodes) as u64,
@@ -302,13 +307,13 @@ fn alignment_name(a: Alignment) -> &'static str {
 /// `live.csv`: one row per (execution, alignment).
 fn live_csv(report: &LiveReport) -> String {
     let mut s = String::from(
-        "execution,alignment,episodes,successes,success_rate,switch_jump,within_jump,rounds,mean_actual_d,mean_abs_error,mean_error,exact\n",
+        "execution,alignment,episodes,successes,success_rate,switch_jump,within_jump,rounds,mean_actual_d,mean_abs_error,mean_error,exact,diverged\n",
     );
     for r in &report.results {
         let rounds = r.rounds.max(1) as f64;
         let _ = writeln!(
             s,
-            "{},{},{},{},{:.4},{:.4},{:.4},{},{:.3},{:.3},{:.3},{:.4}",
+            "{},{},{},{},{:.4},{:.4},{:.4},{},{:.3},{:.3},{:.3},{:.4},{}",
             r.execution.name(),
             alignment_name(r.alignment),
             r.episodes,
@@ -320,7 +325,8 @@ fn live_csv(report: &LiveReport) -> String {
             r.actual_sum as f64 / rounds,
             r.abs_error_sum as f64 / rounds,
             r.error_sum as f64 / rounds,
-            r.exact as f64 / rounds
+            r.exact as f64 / rounds,
+            r.diverged
         );
     }
     s
@@ -328,9 +334,10 @@ fn live_csv(report: &LiveReport) -> String {
 
 fn live_summary(plan: &LivePlan, report: &LiveReport) -> String {
     let mut s = format!(
-        "## Live: a loaded server predicts d\n\nTask `{}`, {} robots connected at once to a server on loopback QUIC with one engine instance taking one round per forward pass, {} Hz control in real time, a request every {} steps, {} episodes per row (seeds {}..{}). The robots report each round's actual d in their next Last Exec Info; the robot-side columns compare it with the reply's predicted `delay` over rounds whose chunk replaced one still executing.\n\n| execution | alignment | success | switch jump | within jump | mean actual d | mean \\|error\\| | mean error | exact |\n|---|---|---|---|---|---|---|---|---|\n",
+        "## Live: a loaded server predicts d\n\nTask `{}`, {} robots connected at once to a server on loopback QUIC with one engine instance whose forward pass takes at least {} ms (`chunking_bench::live::SlowForward`; profiled at start, batches as the scheduler forms them), {} Hz control in real time, a request every {} steps, {} episodes per row (seeds {}..{}). The robots report each round's actual d in their next Last Exec Info; the robot-side columns compare it with the reply's predicted `delay` over rounds whose chunk replaced one still executing.\n\n| execution | alignment | success | switch jump | within jump | mean actual d | mean \\|error\\| | mean error | exact | diverged |\n|---|---|---|---|---|---|---|---|---|---|\n",
         plan.env.task_name(),
         plan.robots,
+        plan.forward.as_millis(),
         plan.control_hz,
         plan.period,
         plan.episodes,
@@ -341,7 +348,7 @@ fn live_summary(plan: &LivePlan, report: &LiveReport) -> String {
         let rounds = r.rounds.max(1) as f64;
         let _ = writeln!(
             s,
-            "| {} | {} | {}% | {:.3} | {:.3} | {:.2} | {:.2} | {:+.2} | {}% |",
+            "| {} | {} | {}% | {:.3} | {:.3} | {:.2} | {:.2} | {:+.2} | {}% | {} |",
             r.execution.name(),
             alignment_name(r.alignment),
             pct(r.success_rate()),
@@ -351,6 +358,7 @@ fn live_summary(plan: &LivePlan, report: &LiveReport) -> String {
             r.abs_error_sum as f64 / rounds,
             r.error_sum as f64 / rounds,
             pct(r.exact as f64 / rounds),
+            r.diverged,
         );
     }
     let e = &report.server.delay_error;

@@ -126,6 +126,9 @@ pub struct Outcome {
     pub within_jump: f64,
     /// Within-chunk steps.
     pub within: u32,
+    /// Whether a chunk's sampling diverged: an action value beyond ±10 (the task's commands are
+    /// in [−1, 1]; the environment clamps what it executes).
+    pub diverged: bool,
     /// Wall time spent sampling chunks.
     pub sampling: Duration,
 }
@@ -145,10 +148,24 @@ pub fn forecast(env: &Env, committed: &[f32]) -> Vec<Vec<f32>> {
         .collect()
 }
 
-fn velocity_jump(a: &[f32], b: &[f32]) -> f64 {
-    let dx = f64::from(a[0] - b[0]);
-    let dy = f64::from(a[1] - b[1]);
+/// The change of the velocity command the robot executes (the environment clamps commands to
+/// [−1, 1] and executes a non-finite one as 0) between two actions.
+pub fn velocity_jump(a: &[f32], b: &[f32]) -> f64 {
+    let executed = |v: f32| {
+        if v.is_finite() {
+            v.clamp(-1.0, 1.0)
+        } else {
+            0.0
+        }
+    };
+    let dx = f64::from(executed(a[0]) - executed(b[0]));
+    let dy = f64::from(executed(a[1]) - executed(b[1]));
     (dx * dx + dy * dy).sqrt()
+}
+
+/// Whether a chunk's actions left the task's range by far (a diverged sampler).
+pub fn diverged(actions: &[f32]) -> bool {
+    actions.iter().any(|v| !v.is_finite() || v.abs() > 10.0)
 }
 
 /// The action of a robot standing still: zero velocity, the gripper as it was.
@@ -281,6 +298,7 @@ fn run_async(
         )?;
         out.sampling += started.elapsed();
         out.calls += 1;
+        out.diverged |= diverged(chunk.sample_actions(0));
         let mut reply = reply_of(round, chunk.sample_actions(0), chunk_len);
         plan.finish(&mut reply);
         Ok(reply)
@@ -350,6 +368,7 @@ fn run_sync(model: &FlowPolicy, spec: &EpisodeSpec<'_>, seed: u64) -> Result<Out
         let started = Instant::now();
         let chunk = model.sample(&obs, 1, noise_seed(seed, out.calls))?;
         out.sampling += started.elapsed();
+        out.diverged |= diverged(chunk.sample_actions(0));
         let round = u64::from(out.calls);
         out.calls += 1;
         // The robot stands still while the chunk is generated (not before the first: the task

@@ -1,9 +1,12 @@
 //! `kairos bench chunking --live`: the delay is real and the server predicts `d` itself.
 //!
 //! A real server starts in this process ([`crate::fleet::LocalServer`]: TLS, the real scheduler
-//! and driver) serving the task's policy (`horizon-flow:DIR`) on one engine instance, and many
-//! robots connect with the real client at once, so the rounds queue behind each other: the
-//! delay of a round is what the loaded server makes it. Each robot runs its episodes in real
+//! and driver) serving the task's policy on one engine instance whose every forward pass takes
+//! at least `forward` ([`SlowForward`]: the bench policy samples in well under a millisecond,
+//! a VLA on a GPU takes tens; the engine thread waits out the rest), profiled at start as
+//! `kairos serve` profiles an engine. Many robots connect with the real client at once, so the
+//! rounds queue and batch behind each other: the delay of a round is what the loaded server
+//! makes it. Each robot runs its episodes in real
 //! time, one action per control tick (`--live-hz`), with the SDK's [`ChunkExecutor`]: it sends
 //! a request every `period` steps with its Last Exec Info (round, phase, remaining actions and
 //! the previous round's actual `d`), keeps executing while the round is in flight, and applies
@@ -16,23 +19,27 @@
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use kairos_core::driver::DriverStats;
+use kairos_engine::profile::{DEFAULT_MIN_GAIN, MeasureOptions, measure};
+use kairos_engine::{
+    ActionChunk, ActionModel, ActionRequest, EngineError, ModelChunking, ModelSpec,
+};
 use kairos_sdk::client::{Client, ClientError, NoRefetch, RoundReply, RoundRequest, Task};
 use kairos_sdk::protocol::{ChunkingSelection, ChunkingStrategy, PrefixSchedule, Reply};
 use kairos_sdk::protocol::{HorizonSelection, Observation, TaskOutcome, Tensor};
 use kairos_sdk::robot::{Alignment, ChunkExecutor};
-use kairos_server::config::{Config, EngineConfig};
-use kairos_server::pool::build_pool;
+use kairos_server::config::Config;
+use kairos_server::pool::{EngineInstance, EnginePool, LocalEngine};
 
-use super::episode::{Execution, Outcome, forecast};
+use super::episode::{Execution, Outcome, diverged, forecast, velocity_jump};
 use crate::fleet::{self, LocalServer};
 use crate::horizon_bench::env::{ACTION_DIM, Env, EnvConfig, OBS_DIM};
 use crate::horizon_bench::noise_seed;
-use crate::horizon_bench::served::HORIZON_FLOW_PREFIX;
+use crate::horizon_bench::served::HorizonFlowModel;
 
 /// Why a live run failed.
 #[derive(Debug, thiserror::Error)]
@@ -66,6 +73,35 @@ pub struct LivePlan {
     pub control_hz: f32,
     /// Steps between requests.
     pub period: u32,
+    /// The least time of one forward pass of the served model.
+    pub forward: Duration,
+}
+
+/// A model whose every forward pass takes at least `forward`: the engine thread sleeps out what
+/// the inner model's generation did not take (an accelerator's latency, without its compute on
+/// the CPU the robots and the server share). The chunks are the inner model's.
+pub struct SlowForward {
+    /// The model.
+    pub inner: HorizonFlowModel,
+    /// The least time of one `generate`.
+    pub forward: Duration,
+}
+
+impl ActionModel for SlowForward {
+    fn spec(&self) -> &ModelSpec {
+        self.inner.spec()
+    }
+
+    fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
+        let started = std::time::Instant::now();
+        let chunks = self.inner.generate(batch)?;
+        std::thread::sleep(self.forward.saturating_sub(started.elapsed()));
+        Ok(chunks)
+    }
+
+    fn chunking(&self) -> ModelChunking {
+        self.inner.chunking()
+    }
 }
 
 /// One (execution, alignment)'s live results.
@@ -81,6 +117,8 @@ pub struct LiveResult {
     pub successes: usize,
     /// Σ switch and within-chunk jumps, as in-process.
     pub outcome: Outcome,
+    /// Episodes in which a chunk diverged (an action beyond ±10).
+    pub diverged: usize,
     /// Rounds whose robot executed the previous chunk when the reply came, and among them: the
     /// actual `d` summed, the predicted one summed, |predicted − actual| summed, and exact.
     pub rounds: u64,
@@ -133,27 +171,31 @@ pub fn run_live(plan: &LivePlan, on_episode: &(dyn Fn() + Sync)) -> Result<LiveR
 }
 
 async fn start_server(plan: &LivePlan) -> Result<LocalServer, LiveError> {
-    let engines = vec![EngineConfig {
-        model: format!("{HORIZON_FLOW_PREFIX}{}", plan.model_dir.display()),
-        instances: 1,
-        // One round per forward pass: the robots queue behind each other.
-        max_batch: Some(1),
-        ..EngineConfig::default()
-    }];
-    let pool = {
-        let engines = engines.clone();
-        tokio::task::spawn_blocking(move || {
-            build_pool(&engines, &crate::horizon_bench::served::schemes(), |_| {})
-                .map_err(|e| e.to_string())
-        })
-        .await
-        .map_err(|e| live("loading the model")(e.to_string()))?
-        .map_err(live("loading the model"))?
-    };
+    let (model_dir, forward) = (plan.model_dir.clone(), plan.forward);
+    let pool = tokio::task::spawn_blocking(move || {
+        let inner = HorizonFlowModel::load(&model_dir).map_err(|e| e.to_string())?;
+        let model: Arc<dyn ActionModel> = Arc::new(SlowForward { inner, forward });
+        let profile = measure(
+            model.as_ref(),
+            &MeasureOptions {
+                batches: vec![1, 2, 4, 8],
+                iterations: 3,
+                device: format!("cpu, forward at least {} ms", forward.as_millis()),
+                min_gain: DEFAULT_MIN_GAIN,
+            },
+            |_| {},
+        )
+        .map_err(|e| e.to_string())?;
+        let engine: Arc<dyn EngineInstance> =
+            Arc::new(LocalEngine::start("edge-0", model, profile));
+        EnginePool::new(vec![engine]).map_err(|e| e.to_string())
+    })
+    .await
+    .map_err(|e| live("loading the model")(e.to_string()))?
+    .map_err(live("loading the model"))?;
     let config = Config {
         listen: SocketAddr::from(([127, 0, 0, 1], 0)),
         data_dir: plan.data_dir.clone(),
-        engines,
         ..Config::default()
     };
     LocalServer::start(&config, pool, Default::default())
@@ -215,6 +257,7 @@ async fn run(plan: &LivePlan, on_episode: &(dyn Fn() + Sync)) -> Result<LiveRepo
                 episodes: 0,
                 successes: 0,
                 outcome: Outcome::default(),
+                diverged: 0,
                 rounds: 0,
                 actual_sum: 0,
                 abs_error_sum: 0,
@@ -233,6 +276,7 @@ async fn run(plan: &LivePlan, on_episode: &(dyn Fn() + Sync)) -> Result<LiveRepo
             r.outcome.switches += o.switches;
             r.outcome.within_jump += o.within_jump;
             r.outcome.within += o.within;
+            r.diverged += usize::from(o.diverged);
             r.rounds += d.rounds;
             r.actual_sum += d.actual;
             r.abs_error_sum += d.abs_error;
@@ -256,12 +300,6 @@ fn wire_schedule(schedule: kairos_engine::PrefixSchedule) -> PrefixSchedule {
         kairos_engine::PrefixSchedule::Linear => PrefixSchedule::Linear,
         kairos_engine::PrefixSchedule::Exp => PrefixSchedule::Exp,
     }
-}
-
-fn velocity_jump(a: &[f32], b: &[f32]) -> f64 {
-    let dx = f64::from(a[0] - b[0]);
-    let dy = f64::from(a[1] - b[1]);
-    (dx * dx + dy * dy).sqrt()
 }
 
 /// One episode in real time (module docs).
@@ -304,6 +342,7 @@ async fn episode(
             let reply = result
                 .map_err(|e| live(&format!("episode {seed}, round {round}"))(e.to_string()))?
                 .reply;
+            out.diverged |= diverged(&reply.actions.to_f32().unwrap_or_default());
             let actions: Vec<Vec<f32>> = reply
                 .actions
                 .to_f32()

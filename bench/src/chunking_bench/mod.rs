@@ -87,6 +87,8 @@ pub struct CellResult {
     pub calls_per_episode: f64,
     /// Mean wall time of one chunk's sampling, µs.
     pub sampling_us: f64,
+    /// Episodes in which a chunk's sampling diverged ([`Outcome::diverged`]).
+    pub diverged: usize,
     /// Every episode's outcome, in seed order.
     pub outcomes: Vec<Outcome>,
 }
@@ -117,6 +119,7 @@ pub fn summarize(cell: &Cell, outcomes: Vec<Outcome>) -> CellResult {
         within_jump: sum(&|o| o.within_jump) / within.max(1.0),
         calls_per_episode: calls / outcomes.len().max(1) as f64,
         sampling_us: sum(&|o| o.sampling.as_secs_f64() * 1e6) / calls.max(1.0),
+        diverged: outcomes.iter().filter(|o| o.diverged).count(),
         outcomes,
     }
 }

@@ -9,13 +9,13 @@ use super::{CellResult, Cost};
 /// `results.csv`: one row per cell.
 pub fn results_csv(results: &[CellResult]) -> String {
     let mut s = String::from(
-        "task,delay,period,execution,episodes,successes,success_rate,ci_low,ci_high,switch_jump,within_jump,calls_per_episode,sampling_us\n",
+        "task,delay,period,execution,episodes,successes,success_rate,ci_low,ci_high,switch_jump,within_jump,calls_per_episode,sampling_us,diverged\n",
     );
     for r in results {
         let (lo, hi) = r.ci();
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.2},{:.1}",
+            "{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.2},{:.1},{}",
             r.cell.task,
             r.cell.delay,
             r.cell.period,
@@ -28,7 +28,8 @@ pub fn results_csv(results: &[CellResult]) -> String {
             r.switch_jump,
             r.within_jump,
             r.calls_per_episode,
-            r.sampling_us
+            r.sampling_us,
+            r.diverged
         );
     }
     s
@@ -112,19 +113,20 @@ pub fn success_table(
 pub fn jump_table(results: &[CellResult], task: &str, delay: u32, chunk_len: usize) -> String {
     let period = period_of(delay, chunk_len, false);
     let mut s = String::from(
-        "| execution | jump at switches | jump within chunks | ratio | chunks / episode | sampling µs / chunk |\n|---|---|---|---|---|---|\n",
+        "| execution | jump at switches | jump within chunks | ratio | chunks / episode | sampling µs / chunk | diverged episodes |\n|---|---|---|---|---|---|---|\n",
     );
     for execution in Execution::all() {
         if let Some(r) = find(results, task, delay, period, execution) {
             let _ = writeln!(
                 s,
-                "| {} | {:.3} | {:.3} | {:.2} | {:.1} | {:.0} |",
+                "| {} | {:.3} | {:.3} | {:.2} | {:.1} | {:.0} | {} |",
                 execution.name(),
                 r.switch_jump,
                 r.within_jump,
                 r.switch_jump / r.within_jump.max(1e-9),
                 r.calls_per_episode,
-                r.sampling_us
+                r.sampling_us,
+                r.diverged
             );
         }
     }
