@@ -10,6 +10,7 @@ mod admission;
 mod auth;
 mod binaries;
 mod boundaries;
+mod chunking;
 mod demo;
 mod e2e;
 mod fuzz_replay;
