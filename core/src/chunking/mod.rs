@@ -40,9 +40,13 @@ pub struct ChunkingDefaults {
 }
 
 impl Default for ChunkingDefaults {
+    /// `arrival_state`: in closed loop it kept task success under delay where every other
+    /// strategy lost it (docs/EVALUATION.md, "Chunk switching under delay"); where it cannot
+    /// apply (no forecast, actions that are not absolute positions) a round falls back to `skip`,
+    /// today's rule. The real-time chunking settings are LeRobot 0.6.1's defaults.
     fn default() -> Self {
         ChunkingDefaults {
-            strategy: ChunkingStrategy::Skip,
+            strategy: ChunkingStrategy::ArrivalState,
             schedule: PrefixSchedule::Linear,
             max_guidance_weight: 10.0,
             execution_horizon: 10,

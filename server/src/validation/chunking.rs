@@ -142,7 +142,7 @@ mod tests {
     fn a_selection_takes_the_server_settings_it_does_not_set() {
         let r = rules(GuidanceSupport::PREFIX, ActionSpace::Unspecified);
         let none = r.resolve(None, "m", 3, true).unwrap();
-        assert_eq!(none, RoundChunking::default());
+        assert_eq!(none.strategy, ChunkingStrategy::ArrivalState, "the default");
         let rtc = r
             .resolve(
                 Some(ChunkingSelection {
