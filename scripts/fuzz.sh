@@ -4,7 +4,7 @@
 #
 #   scripts/fuzz.sh [SECONDS] [TARGET...]
 #
-# SECONDS per target (default 600); TARGET is any of wire trace config plugin_params image
+# SECONDS per target (default 600); TARGET is any of wire trace config plugin_params image http
 # (default all). `scripts/fuzz.sh 20` is the quick look. FUZZ_JOBS=N runs N targets at once
 # (default 1). Findings stay in tests/fuzz/out/<target>/default/{crashes,hangs}; a crash input
 # becomes a regression file in tests/fuzz/regressions/<target>/ once its bug is fixed, and the
@@ -16,7 +16,7 @@ seconds=${1:-600}
 shift || true
 targets=("$@")
 if [ ${#targets[@]} -eq 0 ]; then
-    targets=(wire trace config plugin_params image)
+    targets=(wire trace config plugin_params image http)
 fi
 jobs=${FUZZ_JOBS:-1}
 

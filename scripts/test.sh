@@ -2,9 +2,10 @@
 # Runs every test of the project. This is the README's test command and what CI (.ci/run) runs.
 #
 # It first installs what the tests need and cannot find in Cargo (idempotent, skipped when
-# present): the plugin toolchains (Debian clang/lld/wasi-libc, componentize-py in .venv), the
-# Python packages of the cross-language client test (into the same .venv), and then builds the
-# shipped WASM plugins from source (plugins/build.sh), which the plugin tests load.
+# present): the plugin toolchains (Debian clang/lld/wasi-libc, componentize-py in .venv), Debian's
+# chromium and prometheus, the Python packages of the cross-language client test (into the same
+# .venv), and then builds the shipped WASM plugins from source (plugins/build.sh), which the plugin
+# tests load.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -14,6 +15,10 @@ step_done() {
     echo "[test.sh] $1: $((SECONDS - step_started)) s"
     step_started=$SECONDS
 }
+
+# Formatting first: it takes a second and fails before anything is built.
+cargo fmt --all --check
+step_done "cargo fmt --check"
 
 bash scripts/install-plugin-toolchains.sh
 # `ip` (iproute2): the remote-worker test puts a worker in a network namespace of its own
@@ -25,6 +30,20 @@ if ! command -v ip >/dev/null 2>&1; then
     $SUDO apt-get update -qq
     DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends iproute2 >/dev/null
 fi
+# Debian's Chromium (the fleet page test, cli/tests/it/fleet_page.rs) and Prometheus with promtool
+# (cli/tests/it/prometheus.rs and the rules check below); the tests fail rather than skip without them.
+monitoring_tools=()
+[ -x /usr/bin/chromium ] || monitoring_tools+=(chromium)
+{ [ -x /usr/bin/prometheus ] && [ -x /usr/bin/promtool ]; } || monitoring_tools+=(prometheus)
+if [ "${#monitoring_tools[@]}" -gt 0 ]; then
+    echo "installing ${monitoring_tools[*]} (apt)"
+    SUDO=""
+    if [ "$(id -u)" -ne 0 ]; then SUDO=sudo; fi
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${monitoring_tools[@]}" >/dev/null \
+        || { echo "cannot install ${monitoring_tools[*]}: install Debian's chromium and prometheus packages" >&2; exit 1; }
+fi
+promtool check rules deploy/monitoring/*.rules.yml
 # The Python example client's packages (sdk/examples/python), for the cross-language test below.
 PY_TEST_DEPS=(aioquic==1.7.2 msgpack==1.2.4 numpy==2.4.6)
 if ! .venv/bin/python -c "import aioquic, msgpack, numpy" 2>/dev/null; then
@@ -66,12 +85,23 @@ KAIROS_BIN=target/debug/kairos bash plugins/build.sh
 step_done "plugins"
 
 # --include-ignored: the ignored tests (the Python client against the Rust responder, the real
-# openpi-client against the openpi endpoint) are ignored in a plain `cargo test` because they
-# need the Python packages installed above; here they exist, so they run, and fail rather than skip.
-# The one exception, named here: the opt-in `real_checkpoint` tests need a real SmolVLA checkpoint
-# (KAIROS_SMOLVLA_CHECKPOINT, about 1 GB, not in the repository); they run only when it is set.
-real_checkpoint=(--skip real_checkpoint)
-if [ -n "${KAIROS_SMOLVLA_CHECKPOINT:-}" ]; then real_checkpoint=(); fi
+# openpi-client against the openpi endpoint, the fleet page in Chromium, Prometheus over a live
+# fleet) are ignored in a plain `cargo test` because they need the packages installed above; here
+# they exist, so they run, and fail rather than skip.
+# The exceptions, named here: the opt-in `real_checkpoint` tests need a real SmolVLA checkpoint
+# (KAIROS_SMOLVLA_CHECKPOINT, about 1 GB, not in the repository) and `real_pi_checkpoint` a real
+# π0 / π0.5 one (KAIROS_PI_CHECKPOINT, about 7 GB); each runs only when its variable is set.
+real_checkpoint=()
+if [ -z "${KAIROS_SMOLVLA_CHECKPOINT:-}" ]; then real_checkpoint+=(--skip real_checkpoint); fi
+if [ -z "${KAIROS_PI_CHECKPOINT:-}" ]; then real_checkpoint+=(--skip real_pi_checkpoint); fi
 KAIROS_PYTHON="$PWD/.venv/bin/python" KAIROS_OPENPI_PYTHON="$PWD/.venv-openpi/bin/python" cargo test --workspace --locked -- --include-ignored "${real_checkpoint[@]}"
 step_done "tests"
 bash scripts/test-python.sh; step_done "Python package: pip install ./sdk/python, pytest against kairos serve"
+bash scripts/build-wheel.sh --profile dev
+bash scripts/test-wheel.sh
+step_done "Python wheel: maturin build, installed without a Rust toolchain, the LeRobot example"
+
+# Lints last, on the tree that just passed its tests: every target of every crate, warnings as
+# errors (`[workspace.lints]` and clippy.toml say which).
+cargo clippy --workspace --all-targets --locked -- -D warnings
+step_done "cargo clippy -D warnings"

@@ -6,7 +6,9 @@
 # Custom resources have no bundled schema: kubernetes-validate only warns about them. Those
 # warnings are not ignored: every one must be for a kind listed in CRD_KINDS below, and each such
 # object gets a structural check here instead (what this repository relies on: the scale target
-# exists in the same build, the trigger reads kairos_queue_depth). Any other warning fails.
+# exists in the same build, the trigger reads kairos_queue_depth; a PodMonitor selects pods of
+# the build on their `metrics` port; the PrometheusRule carries exactly the rules of
+# deploy/monitoring/kairos.rules.yml). Any other warning fails.
 #
 # Installs kubernetes-validate into .venv-k8s/ on first use (about 40 s; then offline).
 set -euo pipefail
@@ -25,7 +27,7 @@ fi
 # The Kubernetes version the manifests target (kubernetes-validate's newest bundled schemas).
 K8S_VERSION=1.37.0
 # Custom resource kinds with no bundled schema, checked structurally below instead.
-CRD_KINDS="ScaledObject"
+CRD_KINDS="ScaledObject PodMonitor PrometheusRule"
 
 out=$(mktemp -d)
 trap 'rm -rf "$out"' EXIT
@@ -47,11 +49,11 @@ for build in "${builds[@]}"; do
     passed=$(echo "$report" | grep -c '^INFO .* passed' || true)
     skipped=$(echo "$report" | grep -c "Couldn't find schema" || true)
     echo "validate-k8s: $build: $passed objects valid (strict, Kubernetes $K8S_VERSION), $skipped custom resources checked structurally"
-    .venv-k8s/bin/python - "$file" "$CRD_KINDS" <<'PY'
+    .venv-k8s/bin/python - "$file" "$CRD_KINDS" deploy/monitoring/kairos.rules.yml <<'PY'
 import sys
 import yaml
 
-path, crd_kinds = sys.argv[1], sys.argv[2].split()
+path, crd_kinds, rules_path = sys.argv[1], sys.argv[2].split(), sys.argv[3]
 docs = [d for d in yaml.safe_load_all(open(path)) if d]
 deployments = {d["metadata"]["name"] for d in docs if d["kind"] == "Deployment"}
 kinds = {d["kind"] for d in docs}
@@ -85,6 +87,29 @@ for d in docs:
                 float(meta.get("threshold", ""))
             except ValueError:
                 errors.append(f"ScaledObject {name}: threshold is not a number")
+    elif d["kind"] == "PodMonitor":
+        name = d["metadata"]["name"]
+        spec = d.get("spec", {})
+        wanted = spec.get("selector", {}).get("matchLabels", {})
+        pods = [p for p in docs if p["kind"] == "Deployment"
+                and wanted and wanted.items() <= p["spec"]["template"]["metadata"].get("labels", {}).items()]
+        if not pods:
+            errors.append(f"PodMonitor {name}: selects no Deployment's pods in this build")
+        endpoints = spec.get("podMetricsEndpoints", [])
+        if not endpoints:
+            errors.append(f"PodMonitor {name}: no podMetricsEndpoints")
+        for e in endpoints:
+            for p in pods:
+                ports = {port.get("name") for c in p["spec"]["template"]["spec"]["containers"]
+                         for port in c.get("ports", [])}
+                if e.get("port") not in ports:
+                    errors.append(f"PodMonitor {name}: port {e.get('port')!r} is not a port of {p['metadata']['name']}")
+            if e.get("path", "/metrics") != "/metrics":
+                errors.append(f"PodMonitor {name}: path {e.get('path')!r}, expected /metrics")
+    elif d["kind"] == "PrometheusRule":
+        shipped = yaml.safe_load(open(rules_path))
+        if d.get("spec") != shipped:
+            errors.append(f"PrometheusRule {d['metadata']['name']}: its spec differs from {rules_path}")
     elif d["kind"] == "HorizontalPodAutoscaler":
         target = d["spec"]["scaleTargetRef"]
         if target["name"] not in deployments:

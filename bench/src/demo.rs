@@ -11,20 +11,43 @@
 //! of each chunk runs. Every scheduler sees the same fleet: the same start times and task
 //! lengths (from `--seed`).
 //!
-//! Horizons follow the paper's comparison by default (`--horizons paper`): the baselines (FIFO,
-//! Autellix) execute a static `H`, Kairos and SRW the §3.1 threshold policy on the chunk's
-//! diffusion updates; `--horizons dynamic` gives every scheduler the threshold policy, which
-//! isolates the schedulers.
+//! **The fleet contends the engine on any machine.** Its size and stagger come from the profile
+//! measured at start ([`workload`]): under FIFO with the static horizon the fleet offers about 90%
+//! of what the engine serves at its saturation batch, so requests queue and the order matters,
+//! whether a forward pass takes 13 ms or 130 ms. A fixed fleet could not do that: one that
+//! contends a slow machine's engine leaves a fast one's mostly idle, and there every scheduler and
+//! horizon comes out the same.
 //!
-//! It ends with a per-scheduler table (average / P25 / P95 task latency, rounds, mean horizon,
-//! server queueing, batch size, engine utilisation), a few sentences reading it, and a PNG plot.
-//! Everything it writes goes under `--out` (default `./kairos-demo/`): the server's state
-//! (certificate, token), `summary.md`, `demo.png`/`.svg`.
+//! **What it shows.** Horizons follow the paper's comparison by default (`--horizons paper`): the
+//! baselines (FIFO, Autellix) execute a static `H`, Kairos and SRW the §3.1 threshold policy on
+//! the chunk's diffusion updates. The dynamic horizon executes more of each chunk, so the same
+//! work needs fewer rounds, the contended engine is relieved, and robots stop waiting: that is
+//! most of Kairos's gain, as in the paper. Between schedulers with the same horizon the
+//! differences are smaller, for two reasons the demo does not hide. With a static `H` every
+//! request goes out with the same slack (the half chunk its robot still has to execute), so
+//! arrival order is deadline order and FIFO is already close to the best order for idle robots;
+//! a scheduler gains there only through what FIFO ignores, such as a task's remaining length, and
+//! loses by serving a request with slack before one whose robot is dry. Under the dynamic horizon
+//! the same fleet no longer
+//! contends the engine enough for the order to matter. The summary says which differences are
+//! within noise ([`comparison`]) and how fast the engine ran in each run (a shared machine's
+//! other work shows there). `--horizons dynamic` gives every scheduler the threshold policy,
+//! which isolates the schedulers.
+//!
+//! It leads with a short result (Kairos's average task latency against FIFO's, and the engine's
+//! busy share under each), then a per-scheduler table (average / P25 / P95 task latency, the
+//! difference from FIFO with its interval, rounds, mean horizon, server queueing, batch size,
+//! engine busy share), a few sentences reading it, and a PNG plot. Everything it writes goes
+//! under `--out` (default `./kairos-demo/`): the server's state (certificate, token),
+//! `summary.md`, `demo.png`/`.svg`.
 //!
 //! The fleet runs through [`crate::fleet`], like `kairos robot` and `kairos bench live`.
 
+pub mod comparison;
+pub mod summary;
+pub mod workload;
+
 use std::collections::BTreeMap;
-use std::fmt::Write as _;
 use std::future::Future;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -35,17 +58,18 @@ use kairos_sdk::protocol::{HorizonSelection, Observation};
 use kairos_sdk::robot::{
     Robot, RobotError, RobotRunner, RunnerConfig, RunnerEvent, SimulatedRobot, TaskSummary,
 };
-use rand::{Rng, SeedableRng, rngs::StdRng};
-use rand_distr::StandardNormal;
 use tokio::time::Instant;
 
 use crate::fleet::{self, LocalServer};
-use crate::sim::stats::reduction;
 use kairos_core::scheduler::PolicySpec;
 use kairos_core::stats::{Summary, summarize};
+use kairos_engine::EngineProfile;
 use kairos_server::config::{Config, EngineConfig};
 use kairos_server::pool::{BuildEvent, EnginePool, ModelSchemes, build_pool};
 use kairos_server::transport::launch::{Policies, ServerReport};
+
+pub use summary::{headline, reading, summary_table};
+pub use workload::{DEFAULT_LOAD, FleetSizing, FleetTask, fleet, size_fleet};
 
 /// Which horizon policy each scheduler's robots ask for.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -63,12 +87,17 @@ pub enum Horizons {
 /// What the demo runs: the fleet, the schedulers compared, the horizons, where it writes.
 #[derive(Debug, Clone)]
 pub struct DemoOptions {
-    /// Robots in the fleet: each runs one task over its own QUIC connection.
-    pub robots: u32,
+    /// Robots in the fleet: each runs one task over its own QUIC connection. `None`: sized from
+    /// the engine's profile ([`size_fleet`]).
+    pub robots: Option<u32>,
     /// Median task length, seconds of execution (log-normal, σ = 0.5, within 0.25x–3x).
     pub task_s: f64,
-    /// Mean gap between robot starts (Poisson arrivals), seconds.
-    pub stagger_s: f64,
+    /// Mean gap between robot starts (Poisson arrivals), seconds. `None`: sized from the
+    /// engine's profile.
+    pub stagger_s: Option<f64>,
+    /// The share of the engine's capacity the baseline fleet (FIFO, static `H`) offers when
+    /// the fleet is sized from the profile.
+    pub load: f64,
     /// Schedulers to compare, comma-separated priority policies (`fifo`, `plas` = Autellix,
     /// `kairos`, `srw`, or any `name:key=value` spec the server accepts).
     pub schedulers: Vec<String>,
@@ -90,10 +119,10 @@ pub struct DemoOptions {
     pub out: PathBuf,
     /// Skip the plot.
     pub no_plot: bool,
-    /// A short run of the same code path, for CI and smoke tests: 8 robots, tasks of 1 s, the
-    /// engine profiled up to batch 4. Also set by the environment variable `KAIROS_DEMO_QUICK=1`,
-    /// so that the README's command runs verbatim in CI. Overrides `--robots`, `--task-s` and
-    /// `--profile-max-batch`.
+    /// A short run of the same code path, sized the same way, for CI and smoke tests: tasks of
+    /// 1 s, the engine profiled up to batch 4. Also set by the environment variable
+    /// `KAIROS_DEMO_QUICK=1`, so that the README's command runs verbatim in CI. Overrides
+    /// `--task-s` and `--profile-max-batch`.
     pub quick: bool,
 }
 
@@ -106,7 +135,6 @@ impl DemoOptions {
     pub fn resolve_quick(mut self, env: Option<&std::ffi::OsStr>) -> DemoOptions {
         self.quick |= env.is_some_and(|v| v == "1");
         if self.quick {
-            self.robots = 8;
             self.task_s = 1.0;
             self.profile_max_batch = 4;
         }
@@ -117,9 +145,10 @@ impl DemoOptions {
 impl Default for DemoOptions {
     fn default() -> Self {
         DemoOptions {
-            robots: 24,
+            robots: None,
             task_s: 3.0,
-            stagger_s: 0.1,
+            stagger_s: None,
+            load: DEFAULT_LOAD,
             schedulers: ["fifo", "plas", "kairos", "srw"].map(String::from).to_vec(),
             horizons: Horizons::Paper,
             static_h: 10,
@@ -133,35 +162,6 @@ impl Default for DemoOptions {
             quick: false,
         }
     }
-}
-
-/// One robot's task in the fleet.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct FleetTask {
-    /// When the robot starts, from the run's start.
-    pub start: Duration,
-    /// Actions the task takes.
-    pub actions: u64,
-}
-
-/// The fleet every scheduler sees: Poisson start times and log-normal task lengths.
-pub fn fleet(args: &DemoOptions) -> Vec<FleetTask> {
-    let mut rng = StdRng::seed_from_u64(args.seed);
-    let median = args.task_s * args.control_hz;
-    let mut at = 0.0f64;
-    (0..args.robots)
-        .map(|_| {
-            let z: f64 = rng.sample(StandardNormal);
-            let actions = (median * (0.5 * z).exp()).clamp(0.25 * median, 3.0 * median);
-            let task = FleetTask {
-                start: Duration::from_secs_f64(at),
-                actions: (actions.round() as u64).max(1),
-            };
-            let u: f64 = rng.random();
-            at += -(1.0 - u).ln() * args.stagger_s;
-            task
-        })
-        .collect()
 }
 
 /// One scheduler's configuration in the comparison.
@@ -286,6 +286,14 @@ impl RunResult {
             .collect()
     }
 
+    /// `(task id, latency in seconds)` of every finished task, for paired comparisons.
+    pub fn task_latencies(&self) -> Vec<(u64, f64)> {
+        self.tasks
+            .iter()
+            .map(|t| (t.task, t.latency_us() as f64 / 1e6))
+            .collect()
+    }
+
     /// P25 / mean / P95 of the task latencies.
     pub fn summary(&self) -> Summary {
         summarize(&self.latencies())
@@ -325,13 +333,27 @@ impl RunResult {
         busy_us / 1e6 / self.wall.as_secs_f64().max(1e-9)
     }
 
+    /// How fast the engine ran during the run against its profile: the forward passes' total
+    /// time over what the profile predicts for the same batches (1.0: as profiled; 1.3: 30%
+    /// slower, e.g. a machine busier than when it was profiled). Per batch, not per round.
+    pub fn engine_pace(&self, profile: &EngineProfile) -> f64 {
+        let (ran, profiled) = self.rounds().fold((0.0, 0.0), |(ran, profiled), r| {
+            let batch = r.timing.batch_size.max(1);
+            (
+                ran + r.timing.inference_us as f64 / 1e6 / f64::from(batch),
+                profiled + profile.latency(batch).as_secs_f64() / f64::from(batch),
+            )
+        });
+        if profiled > 0.0 { ran / profiled } else { 0.0 }
+    }
+
     /// Mean time a robot sat idle waiting for actions, per task, seconds.
     pub fn mean_idle_s(&self) -> f64 {
         mean(self.tasks.iter().map(|t| t.idle_us as f64 / 1e6))
     }
 }
 
-fn mean(values: impl Iterator<Item = f64>) -> f64 {
+pub(crate) fn mean(values: impl Iterator<Item = f64>) -> f64 {
     let (sum, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
     if n == 0 { 0.0 } else { sum / n as f64 }
 }
@@ -350,10 +372,12 @@ pub enum DemoEvent {
 pub trait DemoProgress: Send + Sync {
     /// Loading or profiling the engine.
     fn engine(&self, _event: &BuildEvent) {}
-    /// The engine is ready (`engine` describes it) and the runs are about to start.
+    /// The engine is ready (`engine` describes it), the fleet is sized, and the runs are about
+    /// to start.
     fn ready(
         &self,
         _engine: &str,
+        _sizing: &FleetSizing,
         _fleet: &[FleetTask],
         _runs: &[SchedulerRun],
         _args: &DemoOptions,
@@ -393,7 +417,7 @@ pub async fn run_fleet(
     let model = fleet::served_model(&clients).await?;
     let runner = RobotRunner::new(RunnerConfig {
         control_hz: control_hz as f32,
-        trigger: 0.5,
+        trigger: workload::TRIGGER as f32,
         // The task ends on its action count (`FleetRobot::task_done`); a round budget this large
         // also keeps the runner from sending a remaining-rounds hint it cannot know.
         rounds: u64::MAX,
@@ -454,139 +478,6 @@ pub async fn run_fleet(
     })
 }
 
-/// The per-scheduler table.
-pub fn summary_table(results: &[RunResult]) -> String {
-    let mut s = String::new();
-    let _ = writeln!(
-        s,
-        "| Scheduler | tasks | avg (s) | P25 (s) | P95 (s) | avg vs FIFO | rounds | rounds/task | mean H | queue (ms) | batch | engine busy | idle/task (s) |"
-    );
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
-    let fifo = results.iter().find(|r| r.run.key == "fifo");
-    for r in results {
-        let m = r.summary();
-        let vs = match fifo {
-            Some(f) if f.run.label != r.run.label => {
-                format!("{:+.1}%", -reduction(f.summary().mean, m.mean))
-            }
-            _ => "–".to_string(),
-        };
-        let _ = writeln!(
-            s,
-            "| {} | {} | {:.2} | {:.2} | {:.2} | {} | {} | {:.1} | {:.1} | {:.0} | {:.2} | {:.0}% | {:.2} |",
-            r.run.label,
-            r.tasks.len(),
-            m.mean,
-            m.p25,
-            m.p95,
-            vs,
-            r.round_count(),
-            r.round_count() as f64 / r.tasks.len().max(1) as f64,
-            r.mean_horizon(),
-            r.mean_queue_ms(),
-            r.mean_batch(),
-            r.engine_busy() * 100.0,
-            r.mean_idle_s(),
-        );
-    }
-    s
-}
-
-/// A few sentences reading the table: what won and by how much, how much of it is the horizon
-/// and how much the scheduler, and whether a difference is more than the run-to-run noise of a
-/// one-minute demo.
-pub fn reading(results: &[RunResult]) -> String {
-    let mut s = String::new();
-    let avg = |r: &RunResult| r.summary().mean;
-    let Some(best) = results.iter().min_by(|a, b| avg(a).total_cmp(&avg(b))) else {
-        return s;
-    };
-    match results.iter().find(|r| r.run.key == "fifo") {
-        Some(fifo) if fifo.run.label != best.run.label => {
-            let _ = write!(
-                s,
-                "Lowest average latency: {}, {:.1}% below {}. ",
-                best.run.label,
-                reduction(avg(fifo), avg(best)),
-                fifo.run.label
-            );
-        }
-        _ => {
-            let _ = write!(s, "Lowest average latency: {}. ", best.run.label);
-        }
-    }
-    let rounds_per_task = |rs: &[&RunResult]| {
-        mean(
-            rs.iter()
-                .map(|r| r.round_count() as f64 / r.tasks.len().max(1) as f64),
-        )
-    };
-    let (dynamic, fixed): (Vec<&RunResult>, Vec<&RunResult>) =
-        results.iter().partition(|r| r.run.dynamic());
-    if !dynamic.is_empty() && !fixed.is_empty() {
-        let (rd, rf) = (rounds_per_task(&dynamic), rounds_per_task(&fixed));
-        let _ = write!(
-            s,
-            "Most of that is the horizon, not the scheduler: the dynamic horizon executed {:.1} actions per chunk on average against the static {:.0}, so its tasks needed {:.1} rounds instead of {:.1} ({:.0}% fewer requests for the same work) — in the paper, too, the dynamic horizon carries most of the gain. ",
-            mean(dynamic.iter().map(|r| r.mean_horizon())),
-            mean(fixed.iter().map(|r| r.mean_horizon())),
-            rd,
-            rf,
-            reduction(rf, rd)
-        );
-    }
-    for group in [&fixed, &dynamic] {
-        let Some((first, others)) = group.split_first() else {
-            continue;
-        };
-        for other in others {
-            let change = -reduction(avg(first), avg(other));
-            let _ = write!(
-                s,
-                "Same horizon, different scheduler: {} has {:+.1}% average latency against {}{}. ",
-                other.run.label,
-                change,
-                first.run.label,
-                if change.abs() < 5.0 {
-                    " — within the run-to-run noise of a one-minute run on a shared machine, read it as a tie"
-                } else {
-                    ""
-                }
-            );
-        }
-    }
-    let busy = results
-        .iter()
-        .map(RunResult::engine_busy)
-        .fold(0.0, f64::max);
-    // Queueing, not utilisation over the whole run (which includes the fleet's ramp-up and
-    // tail), says whether the order mattered.
-    let queue_ms = results
-        .iter()
-        .map(RunResult::mean_queue_ms)
-        .fold(0.0, f64::max);
-    if queue_ms < 20.0 {
-        let _ = write!(
-            s,
-            "Requests waited at most {queue_ms:.0} ms on average for the engine (busy at most {:.0}% of the run), so the order a scheduler picks matters little; raise --robots or lower --stagger-s to contend it harder. ",
-            busy * 100.0
-        );
-    } else {
-        let _ = write!(
-            s,
-            "Requests waited up to {queue_ms:.0} ms on average for the engine (busy up to {:.0}% of the run): they queued, and the scheduler's order decided who waited. ",
-            busy * 100.0
-        );
-    }
-    if !dynamic.is_empty() {
-        let _ = write!(
-            s,
-            "The flow head's weights are random (nothing is downloaded), so the threshold policy reads an untrained model's diffusion updates: its H shows the mechanism, not a tuned accuracy/efficiency trade-off."
-        );
-    }
-    s
-}
-
 /// What a demo produced.
 #[derive(Clone, Debug)]
 pub struct DemoReport {
@@ -594,43 +485,54 @@ pub struct DemoReport {
     pub results: Vec<RunResult>,
     /// The engine's profile line.
     pub engine: String,
+    /// How the fleet was sized.
+    pub sizing: FleetSizing,
     /// `summary.md`'s text.
     pub summary: String,
     /// The plot, if drawn.
     pub plot: Option<PathBuf>,
 }
 
+/// The profile in one line: model, device, and latency per measured batch.
+fn describe(profile: &EngineProfile) -> String {
+    format!(
+        "{} on {}, batches up to {} ({})",
+        profile.model,
+        profile.device,
+        profile.max_batch,
+        profile
+            .points
+            .iter()
+            .map(|p| format!("{}: {:.1} ms", p.batch, p.latency_ms))
+            .collect::<Vec<_>>()
+            .join(", ")
+    )
+}
+
 /// Runs the demo, writes `summary.md` and the plot under `args.out`, and returns its report.
-/// Blocking: it profiles the engine and runs its own tokio runtime.
+/// Blocking: it profiles the engine, sizes the fleet from the profile, and runs its own tokio
+/// runtime.
 pub fn execute(args: &DemoOptions, progress: Arc<dyn DemoProgress>) -> anyhow::Result<DemoReport> {
     let runs = scheduler_runs(args)?;
-    let fleet = fleet(args);
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let engine_config = EngineConfig {
         profile_max_batch: args.profile_max_batch,
         ..EngineConfig::default()
     };
-    let mut engine = String::new();
+    let mut profile = None;
     let pool = build_pool(&[engine_config], &ModelSchemes::new(), |event| {
-        if let BuildEvent::Ready { profile, .. } = &event {
-            engine = format!(
-                "{} on {}, batches up to {} ({})",
-                profile.model,
-                profile.device,
-                profile.max_batch,
-                profile
-                    .points
-                    .iter()
-                    .map(|p| format!("{}: {:.1} ms", p.batch, p.latency_ms))
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            );
+        if let BuildEvent::Ready { profile: p, .. } = &event {
+            profile = Some(p.clone());
         }
         progress.engine(&event);
     })
     .context("starting the engine")?;
-    progress.ready(&engine, &fleet, &runs, args);
+    let profile = profile.context("the engine reported no profile")?;
+    let engine = describe(&profile);
+    let sizing = size_fleet(&profile, args);
+    let fleet = fleet(args, &sizing);
+    progress.ready(&engine, &sizing, &fleet, &runs, args);
 
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -652,18 +554,19 @@ pub fn execute(args: &DemoOptions, progress: Arc<dyn DemoProgress>) -> anyhow::R
         results.push(result);
     }
 
-    let mut summary = format!(
-        "# kairos demo\n\nOne process: the real server (QUIC + TLS 1.3 on loopback, scheduler, action manager) with the built-in flow head doing real forward passes ({engine}), and {} simulated robots, one connection each, starting as a Poisson process (mean gap {} s), each running one task of {:.1}–{:.1} s of actions at {} Hz with asynchronous inference. Every scheduler sees the same fleet (seed {}). Latency = first request to last action.\n\n",
+    let mut summary = format!("# kairos demo\n\n{}\n\n", headline(&results, &profile));
+    summary.push_str(&summary_table(&results, &profile));
+    summary.push('\n');
+    summary.push_str(&format!(
+        "One process: the real server (QUIC + TLS 1.3 on loopback, scheduler, action manager) with the built-in flow head doing real forward passes ({engine}), and {} simulated robots, one connection each, starting as a Poisson process, each running one task of {:.1}–{:.1} s of actions at {} Hz with asynchronous inference. Every scheduler sees the same fleet (seed {}). Latency = first request to last action; engine busy = the share of the run's time the engine spent generating. {}\n\n",
         fleet.len(),
-        args.stagger_s,
         fleet.iter().map(|t| t.actions).min().unwrap_or(0) as f64 / args.control_hz,
         fleet.iter().map(|t| t.actions).max().unwrap_or(0) as f64 / args.control_hz,
         args.control_hz,
         args.seed,
-    );
-    summary.push_str(&summary_table(&results));
-    summary.push('\n');
-    summary.push_str(&reading(&results));
+        summary::sizing_sentence(&sizing, args.static_h),
+    ));
+    summary.push_str(&reading(&results, &profile));
     summary.push('\n');
     let plot = if args.no_plot {
         None
@@ -684,7 +587,11 @@ pub fn execute(args: &DemoOptions, progress: Arc<dyn DemoProgress>) -> anyhow::R
         Some(crate::plot::comparison(
             &args.out,
             "demo",
-            &format!("{} robots, real flow head", fleet.len()),
+            &format!(
+                "{} robots, {:.0}% offered load under FIFO, real flow head",
+                fleet.len(),
+                sizing.load * 100.0
+            ),
             &systems,
         )?)
     };
@@ -693,6 +600,7 @@ pub fn execute(args: &DemoOptions, progress: Arc<dyn DemoProgress>) -> anyhow::R
     Ok(DemoReport {
         results,
         engine,
+        sizing,
         summary,
         plot,
     })
@@ -703,48 +611,26 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_fleet_is_a_function_of_the_seed() {
-        let args = DemoOptions::default();
-        let a = fleet(&args);
-        assert_eq!(a, fleet(&args));
-        assert_eq!(a.len(), args.robots as usize);
-        assert_eq!(a[0].start, Duration::ZERO);
-        assert!(a.windows(2).all(|w| w[0].start <= w[1].start));
-        let median = args.task_s * args.control_hz;
-        assert!(a.iter().all(|t| {
-            let x = t.actions as f64;
-            x >= (0.25 * median).floor() && x <= (3.0 * median).ceil()
-        }));
-        let other = fleet(&DemoOptions {
-            seed: 8,
-            ..DemoOptions::default()
-        });
-        assert_ne!(a, other);
-    }
-
-    #[test]
     fn quick_mode_comes_from_the_flag_or_the_environment() {
         let full = DemoOptions::default();
-        assert_eq!(full.clone().resolve_quick(None).robots, 24);
-        assert_eq!(
-            full.clone()
-                .resolve_quick(Some(std::ffi::OsStr::new("0")))
-                .robots,
-            24,
-            "only `1` turns it on"
-        );
+        assert!(!full.clone().resolve_quick(None).quick);
+        let off = full.clone().resolve_quick(Some(std::ffi::OsStr::new("0")));
+        assert!(!off.quick, "only `1` turns it on");
+        assert_eq!(off.task_s, full.task_s);
         let quick = full.clone().resolve_quick(Some(std::ffi::OsStr::new("1")));
         assert!(quick.quick);
-        assert_eq!(
-            (quick.robots, quick.task_s, quick.profile_max_batch),
-            (8, 1.0, 4)
-        );
+        assert_eq!((quick.task_s, quick.profile_max_batch), (1.0, 4));
         let flag = DemoOptions {
             quick: true,
             ..DemoOptions::default()
         }
         .resolve_quick(None);
-        assert_eq!(flag.robots, 8);
+        assert_eq!(flag.task_s, 1.0);
+        assert_eq!(
+            (quick.robots, quick.stagger_s, quick.load),
+            (None, None, full.load),
+            "the quick run is sized by the same rule"
+        );
         assert_eq!(
             (quick.schedulers, quick.seed),
             (full.schedulers, full.seed),

@@ -131,7 +131,9 @@ pub fn live_job(
         seed,
     );
     config.network = LOOPBACK;
-    config.scheduler.stale_after = config.scheduler.stale_after.div_f64(k);
+    config.scheduler.stale_after =
+        Duration::try_from_secs_f64(config.scheduler.stale_after.as_secs_f64() / k)
+            .unwrap_or(config.scheduler.stale_after);
     Job {
         workload: 0,
         experiment: Experiment::Online,
@@ -484,7 +486,8 @@ pub fn compare(
     };
     let mut sim_job = job.clone();
     if mode == SimNetworkMode::Measured {
-        sim_job.config.network.robot_rtt = Duration::from_secs_f64(measured.network_us / 1e6);
+        sim_job.config.network.robot_rtt =
+            Duration::try_from_secs_f64(measured.network_us / 1e6).unwrap_or(Duration::ZERO);
     }
     let sim = simulate_scaled(&sim_job, traces, k)?;
     Ok(Comparison {
@@ -635,7 +638,7 @@ mod tests {
         assert_eq!(job.config.network, LOOPBACK);
         assert_eq!(job.config.scheduler.stale_after, Duration::from_millis(25));
         let edge = &job.config.engines[0].profile;
-        assert_eq!(edge.latency(1), w.edge_profile().latency(1).div_f64(4.0));
+        assert_eq!(edge.latency(1), w.edge_profile().latency(1) / 4);
         assert_eq!(job.x, 5.0, "reported at the recording's rate");
         let set = generate::generate(&w, 42).unwrap();
         let scaled = scale_traces(&set, 4.0);

@@ -9,8 +9,8 @@ use anyhow::bail;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use kairos_bench::demo::{
-    DemoEvent, DemoOptions, DemoProgress, FleetTask, Horizons, QUICK_ENV, RunResult, SchedulerRun,
-    execute,
+    DEFAULT_LOAD, DemoEvent, DemoOptions, DemoProgress, FleetSizing, FleetTask, Horizons,
+    QUICK_ENV, RunResult, SchedulerRun, execute,
 };
 use kairos_server::pool::BuildEvent;
 
@@ -40,15 +40,21 @@ impl From<HorizonsArg> for Horizons {
 /// compare.
 #[derive(clap::Args, Debug, Clone)]
 pub struct DemoArgs {
-    /// Robots in the fleet: each runs one task over its own QUIC connection.
-    #[arg(long, default_value_t = 24, value_parser = clap::value_parser!(u32).range(1..=1024))]
-    pub robots: u32,
+    /// Robots in the fleet: each runs one task over its own QUIC connection. Default: sized from
+    /// the engine's profile so that FIFO's fleet offers `--load` of the engine's capacity.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    pub robots: Option<u32>,
     /// Median task length, seconds of execution (log-normal, σ = 0.5, within 0.25x–3x).
     #[arg(long, default_value_t = 3.0, value_parser = parse_positive)]
     pub task_s: f64,
-    /// Mean gap between robot starts (Poisson arrivals), seconds.
-    #[arg(long, default_value_t = 0.1, value_parser = parse_non_negative)]
-    pub stagger_s: f64,
+    /// Mean gap between robot starts (Poisson arrivals), seconds. Default: sized from the
+    /// engine's profile, like `--robots`.
+    #[arg(long, value_parser = parse_non_negative)]
+    pub stagger_s: Option<f64>,
+    /// The share of the engine's capacity (at its saturation batch) that the fleet offers under
+    /// FIFO with the static H, when `--robots` / `--stagger-s` are sized from the profile.
+    #[arg(long, default_value_t = DEFAULT_LOAD, value_parser = parse_positive)]
+    pub load: f64,
     /// Schedulers to compare, comma-separated priority policies (`fifo`, `plas` = Autellix,
     /// `kairos`, `srw`, or any `name:key=value` spec the server accepts).
     #[arg(long, value_delimiter = ',', default_value = "fifo,plas,kairos,srw")]
@@ -80,10 +86,10 @@ pub struct DemoArgs {
     /// Skip the plot.
     #[arg(long)]
     pub no_plot: bool,
-    /// A short run of the same code path, for CI and smoke tests: 8 robots, tasks of 1 s, the
-    /// engine profiled up to batch 4. Also set by the environment variable `KAIROS_DEMO_QUICK=1`,
-    /// so that the README's command runs verbatim in CI. Overrides `--robots`, `--task-s` and
-    /// `--profile-max-batch`.
+    /// A short run of the same code path, sized the same way, for CI and smoke tests: tasks of
+    /// 1 s, the engine profiled up to batch 4. Also set by the environment variable
+    /// `KAIROS_DEMO_QUICK=1`, so that the README's command runs verbatim in CI. Overrides
+    /// `--task-s` and `--profile-max-batch`.
     #[arg(long)]
     pub quick: bool,
 }
@@ -94,6 +100,7 @@ impl From<DemoArgs> for DemoOptions {
             robots: args.robots,
             task_s: args.task_s,
             stagger_s: args.stagger_s,
+            load: args.load,
             schedulers: args.schedulers,
             horizons: args.horizons.into(),
             static_h: args.static_h,
@@ -176,13 +183,32 @@ impl DemoProgress for Terminal {
         }
     }
 
-    fn ready(&self, engine: &str, fleet: &[FleetTask], runs: &[SchedulerRun], args: &DemoOptions) {
+    fn ready(
+        &self,
+        engine: &str,
+        sizing: &FleetSizing,
+        fleet: &[FleetTask],
+        runs: &[SchedulerRun],
+        args: &DemoOptions,
+    ) {
         self.bar().finish_and_clear();
         println!("engine: {engine}");
         let seconds = |actions: Option<u64>| actions.unwrap_or(0) as f64 / args.control_hz;
         println!(
-            "fleet: {} robots, tasks of {:.1}–{:.1} s at {} Hz, starts over {:.1} s; schedulers: {}{}",
+            "fleet: {} robots{}, about {:.1} at once, offering {:.0}% of the engine's {:.1} requests/s under FIFO with H={}",
             fleet.len(),
+            if sizing.auto_robots && sizing.auto_stagger {
+                " (sized from the profile)"
+            } else {
+                ""
+            },
+            sizing.concurrent,
+            sizing.load * 100.0,
+            sizing.capacity_rps,
+            args.static_h,
+        );
+        println!(
+            "       tasks of {:.1}–{:.1} s at {} Hz, starts over {:.1} s; schedulers: {}{}",
             seconds(fleet.iter().map(|t| t.actions).min()),
             seconds(fleet.iter().map(|t| t.actions).max()),
             args.control_hz,
@@ -221,12 +247,13 @@ impl DemoProgress for Terminal {
         self.bar().finish_and_clear();
         let m = result.summary();
         println!(
-            "{:<26} avg {:.2} s, P95 {:.2} s, {} rounds, mean H {:.1} ({:.1} s)",
+            "{:<26} avg {:.2} s, P95 {:.2} s, {} rounds, mean H {:.1}, engine busy {:.0}% ({:.1} s)",
             result.run.label,
             m.mean,
             m.p95,
             result.round_count(),
             result.mean_horizon(),
+            result.engine_busy() * 100.0,
             result.wall.as_secs_f64()
         );
         for failure in &result.failures {

@@ -1,5 +1,5 @@
-//! `kairos predict`: one action chunk from a LeRobot SmolVLA checkpoint directory, printed as
-//! JSON.
+//! `kairos predict`: one action chunk from a LeRobot SmolVLA, π0 or π0.5 checkpoint directory,
+//! printed as JSON (the family is `config.json`'s `type`).
 //!
 //! ```text
 //! kairos predict --model ./my_smolvla --tokenizer ./tokenizer.json \
@@ -7,23 +7,25 @@
 //! ```
 //!
 //! With no inputs the observation is synthetic: a mid-grey image for every camera the config
-//! names, a zero state, the task "pick up the cube". The processors and the model live in
-//! `kairos_engine::smolvla` ([`SmolVlaPipeline`]); this command only assembles the observation
-//! and prints `{"actions": [[..]..], "chunk": C, "action_dim": D, "timing_ms": {..}}`.
+//! names, a zero state, the task "pick up the cube". The processors and the models live in
+//! `kairos_engine::smolvla` ([`SmolVlaPipeline`]) and `kairos_engine::pi` ([`PiPipeline`]); this
+//! command only assembles the observation and prints
+//! `{"actions": [[..]..], "chunk": C, "action_dim": D, "timing_ms": {..}}`.
 
 use std::path::PathBuf;
 
 use anyhow::Context;
+use kairos_engine::pi::{PiFamily, PiPipeline};
 use kairos_engine::smolvla::SmolVlaPipeline;
 use kairos_engine::smolvla::checkpoint::Observation;
 use kairos_engine::smolvla::images::image_file;
-use kairos_engine::smolvla::pipeline::StageTimes;
+use kairos_engine::smolvla::pipeline::{Prediction, StageTimes};
 use kairos_engine::{DeviceKind, EngineOptions, Kernels, Precision, profile};
 
 /// Arguments of `kairos predict`.
 #[derive(clap::Args, Debug, Clone)]
 pub struct PredictArgs {
-    /// A LeRobot SmolVLA checkpoint directory (what `save_pretrained` writes).
+    /// A LeRobot SmolVLA, π0 or π0.5 checkpoint directory (what `save_pretrained` writes).
     #[arg(long)]
     pub model: PathBuf,
     /// The task tokenizer (`tokenizer.json`) [default: `tokenizer.json` in the model directory].
@@ -93,6 +95,61 @@ struct Bench {
     peak_rss_mb: f64,
 }
 
+/// A whole policy of either family.
+enum Policy {
+    SmolVla(Box<SmolVlaPipeline>),
+    Pi(Box<PiPipeline>),
+}
+
+impl Policy {
+    /// The family `config.json`'s `type` names.
+    fn load(
+        dir: &std::path::Path,
+        tokenizer: Option<&std::path::Path>,
+        options: &EngineOptions,
+    ) -> anyhow::Result<Self> {
+        let text = std::fs::read_to_string(dir.join("config.json"))
+            .with_context(|| format!("reading {}", dir.join("config.json").display()))?;
+        #[derive(serde::Deserialize)]
+        struct Probe {
+            #[serde(rename = "type", default)]
+            policy_type: String,
+        }
+        let probe: Probe = serde_json::from_str(&text)
+            .with_context(|| format!("parsing {}", dir.join("config.json").display()))?;
+        Ok(if PiFamily::from_type(&probe.policy_type).is_some() {
+            Policy::Pi(Box::new(PiPipeline::load(dir, tokenizer, options)?))
+        } else {
+            Policy::SmolVla(Box::new(SmolVlaPipeline::load(dir, tokenizer, options)?))
+        })
+    }
+
+    fn synthetic_observation(&self) -> Observation {
+        match self {
+            Policy::SmolVla(p) => p.checkpoint().synthetic_observation(),
+            Policy::Pi(p) => p.checkpoint().synthetic_observation(),
+        }
+    }
+
+    fn predict(
+        &self,
+        observations: &[Observation],
+        seeds: &[u64],
+    ) -> Result<(Vec<Prediction>, StageTimes), kairos_engine::EngineError> {
+        match self {
+            Policy::SmolVla(p) => p.predict(observations, seeds),
+            Policy::Pi(p) => p.predict(observations, seeds),
+        }
+    }
+
+    fn action_dim(&self) -> usize {
+        match self {
+            Policy::SmolVla(p) => p.action_dim(),
+            Policy::Pi(p) => p.action_dim(),
+        }
+    }
+}
+
 /// Run `kairos predict`.
 pub fn run(args: PredictArgs) -> anyhow::Result<()> {
     // Warnings (a bf16 fallback, a feature without stats) go to stderr; stdout stays JSON.
@@ -103,11 +160,11 @@ pub fn run(args: PredictArgs) -> anyhow::Result<()> {
         threads: args.threads,
         precision: args.precision.parse::<Precision>().context("--precision")?,
     };
-    let pipeline = SmolVlaPipeline::load(&args.model, args.tokenizer.as_deref(), &options)
+    let pipeline = Policy::load(&args.model, args.tokenizer.as_deref(), &options)
         .with_context(|| format!("loading {}", args.model.display()))?;
     let mut obs = match &args.json_in {
         Some(path) => Observation::from_json_file(path)?,
-        None => pipeline.checkpoint().synthetic_observation(),
+        None => pipeline.synthetic_observation(),
     };
     if !args.images.is_empty() {
         obs.images.clear();

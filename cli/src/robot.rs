@@ -44,7 +44,7 @@ pub struct RobotArgs {
     pub server_name: String,
     /// Data directory of a local `kairos serve`, read for the certificate pin and the robot's
     /// token when `--pin` or `--token` is not given.
-    #[arg(long, default_value = "kairos-data")]
+    #[arg(long, default_value = kairos_sdk::data_dir::DEFAULT_DATA_DIR)]
     pub data_dir: PathBuf,
     /// Pinned server certificate, `sha256:<64 hex>`.
     #[arg(long, conflicts_with = "ca_file")]

@@ -4,7 +4,8 @@
 //! self-signed certificate, its fingerprint, and a generated token for the robot `default`) and
 //! serves the engine crate's built-in model, profiled at start. `--config kairos.toml` sets the
 //! rest (see `docs/SERVER.md`). Ctrl-C shuts down gracefully: no new connections or rounds, the
-//! rounds already accepted are answered.
+//! rounds already accepted are answered. If the driver dies, the server stops the same way by
+//! itself and the command exits with an error.
 
 use std::collections::BTreeMap;
 use std::future::Future;
@@ -155,6 +156,10 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         "  of it processing (- queue, refetch)",
         report.driver.processing,
     );
+    // A non-zero exit, so that an orchestrator restarts the server.
+    if let Some(failure) = report.driver_failure {
+        anyhow::bail!("the server stopped because its driver died: {failure}");
+    }
     Ok(())
 }
 
@@ -199,7 +204,7 @@ pub fn start_engines(config: &Config) -> anyhow::Result<EnginePool> {
     Ok(pool)
 }
 
-/// Serves until `shutdown` resolves, printing where to connect; then drains.
+/// Serves until `shutdown` resolves or the driver dies, printing where to connect; then drains.
 pub async fn serve(
     config: &Config,
     pool: EnginePool,
@@ -209,8 +214,11 @@ pub async fn serve(
         .await
         .context("starting the server")?;
     print_banner(config, &server);
-    shutdown.await;
-    println!("shutting down: answering the rounds already accepted...");
+    tokio::select! {
+        () = shutdown => println!("shutting down: answering the rounds already accepted..."),
+        // The server has begun to stop by itself; wait for its drain.
+        reason = server.failed() => eprintln!("{reason}: the server is not ready and stops"),
+    }
     Ok(server.shutdown().await)
 }
 
@@ -229,7 +237,9 @@ fn print_banner(config: &Config, server: &RunningServer) {
         println!("  openpi         ws://{addr} (openpi-client; Api-Key = a robot token)");
     }
     if let Some(addr) = server.metrics_addr {
-        println!("  metrics        http://{addr}/metrics, readiness http://{addr}/ready");
+        println!(
+            "  metrics        http://{addr}/metrics, readiness http://{addr}/ready, fleet page http://{addr}/"
+        );
     }
     println!(
         "  certificate    {}{}",

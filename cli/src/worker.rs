@@ -25,7 +25,7 @@ pub struct WorkerArgs {
     pub server: String,
     /// The scheduler's data directory, read for the certificate pin and the worker token when
     /// `--pin` or `--worker-token` is not given.
-    #[arg(long, default_value = "kairos-data")]
+    #[arg(long, default_value = kairos_sdk::data_dir::DEFAULT_DATA_DIR)]
     pub data_dir: PathBuf,
     /// The scheduler's certificate fingerprint, `sha256:<hex>`.
     #[arg(long)]

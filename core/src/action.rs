@@ -21,7 +21,7 @@ use crate::horizon::{
     ChunkView, HorizonError, HorizonInput, HorizonPolicy, PolicyParams, validate_horizon,
 };
 use crate::registry::{Factory, HorizonRegistry};
-use crate::scheduler::{RequestId, ServerLoad};
+use crate::scheduler::{RequestId, RobotId, ServerLoad};
 
 /// The horizon policy a round asked for, already built (its parameters validated).
 pub struct RoundPolicy {
@@ -201,6 +201,19 @@ impl ActionManager {
             }),
             Some(Ok(policy)) => Ok(RoundPolicy { policy, params }),
         }
+    }
+
+    /// [`ActionManager::build`] for a round of `robot`: the policy is told whose rounds it
+    /// decides ([`HorizonPolicy::serve_robot`]).
+    pub fn build_for(
+        &self,
+        robot: RobotId,
+        name: Option<&str>,
+        params: Option<&PolicyParams>,
+    ) -> Result<RoundPolicy, PolicyLookupError> {
+        let mut round = self.build(name, params)?;
+        round.policy.serve_robot(robot);
+        Ok(round)
     }
 
     /// How many times the fallback answered since start.

@@ -15,8 +15,11 @@ use crate::scheduler::{AdmitError, TaskId};
 pub enum LossReason {
     /// The worker's connection closed or timed out (missed heartbeats, kill).
     ConnectionLost,
-    /// The worker reset the batch's stream, or answered something unusable for the batch.
+    /// The worker reset the batch's stream or finished it without an answer.
     StreamReset,
+    /// The worker answered the batch with something unusable (wrong count or shapes,
+    /// non-finite values, text over the protocol's limits): it was removed.
+    InvalidAnswer,
     /// The batch's deadline passed without an answer.
     Deadline,
     /// The instance had left the pool before the batch could be sent.
@@ -25,9 +28,10 @@ pub enum LossReason {
 
 impl LossReason {
     /// Every reason, for exporting counters.
-    pub const ALL: [LossReason; 4] = [
+    pub const ALL: [LossReason; 5] = [
         LossReason::ConnectionLost,
         LossReason::StreamReset,
+        LossReason::InvalidAnswer,
         LossReason::Deadline,
         LossReason::Gone,
     ];
@@ -37,6 +41,7 @@ impl LossReason {
         match self {
             LossReason::ConnectionLost => "connection_lost",
             LossReason::StreamReset => "stream_reset",
+            LossReason::InvalidAnswer => "invalid_answer",
             LossReason::Deadline => "deadline",
             LossReason::Gone => "gone",
         }

@@ -9,7 +9,7 @@
 use std::time::Instant;
 
 use kairos_engine::kernels::gemm::gemm;
-use kairos_engine::kernels::{Init, Isa, PackedMatrix, Precision};
+use kairos_engine::kernels::{Init, Isa, MatMut, MatRef, PackedMatrix, Precision};
 
 fn main() {
     if std::env::args().any(|a| a == "--help" || a == "-h") {
@@ -65,7 +65,8 @@ fn main() {
         let peak = fma_peak_gflops();
         let (t, cpu) = (Instant::now(), thread_cpu_s());
         for r in 0..reps {
-            gemm(isa, &a, k, m, &bs[r % copies], &mut c, n, Init::Zero);
+            let (a, c) = (MatRef::dense(&a, m, k), MatMut::dense(&mut c, m, n));
+            gemm(isa, a, &bs[r % copies], c, Init::Zero);
         }
         let flop = 2.0 * (m * k * n * reps) as f64;
         let (wall, cpu) = (t.elapsed().as_secs_f64(), thread_cpu_s() - cpu);

@@ -4,16 +4,20 @@
 //! |---|---|
 //! | `builtin:flow-head-small` (default) | [`FlowHead`] with [`FlowHeadConfig::default`] and seeded random weights |
 //! | `builtin:smolvla-random` | the full-size SmolVLA expert (`lerobot/smolvla_base` shapes) with seeded random weights, fed by the labelled stand-in prefix ([`SmolVlaStandIn`]) |
-//! | a directory (or its `config.json`) | a checkpoint: `"type": "kairos_flow_head"` or LeRobot's `"type": "smolvla"` |
+//! | a directory (or its `config.json`) | a checkpoint: `"type": "kairos_flow_head"`, LeRobot's `"type": "smolvla"`, `"pi0"` or `"pi05"` |
 //!
 //! A LeRobot SmolVLA directory with its processors (`policy_preprocessor.json`) is served as the
 //! whole policy ([`SmolVlaPipeline`]: VLM, expert, processors), with the task tokenizer given
 //! (`--tokenizer`) or beside it (`tokenizer.json`), and an error naming both places when there
 //! is neither; one with only `config.json` and weights gets the expert with the stand-in prefix.
+//! A LeRobot π0 or π0.5 directory is served as the whole policy ([`PiPipeline`]), with
+//! PaliGemma's tokenizer given or beside it. The family is the config's `type`, never a file
+//! name.
 
 use std::path::{Path, PathBuf};
 
 use crate::flow_head::{FLOW_HEAD_TYPE, FlowHead, FlowHeadConfig};
+use crate::pi::PiPipeline;
 use crate::smolvla::config::{ExpertDims, read_json};
 use crate::smolvla::serving::SmolVlaStandIn;
 use crate::smolvla::{ExpertWeights, SmolVlaExpert, SmolVlaPipeline};
@@ -79,6 +83,8 @@ fn load_checkpoint(
             })
         }
         Some(FLOW_HEAD_TYPE) => Ok(Box::new(FlowHead::load(&dir, options)?)),
+        // π0 / π0.5: always the whole policy (processors, PaliGemma prefix, expert).
+        Some("pi0" | "pi05") => Ok(Box::new(PiPipeline::load(&dir, tokenizer, options)?)),
         // A whole LeRobot checkpoint (with its processors): the real policy, which needs the
         // task tokenizer, given or beside it.
         Some("smolvla") if dir.join(PREPROCESSOR_FILE).exists() => {
@@ -100,7 +106,8 @@ fn load_checkpoint(
         other => Err(EngineError::Load {
             path: dir.join("config.json").display().to_string(),
             reason: format!(
-                "unknown model type {other:?}; expected `{FLOW_HEAD_TYPE}` or `smolvla`"
+                "unknown model type {other:?}; expected `{FLOW_HEAD_TYPE}`, `smolvla`, `pi0` or \
+                 `pi05`"
             ),
         }),
     }
@@ -114,8 +121,8 @@ pub fn resolve_model(
     resolve_model_with(name, None, options)
 }
 
-/// [`resolve_model`] with a `--tokenizer` argument: the task tokenizer of a whole SmolVLA
-/// checkpoint (`None`: the `tokenizer.json` beside it). Any other model refuses a tokenizer
+/// [`resolve_model`] with a `--tokenizer` argument: the task tokenizer of a whole SmolVLA, π0
+/// or π0.5 checkpoint (`None`: the `tokenizer.json` beside it). Any other model refuses a tokenizer
 /// rather than ignore it.
 pub fn resolve_model_with(
     name: &str,

@@ -46,11 +46,12 @@ pub enum EngineError {
         /// The file looked for.
         path: String,
     },
-    /// A SmolVLA checkpoint's task tokenizer was neither given nor found beside it.
+    /// A VLA checkpoint's task tokenizer was neither given nor found beside it.
     #[error(
-        "missing file {beside}: SmolVLA needs its task tokenizer (SmolVLM2's tokenizer.json); \
-         none was given (`--tokenizer FILE`, or `tokenizer` in an [[engine]] table) and there is \
-         none beside the checkpoint"
+        "missing file {beside}: the checkpoint needs its task tokenizer (SmolVLM2's \
+         tokenizer.json for SmolVLA, PaliGemma's for π0 and π0.5); none was given \
+         (`--tokenizer FILE`, or `tokenizer` in an [[engine]] table) and there is none beside \
+         the checkpoint"
     )]
     NoTokenizer {
         /// Where it was looked for beside the checkpoint.

@@ -19,10 +19,11 @@ use std::path::Path;
 
 use crate::image_features::pooled_features;
 use crate::kernels::gemm::gemm;
-use crate::kernels::{Init, Isa, PackedMatrix};
+use crate::kernels::{Init, Isa, MatMut, MatRef, PackedMatrix};
 use crate::prefix_encoder::PrefixEncoder;
+use crate::smolvla::ExpertWeights;
 use crate::smolvla::config::{ExpertDims, LayerKind, intermediate_size, read_json};
-use crate::smolvla::weights::{ExpertWeights, LinearWeights};
+use crate::smolvla::linear::LinearWeights;
 use crate::smolvla::{PrefixKv, SmolVlaExpert};
 use crate::weights::{Checkpoint, serialize_f32};
 use crate::{ActionChunk, ActionModel, ActionRequest, EngineError, EngineOptions, ModelSpec};
@@ -316,14 +317,15 @@ impl FlowHead {
                 .bias
                 .as_deref()
                 .map_or(Init::Zero, Init::Bias);
+            let (features, token) = (
+                MatRef::dense(&features, 1, features.len()),
+                MatMut::dense(token, 1, width),
+            );
             gemm(
                 Isa::detect(),
-                &features,
-                features.len(),
-                1,
+                features,
                 &self.image_proj_packed,
                 token,
-                width,
                 init,
             );
             valid[1 + i] = true;

@@ -16,6 +16,7 @@ pub mod image_features;
 pub mod kernels;
 pub mod model;
 pub mod options;
+pub mod pi;
 pub mod prefix_encoder;
 pub mod profile;
 pub mod sampler;

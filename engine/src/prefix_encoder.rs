@@ -8,8 +8,8 @@
 
 use crate::EngineError;
 use crate::kernels::gemm::gemm;
-use crate::kernels::{Init, Isa, PackedMatrix, vecmath};
-use crate::smolvla::weights::LinearWeights;
+use crate::kernels::{Init, Isa, MatMut, MatRef, PackedMatrix, vecmath};
+use crate::smolvla::linear::LinearWeights;
 use crate::smolvla::{ExpertDims, PrefixKv};
 use crate::weights::Checkpoint;
 
@@ -157,8 +157,9 @@ impl PrefixEncoder {
         for (wk, wv) in &self.packed {
             let mut k = vec![0.0; len * kv];
             let mut v = vec![0.0; len * kv];
-            gemm(isa, tokens, self.token_dim, len, wk, &mut k, kv, Init::Zero);
-            gemm(isa, tokens, self.token_dim, len, wv, &mut v, kv, Init::Zero);
+            let inputs = MatRef::dense(tokens, len, self.token_dim);
+            gemm(isa, inputs, wk, MatMut::dense(&mut k, len, kv), Init::Zero);
+            gemm(isa, inputs, wv, MatMut::dense(&mut v, len, kv), Init::Zero);
             for (t, row) in k.chunks_exact_mut(kv).enumerate() {
                 vecmath::rope_table(positions[t], hd, &mut cos, &mut sin);
                 for head in row.chunks_exact_mut(hd) {

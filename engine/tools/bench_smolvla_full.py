@@ -14,8 +14,8 @@ The whole table in one command (what docs/BENCHMARKS.md records):
         --kairos-bin target/release/kairos --serve-rss
 
 Time the release build, as a deployment runs it: the dev build compiles the engine at opt-level 3
-too, but with debug assertions and overflow checks, which measured 6-11% slower on the vision
-tower (docs/BENCHMARKS.md, "Engine: vision tower, prefix and kernels").
+too, but with debug assertions and overflow checks, which slow the vision tower down
+(docs/BENCHMARKS.md has the comparison).
 
 Shapes: SmolVLM2-500M (SigLIP 12 layers of 768 on 512x512 images, patch 16, pixel shuffle 4 ->
 64 tokens per camera; 16 of the 32 SmolLM2 text layers, hidden 960, 15/5 heads of 64), expert
@@ -79,8 +79,8 @@ ensure_venv()
 
 # libgomp reads this when torch loads it. PASSIVE: a waiting OpenMP thread sleeps instead of
 # spinning. On a shared machine a spinning thread whose partner is descheduled burns CPU time
-# doing nothing (measured here: 37 s instead of 9.7 s of CPU per B=1 run), which makes the
-# CPU-time column meaningless; on an idle machine the two policies differ by little. Set
+# doing nothing (several times the CPU time of the work itself), which makes the CPU-time
+# column meaningless; on an idle machine the two policies differ by little. Set
 # OMP_WAIT_POLICY yourself to override.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 

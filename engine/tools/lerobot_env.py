@@ -13,9 +13,9 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
 VENV = REPO / ".venv-lerobot"
-# `lerobot[smolvla]` pulls torch from PyPI, whose Linux wheel links the CUDA runtime (about 4 GB
-# of nvidia-* wheels); it still runs on CPU, which is all these tools use.
-REQUIREMENTS = ["lerobot[smolvla]==0.6.1", "safetensors>=0.4.3"]
+# `lerobot[smolvla,pi]` (SmolVLA, π0 and π0.5) pulls torch from PyPI, whose Linux wheel links the
+# CUDA runtime (about 4 GB of nvidia-* wheels); it still runs on CPU, which is all these tools use.
+REQUIREMENTS = ["lerobot[smolvla,pi]==0.6.1", "safetensors>=0.4.3"]
 
 
 def _python312() -> str:

@@ -92,7 +92,8 @@ where
         return;
     }
     let delay = link.delay.as_secs_f64() + offset * link.jitter.as_secs_f64();
-    let deadline = Instant::now() + Duration::from_secs_f64(delay.max(0.0));
+    let delay = Duration::try_from_secs_f64(delay.max(0.0)).unwrap_or(Duration::ZERO);
+    let deadline = Instant::now() + delay;
     tokio::spawn(async move {
         tokio::time::sleep_until(deadline).await;
         send(packet).await;
@@ -126,7 +127,7 @@ async fn measure(
             let mut latencies = Vec::with_capacity(rounds);
             let mut failures = 0;
             // Spread the robots over the period, as independent robots would be.
-            let start = Instant::now() + PERIOD.mul_f64(robot as f64 / ROBOTS as f64);
+            let start = Instant::now() + PERIOD * robot as u32 / ROBOTS as u32;
             for round in 0..rounds {
                 tokio::time::sleep_until(start + PERIOD * round as u32).await;
                 let mut obs = observation(client.now_us());
@@ -157,12 +158,11 @@ async fn measure(
     (all, failures)
 }
 
+/// The `p`-quantile of ascending latencies in µs, in ms: the project's one percentile
+/// definition (`kairos_core::stats::quantile`, linear interpolation).
 fn percentile(sorted: &[u64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    let index = ((p * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
-    sorted[index] as f64 / 1000.0
+    let ms: Vec<f64> = sorted.iter().map(|&us| us as f64 / 1000.0).collect();
+    kairos_core::stats::quantile(&ms, p)
 }
 
 #[tokio::main]

@@ -18,6 +18,10 @@ pub const FINGERPRINT_FILE: &str = "fingerprint.txt";
 /// The file holding the plaintext tokens of the robots the server generated ([`TokensFile`]).
 pub const TOKENS_FILE: &str = "tokens.toml";
 
+/// The data directory a server uses, and robots and workers read, when none is given: relative to
+/// the working directory (`kairos_server::config` explains the choice).
+pub const DEFAULT_DATA_DIR: &str = "kairos-data";
+
 /// The robot a server started without `[[robot]]` generates a token for.
 pub const DEFAULT_ROBOT: &str = "default";
 

@@ -3,12 +3,14 @@
 //! - [`protocol`]: protocol v1 messages, framing, codec and size limits (`docs/PROTOCOL.md`);
 //! - [`client`]: the async client (pinned TLS, rounds with re-fetch, resume after connection
 //!   loss), [`blocking`] for synchronous robot loops;
-//! - [`robot`]: the paper's `get_obs`/`send_act` shim and the runner that executes chunks in real
-//!   time with asynchronous inference;
+//! - [`robot`]: the paper's `get_obs`/`send_act` shim, the pure [`robot::ChunkExecutor`] and the
+//!   runner that executes chunks in real time with asynchronous inference;
 //! - [`tls`], [`transport`]: TLS and QUIC settings shared with the server;
 //! - [`data_dir`]: the files a local server writes for robots (pin, tokens).
 //!
-//! The common entry points are re-exported here.
+//! The common entry points are re-exported here. The crate has no `unsafe` code, and keeps it so.
+
+#![forbid(unsafe_code)]
 
 pub mod blocking;
 pub mod client;

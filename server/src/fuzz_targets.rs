@@ -46,6 +46,7 @@ pub const TARGETS: &[(&str, Target)] = &[
     ("config", config),
     ("plugin_params", plugin_params),
     ("image", image),
+    ("http", http),
 ];
 
 /// The served model's shape the targets validate against: the built-in flow head's state and a
@@ -339,6 +340,87 @@ pub fn image(data: &[u8]) -> bool {
         );
     }
     true
+}
+
+/// The metrics listener's request heads (`crate::metrics::http`): `data` is what a client
+/// sends, up to the listener's [`MAX_HEAD`](crate::metrics::http::MAX_HEAD). The listener
+/// parses after every read, so the verdict on any prefix must hold for the whole: a complete
+/// head stays the same head and a refusal stays that refusal (`data[0]` picks the cut). The
+/// answer must be a well-formed HTTP/1.1 response whose `Content-Length` is its body's length
+/// (none for `HEAD`). `true` if it was answered 200.
+pub fn http(data: &[u8]) -> bool {
+    use crate::metrics::fleet::FleetView;
+    use crate::metrics::http::{MAX_HEAD, Parsed, answer, parse};
+    use crate::metrics::{Metrics, Readiness};
+
+    static SITE: OnceLock<(Metrics, Readiness, Option<FleetView>)> = OnceLock::new();
+    let (metrics, ready, fleet) = SITE.get_or_init(|| {
+        let metrics = Metrics::new();
+        let ready = Readiness::new();
+        ready.set(true);
+        let fleet = FleetView::new(metrics.clone(), ready.clone());
+        (metrics, ready, fleet)
+    });
+    let data = &data[..data.len().min(MAX_HEAD)];
+    let whole = parse(data);
+    let cut = data.first().map_or(0, |&b| usize::from(b).min(data.len()));
+    match parse(&data[..cut]) {
+        Parsed::Partial => {}
+        Parsed::Request { len, .. } => {
+            assert!(
+                len <= cut,
+                "a head longer than the bytes it was parsed from"
+            );
+            assert_eq!(
+                parse(&data[..cut]),
+                whole,
+                "more bytes changed a complete head"
+            );
+        }
+        refused @ Parsed::Refused(_) => {
+            assert_eq!(refused, whole, "more bytes changed a refusal");
+        }
+    }
+    let response = answer(
+        whole.clone(),
+        data.len(),
+        metrics,
+        ready,
+        fleet.as_ref(),
+        std::time::Instant::now(),
+    );
+    let bytes = response.to_bytes();
+    let mut headers = [httparse::EMPTY_HEADER; 16];
+    let mut parsed = httparse::Response::new(&mut headers);
+    let Ok(httparse::Status::Complete(head_len)) = parsed.parse(&bytes) else {
+        panic!("the answer to {whole:?} is not an HTTP response");
+    };
+    assert_eq!(parsed.code, Some(response.status));
+    assert!(
+        matches!(response.status, 200 | 400 | 404 | 405 | 431 | 503),
+        "unexpected status {}",
+        response.status
+    );
+    let length = parsed
+        .headers
+        .iter()
+        .find(|h| h.name.eq_ignore_ascii_case("content-length"))
+        .and_then(|h| std::str::from_utf8(h.value).ok()?.parse::<usize>().ok())
+        .unwrap_or_else(|| panic!("no Content-Length in the answer to {whole:?}"));
+    let head_only = matches!(
+        whole,
+        Parsed::Request {
+            head_only: true,
+            ..
+        }
+    );
+    let body = bytes.len() - head_len;
+    if head_only {
+        assert_eq!(body, 0, "a HEAD answer carries a body");
+    } else {
+        assert_eq!(body, length, "Content-Length is not the body's length");
+    }
+    response.status == 200
 }
 
 #[cfg(test)]

@@ -1,7 +1,7 @@
 //! Kairos server: the I/O shell around the pure core (`kairos-core`). The QUIC endpoint for
 //! robots and workers (`transport`), the openpi-compatible websocket endpoint (`openpi`), request
 //! validation (`validation`), the driver's shell that runs the core on a thread of its own
-//! (`driver`), the engine pool with local engines and remote workers (`pool`, `worker`), the
+//! (`driver`), the engine pool (`pool`), remote engine workers from both ends (`worker`), the
 //! WASM plugin host (`plugin`), configuration and the data directory (`config`, `data_dir`),
 //! metrics and readiness (`metrics`), and the parsers strangers feed, as fuzz targets
 //! (`fuzz_targets`).

@@ -21,7 +21,7 @@ use kairos_sdk::protocol::{
     HorizonSelection, LastExecInfo, Observation, TaskEnded, TaskOutcome, Tensor,
 };
 use kairos_sdk::tls::Fingerprint;
-use kairos_server::config::{Config, RobotConfig};
+use kairos_server::config::{Config, PluginConfig, RobotConfig};
 use kairos_server::credentials::hash_token;
 use kairos_server::pool::{EngineInstance, EnginePool, LocalEngine};
 use kairos_server::transport::launch::{Policies, RunningServer, ServerReport};
@@ -37,6 +37,10 @@ pub struct ServerOptions {
     pub engines: usize,
     /// Largest batch per instance.
     pub max_batch: u32,
+    /// `[[plugin]]` entries, put in the config before `tweak` runs.
+    pub plugins: Vec<PluginConfig>,
+    /// Policies registered in code, beside the natives and the plugins.
+    pub policies: Policies,
     /// Applied to the config last.
     pub tweak: fn(&mut Config),
 }
@@ -47,6 +51,8 @@ impl Default for ServerOptions {
             robots: Vec::new(),
             engines: 1,
             max_batch: 8,
+            plugins: Vec::new(),
+            policies: Policies::default(),
             tweak: |_| {},
         }
     }
@@ -167,6 +173,14 @@ impl TestServer {
         );
     }
 
+    /// Waits for the server to stop by itself (without being told to) and returns what it did.
+    pub async fn stopped(mut self) -> ServerReport {
+        match self.server.take() {
+            Some(server) => server.server.stopped().await,
+            None => ServerReport::default(),
+        }
+    }
+
     /// Shuts the server down gracefully and returns what it did.
     pub async fn shutdown(mut self) -> ServerReport {
         match self.server.take() {
@@ -204,6 +218,7 @@ async fn launch(
             token_sha256: hex::encode(hash_token(token)),
         })
         .collect();
+    config.plugins = options.plugins.clone();
     (options.tweak)(&mut config);
     let profile = EngineProfile {
         model: model.spec().name.clone(),
@@ -231,7 +246,7 @@ async fn launch(
         .collect();
     // No engine: a scheduler served only by remote workers (`--local-engines 0`).
     let pool = EnginePool::with_spec(model.spec().clone(), instances)?;
-    Ok(LocalServer::start(&config, pool, Policies::default()).await?)
+    Ok(LocalServer::start(&config, pool, options.policies.clone()).await?)
 }
 
 /// One simulated robot's task.

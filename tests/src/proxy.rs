@@ -235,7 +235,8 @@ impl Shared {
             (0..copies)
                 .map(|_| {
                     let jitter = impairment.jitter.as_secs_f64() * rng.random::<f64>();
-                    impairment.delay + Duration::from_secs_f64(jitter)
+                    // A fraction of a configured duration: always in range.
+                    impairment.delay + Duration::try_from_secs_f64(jitter).unwrap_or(Duration::ZERO)
                 })
                 .collect()
         };

@@ -197,7 +197,7 @@ pub async fn replay_task(
 ) -> Result<ReplayedTask, ReplayError> {
     let clock = client.clock();
     let total = u64::from(trace.total_actions);
-    let period = Duration::from_secs_f64(1.0 / f64::from(trace.control_hz.max(1e-3)));
+    let period = kairos_sdk::robot::runner::control_period(trace.control_hz);
     // Shared with the re-fetch answer, which recaptures the observation inside the round. A
     // poisoned lock means a panic elsewhere in this task, which fails the task anyway.
     let executor = Arc::new(Mutex::new(ChunkExecutor::new(trace.control_hz, 0.5)));

@@ -40,6 +40,7 @@ use std::cmp::Reverse;
 use std::collections::{BinaryHeap, HashMap};
 use std::time::{Duration, Instant};
 
+use kairos_engine::profile::thread_cpu_time;
 use kairos_sdk::trace::{
     HorizonSetting, RoundEvent, RoundTrace, TaskMeta, TaskRecording, TaskTrace, TraceSet,
 };
@@ -239,31 +240,6 @@ pub struct SchedulerTiming {
     pub run_cpu_s: f64,
 }
 
-/// CPU time the calling thread has used, if the platform has a per-thread CPU clock. Unlike wall
-/// time it does not grow while the thread waits for a core.
-#[cfg(unix)]
-fn thread_cpu_time() -> Option<Duration> {
-    let mut ts = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: `ts` is a valid, exclusively borrowed `timespec` for the whole call, which only
-    // writes into it; CLOCK_THREAD_CPUTIME_ID needs no other argument.
-    let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
-    if rc != 0 {
-        return None;
-    }
-    Some(Duration::new(
-        u64::try_from(ts.tv_sec).ok()?,
-        u32::try_from(ts.tv_nsec).ok()?,
-    ))
-}
-
-#[cfg(not(unix))]
-fn thread_cpu_time() -> Option<Duration> {
-    None
-}
-
 impl SchedulerTiming {
     /// Wall time in all calls into the scheduler, seconds.
     pub fn scheduler_s(&self) -> f64 {
@@ -392,7 +368,7 @@ struct Sim<'a> {
 }
 
 fn transfer(bytes: u32, mbps: f64) -> Duration {
-    Duration::from_secs_f64(f64::from(bytes) * 8.0 / (mbps * 1e6))
+    crate::workload::generate::transfer_time(bytes, mbps)
 }
 
 impl<'a> Sim<'a> {

@@ -139,7 +139,8 @@ fn target_horizon(w: &Workload, traj: &Trajectory, step: u32) -> u32 {
 
 /// Bytes/s → time to push `bytes`.
 pub(crate) fn transfer_time(bytes: u32, mbps: f64) -> Duration {
-    Duration::from_secs_f64(f64::from(bytes) * 8.0 / (mbps * 1e6))
+    // A workload's bandwidth is checked positive and finite; anything else saturates.
+    Duration::try_from_secs_f64(f64::from(bytes) * 8.0 / (mbps * 1e6)).unwrap_or(Duration::MAX)
 }
 
 /// When the reply to a request sent at `sent` reaches the robot in isolation: half the round

@@ -311,12 +311,12 @@ impl Workload {
 
     /// Robot ↔ edge round trip.
     pub fn robot_rtt(&self) -> Duration {
-        Duration::from_secs_f64(self.network.robot_rtt_ms / 1e3)
+        millis(self.network.robot_rtt_ms)
     }
 
     /// Edge ↔ cloud round trip.
     pub fn wan_rtt(&self) -> Duration {
-        Duration::from_secs_f64(self.network.wan_rtt_ms / 1e3)
+        millis(self.network.wan_rtt_ms)
     }
 }
 
@@ -450,6 +450,12 @@ hybrid_rates = [1.0]
     pub(crate) fn tiny() -> Workload {
         Workload::parse(MINIMAL, "inline").expect("MINIMAL is valid")
     }
+}
+
+/// A workload's milliseconds as a duration (read values are checked finite and non-negative;
+/// anything else saturates or is zero).
+fn millis(ms: f64) -> Duration {
+    Duration::try_from_secs_f64(ms.max(0.0) / 1e3).unwrap_or(Duration::MAX)
 }
 
 #[cfg(test)]

@@ -7,8 +7,13 @@ mod bench_horizon;
 mod bench_live_plugins;
 mod bench_plugins;
 mod bench_scale;
+mod browser;
 mod deploy;
+mod fleet_page;
+mod live_fleet;
+mod openpi_pi05;
 mod predict;
+mod prometheus;
 mod worker_processes;
 
 pub use kairos_tests::plugins::repo_root;

@@ -195,3 +195,39 @@ fn a_batch_of_copies_and_repeated_timings() {
     let plain = parse(&predict(&[]));
     assert!(plain.get("batch_actions").is_none() && plain.get("runs_ms").is_none());
 }
+
+/// `kairos predict --model engine/tests/fixtures/pi05_tiny` (and `pi0_tiny`): the promised JSON,
+/// with exactly the library's actions for the synthetic observation.
+#[test]
+fn pi_checkpoints_print_the_chunk() {
+    for fixture in ["pi05_tiny", "pi0_tiny"] {
+        let dir = repo_root().join("engine/tests/fixtures").join(fixture);
+        let output = Command::new(env!("CARGO_BIN_EXE_kairos"))
+            .arg("predict")
+            .arg("--model")
+            .arg(&dir)
+            .args(["--threads", "2", "--seed", "3"])
+            .output()
+            .unwrap();
+        let v = parse(&output);
+        assert_eq!(
+            (v["chunk"].as_u64(), v["action_dim"].as_u64()),
+            (Some(12), Some(6)),
+            "{fixture}"
+        );
+        for stage in ["preprocess", "prefix", "expert", "postprocess", "total"] {
+            assert!(
+                v["timing_ms"][stage].as_f64().unwrap() >= 0.0,
+                "{fixture} {stage}"
+            );
+        }
+        let options = EngineOptions {
+            threads: 2,
+            ..Default::default()
+        };
+        let pipeline = kairos_engine::pi::PiPipeline::load(&dir, None, &options).unwrap();
+        let obs = pipeline.checkpoint().synthetic_observation();
+        let (mut want, _) = pipeline.predict(&[obs], &[3]).unwrap();
+        assert_eq!(actions(&v), want.remove(0).actions, "{fixture}");
+    }
+}

@@ -228,10 +228,16 @@ async fn two_workers_serve_and_a_killed_workers_batch_is_redispatched() {
             })
             .unwrap_or(0.0)
     };
-    let redispatched: f64 = ["connection_lost", "stream_reset", "deadline", "gone"]
-        .iter()
-        .map(|r| sample(&format!("kairos_redispatch_total{{reason=\"{r}\"}}")))
-        .sum();
+    let redispatched: f64 = [
+        "connection_lost",
+        "stream_reset",
+        "invalid_answer",
+        "deadline",
+        "gone",
+    ]
+    .iter()
+    .map(|r| sample(&format!("kairos_redispatch_total{{reason=\"{r}\"}}")))
+    .sum();
     assert_eq!(
         redispatched,
         stats.redispatched.total() as f64,

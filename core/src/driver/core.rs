@@ -252,6 +252,7 @@ impl DriverCore {
             stats: DriverStats {
                 round_latency: Histogram::round_latency(),
                 batch_size: Histogram::batch_size(),
+                horizon: Histogram::horizon(),
                 delay_predicted: Histogram::delay_steps(),
                 delay_error: Histogram::delay_error(),
                 ..DriverStats::default()
@@ -1083,6 +1084,7 @@ impl DriverCore {
                     self.stats
                         .round_latency
                         .observe(now.saturating_since(req.received).as_secs_f64());
+                    self.stats.horizon.observe(f64::from(reply.horizon));
                     // The server's own work: reading to acceptance, and dispatch to reply, less
                     // the re-fetch wait and the forward pass.
                     let own = req.accepted.saturating_since(req.received)

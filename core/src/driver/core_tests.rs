@@ -530,6 +530,7 @@ fn the_report_follows_the_rounds_and_counts_a_late_reply_as_a_deadline_miss() {
     assert!(b.core.report().engines[0].busy);
     let batch = job.batch;
     let answers = b.answers(job);
+    let answered_horizon = answers[0].1.as_ref().map(|reply| reply.horizon).unwrap();
     b.core
         .generation_ended(ms(4), batch, Duration::from_millis(4));
     b.core.batch_done(ms(5), batch, answers);
@@ -549,6 +550,10 @@ fn the_report_follows_the_rounds_and_counts_a_late_reply_as_a_deadline_miss() {
     );
     assert_eq!(latency[0], (0.001, 0), "not in the 1 ms bucket");
     assert_eq!(report.stats.batch_size.count(), 2);
+    // The reply's horizon is counted once, in its own bucket.
+    assert_eq!(report.stats.horizon.count(), 1);
+    let horizon = f64::from(answered_horizon);
+    assert_eq!(report.stats.horizon.sum(), horizon);
     assert_eq!(busy(&b), Duration::from_millis(4));
     let batch = job.batch;
     let answers = b.answers(job);

@@ -48,6 +48,8 @@ pub struct DriverStats {
     pub round_latency: Histogram,
     /// Requests per batch given to an engine instance.
     pub batch_size: Histogram,
+    /// Horizons of answered rounds: the actions each reply asked its robot to execute.
+    pub horizon: Histogram,
     /// Rounds per chunking strategy applied, and those that fell back to `skip`.
     pub chunking: crate::chunking::StrategyCounts,
     /// The predicted `d` of answered rounds, control steps.
@@ -101,6 +103,15 @@ impl Histogram {
     /// Batch size: 1 .. 512 requests.
     pub fn batch_size() -> Histogram {
         Histogram::exponential(1.0, 2.0, 10)
+    }
+
+    /// Horizon, actions per reply: every count up to 8, then coarser up to 64, with a bound at
+    /// 50 so that SmolVLA's and π0's whole chunk has a bucket of its own.
+    pub fn horizon() -> Histogram {
+        Histogram::with_bounds(&[
+            1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 16.0, 20.0, 25.0, 32.0, 40.0, 49.0,
+            50.0, 64.0,
+        ])
     }
 
     /// Buckets at the given upper bounds (ascending).
@@ -241,8 +252,10 @@ pub struct DriverReport {
 pub struct RedispatchCounts {
     /// The worker's connection closed or timed out.
     pub connection_lost: u64,
-    /// The batch's stream was reset or answered unusably.
+    /// The batch's stream was reset or ended without an answer.
     pub stream_reset: u64,
+    /// The worker answered the batch unusably.
+    pub invalid_answer: u64,
     /// The batch's deadline passed.
     pub deadline: u64,
     /// The engine had left before the batch was sent.
@@ -260,6 +273,7 @@ impl RedispatchCounts {
         match reason {
             LossReason::ConnectionLost => self.connection_lost,
             LossReason::StreamReset => self.stream_reset,
+            LossReason::InvalidAnswer => self.invalid_answer,
             LossReason::Deadline => self.deadline,
             LossReason::Gone => self.gone,
         }
@@ -269,6 +283,7 @@ impl RedispatchCounts {
         match reason {
             LossReason::ConnectionLost => &mut self.connection_lost,
             LossReason::StreamReset => &mut self.stream_reset,
+            LossReason::InvalidAnswer => &mut self.invalid_answer,
             LossReason::Deadline => &mut self.deadline,
             LossReason::Gone => &mut self.gone,
         }

@@ -33,7 +33,7 @@ pub mod threshold;
 use std::collections::BTreeMap;
 
 use crate::registry::{HorizonKind, Native, build_native};
-use crate::scheduler::ServerLoad;
+use crate::scheduler::{RobotId, ServerLoad};
 
 /// User parameters of a policy, e.g. `{"t": 0.4, "h_min": 8}`. Sorted, so hashing and
 /// wire encoding are deterministic.
@@ -156,6 +156,13 @@ pub trait HorizonPolicy: Send {
     fn answered_by(&self) -> Option<&str> {
         None
     }
+
+    /// Tells the policy which robot's rounds it decides, once, when the server builds it for a
+    /// round ([`ActionManager::build_for`](crate::action::ActionManager::build_for)). A policy
+    /// that keeps state across rounds of many robots scopes it by robot: a plugin's quarantine
+    /// is the robot's first, so one robot's inputs cannot take the plugin from the others.
+    /// Default: ignored.
+    fn serve_robot(&mut self, _robot: RobotId) {}
 }
 
 /// Checks that a policy's answer can be executed: `h_min <= horizon <= h_max`.

@@ -8,6 +8,7 @@
 //! softmax, so leaving them out changes no sum.
 
 use super::gemm::{Init, PackedMatrix, gemm, gemm_pairs};
+use super::matrix::{MatMut, MatRef};
 use super::{Isa, Precision, vecmath};
 
 /// Keys and values of one attention segment.
@@ -40,12 +41,12 @@ pub struct QueryPositions {
 /// The query rows of [`attend`], `head_dim` values each.
 #[derive(Clone, Copy, Debug)]
 pub enum Queries<'a> {
-    /// f32 rows with this row stride (a head's columns read in place from `[q | k | v]` rows);
+    /// f32 rows (a head's columns read in place from `[q | k | v]` rows, with their stride);
     /// the `q kᵀ` GEMM rounds them to bf16 pairs when the keys are bf16.
-    F32(&'a [f32], usize),
-    /// Rows already rounded to bf16 pairs ([`super::gemm::round_pairs`]), with this row stride
-    /// in pairs: the same bits as the f32 rows they were rounded from (bf16 keys only).
-    Pairs(&'a [u32], usize),
+    F32(MatRef<'a>),
+    /// Rows already rounded to bf16 pairs ([`super::bf16::round_pairs`]), `head_dim / 2`
+    /// pairs each: the same bits as the f32 rows they were rounded from (bf16 keys only).
+    Pairs(MatRef<'a, u32>),
 }
 
 /// Scratch space of [`attend`], grown as needed and reused across calls.
@@ -60,49 +61,39 @@ pub struct AttendScratch {
     factors: Vec<f32>,
 }
 
-/// `out[i] = softmax(scale * q[i] · Kᵀ) V` for the `nq` query rows of `q` (`head_dim` values
-/// each, with the row stride `q` gives: a head's columns read in place), over the
-/// concatenation of `segments`. `out` has row stride `ldo`; `scale > 0`.
+/// `out[i] = softmax(scale * q[i] · Kᵀ) V` for the query rows of `q` over the concatenation of
+/// `segments`: `out` has a row per query and `head_dim` columns (the keys' depth); `scale > 0`.
 ///
 /// With bf16 values, the `P · V` GEMM takes the softmax *numerators* `exp(s - max)` rounded
 /// to bf16 (made and rounded in registers, never stored as f32), and each output
 /// row is then multiplied by `1 / sum` of its unrounded numerators: `(Σ bf16(e_j) v_j) / Σ e_j`.
 /// Rounding `e_j` or `e_j / Σ e` to bf16 has the same relative error (2^-9); the numerators
 /// just skip a pass that wrote the f32 probabilities and one that read them back to normalise
-/// and round them (~3% of the bf16 vision tower).
-#[allow(clippy::too_many_arguments)]
+/// and round them.
+///
+/// # Panics
+/// If `q` and `out` have different numbers of rows, or the queries' width is not the keys'
+/// depth (`head_dim`, or `ceil(head_dim / 2)` pairs).
 pub fn attend(
     isa: Isa,
     q: Queries<'_>,
-    nq: usize,
-    head_dim: usize,
     segments: &[KvSegment<'_>],
     positions: QueryPositions,
     scale: f32,
     scratch: &mut AttendScratch,
-    out: &mut [f32],
-    ldo: usize,
+    mut out: MatMut<'_>,
 ) {
-    let ldq = match q {
-        Queries::F32(_, ld) => ld,
-        Queries::Pairs(_, ld) => 2 * ld,
-    };
-    assert!(
-        ldq >= head_dim,
-        "attend: query stride {ldq} < head dim {head_dim}"
-    );
+    let (nq, head_dim) = (out.rows(), out.cols());
     debug_assert!(segments.iter().all(|seg| seg.keys_t.k() == head_dim));
     let total: usize = segments.iter().map(KvSegment::len).sum();
     let scores = &mut scratch.scores;
     scores.resize(nq * total, 0.0);
     let mut col = 0;
     for seg in segments {
-        let out = &mut scores[col..];
+        let out = MatMut::new(&mut scores[col..], nq, seg.len(), total);
         match q {
-            Queries::F32(rows, ld) => gemm(isa, rows, ld, nq, seg.keys_t, out, total, Init::Zero),
-            Queries::Pairs(rows, ld) => {
-                gemm_pairs(isa, rows, ld, nq, seg.keys_t, out, total, Init::Zero)
-            }
+            Queries::F32(rows) => gemm(isa, rows, seg.keys_t, out, Init::Zero),
+            Queries::Pairs(rows) => gemm_pairs(isa, rows, seg.keys_t, out, Init::Zero),
         }
         col += seg.len();
     }
@@ -159,16 +150,17 @@ pub fn attend(
         let init = if s == 0 { Init::Zero } else { Init::Accumulate };
         if rounded {
             let (offset, ldp) = pair_rows(s);
-            let pairs = &scratch.pairs[offset..offset + nq * ldp];
-            gemm_pairs(isa, pairs, ldp, nq, seg.values, out, ldo, init);
+            let pairs = MatRef::dense(&scratch.pairs[offset..offset + nq * ldp], nq, ldp);
+            gemm_pairs(isa, pairs, seg.values, out.reborrow(), init);
         } else {
-            gemm(isa, &scores[col..], total, nq, seg.values, out, ldo, init);
+            let probabilities = MatRef::new(&scores[col..], nq, seg.len(), total);
+            gemm(isa, probabilities, seg.values, out.reborrow(), init);
         }
         col += seg.len();
     }
     if rounded {
         for (i, &factor) in scratch.factors.iter().enumerate() {
-            vecmath::scale_assign(isa, &mut out[i * ldo..i * ldo + head_dim], factor);
+            vecmath::scale_assign(isa, out.row_mut(i), factor);
         }
     }
 }
@@ -211,8 +203,8 @@ mod tests {
                 PackedMatrix::empty_in(precision),
                 PackedMatrix::empty_in(precision),
             );
-            kt.pack_transposed(isa, k, d, len, d);
-            vv.pack_rows(isa, v, d, len, d);
+            kt.pack_transposed(isa, MatRef::dense(k, len, d));
+            vv.pack_rows(isa, MatRef::dense(v, len, d));
             (kt, vv)
         };
         [pack(kp, vp), pack(ks, vs)]
@@ -257,21 +249,30 @@ mod tests {
         let mut scratch = AttendScratch::default();
         attend(
             isa,
-            Queries::F32(&q, d),
-            nq,
-            d,
+            Queries::F32(MatRef::dense(&q, nq, d)),
             &segs,
             pos,
             0.25,
             &mut scratch,
-            &mut got,
-            d,
+            MatMut::dense(&mut got, nq, d),
         );
 
         let total = lp + nq;
         let mut s = vec![0.0; nq * total];
-        gemm(isa, &q, d, nq, pk, &mut s, total, Init::Zero);
-        gemm(isa, &q, d, nq, sk, &mut s[lp..], total, Init::Zero);
+        gemm(
+            isa,
+            MatRef::dense(&q, nq, d),
+            pk,
+            MatMut::new(&mut s, nq, lp, total),
+            Init::Zero,
+        );
+        gemm(
+            isa,
+            MatRef::dense(&q, nq, d),
+            sk,
+            MatMut::new(&mut s[lp..], nq, nq, total),
+            Init::Zero,
+        );
         let mut e = vec![0.0; nq * total];
         let mut factors = vec![0.0; nq];
         for i in 0..nq {
@@ -286,8 +287,20 @@ mod tests {
             factors[i] = 1.0 / vecmath::sum_32_lanes(&lanes);
         }
         let mut want = vec![0.0; nq * d];
-        gemm(isa, &e, total, nq, pv, &mut want, d, Init::Zero);
-        gemm(isa, &e[lp..], total, nq, sv, &mut want, d, Init::Accumulate);
+        gemm(
+            isa,
+            MatRef::new(&e, nq, lp, total),
+            pv,
+            MatMut::dense(&mut want, nq, d),
+            Init::Zero,
+        );
+        gemm(
+            isa,
+            MatRef::new(&e[lp..], nq, nq, total),
+            sv,
+            MatMut::dense(&mut want, nq, d),
+            Init::Accumulate,
+        );
         for (row, f) in want.chunks_exact_mut(d).zip(&factors) {
             row.iter_mut().for_each(|v| *v *= f);
         }
@@ -297,20 +310,17 @@ mod tests {
         let ldp = d / 2 + 3;
         let mut q_pairs = vec![0u32; nq * ldp];
         for (row, dst) in q.chunks_exact(d).zip(q_pairs.chunks_exact_mut(ldp)) {
-            crate::kernels::gemm::round_pairs(isa, row, &mut dst[..d / 2]);
+            crate::kernels::bf16::round_pairs(isa, row, &mut dst[..d / 2]);
         }
         let mut from_pairs = vec![0.0; nq * d];
         attend(
             isa,
-            Queries::Pairs(&q_pairs, ldp),
-            nq,
-            d,
+            Queries::Pairs(MatRef::new(&q_pairs, nq, d / 2, ldp)),
             &segs,
             pos,
             0.25,
             &mut scratch,
-            &mut from_pairs,
-            d,
+            MatMut::dense(&mut from_pairs, nq, d),
         );
         assert_eq!(bits(&from_pairs), bits(&got), "queries as pairs");
         // And it is the softmax: within bf16 rounding of the f32 result.
@@ -320,15 +330,12 @@ mod tests {
         let segs32 = segments(&packed32);
         attend(
             isa,
-            Queries::F32(&q, d),
-            nq,
-            d,
+            Queries::F32(MatRef::dense(&q, nq, d)),
             &segs32,
             pos,
             0.25,
             &mut scratch,
-            &mut exact,
-            d,
+            MatMut::dense(&mut exact, nq, d),
         );
         let worst = got
             .iter()
@@ -355,30 +362,24 @@ mod tests {
         };
         attend(
             Isa::detect(),
-            Queries::F32(&q, d),
-            nq,
-            d,
+            Queries::F32(MatRef::dense(&q, nq, d)),
             &segs,
             pos,
             0.25,
             &mut AttendScratch::default(),
-            &mut out,
-            d,
+            MatMut::dense(&mut out, nq, d),
         );
         // Two heads' queries back to back: each row sees what its position allows.
         let q2: Vec<f32> = q.iter().chain(&q).copied().collect();
         let mut out2 = vec![0.0; 2 * nq * d];
         attend(
             Isa::detect(),
-            Queries::F32(&q2, d),
-            2 * nq,
-            d,
+            Queries::F32(MatRef::dense(&q2, 2 * nq, d)),
             &segs,
             pos,
             0.25,
             &mut AttendScratch::default(),
-            &mut out2,
-            d,
+            MatMut::dense(&mut out2, 2 * nq, d),
         );
         assert_eq!(out2[..nq * d], out[..]);
         assert_eq!(out2[nq * d..], out[..]);

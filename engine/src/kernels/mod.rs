@@ -11,13 +11,20 @@
 //! CPU has them (runtime detection, best first) and portable Rust otherwise; both give the same results up to rounding,
 //! and each output element is computed in an order that does not depend on the batch size or the
 //! thread count, so a request gets bit-identical results alone or in a batch.
+//!
+//! The kernel modules use each other in one direction only: [`bf16`] (rounding) and
+//! [`matrix`] (operand views) use no other, [`vecmath`] (element-wise maths) uses [`bf16`],
+//! [`gemm`] uses those three, and [`attention`] all of them.
 
 pub mod attention;
+pub mod bf16;
 pub mod gemm;
+pub mod matrix;
 pub mod pool;
 pub mod vecmath;
 
 pub use gemm::{Init, PackedMatrix};
+pub use matrix::{MatMut, MatRef};
 
 /// Which instruction set the kernels use.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

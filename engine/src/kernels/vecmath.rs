@@ -46,8 +46,8 @@ const LOG2E: f32 = std::f32::consts::LOG2_E;
 
 /// `exp(x)` for `x` in about `[-87, 88]` (clamped outside), max error ~1 ulp (Cephes `expf`:
 /// Cody–Waite reduction by ln 2 and a degree-5 minimax polynomial), branch-free so that it
-/// vectorises. Written with fused multiply-adds (19 operations instead of 28: the softmax's
-/// exponentials were 4% of the bf16 vision tower). `mul_add` rounds once wherever it runs (an
+/// vectorises. Written with fused multiply-adds, 19 operations instead of 28, since every
+/// softmax runs it once per score. `mul_add` rounds once wherever it runs (an
 /// FMA instruction in the AVX2 and AVX-512 builds, a correctly rounded library call in the
 /// portable one), so every build still gives the same bits.
 #[inline(always)]
@@ -74,8 +74,8 @@ pub fn exp_approx(x: f32) -> f32 {
 /// `2^t` to within 3e-6 relative, for numerators that are rounded to bf16 next (whose own
 /// rounding is 2^-9, ~2e-3): `round(t)` goes to the exponent bits and `2^f`, `f` in
 /// `[-0.5, 0.5]`, to a degree-4 polynomial (minimax-fitted; max relative error 2.7e-6 in f32).
-/// About 12 operations where [`exp_approx`] takes 19, which made the softmax's exponentials
-/// the largest cost of the bf16 attention after its GEMMs. `t` is clamped below at -126 (so
+/// About 12 operations where [`exp_approx`] takes 19: after its GEMMs, the softmax's
+/// exponentials are the bf16 attention's largest cost. `t` is clamped below at -126 (so
 /// `2^round(t)` is a normal number); a NaN stays NaN.
 #[inline(always)]
 fn exp2_bf16_grade(t: f32) -> f32 {
@@ -239,12 +239,11 @@ fn exp_sum_block(src: &[f32], a: f32, b: f32, out: &mut [f32], lanes: &mut [f32;
     }
 }
 
-/// [`exp_sum_into`] followed by [`super::gemm::round_pairs`] of its output, without the f32
+/// [`exp_sum_into`] followed by [`super::bf16::round_pairs`] of its output, without the f32
 /// numerators going to memory: 32 at a time, made in registers and rounded to bf16 pairs from
 /// there (`pairs` holds `ceil(src.len() / 2)`). The same values, pairs and lane sums as the two
-/// calls. The bf16 attention's softmax numerators: made into a 256-value L1 buffer and
-/// rounded from it by a call per chunk, they took ~3.6% of the single-threaded bf16 vision
-/// tower (exponentials 2.3%, their rounding ~1.3%); in one loop, 2.9%. With AVX512_BF16
+/// calls. The bf16 attention's softmax numerators: made in one loop with their rounding, they
+/// are never stored to an L1 buffer and loaded back by a second pass. With AVX512_BF16
 /// (native `vcvtneps2bf16`) the whole step is one loop; elsewhere it is the two calls.
 pub fn exp_sum_round_into(
     isa: Isa,
@@ -269,7 +268,7 @@ pub fn exp_sum_round_into(
         let e = &mut numerators[..chunk.len()];
         exp_sum_into(isa, chunk, scale, max, e, lanes);
         let first = done / 2 + k * 128;
-        super::gemm::round_pairs(isa, e, &mut pairs[first..first + chunk.len().div_ceil(2)]);
+        super::bf16::round_pairs(isa, e, &mut pairs[first..first + chunk.len().div_ceil(2)]);
     }
 }
 
@@ -294,7 +293,7 @@ unsafe fn exp_round_avx512_bf16(
         exp_sum_block(c, a, b, &mut e, lanes);
         // SAFETY: this function's features include the rounding's; `e` holds 32 values and
         // `out` their 16 pairs.
-        unsafe { super::gemm::round_pairs_avx512_bf16(&e, out) };
+        unsafe { super::bf16::round_pairs_avx512_bf16(&e, out) };
     }
     32 * blocks
 }
@@ -551,7 +550,7 @@ mod tests {
                 let (mut e, mut want_lanes) = (vec![0.0; len], [0.0f32; 32]);
                 exp_sum_into(isa, &data, scale, max, &mut e, &mut want_lanes);
                 let mut want = vec![0u32; len.div_ceil(2)];
-                super::super::gemm::round_pairs(isa, &e, &mut want);
+                super::super::bf16::round_pairs(isa, &e, &mut want);
                 let (mut got, mut lanes) = (vec![0u32; len.div_ceil(2)], [0.0f32; 32]);
                 exp_sum_round_into(isa, &data, scale, max, &mut got, &mut lanes);
                 assert_eq!(got, want, "{isa:?} len {len}");

@@ -146,6 +146,52 @@ pub fn tokenizer_path(dir: &Path, explicit: Option<&Path>) -> Result<PathBuf, En
 /// The tokenizer's file name beside a checkpoint.
 pub const TOKENIZER_FILE: &str = "tokenizer.json";
 
+/// The model's key (one of `image_keys`) for a camera named by the user: the key itself, a key
+/// the preprocessor's rename map gives it, or the same for `observation.images.<name>`.
+pub fn resolve_camera(
+    image_keys: &[String],
+    pre: &Preprocessor,
+    name: &str,
+) -> Result<String, EngineError> {
+    let renamed = pre.rename(name);
+    if image_keys.iter().any(|k| k == renamed) {
+        return Ok(renamed.to_owned());
+    }
+    let long = format!("{IMAGE_PREFIX}{name}");
+    let renamed = pre.rename(&long);
+    if image_keys.iter().any(|k| k == renamed) {
+        return Ok(renamed.to_owned());
+    }
+    Err(EngineError::UnknownCamera {
+        camera: name.to_owned(),
+        known: image_keys.join(", "),
+    })
+}
+
+/// Every other name [`resolve_camera`] accepts for one of `camera_keys` (the part after
+/// `observation.images.`, rename-map sources and their short forms) -> that key: the server's
+/// [`ModelSpec::camera_aliases`](crate::ModelSpec::camera_aliases), so it can refuse an unknown
+/// camera before a batch.
+pub fn camera_aliases(
+    image_keys: &[String],
+    camera_keys: &[String],
+    pre: &Preprocessor,
+) -> BTreeMap<String, String> {
+    let short = |k: &str| k.strip_prefix(IMAGE_PREFIX).map(str::to_owned);
+    let candidates = camera_keys
+        .iter()
+        .cloned()
+        .chain(pre.rename_map.keys().cloned())
+        .flat_map(|k| [short(&k), Some(k)])
+        .flatten();
+    candidates
+        .filter_map(|name| {
+            let key = resolve_camera(image_keys, pre, &name).ok()?;
+            (key != name && camera_keys.contains(&key)).then_some((name, key))
+        })
+        .collect()
+}
+
 /// A checkpoint's config and processors, loaded once.
 #[derive(Debug)]
 pub struct SmolVlaCheckpoint {
@@ -179,6 +225,14 @@ impl SmolVlaCheckpoint {
         }
         let pre = Preprocessor::load(&dir.join("policy_preprocessor.json"))?;
         let post = Postprocessor::load(&dir.join("policy_postprocessor.json"))?;
+        // π's steps are read by the same loader; a SmolVLA pipeline has none of them.
+        let relative = pre.relative_actions.as_ref().is_some_and(|r| r.enabled);
+        if pre.state_prompt || relative || post.absolute_actions {
+            return Err(EngineError::Load {
+                path: dir.join("policy_preprocessor.json").display().to_string(),
+                reason: "a π0.5 state prompt or relative actions in a SmolVLA pipeline".into(),
+            });
+        }
         let step = pre.tokenizer.clone().ok_or_else(|| EngineError::Load {
             path: dir.join("policy_preprocessor.json").display().to_string(),
             reason: "no `tokenizer_processor` step".into(),
@@ -267,44 +321,15 @@ impl SmolVlaCheckpoint {
     }
 
     /// The model's key for a camera named by the user: the key itself, a renamed key, or the
-    /// suffix after `observation.images.`.
+    /// suffix after `observation.images.` (see [`resolve_camera`]).
     pub fn resolve_camera(&self, name: &str) -> Result<String, EngineError> {
-        let keys = self.config.image_keys();
-        let renamed = self.pre.rename(name);
-        if keys.iter().any(|k| k == renamed) {
-            return Ok(renamed.to_owned());
-        }
-        let long = format!("{IMAGE_PREFIX}{name}");
-        let renamed = self.pre.rename(&long);
-        if keys.iter().any(|k| k == renamed) {
-            return Ok(renamed.to_owned());
-        }
-        Err(EngineError::UnknownCamera {
-            camera: name.to_owned(),
-            known: keys.join(", "),
-        })
+        resolve_camera(&self.config.image_keys(), &self.pre, name)
     }
 
     /// Every other name [`SmolVlaCheckpoint::resolve_camera`] accepts for one of
-    /// [`SmolVlaCheckpoint::camera_keys`] (the part after `observation.images.`, rename-map
-    /// sources and their short forms) -> that key: the server's
-    /// [`ModelSpec::camera_aliases`](crate::ModelSpec::camera_aliases), so it can refuse an
-    /// unknown camera before a batch.
+    /// [`SmolVlaCheckpoint::camera_keys`] (see [`camera_aliases`]).
     pub fn camera_aliases(&self) -> BTreeMap<String, String> {
-        let keys = self.camera_keys();
-        let short = |k: &str| k.strip_prefix(IMAGE_PREFIX).map(str::to_owned);
-        let candidates = keys
-            .iter()
-            .cloned()
-            .chain(self.pre.rename_map.keys().cloned())
-            .flat_map(|k| [short(&k), Some(k)])
-            .flatten();
-        candidates
-            .filter_map(|name| {
-                let key = self.resolve_camera(&name).ok()?;
-                (key != name && keys.contains(&key)).then_some((name, key))
-            })
-            .collect()
+        camera_aliases(&self.config.image_keys(), &self.camera_keys(), &self.pre)
     }
 
     /// The synthetic observation of `kairos predict` with no inputs: a mid-grey (`0.5`) image

@@ -16,7 +16,7 @@ use std::time::Instant;
 use super::checkpoint::ACTION_KEY;
 use super::checkpoint::{Observation, PreparedObservation, SmolVlaCheckpoint};
 use super::config::{ExpertDims, VlmConfig};
-use super::vision::VisionImage;
+use super::vlm::vision::VisionImage;
 use super::vlm::{SmolVlaVlm, VlmObservation};
 use super::{ExpertWeights, SmolVlaExpert};
 use crate::sampler::gaussian_noise;

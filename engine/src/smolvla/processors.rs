@@ -10,7 +10,12 @@
 //! - `rename_observations_processor`: renames observation keys (`rename_map`);
 //! - `to_batch_processor`, `device_processor`: shape/device bookkeeping, nothing to do on one
 //!   host observation;
-//! - `smolvla_new_line_processor`: the task text gets a trailing `"\n"` if it has none;
+//! - `smolvla_new_line_processor`, `pi0_new_line_processor`: the task text gets a trailing
+//!   `"\n"` if it has none;
+//! - `pi05_prepare_state_tokenizer_processor_step`: π0.5's prompt with the discretised state
+//!   ([`Preprocessor::state_prompt`]; the π checkpoint writes it);
+//! - `relative_actions_processor` / `absolute_actions_processor`: actions relative to the raw
+//!   state ([`RelativeActions`]);
 //! - `tokenizer_processor`: max length, padding and truncation of the task tokens (see
 //!   [`super::tokenize`]);
 //! - `normalizer_processor` / `unnormalizer_processor`: [`Normalizer`].
@@ -442,13 +447,58 @@ impl TokenizerStep {
     }
 }
 
+/// LeRobot's `relative_actions_processor` settings: with `enabled`, the model's actions are
+/// relative to the raw state, and the postprocessor's `absolute_actions_processor` adds the
+/// state back (after unnormalising) to every action dim whose name matches none of
+/// `exclude_joints` (all dims when there are no names).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RelativeActions {
+    /// Whether actions are relative.
+    pub enabled: bool,
+    /// Joint names (substrings, case-insensitive) kept absolute.
+    pub exclude_joints: Vec<String>,
+    /// The action dims' names, if the dataset had them.
+    pub action_names: Option<Vec<String>>,
+}
+
+impl RelativeActions {
+    /// LeRobot's `_build_mask`: which of `action_dim` dims get the state added back.
+    pub fn mask(&self, action_dim: usize) -> Vec<bool> {
+        let tokens: Vec<String> = self
+            .exclude_joints
+            .iter()
+            .filter(|j| !j.is_empty())
+            .map(|j| j.to_lowercase())
+            .collect();
+        let (Some(names), false) = (&self.action_names, tokens.is_empty()) else {
+            return vec![true; action_dim];
+        };
+        let mut mask: Vec<bool> = names
+            .iter()
+            .take(action_dim)
+            .map(|n| {
+                let n = n.to_lowercase();
+                !tokens.iter().any(|t| *t == n || n.contains(t.as_str()))
+            })
+            .collect();
+        mask.resize(action_dim, true);
+        mask
+    }
+}
+
 /// A checkpoint's `policy_preprocessor.json`, steps folded into what they do.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Preprocessor {
     /// Observation key renames (old -> new).
     pub rename_map: BTreeMap<String, String>,
-    /// Whether the task gets a trailing newline (`smolvla_new_line_processor`).
+    /// Whether the task gets a trailing newline (`smolvla_new_line_processor`,
+    /// `pi0_new_line_processor`).
     pub newline: bool,
+    /// Whether the task becomes π0.5's prompt with the normalised state discretised into it
+    /// (`pi05_prepare_state_tokenizer_processor_step`).
+    pub state_prompt: bool,
+    /// The `relative_actions_processor` step, if any.
+    pub relative_actions: Option<RelativeActions>,
     /// The tokenizer step, if any.
     pub tokenizer: Option<TokenizerStep>,
     /// The normaliser, if any.
@@ -460,6 +510,8 @@ pub struct Preprocessor {
 pub struct Postprocessor {
     /// The unnormaliser, if any.
     pub unnormalizer: Option<Normalizer>,
+    /// Whether an enabled `absolute_actions_processor` adds the raw state back to the actions.
+    pub absolute_actions: bool,
 }
 
 /// Read a pipeline file and each step's stats file.
@@ -507,6 +559,8 @@ impl Preprocessor {
         let mut pre = Preprocessor {
             rename_map: BTreeMap::new(),
             newline: false,
+            state_prompt: false,
+            relative_actions: None,
             tokenizer: None,
             normalizer: None,
         };
@@ -527,7 +581,30 @@ impl Preprocessor {
                     pre.rename_map.extend(cfg.rename_map);
                 }
                 "to_batch_processor" | "device_processor" => {}
-                "smolvla_new_line_processor" => pre.newline = true,
+                "smolvla_new_line_processor" | "pi0_new_line_processor" => pre.newline = true,
+                "pi05_prepare_state_tokenizer_processor_step" => pre.state_prompt = true,
+                "relative_actions_processor" => {
+                    #[derive(serde::Deserialize)]
+                    struct Cfg {
+                        #[serde(default)]
+                        enabled: bool,
+                        #[serde(default)]
+                        exclude_joints: Vec<String>,
+                        #[serde(default)]
+                        action_names: Option<Vec<String>>,
+                    }
+                    let cfg: Cfg = serde_json::from_value(step.config.clone()).map_err(|e| {
+                        EngineError::Load {
+                            path: path.display().to_string(),
+                            reason: format!("step `{}`: {e}", step.registry_name),
+                        }
+                    })?;
+                    pre.relative_actions = Some(RelativeActions {
+                        enabled: cfg.enabled,
+                        exclude_joints: cfg.exclude_joints,
+                        action_names: cfg.action_names,
+                    });
+                }
                 "tokenizer_processor" => {
                     pre.tokenizer = Some(TokenizerStep::from_step(path, &step)?);
                 }
@@ -558,10 +635,20 @@ impl Preprocessor {
 impl Postprocessor {
     /// Load `policy_postprocessor.json` (and the stats files its steps name).
     pub fn load(path: &Path) -> Result<Self, EngineError> {
-        let mut post = Postprocessor { unnormalizer: None };
+        let mut post = Postprocessor {
+            unnormalizer: None,
+            absolute_actions: false,
+        };
         for (step, state) in read_pipeline(path)? {
             match step.registry_name.as_str() {
                 "device_processor" => {}
+                "absolute_actions_processor" => {
+                    post.absolute_actions = step
+                        .config
+                        .get("enabled")
+                        .and_then(serde_json::Value::as_bool)
+                        .unwrap_or(false);
+                }
                 "unnormalizer_processor" => {
                     post.unnormalizer = Some(Normalizer::from_step(path, &step, state.as_ref())?);
                 }
@@ -627,6 +714,19 @@ mod tests {
         let mut bad = vec![1.0, 2.0, 3.0];
         let n2 = normalizer(NormMode::MeanStd, vec![0.0, 0.0], vec![1.0, 1.0]);
         assert!(n2.normalize("x", &mut bad).is_err());
+    }
+
+    #[test]
+    fn relative_action_masks_follow_lerobot() {
+        let all = RelativeActions::default();
+        assert_eq!(all.mask(3), vec![true; 3]);
+        let named = RelativeActions {
+            enabled: true,
+            exclude_joints: vec!["Gripper".into()],
+            action_names: Some(vec!["shoulder".into(), "left_gripper".into()]),
+        };
+        // Names match as lower-case substrings; dims without a name stay relative.
+        assert_eq!(named.mask(3), vec![true, false, true]);
     }
 
     #[test]

@@ -19,7 +19,7 @@ use std::path::Path;
 
 use crate::image_features::pooled_features;
 use crate::kernels::gemm::gemm;
-use crate::kernels::{Init, Isa, PackedMatrix};
+use crate::kernels::{Init, Isa, MatMut, MatRef, PackedMatrix};
 use crate::prefix_encoder::PrefixEncoder;
 use crate::sampler::gaussian_noise;
 use crate::smolvla::{PrefixKv, SmolVlaExpert};
@@ -125,16 +125,11 @@ impl SmolVlaStandIn {
             let at = i * TOKENS_PER_IMAGE;
             let block = &mut tokens[at * TOKEN_DIM..(at + TOKENS_PER_IMAGE) * TOKEN_DIM];
             block.copy_from_slice(&self.cell_embedding);
-            gemm(
-                isa,
-                &cells,
-                3,
-                TOKENS_PER_IMAGE,
-                &self.pixel_proj,
-                block,
-                TOKEN_DIM,
-                Init::Accumulate,
+            let (cells, block) = (
+                MatRef::dense(&cells, TOKENS_PER_IMAGE, 3),
+                MatMut::dense(block, TOKENS_PER_IMAGE, TOKEN_DIM),
             );
+            gemm(isa, cells, &self.pixel_proj, block, Init::Accumulate);
             valid[at..at + TOKENS_PER_IMAGE].fill(true);
         }
         let text = TOKENS_PER_IMAGE * self.spec.max_images;
@@ -152,16 +147,11 @@ impl SmolVlaStandIn {
         }
         let last = len - 1;
         let d = self.expert.dims();
-        gemm(
-            isa,
-            state_token,
-            d.vlm_hidden,
-            1,
-            &self.state_down,
-            &mut tokens[last * TOKEN_DIM..],
-            TOKEN_DIM,
-            Init::Zero,
+        let (state, token) = (
+            MatRef::dense(state_token, 1, d.vlm_hidden),
+            MatMut::dense(&mut tokens[last * TOKEN_DIM..], 1, TOKEN_DIM),
         );
+        gemm(isa, state, &self.state_down, token, Init::Zero);
         valid[last] = true;
         self.encoder.encode(&tokens, valid)
     }

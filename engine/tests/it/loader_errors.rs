@@ -143,9 +143,20 @@ fn missing_files_and_bad_configs_are_load_errors() {
     assert!(matches!(load(dir.path()), EngineError::Load { .. }));
 
     let dir = checkpoint_with(|_| {});
-    std::fs::write(dir.path().join("config.json"), r#"{"type": "pi0"}"#).unwrap();
+    std::fs::write(dir.path().join("config.json"), r#"{"type": "pi0_fast"}"#).unwrap();
     let Err(err) = load_model(dir.path()) else {
-        panic!("a pi0 config must not load")
+        panic!("a pi0_fast config must not load")
     };
     assert!(err.to_string().contains("unknown model type"), "{err}");
+
+    // A known family whose files are missing: the first missing file is named.
+    let dir = checkpoint_with(|_| {});
+    std::fs::write(dir.path().join("config.json"), r#"{"type": "pi0"}"#).unwrap();
+    let Err(err) = load_model(dir.path()) else {
+        panic!("a pi0 config without its processors must not load")
+    };
+    assert!(
+        err.to_string().contains("policy_preprocessor.json"),
+        "{err}"
+    );
 }

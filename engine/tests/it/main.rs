@@ -7,6 +7,8 @@
 mod examples_help;
 mod loader_errors;
 mod models;
+mod pi_parity;
+mod pi_pipeline;
 mod smolvla_bf16;
 mod smolvla_fixture;
 mod smolvla_goldens;

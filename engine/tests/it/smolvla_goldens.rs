@@ -3,7 +3,7 @@
 
 #![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use kairos_engine::weights::Checkpoint;
 
@@ -21,13 +21,17 @@ pub(crate) struct Goldens {
 }
 
 impl Goldens {
-    /// Read both files.
+    /// Read both files of the `smolvla_tiny` fixture.
     pub(crate) fn open() -> Self {
-        let bytes = std::fs::read(fixture().join("golden/goldens.safetensors")).unwrap();
-        let meta = serde_json::from_str(
-            &std::fs::read_to_string(fixture().join("golden/meta.json")).unwrap(),
-        )
-        .unwrap();
+        Self::open_at(&fixture())
+    }
+
+    /// Read both files of the fixture in `dir`.
+    pub(crate) fn open_at(dir: &Path) -> Self {
+        let bytes = std::fs::read(dir.join("golden/goldens.safetensors")).unwrap();
+        let meta =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("golden/meta.json")).unwrap())
+                .unwrap();
         Goldens {
             ckpt: Checkpoint::from_bytes("goldens", bytes.clone()).unwrap(),
             bytes,

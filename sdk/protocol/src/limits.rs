@@ -143,7 +143,11 @@ pub trait Validate {
     fn validate(&self, limits: &Limits) -> Result<(), ValidationError>;
 }
 
-fn check_size(field: impl FnOnce() -> String, len: usize, max: u32) -> Result<(), ValidationError> {
+pub(crate) fn check_size(
+    field: impl FnOnce() -> String,
+    len: usize,
+    max: u32,
+) -> Result<(), ValidationError> {
     if len as u64 > u64::from(max) {
         return Err(ValidationError::TooLarge {
             field: field(),
@@ -154,7 +158,10 @@ fn check_size(field: impl FnOnce() -> String, len: usize, max: u32) -> Result<()
     Ok(())
 }
 
-fn invalid_request(field: impl Into<String>, reason: impl Into<String>) -> ValidationError {
+pub(crate) fn invalid_request(
+    field: impl Into<String>,
+    reason: impl Into<String>,
+) -> ValidationError {
     ValidationError::InvalidRequest {
         field: field.into(),
         reason: reason.into(),
@@ -170,7 +177,7 @@ fn invalid_observation(field: impl Into<String>, reason: impl Into<String>) -> V
 
 /// Rank and dimensions within limits, and `data` exactly `product(shape) × dtype.size()` bytes.
 /// A byte-length mismatch is reported through `mismatch`, so each caller picks its error kind.
-fn check_tensor(
+pub(crate) fn check_tensor(
     field: &str,
     tensor: &Tensor,
     limits: &Limits,
@@ -194,7 +201,7 @@ fn check_tensor(
     Ok(())
 }
 
-fn check_name(field: &str, name: &str, limits: &Limits) -> Result<(), ValidationError> {
+pub(crate) fn check_name(field: &str, name: &str, limits: &Limits) -> Result<(), ValidationError> {
     check_size(|| field.to_owned(), name.len(), limits.max_name_bytes)
 }
 

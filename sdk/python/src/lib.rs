@@ -258,7 +258,7 @@ impl Client {
     /// Connects with the pin and a robot token that a local `kairos serve` wrote to its data
     /// directory.
     #[staticmethod]
-    #[pyo3(signature = (path = PathBuf::from("kairos-data"), server = "127.0.0.1:4433", *, robot = data_dir::DEFAULT_ROBOT, connect_timeout = 5.0, round_timeout = None, reconnect_attempts = 8))]
+    #[pyo3(signature = (path = PathBuf::from(data_dir::DEFAULT_DATA_DIR), server = "127.0.0.1:4433", *, robot = data_dir::DEFAULT_ROBOT, connect_timeout = 5.0, round_timeout = None, reconnect_attempts = 8))]
     fn from_data_dir(
         py: Python<'_>,
         path: PathBuf,

@@ -61,8 +61,10 @@ impl MinRate {
         if self.bytes_per_s == 0 {
             return None;
         }
-        let allowed = Duration::from_secs_f64(received as f64 / self.bytes_per_s as f64);
-        Some(start + self.grace.saturating_add(allowed))
+        let allowed = Duration::try_from_secs_f64(received as f64 / self.bytes_per_s as f64)
+            .unwrap_or(Duration::MAX);
+        // Past the end of time: no deadline at all.
+        start.checked_add(self.grace.saturating_add(allowed))
     }
 }
 

@@ -33,8 +33,9 @@ pub const DEFAULT_LISTEN: &str = "127.0.0.1:4433";
 
 /// Default data directory, relative to the working directory. A fixed relative path (rather than
 /// an XDG directory) keeps `kairos serve` and `kairos robot` started from the same directory in
-/// agreement without any configuration, and makes the state easy to find and delete.
-pub const DEFAULT_DATA_DIR: &str = "kairos-data";
+/// agreement without any configuration, and makes the state easy to find and delete. Defined
+/// with the robot's side of the files, so server, robots and workers share one name.
+pub use kairos_sdk::data_dir::DEFAULT_DATA_DIR;
 
 /// Name of the robot whose token is generated when no robot is configured.
 pub const DEFAULT_ROBOT: &str = kairos_sdk::data_dir::DEFAULT_ROBOT;
@@ -125,6 +126,9 @@ pub struct WorkersConfig {
     pub batch_deadline_factor: f64,
     /// See `batch_deadline_factor`.
     pub min_batch_deadline_ms: u32,
+    /// The longest a batch sent to a worker may take, whatever the worker declared in its
+    /// profile: the deadline is capped here.
+    pub max_batch_deadline_ms: u32,
     /// Dispatches a round may get in all (the first included) before a lost batch fails it
     /// with a retryable error instead of running it again.
     pub max_attempts: u32,
@@ -133,7 +137,7 @@ pub struct WorkersConfig {
     pub redispatch_within_ms: u32,
     /// A worker that registers with tier `auto` is cloud when its measured round trip is at
     /// least this many ms and edge below it; it is re-classified as the moving average moves
-    /// (25 % hysteresis around the threshold, `pool::remote::tier_from_rtt`).
+    /// (25 % hysteresis around the threshold, `worker::remote::tier_from_rtt`).
     pub cloud_rtt_ms: u32,
 }
 
@@ -144,6 +148,7 @@ impl Default for WorkersConfig {
             heartbeat_ms: 500,
             batch_deadline_factor: 4.0,
             min_batch_deadline_ms: 2_000,
+            max_batch_deadline_ms: 60_000,
             max_attempts: 3,
             redispatch_within_ms: 10_000,
             cloud_rtt_ms: 20,
@@ -162,10 +167,16 @@ impl WorkersConfig {
         self.heartbeat() * 3 + self.heartbeat() / 2
     }
 
-    /// The deadline of a batch expected to take `expected`.
+    /// The deadline of a batch expected to take `expected`: `batch_deadline_factor` times it,
+    /// at least `min_batch_deadline_ms` and at most `max_batch_deadline_ms`. `expected` comes
+    /// from a worker's profile, so nothing here can overflow or panic, whatever it is.
     pub fn batch_deadline(&self, expected: Duration) -> Duration {
-        let scaled = expected.mul_f64(self.batch_deadline_factor.max(1.0));
-        scaled.max(Duration::from_millis(u64::from(self.min_batch_deadline_ms)))
+        let factor = self.batch_deadline_factor.max(1.0);
+        let scaled =
+            Duration::try_from_secs_f64(expected.as_secs_f64() * factor).unwrap_or(Duration::MAX);
+        let min = Duration::from_millis(u64::from(self.min_batch_deadline_ms));
+        let max = Duration::from_millis(u64::from(self.max_batch_deadline_ms));
+        scaled.max(min).min(max.max(min))
     }
 
     /// The round trip from which an `auto` worker is cloud.
@@ -349,7 +360,8 @@ impl Default for EngineConfig {
 impl EngineConfig {
     /// The emulated network round trip of this engine.
     pub fn rtt(&self) -> Duration {
-        Duration::from_secs_f64(self.rtt_ms.max(0.0) / 1e3)
+        // `check` refuses a non-finite or negative `rtt_ms`; a huge one saturates.
+        Duration::try_from_secs_f64(self.rtt_ms.max(0.0) / 1e3).unwrap_or(Duration::MAX)
     }
 
     /// How this engine's model runs: `device`, `kernels` and `threads` parsed. Whether the
@@ -481,6 +493,23 @@ pub struct ConnectionsConfig {
     /// `net.core.rmem_max`/`wmem_max`). The default 4 MiB absorbs a burst of a thousand robots'
     /// packets (e.g. everyone reconnecting at once) where the usual 208 KiB would drop them.
     pub socket_buffer_bytes: usize,
+    /// Most authenticated connections one robot (one token) may hold at once; over it the
+    /// connection is closed with `AT_CAPACITY` after its `Hello`. Unset: an equal share of
+    /// `max_connections` per configured robot (`max_connections / robots`, at least 1), so
+    /// every robot can always get its share; with the one generated robot, whose token a whole
+    /// fleet shares, that is every place.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_connections_per_robot: Option<usize>,
+    /// Rounds one connection may submit per second, sustained (a token bucket refilled at this
+    /// rate); a round over it is refused with a retryable `overloaded`.
+    pub rounds_per_s_per_connection: f64,
+    /// Rounds one connection may submit at once beyond its rate (the bucket's size).
+    pub round_burst_per_connection: u32,
+    /// Rounds one robot (one token), over all its connections, may submit per second,
+    /// sustained; QUIC and openpi rounds alike.
+    pub rounds_per_s_per_robot: f64,
+    /// Rounds one robot may submit at once beyond its rate.
+    pub round_burst_per_robot: u32,
 }
 
 impl Default for ConnectionsConfig {
@@ -497,6 +526,13 @@ impl Default for ConnectionsConfig {
             upload_grace_ms: 5_000,
             upload_buffer_frames: 2,
             socket_buffer_bytes: 4 << 20,
+            max_connections_per_robot: None,
+            // Far above what a robot needs (one round per control step at 1 kHz) and what a
+            // fleet of thousands on one token sends; they bound floods, not robots.
+            rounds_per_s_per_connection: 1_000.0,
+            round_burst_per_connection: 1_000,
+            rounds_per_s_per_robot: 10_000.0,
+            round_burst_per_robot: 10_000,
         }
     }
 }
@@ -729,6 +765,47 @@ impl Config {
             return Err(invalid(
                 "workers.max_attempts".into(),
                 "must be at least 1".into(),
+            ));
+        }
+        let connections = &self.connections;
+        if connections.max_connections_per_robot == Some(0) {
+            return Err(invalid(
+                "connections.max_connections_per_robot".into(),
+                "must be at least 1".into(),
+            ));
+        }
+        for (key, rate) in [
+            (
+                "connections.rounds_per_s_per_connection",
+                connections.rounds_per_s_per_connection,
+            ),
+            (
+                "connections.rounds_per_s_per_robot",
+                connections.rounds_per_s_per_robot,
+            ),
+        ] {
+            if !(rate.is_finite() && rate > 0.0) {
+                return Err(invalid(key.into(), "must be a finite number > 0".into()));
+            }
+        }
+        for (key, burst) in [
+            (
+                "connections.round_burst_per_connection",
+                connections.round_burst_per_connection,
+            ),
+            (
+                "connections.round_burst_per_robot",
+                connections.round_burst_per_robot,
+            ),
+        ] {
+            if burst == 0 {
+                return Err(invalid(key.into(), "must be at least 1".into()));
+            }
+        }
+        if self.workers.max_batch_deadline_ms < self.workers.min_batch_deadline_ms {
+            return Err(invalid(
+                "workers.max_batch_deadline_ms".into(),
+                "must be at least workers.min_batch_deadline_ms".into(),
             ));
         }
         if !(self.workers.batch_deadline_factor.is_finite()
@@ -1017,6 +1094,22 @@ mod tests {
     }
 
     #[test]
+    fn a_batch_deadline_is_scaled_and_bounded_whatever_the_worker_declared() {
+        let workers = WorkersConfig {
+            batch_deadline_factor: 4.0,
+            min_batch_deadline_ms: 2_000,
+            max_batch_deadline_ms: 60_000,
+            ..WorkersConfig::default()
+        };
+        let ms = Duration::from_millis;
+        assert_eq!(workers.batch_deadline(ms(100)), ms(2_000));
+        assert_eq!(workers.batch_deadline(ms(1_000)), ms(4_000));
+        assert_eq!(workers.batch_deadline(ms(100_000)), ms(60_000));
+        // A profile's latency saturates at `Duration::MAX`: capped, no overflow.
+        assert_eq!(workers.batch_deadline(Duration::MAX), ms(60_000));
+    }
+
+    #[test]
     fn unknown_key_error_names_file_and_key() {
         let err = Config::parse("[scheduler]\nstale_afterms = 5\n", Path::new("my.toml"))
             .unwrap_err()
@@ -1038,6 +1131,30 @@ mod tests {
         let cases = [
             ("[workers]\nheartbeat_ms = 0\n", "workers.heartbeat_ms"),
             ("[workers]\nmax_attempts = 0\n", "workers.max_attempts"),
+            (
+                "[workers]\nmin_batch_deadline_ms = 5000\nmax_batch_deadline_ms = 4000\n",
+                "workers.max_batch_deadline_ms",
+            ),
+            (
+                "[connections]\nmax_connections_per_robot = 0\n",
+                "connections.max_connections_per_robot",
+            ),
+            (
+                "[connections]\nrounds_per_s_per_robot = 0.0\n",
+                "connections.rounds_per_s_per_robot",
+            ),
+            (
+                "[connections]\nrounds_per_s_per_connection = inf\n",
+                "connections.rounds_per_s_per_connection",
+            ),
+            (
+                "[connections]\nround_burst_per_connection = 0\n",
+                "connections.round_burst_per_connection",
+            ),
+            (
+                "[connections]\nround_burst_per_robot = 0\n",
+                "connections.round_burst_per_robot",
+            ),
             (
                 "[[robot]]\nname = \"a\"\ntoken_sha256 = \"abc\"\n",
                 "robot[0].token_sha256",

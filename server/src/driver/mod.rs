@@ -25,6 +25,11 @@
 //! Shutdown: once the shutdown signal is set (or every handle is dropped) new rounds are
 //! refused with `shutting_down`; rounds already accepted are still run and answered, and the
 //! task returned by [`spawn`] completes when none is left.
+//!
+//! A driver that dies (a panic in the core or in a policy it calls) cannot be restarted in
+//! place: its state may be half-updated. Its handles answer `DriverGone` from then on,
+//! [`DriverHandle::ended`] says why, and `kairos_driver_alive` turns 0; the server built on it
+//! turns unready and stops (`transport::launch`).
 
 mod shell;
 #[cfg(test)]
@@ -40,7 +45,7 @@ use kairos_core::round::ValidObservation;
 use tokio::sync::oneshot;
 
 pub use self::shell::EngineView;
-pub use self::shell::{DriverGone, DriverHandle, PendingRound, spawn};
+pub use self::shell::{DriverEnd, DriverGone, DriverHandle, PendingRound, spawn};
 
 /// A request from the driver to a round's connection task: send `FetchObservation` and return
 /// the validated `FreshObservation`. Dropping `reply` means "no fresh observation".

@@ -100,6 +100,17 @@ pub struct DriverHandle {
     commands: mpsc::Sender<Command>,
     waiters: Arc<AtomicU64>,
     clock: Clock,
+    /// How the driver thread ended, once it has.
+    end: watch::Receiver<Option<DriverEnd>>,
+}
+
+/// How the driver thread ended.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum DriverEnd {
+    /// It drained after a shutdown (or once every handle was dropped) and returned its totals.
+    Stopped,
+    /// It died: a panic (the message), or it could not start. No round can be served any more.
+    Failed(String),
 }
 
 /// The driver has stopped.
@@ -243,9 +254,27 @@ impl DriverHandle {
     }
 
     /// Resolves once the driver has stopped: after a shutdown, when every round it accepted
-    /// was answered.
+    /// was answered (or at once if it died).
     pub async fn stopped(&self) {
         self.commands.closed().await;
+    }
+
+    /// Resolves once the driver thread has ended, with how.
+    pub async fn ended(&self) -> DriverEnd {
+        let mut end = self.end.clone();
+        match end.wait_for(Option::is_some).await {
+            Ok(end) => end.clone().unwrap_or(DriverEnd::Stopped),
+            // The thread is gone without saying how.
+            Err(_) => DriverEnd::Failed("the driver thread ended without a word".into()),
+        }
+    }
+
+    /// Why the driver thread died, if it has.
+    pub fn failure(&self) -> Option<String> {
+        match &*self.end.borrow() {
+            Some(DriverEnd::Failed(reason)) => Some(reason.clone()),
+            _ => None,
+        }
     }
 
     /// Every engine instance the scheduler knows, live or not.
@@ -291,6 +320,8 @@ struct Shell {
     shutdown: watch::Receiver<bool>,
     /// Where the core's report goes after every event (`/metrics`).
     export: Option<DriverExport>,
+    /// `kairos_driver_alive` is 1 while the thread holds this (dropped however it ends).
+    _running: Option<crate::metrics::driver::DriverRunning>,
 }
 
 /// Starts the driver: its core on a thread of its own, its waiting on the current tokio runtime.
@@ -322,6 +353,7 @@ pub fn spawn(
     }
     let shell = Shell {
         core,
+        _running: export.as_ref().map(DriverExport::running),
         export,
         commands,
         reports: commands_tx.downgrade(),
@@ -335,16 +367,39 @@ pub fn spawn(
         shutdown,
     };
     let (done, stats) = oneshot::channel();
+    let (ended, end) = watch::channel(None);
     let thread = std::thread::Builder::new()
         .name("kairos-driver".into())
         .spawn(move || {
-            let _ = done.send(shell.run());
+            // A panic anywhere in the core or a policy it calls ends the thread; it is caught
+            // here only to say so (the server then turns unready and stops), never to go on:
+            // the core's state may be half-updated. The command channel closed as the shell
+            // unwound, so every waiting round already got `DriverGone`.
+            let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| shell.run()));
+            match run {
+                Ok(stats) => {
+                    let _ = ended.send(Some(DriverEnd::Stopped));
+                    let _ = done.send(stats);
+                }
+                Err(panic) => {
+                    let reason = format!("the driver thread panicked: {}", panic_message(&*panic));
+                    tracing::error!(%reason, "the driver died: no round can be served");
+                    let _ = ended.send(Some(DriverEnd::Failed(reason)));
+                }
+            }
         });
-    if let Err(error) = thread {
-        // The command channel's receiver died with the failed spawn: every call answers
-        // `DriverGone`.
-        tracing::error!(%error, "cannot start the driver thread");
-    }
+    let end = match thread {
+        Ok(_) => end,
+        Err(error) => {
+            // The command channel's receiver died with the failed spawn: every call answers
+            // `DriverGone`.
+            tracing::error!(%error, "cannot start the driver thread");
+            watch::channel(Some(DriverEnd::Failed(format!(
+                "cannot start the driver thread: {error}"
+            ))))
+            .1
+        }
+    };
     let join = runtime.spawn(async move {
         stats.await.unwrap_or_else(|_| {
             tracing::error!("the driver thread ended without its totals");
@@ -355,8 +410,18 @@ pub fn spawn(
         commands: commands_tx,
         waiters: Arc::new(AtomicU64::new(0)),
         clock,
+        end,
     };
     (handle, join)
+}
+
+/// The text of a panic's payload (a `&str` or `String`, as `panic!` makes them).
+fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    payload
+        .downcast_ref::<&str>()
+        .map(|s| (*s).to_string())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "a panic without a message".into())
 }
 
 impl Shell {

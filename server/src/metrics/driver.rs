@@ -29,6 +29,21 @@ struct Published {
     actions: Option<Arc<ActionManager>>,
     /// Per engine, its busy seconds at the last recomputation of its busy ratio, and the ratio.
     busy: BTreeMap<String, BusyMark>,
+    /// Whether the driver's thread holds a [`DriverRunning`] now.
+    alive: bool,
+}
+
+/// Held by the driver's thread for as long as it runs: `kairos_driver_alive` is 1 from
+/// [`DriverExport::running`] until this is dropped, which happens however the thread ends (its
+/// loop returned, or a panic unwound it).
+#[derive(Debug)]
+#[must_use = "the driver counts as alive only while this is held"]
+pub struct DriverRunning(DriverExport);
+
+impl Drop for DriverRunning {
+    fn drop(&mut self) {
+        self.0.lock().alive = false;
+    }
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -52,6 +67,26 @@ impl DriverExport {
     /// The report last published.
     pub fn report(&self) -> DriverReport {
         self.lock().report.clone()
+    }
+
+    /// Marks the driver alive until the returned guard is dropped.
+    pub fn running(&self) -> DriverRunning {
+        self.lock().alive = true;
+        DriverRunning(self.clone())
+    }
+
+    /// Whether the driver's thread runs now (`kairos_driver_alive`).
+    pub fn is_alive(&self) -> bool {
+        self.lock().alive
+    }
+
+    /// Rounds whose horizon policy fell back, by policy (`kairos_horizon_fallbacks_total`).
+    pub fn horizon_fallbacks(&self) -> BTreeMap<String, u64> {
+        self.lock()
+            .actions
+            .as_ref()
+            .map(|a| a.fallbacks_by_policy())
+            .unwrap_or_default()
     }
 
     /// Exports `actions`' fallbacks (`kairos_horizon_fallbacks_total{policy}`).
@@ -93,6 +128,7 @@ impl DriverExport {
         self.refresh_busy_ratios(now);
         let published = self.lock();
         Snapshot {
+            alive: published.alive,
             report: published.report.clone(),
             fallbacks: published
                 .actions
@@ -111,6 +147,7 @@ impl DriverExport {
 /// What one scrape encodes, read under the lock once.
 #[derive(Debug, Default)]
 pub(super) struct Snapshot {
+    pub(super) alive: bool,
     pub(super) report: DriverReport,
     pub(super) fallbacks: BTreeMap<String, u64>,
     pub(super) busy_ratios: BTreeMap<String, f64>,
@@ -169,6 +206,27 @@ impl Collector for DriverCollector {
         let report = &snapshot.report;
         let stats = &report.stats;
 
+        ConstGauge::new(i64::from(snapshot.alive)).encode(encoder.encode_descriptor(
+            "kairos_driver_alive",
+            "1 while the scheduler's driver thread runs; 0 once it has ended, for any reason",
+            None,
+            MetricType::Gauge,
+        )?)?;
+
+        ConstGauge::new(saturating_i64(report.running)).encode(encoder.encode_descriptor(
+            "kairos_rounds_running",
+            "Rounds in batches that have not finished",
+            None,
+            MetricType::Gauge,
+        )?)?;
+
+        ConstGauge::new(saturating_i64(report.open_tasks)).encode(encoder.encode_descriptor(
+            "kairos_open_tasks",
+            "Tasks open now (started by a robot, not yet ended or expired)",
+            None,
+            MetricType::Gauge,
+        )?)?;
+
         let gauge = ConstGauge::new(saturating_i64(report.queue_depth));
         gauge.encode(encoder.encode_descriptor(
             "kairos_queue_depth",
@@ -213,6 +271,13 @@ impl Collector for DriverCollector {
             &stats.batch_size,
         )?;
 
+        encode_histogram(
+            &mut encoder,
+            "kairos_round_horizon",
+            "Actions each answered round asked its robot to execute (the horizon H)",
+            None,
+            &stats.horizon,
+        )?;
         encode_histogram(
             &mut encoder,
             "kairos_delay_predicted_steps",

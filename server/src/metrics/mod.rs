@@ -9,6 +9,9 @@
 //!   fallbacks are read from it the same way;
 //! - the plugin host counts its fallbacks in the [`Counter`] handed to it
 //!   ([`Metrics::fallback_counter`]);
+//! - the scheduler's worker registration counts the workers it removes
+//!   (`kairos_worker_removed_total{reason}`), and the driver's shell says whether the driver
+//!   thread runs (`kairos_driver_alive`);
 //! - a `kairos worker` process ([`Metrics::for_worker`]) counts its own facts in typed families:
 //!   its connection state, batches answered, heartbeats sent, compute time per batch, its
 //!   engine's busy time and batch sizes, fed by `crate::worker`.
@@ -18,7 +21,10 @@
 //! all bounded by the deployment's configuration.
 
 pub mod driver;
+pub mod fleet;
 pub mod http;
+mod listener;
+mod operations;
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -33,6 +39,7 @@ use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::{Registry, Unit};
 
 pub use self::driver::DriverExport;
+pub use self::operations::{DoorConnections, PluginHealth, RefusalCount};
 
 /// `Content-Type` of [`Metrics::encode`]'s output (OpenMetrics text, which Prometheus scrapes).
 pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
@@ -76,6 +83,53 @@ impl WorkerConnection {
     }
 }
 
+/// Why the scheduler removed a worker (or refused its registration), as
+/// `kairos_worker_removed_total{reason}` labels it. A worker that drains is not removed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum WorkerRemoval {
+    /// Its `Register` broke the protocol's rules (an unusable profile, oversized strings).
+    InvalidRegistration,
+    /// It answered a batch with something unusable (wrong count or shapes, non-finite values,
+    /// oversized error text).
+    InvalidAnswer,
+    /// A batch's deadline passed without an answer.
+    Deadline,
+    /// A batch's stream was reset or finished without an answer.
+    StreamFailed,
+    /// No heartbeat for about three periods.
+    Silent,
+    /// A message its registration stream may not carry.
+    ProtocolError,
+    /// Its connection was lost.
+    ConnectionLost,
+}
+
+impl WorkerRemoval {
+    /// Every reason, in the order exported.
+    pub const ALL: [WorkerRemoval; 7] = [
+        WorkerRemoval::InvalidRegistration,
+        WorkerRemoval::InvalidAnswer,
+        WorkerRemoval::Deadline,
+        WorkerRemoval::StreamFailed,
+        WorkerRemoval::Silent,
+        WorkerRemoval::ProtocolError,
+        WorkerRemoval::ConnectionLost,
+    ];
+
+    /// The label value.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            WorkerRemoval::InvalidRegistration => "invalid_registration",
+            WorkerRemoval::InvalidAnswer => "invalid_answer",
+            WorkerRemoval::Deadline => "deadline",
+            WorkerRemoval::StreamFailed => "stream_failed",
+            WorkerRemoval::Silent => "silent",
+            WorkerRemoval::ProtocolError => "protocol_error",
+            WorkerRemoval::ConnectionLost => "connection_lost",
+        }
+    }
+}
+
 /// Which policy fell back, as `kairos_plugin_fallbacks_total` labels it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum PolicyKind {
@@ -105,12 +159,6 @@ struct StateLabel {
     state: &'static str,
 }
 
-#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
-struct FallbackLabels {
-    kind: &'static str,
-    policy: String,
-}
-
 type FloatGauge = Gauge<f64, AtomicU64>;
 type FloatCounter = Counter<f64, AtomicU64>;
 
@@ -129,7 +177,10 @@ struct EngineBusy {
 
 struct Inner {
     registry: Registry,
-    plugin_fallbacks: Family<FallbackLabels, Counter>,
+    /// Connections, refusals, removed workers, plugins ([`operations`]).
+    operations: operations::Operations,
+    /// When the registry was built: the process's start, near enough.
+    started: Instant,
     /// The scheduler's: the driver core's latest report, encoded at every scrape. `None` in a
     /// worker.
     driver: Option<DriverExport>,
@@ -185,12 +236,13 @@ impl Metrics {
 
     fn build(worker: bool) -> Metrics {
         let mut registry = Registry::default();
-        let plugin_fallbacks = Family::<FallbackLabels, Counter>::default();
-        registry.register(
-            "kairos_plugin_fallbacks",
-            "Decisions a policy plugin answered through its fallback policy because it failed",
-            plugin_fallbacks.clone(),
-        );
+        let operations = operations::Operations::register(&mut registry, !worker);
+        if !worker {
+            // Every removal reason is a series from the start, so that `increase()` sees the first.
+            for reason in WorkerRemoval::ALL {
+                operations.removed_counter(reason.as_str());
+            }
+        }
         let driver = (!worker).then(|| {
             let export = DriverExport::default();
             registry.register_collector(Box::new(driver::DriverCollector(export.clone())));
@@ -265,7 +317,8 @@ impl Metrics {
         });
         Metrics(Arc::new(Inner {
             registry,
-            plugin_fallbacks,
+            operations,
+            started: Instant::now(),
             driver,
             worker,
         }))
@@ -274,6 +327,17 @@ impl Metrics {
     /// Where the driver's shell publishes the core's reports (`None` in a worker process).
     pub fn driver(&self) -> Option<&DriverExport> {
         self.0.driver.as_ref()
+    }
+
+    /// `kairos_worker_removed_total{reason}`: the scheduler removed a worker (or refused its
+    /// registration) for `reason`.
+    pub fn record_worker_removed(&self, reason: WorkerRemoval) {
+        self.0.operations.removed_counter(reason.as_str()).inc();
+    }
+
+    /// Workers removed for `reason` so far (`kairos_worker_removed_total`).
+    pub fn workers_removed_for(&self, reason: WorkerRemoval) -> u64 {
+        self.0.operations.removed_counter(reason.as_str()).get()
     }
 
     /// `kairos_worker_connection{state}`: the worker is now in `state`. No-op in a scheduler.
@@ -321,13 +385,57 @@ impl Metrics {
     /// The counter of fallbacks of `policy` (`kairos_plugin_fallbacks_total{kind,policy}`),
     /// for its owner to count in. Handles to the same labels share one value.
     pub fn fallback_counter(&self, kind: PolicyKind, policy: &str) -> Counter {
-        self.0
-            .plugin_fallbacks
-            .get_or_create(&FallbackLabels {
-                kind: kind.as_str(),
-                policy: policy.to_string(),
-            })
-            .clone()
+        self.0.operations.plugin(kind, policy).fallbacks
+    }
+
+    /// The gauge of `policy`'s quarantine (`kairos_plugin_quarantined{kind,policy}`, 1 while
+    /// quarantined), for its owner to set.
+    pub fn quarantine_gauge(&self, kind: PolicyKind, policy: &str) -> Gauge {
+        self.0.operations.plugin(kind, policy).quarantined
+    }
+
+    /// The counter of refusals at `door` for `reason` (`kairos_refusals_total{door,reason}`),
+    /// for the guard that refuses to count in; the series exists at zero from this call on.
+    /// Both labels are chosen by the code, so the label set stays bounded.
+    pub fn refusal_counter(&self, door: &'static str, reason: &'static str) -> Counter {
+        self.0.operations.refusal_counter(door, reason)
+    }
+
+    /// Exports `door`'s places for authenticated robot connections (a semaphore of `capacity`
+    /// permits, one held per connection) as `kairos_robot_connections{door}`, for as long as
+    /// the semaphore exists.
+    pub fn watch_connection_places(
+        &self,
+        door: &'static str,
+        places: &Arc<tokio::sync::Semaphore>,
+        capacity: usize,
+    ) {
+        self.0.operations.watch_places(door, places, capacity);
+    }
+
+    /// Every refusal counted so far, by door and reason.
+    pub fn refusals(&self) -> Vec<RefusalCount> {
+        self.0.operations.refusals()
+    }
+
+    /// Remote workers removed so far, by reason.
+    pub fn workers_removed(&self) -> BTreeMap<&'static str, u64> {
+        self.0.operations.removed()
+    }
+
+    /// Every policy plugin's fallbacks and quarantine state.
+    pub fn plugins(&self) -> Vec<PluginHealth> {
+        self.0.operations.plugins()
+    }
+
+    /// Authenticated robot connections per door.
+    pub fn robot_connections(&self) -> Vec<DoorConnections> {
+        self.0.operations.connections()
+    }
+
+    /// Time since the registry was built (the process's uptime, near enough).
+    pub fn uptime(&self) -> Duration {
+        self.0.started.elapsed()
     }
 
     /// Makes `engine` appear in `kairos_engine_busy_*` at zero before its first batch (a worker

@@ -771,7 +771,11 @@ fn summarize(times: Vec<(String, Duration)>) -> Vec<Timing> {
         .map(|(group, mut ts)| {
             ts.sort_unstable();
             let secs: Vec<f64> = ts.iter().map(Duration::as_secs_f64).collect();
-            let at = |q: f64| Duration::from_secs_f64(kairos_core::stats::quantile(&secs, q));
+            // Quantiles of durations are durations: the conversion back cannot fail.
+            let at = |q: f64| {
+                Duration::try_from_secs_f64(kairos_core::stats::quantile(&secs, q))
+                    .unwrap_or(Duration::MAX)
+            };
             Timing {
                 group,
                 calls: ts.len(),

@@ -138,6 +138,14 @@ pub enum PluginSetupError {
     Cache(#[from] super::cache::CacheError),
 }
 
+/// How `/metrics` labels a plugin's kind.
+fn policy_kind(kind: PluginKind) -> crate::metrics::PolicyKind {
+    match kind {
+        PluginKind::Horizon => crate::metrics::PolicyKind::Horizon,
+        PluginKind::Priority => crate::metrics::PolicyKind::Priority,
+    }
+}
+
 /// The configured plugins as policy registries: each horizon plugin is compiled once (its
 /// instances are pooled and shared by every request that selects it); each priority plugin is
 /// loaded when the scheduler builds its policy. Compiled code is cached under `cache_dir`.
@@ -167,13 +175,8 @@ pub fn load_configured(
                 usize::try_from(mib.saturating_mul(1 << 20)).unwrap_or(usize::MAX)
             }),
             cache: Some(cache.clone()),
-            fallback_counter: metrics.map(|m| {
-                let kind = match kind {
-                    PluginKind::Horizon => crate::metrics::PolicyKind::Horizon,
-                    PluginKind::Priority => crate::metrics::PolicyKind::Priority,
-                };
-                m.fallback_counter(kind, &name)
-            }),
+            fallback_counter: metrics.map(|m| m.fallback_counter(policy_kind(kind), &name)),
+            quarantine_gauge: metrics.map(|m| m.quarantine_gauge(policy_kind(kind), &name)),
             reload_poll: if plugin.hot_reload {
                 defaults.reload_poll
             } else {

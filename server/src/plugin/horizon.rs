@@ -16,7 +16,7 @@ use super::{PluginKind, PluginOptions, PluginSource};
 use kairos_core::horizon::{
     HorizonError, HorizonInput, HorizonPolicy, PolicyParams, validate_horizon,
 };
-use kairos_core::scheduler::ServerLoad;
+use kairos_core::scheduler::{RobotId, ServerLoad};
 
 use since_v0_1_0::horizon as v0_1;
 use since_v0_2_0::horizon as v0_2;
@@ -249,8 +249,8 @@ struct Shared {
 ///
 /// The server builds a horizon policy per request; [`HorizonPlugin::policy`] makes that cheap
 /// (no compilation, no instantiation): handles share one compiled plugin, one health record
-/// (so quarantine is per plugin, not per request) and a pool of warm instances, one per
-/// concurrent call.
+/// (so quarantine is per plugin and robot, not per request) and a pool of warm instances, one
+/// per concurrent call.
 #[derive(Clone)]
 pub struct HorizonPlugin(Arc<Shared>);
 
@@ -305,6 +305,7 @@ impl HorizonPlugin {
             name: self.meta().name,
             plugin: self.clone(),
             fallback,
+            robot: None,
             params: Default::default(),
             fell_back: false,
         }
@@ -373,6 +374,8 @@ pub struct WasmHorizonPolicy {
     name: String,
     plugin: HorizonPlugin,
     fallback: Box<dyn HorizonPolicy>,
+    /// The robot whose rounds this handle decides (its quarantine is that robot's first).
+    robot: Option<RobotId>,
     /// The last parameters, converted once and reused while they stay the same.
     params: (PolicyParams, Vec<(String, f64)>),
     /// Whether the last decision was the fallback's (see [`HorizonPolicy::answered_by`]).
@@ -476,13 +479,17 @@ impl HorizonPolicy for WasmHorizonPolicy {
         self.fell_back.then(|| self.fallback.name())
     }
 
+    fn serve_robot(&mut self, robot: RobotId) {
+        self.robot = Some(robot);
+    }
+
     fn choose(&mut self, input: &HorizonInput<'_>) -> Result<usize, HorizonError> {
         self.fell_back = false;
         if !input.chunk.is_consistent() {
             // Not the plugin's fault, and the WIT promises consistent buffers: no call.
             return self.fall_back(input);
         }
-        if !lock(&self.plugin.0.health).admit() {
+        if !lock(&self.plugin.0.health).admit(self.robot) {
             self.plugin.check_reload();
             return self.fall_back(input);
         }
@@ -490,14 +497,14 @@ impl HorizonPolicy for WasmHorizonPolicy {
         let mut health = lock(&self.plugin.0.health);
         match result {
             Ok((answer, cost)) => {
-                health.succeeded(cost.elapsed, cost.peak_memory);
+                health.succeeded(self.robot, cost.elapsed, cost.peak_memory);
                 if let Err(refusal) = &answer {
                     health.refused(&refusal.to_string());
                 }
                 answer
             }
             Err(failure) => {
-                health.failed(failure.kind, &failure.message);
+                health.failed(self.robot, failure.kind, &failure.message);
                 drop(health);
                 self.fall_back(input)
             }

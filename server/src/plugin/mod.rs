@@ -15,7 +15,8 @@
 //!   an exceeded limit or an invalid answer discards the instance, answers that decision with
 //!   the fallback policy, is counted and logged once per kind with the plugin's name
 //!   ([`health`]); a plugin that keeps failing is quarantined (skipped for a growing number of
-//!   decisions, then probed again).
+//!   decisions, then probed again): for the one robot whose rounds it fails, and for everyone
+//!   once several robots' are failing.
 //! - The plugin file is watched; a changed file is compiled in the background and swapped in
 //!   between two calls, so no decision in flight is dropped ([`reload`]).
 //!
@@ -96,8 +97,12 @@ pub struct PluginOptions {
     pub fuel: Option<u64>,
     /// Instance reuse.
     pub instance_mode: InstanceMode,
-    /// Consecutive failures after which the plugin is quarantined.
+    /// Consecutive failures on one robot's decisions (or on decisions of no robot) after which
+    /// the plugin is quarantined for that robot (or for everyone) ([`health`]).
     pub quarantine_after: u32,
+    /// Robots in quarantine at the same time from which the plugin is quarantined for every
+    /// robot ([`health`]).
+    pub quarantine_robots: u32,
     /// Decisions a newly quarantined plugin sits out before it is tried again; doubles each
     /// time the retry fails (capped at [`MAX_PROBATION`]), resets on success or reload.
     pub probation: u32,
@@ -108,6 +113,9 @@ pub struct PluginOptions {
     /// Where its fallbacks are exported too (`kairos_plugin_fallbacks_total`); `None`: not
     /// exported.
     pub fallback_counter: Option<prometheus_client::metrics::counter::Counter>,
+    /// Where its quarantine is exported (`kairos_plugin_quarantined`, 1 while quarantined);
+    /// `None`: not exported.
+    pub quarantine_gauge: Option<prometheus_client::metrics::gauge::Gauge>,
 }
 
 /// The default per-call deadline of a component that imports WASI, either world.
@@ -178,10 +186,12 @@ impl PluginOptions {
             fuel: None,
             instance_mode: InstanceMode::Reuse,
             quarantine_after: 3,
+            quarantine_robots: 3,
             probation: 100,
             cache: None,
             reload_poll: Some(Duration::from_millis(500)),
             fallback_counter: None,
+            quarantine_gauge: None,
         }
     }
 }

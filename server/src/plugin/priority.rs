@@ -567,14 +567,14 @@ impl PriorityPolicy for WasmPriorityPolicy {
         order: &mut Vec<usize>,
     ) -> Result<(), PolicyError> {
         self.check_reload();
-        if !self.health.admit() {
+        if !self.health.admit(None) {
             self.fall_back(now, pending, order);
             return Ok(());
         }
         match self.call_plugin(now, pending, order) {
-            Ok(cost) => self.health.succeeded(cost.elapsed, cost.peak_memory),
+            Ok(cost) => self.health.succeeded(None, cost.elapsed, cost.peak_memory),
             Err(failure) => {
-                self.health.failed(failure.kind, &failure.message);
+                self.health.failed(None, failure.kind, &failure.message);
                 self.fall_back(now, pending, order);
             }
         }

@@ -6,8 +6,7 @@
 //! - [`EmulatedLinkEngine`]: any instance behind an emulated network link (a fixed round trip
 //!   added to every batch), so a cloud tier can be exercised on one machine. It is labelled as
 //!   emulated wherever it shows up; it is not a remote engine.
-//!
-//! - [`RemoteEngine`]: a `kairos worker` on another machine, reached over QUIC
+//! - `crate::worker::RemoteEngine`: a `kairos worker` on another machine, reached over QUIC
 //!   (`kairos-worker/1`); it joins and leaves while the server runs.
 //!
 //! The scheduler plans with [`EnginePool::specs`], built from each instance's profile, tier and
@@ -18,7 +17,6 @@
 mod build;
 mod link;
 mod local;
-pub mod remote;
 pub mod replay;
 
 use std::sync::Arc;
@@ -33,7 +31,6 @@ use kairos_engine::{
 pub use build::{BuildEvent, ModelSchemes, PoolConfigError, ResolveModel, build_pool};
 pub use link::EmulatedLinkEngine;
 pub use local::LocalEngine;
-pub use remote::RemoteEngine;
 
 pub use kairos_core::error::LossReason;
 use kairos_core::scheduler::{EngineId, EngineSpec, Tier};

@@ -107,7 +107,7 @@ impl FailedAuthLimiter {
         if missing <= 0.0 {
             Duration::ZERO
         } else if self.per_second > 0.0 {
-            Duration::from_secs_f64(missing / self.per_second)
+            Duration::try_from_secs_f64(missing / self.per_second).unwrap_or(Duration::MAX)
         } else {
             Duration::MAX
         }

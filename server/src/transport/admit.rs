@@ -1,6 +1,6 @@
 //! The one path a round request takes into the driver, whatever transport brought it (a QUIC
-//! stream, an openpi websocket): the validator's checks against the model and limits, image
-//! decoding on the bounded decode pool, then [`DriverHandle::submit`](crate::driver::DriverHandle::submit).
+//! stream, an openpi websocket): the robot's round rate, the validator's checks against the
+//! model and limits, image decoding on the bounded decode pool, then [`DriverHandle::submit`](crate::driver::DriverHandle::submit).
 
 use kairos_sdk::protocol::Submit;
 use tokio::sync::mpsc;
@@ -25,6 +25,15 @@ impl ServerContext {
         received: Timestamp,
         link: mpsc::Sender<RefetchAsk>,
     ) -> Result<PendingRound, RequestError> {
+        // Before any work: a robot over its round rate costs a bucket lookup.
+        self.fairness
+            .rounds
+            .try_take(robot, super::fairness::now())
+            .map_err(|retry_after| RequestError::RateLimited {
+                who: format!("robot `{}`", self.robots.name(robot)),
+                limit: "rounds_per_s_per_robot",
+                retry_after,
+            })?;
         let valid = self.validator.submit(submit, robot, &self.actions, clock)?;
         let valid = self.decode.decode_submit(valid).await?;
         self.driver

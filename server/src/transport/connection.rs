@@ -1,6 +1,6 @@
 //! One connection: `Hello`/`Welcome`, then a task per round stream.
 
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
 use kairos_sdk::client::{STREAM_REFUSED, close_code};
@@ -13,6 +13,7 @@ use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, watch};
 use tokio::task::JoinSet;
 use tokio::time::Instant;
 
+use super::fairness::{RobotPlace, TokenBucket};
 use super::{Gate, ServerContext};
 use crate::driver::RefetchAsk;
 use crate::validation::RequestError;
@@ -56,6 +57,15 @@ struct Peer {
     clock: Mutex<ClockEstimator>,
     /// How its frames are read: the minimum rate and the connection's upload budget.
     bounds: ReadBounds,
+    /// Its round rate (`[connections] rounds_per_s_per_connection`).
+    rounds: Mutex<TokenBucket>,
+}
+
+impl Peer {
+    fn rounds(&self) -> std::sync::MutexGuard<'_, TokenBucket> {
+        // A bucket is two numbers: a panic while holding the lock leaves it usable.
+        self.rounds.lock().unwrap_or_else(PoisonError::into_inner)
+    }
 }
 
 impl Peer {
@@ -89,11 +99,19 @@ pub(super) async fn serve(
         admitted = admit(incoming, &context, &gate) => admitted,
         _ = stop.wait_for(|stopping| *stopping) => None,
     };
-    let (connection, robot, _place) = match admitted {
-        Some(Admitted::Robot(connection, robot, place)) => (connection, robot, place),
+    let (connection, robot, _places) = match admitted {
+        Some(Admitted::Robot(connection, robot, places)) => (connection, robot, places),
         Some(Admitted::Worker(connection, deadline)) => {
             // A worker takes no robot place; its registration shares the handshake budget.
-            super::workers::serve(connection, unauthenticated, context, gate, deadline, stop).await;
+            crate::worker::registration::serve(
+                connection,
+                unauthenticated,
+                context,
+                gate,
+                deadline,
+                stop,
+            )
+            .await;
             return;
         }
         None => return,
@@ -113,6 +131,7 @@ pub(super) async fn serve(
                 usize::try_from(budget).unwrap_or(Semaphore::MAX_PERMITS),
             ))),
         },
+        rounds: Mutex::new(context.fairness.connection_rounds()),
     });
     let mut streams = JoinSet::new();
     loop {
@@ -140,17 +159,25 @@ pub(super) async fn serve(
     }
 }
 
+/// An authenticated connection's places: one of its robot's, one of all robots'. Given back
+/// when dropped.
+struct Places {
+    _robot: RobotPlace,
+    _all: OwnedSemaphorePermit,
+}
+
 /// What a connection turned out to be.
 enum Admitted {
-    /// A robot that sent a valid `Hello`, with its place among the authenticated connections.
-    Robot(Connection, RobotId, OwnedSemaphorePermit),
+    /// A robot that sent a valid `Hello`, with its places among the authenticated connections.
+    Robot(Connection, RobotId, Places),
     /// A connection with ALPN `kairos-worker/1`: it must register by the deadline.
     Worker(Connection, Instant),
 }
 
 /// The handshake and `Hello`, both within `hello_timeout_ms` of the first packet: the connection,
 /// its robot and its place among the authenticated connections, or `None` after closing it. A
-/// worker connection (by its ALPN) is returned after the handshake, for `workers::serve`.
+/// worker connection (by its ALPN) is returned after the handshake, for
+/// `worker::registration::serve`.
 async fn admit(
     incoming: quinn::Incoming,
     context: &ServerContext,
@@ -214,16 +241,17 @@ fn is_worker(connection: &Connection) -> bool {
 }
 
 /// The `Hello`/`Welcome` exchange on the connection's first stream. A source over its budget
-/// of wrong tokens is refused before its token is looked at; a robot over `max_connections` is
-/// refused after it. On success returns the robot and its place among the authenticated
-/// connections, after opening the connection's windows to the robot's (see the module docs).
+/// of wrong tokens is refused before its token is looked at; a robot that holds
+/// `max_connections_per_robot` connections, or over `max_connections`, is refused after it. On
+/// success returns the robot and its places among the authenticated connections, after opening
+/// the connection's windows to the robot's (see the module docs).
 /// On refusal returns the close code and reason, after the error frame has been delivered (or
 /// `LINGER` has passed).
 async fn hello(
     connection: &Connection,
     context: &ServerContext,
     gate: &Gate,
-) -> Result<(RobotId, OwnedSemaphorePermit), (u32, String)> {
+) -> Result<(RobotId, Places), (u32, String)> {
     let protocol_error = |reason: String| (close_code::PROTOCOL_ERROR, reason);
     let (mut send, mut recv) = connection
         .accept_bi()
@@ -253,6 +281,23 @@ async fn hello(
                             format!("server at capacity ({limit} connections); retry later"),
                         ));
                     };
+                    let places = &context.fairness.places;
+                    let Some(robot_place) = places.take(robot) else {
+                        gate.robot_at_capacity();
+                        return Err((
+                            close_code::AT_CAPACITY,
+                            format!(
+                                "robot `{}` is at its capacity of {} connections \
+                                 ([connections] max_connections_per_robot); retry later",
+                                context.robots.name(robot),
+                                places.cap()
+                            ),
+                        ));
+                    };
+                    let places = Places {
+                        _robot: robot_place,
+                        _all: place,
+                    };
                     open_windows(connection, context);
                     let welcome = Message::Welcome(Welcome {
                         protocol: PROTOCOL_VERSION,
@@ -265,7 +310,7 @@ async fn hello(
                         .await
                         .map_err(|e| protocol_error(e.to_string()))?;
                     let _ = send.finish();
-                    return Ok((robot, place));
+                    return Ok((robot, places));
                 }
                 None => {
                     gate.token_failed(ip);
@@ -314,9 +359,10 @@ pub(super) fn stream_window(context_limits: &Limits, connection_window: u64) -> 
     (u64::from(context_limits.max_frame) + HEADER_LEN as u64).min(connection_window)
 }
 
-/// Writes `error` as the stream's final frame and finishes the stream.
-async fn send_error(send: &mut SendStream, error: &RequestError, context: &ServerContext) {
-    let mut reply = ErrorReply::from(error);
+/// `reply` with its message cut to the protocol's `max_message_bytes` (on a character
+/// boundary): an error may quote what others sent (a worker's engine error, a plugin's
+/// refusal), and the robot would refuse an oversized message.
+fn within_limits(mut reply: ErrorReply, context: &ServerContext) -> ErrorReply {
     let max = context.limits().max_message_bytes as usize;
     if reply.message.len() > max {
         let mut cut = max;
@@ -325,6 +371,12 @@ async fn send_error(send: &mut SendStream, error: &RequestError, context: &Serve
         }
         reply.message.truncate(cut);
     }
+    reply
+}
+
+/// Writes `error` as the stream's final frame and finishes the stream.
+async fn send_error(send: &mut SendStream, error: &RequestError, context: &ServerContext) {
+    let reply = within_limits(ErrorReply::from(error), context);
     let _ = write_message(send, &Message::Error(reply), context.limits().max_frame).await;
     let _ = send.finish();
 }
@@ -377,7 +429,7 @@ async fn end_task(
         .map_err(|_| RequestError::SHUTTING_DOWN)?;
     let message = match answer {
         Ok(ended) => Message::TaskEnded(ended),
-        Err(error) => Message::Error(error),
+        Err(error) => Message::Error(within_limits(error, context)),
     };
     let _ = write_message(send, &message, context.limits().max_frame).await;
     let _ = send.finish();
@@ -392,12 +444,29 @@ async fn round(
     send: &mut SendStream,
     recv: &mut RecvStream,
 ) -> Result<(), RequestError> {
+    peer.rounds()
+        .try_take(super::fairness::now())
+        .map_err(|retry_after| RequestError::RateLimited {
+            who: "this connection".into(),
+            limit: "rounds_per_s_per_connection",
+            retry_after,
+        })?;
     let clock = peer.clock(context, submit.sent_at_us, submit.attempt == 0);
     let (task, round) = (submit.task, submit.round);
     let (link, mut asks) = mpsc::channel::<RefetchAsk>(1);
-    let mut pending = context
+    let admitted = context
         .admit(submit, peer.robot, clock, received, link)
-        .await?;
+        .await;
+    let mut pending = match admitted {
+        Ok(pending) => pending,
+        Err(error) => {
+            if matches!(error, RequestError::RateLimited { .. }) {
+                // Refused for its robot's rate, not this connection's.
+                peer.rounds().give_back();
+            }
+            return Err(error);
+        }
+    };
     let stopped = send.stopped();
     tokio::pin!(stopped);
     let answer = loop {
@@ -415,7 +484,7 @@ async fn round(
     };
     let message = match answer {
         Ok(Ok(reply)) => Message::Reply(reply),
-        Ok(Err(error)) => Message::Error(error),
+        Ok(Err(error)) => Message::Error(within_limits(error, context)),
         // The driver stopped without answering.
         Err(_) => return Err(RequestError::SHUTTING_DOWN),
     };

@@ -16,14 +16,14 @@ use super::{RobotTable, ServerContext, TransportStats};
 use crate::config::{Config, ConfigError};
 use crate::credentials::{RobotCredential, hash_token, parse_token_hash};
 use crate::data_dir::DataDir;
-use crate::driver::{DriverConfig, DriverHandle, DriverStats};
+use crate::driver::{DriverConfig, DriverEnd, DriverHandle, DriverStats};
 use crate::metrics::{Metrics, Readiness};
 use crate::pool::EnginePool;
 use crate::validation::{ChunkingRules, DecodePool, Validator};
 use kairos_core::action::{ActionConfigError, ActionManager};
 use kairos_core::registry::{build_priority, native_horizon_policies, native_priority_policies};
-use kairos_core::scheduler::Scheduler;
 use kairos_core::scheduler::registry::PolicySpecError;
+use kairos_core::scheduler::{PriorityPolicy, Scheduler};
 
 /// Why the server could not start.
 #[derive(Debug, thiserror::Error)]
@@ -72,6 +72,9 @@ pub enum LaunchError {
         /// The error.
         source: std::io::Error,
     },
+    /// A start-up step could not run (its thread failed).
+    #[error("cannot start: {0}")]
+    Startup(String),
     /// The UDP socket could not be bound.
     #[error("cannot listen on {addr}: {source}")]
     Bind {
@@ -133,6 +136,9 @@ pub struct ServerReport {
     pub driver: DriverStats,
     /// The openpi endpoint's connections.
     pub openpi: crate::openpi::OpenpiStats,
+    /// Why the driver died, when it did: the server stopped because of it (and `kairos serve`
+    /// exits with an error, so that an orchestrator restarts it).
+    pub driver_failure: Option<String>,
 }
 
 impl RunningServer {
@@ -148,9 +154,20 @@ impl RunningServer {
         self.stopped().await
     }
 
-    /// Waits for the server to stop (after [`RunningServer::begin_shutdown`]).
+    /// Waits for the server to stop (after [`RunningServer::begin_shutdown`], or on its own
+    /// once its driver died).
     pub async fn stopped(self) -> ServerReport {
         self.task.await.unwrap_or_default()
+    }
+
+    /// Resolves if the driver dies (never while it runs, nor after a clean stop), with why.
+    /// The server has then begun to shut down by itself: it is unready, admits nothing new,
+    /// and [`RunningServer::stopped`] returns once it has drained.
+    pub async fn failed(&self) -> String {
+        match self.driver.ended().await {
+            DriverEnd::Failed(reason) => reason,
+            DriverEnd::Stopped => std::future::pending().await,
+        }
     }
 }
 
@@ -211,25 +228,16 @@ pub async fn start(
     };
     let identity = super::tls::load_or_generate(config)?;
 
-    // Configured plugins first, so that policies passed in by the caller shadow them.
     let metrics = Metrics::new();
-    let (mut horizons, mut priorities) = crate::plugin::factory::load_configured(
-        &config.plugins,
-        &crate::data_dir::DataDir::new(&config.data_dir).plugin_cache(),
-        Some(&metrics),
-    )?;
-    horizons.extend(policies.horizon);
-    priorities.extend(policies.priority);
-    let natives = native_horizon_policies();
-    let actions = Arc::new(ActionManager::new(
-        horizons,
-        &natives,
-        &config.horizon.policy,
-        config.horizon.params.clone(),
-    )?);
-    let mut all_priorities = native_priority_policies();
-    all_priorities.extend(priorities);
-    let priority = build_priority(&all_priorities, &config.scheduler.policy)?;
+    // Compiling plugins (wasmtime, seconds for a large component) and building the policies
+    // block: on a thread of the blocking pool, not on one of the runtime's workers.
+    let (actions, priority) = {
+        let (config, metrics) = (config.clone(), metrics.clone());
+        tokio::task::spawn_blocking(move || build_policies(&config, policies, &metrics))
+            .await
+            .map_err(|error| LaunchError::Startup(format!("building the policies: {error}")))??
+    };
+    let actions = Arc::new(actions);
     let specs = pool.specs();
     let scheduler = Scheduler::new(config.scheduler.core(), specs, priority);
 
@@ -308,7 +316,9 @@ pub async fn start(
         chunking,
     };
     let decode = DecodePool::for_this_machine(validator.image_limits());
+    let fairness = super::fairness::Fairness::new(&config.connections, robots.len());
     let context = Arc::new(ServerContext {
+        fairness,
         robots: RobotTable::new(&robots),
         validator,
         decode,
@@ -316,10 +326,12 @@ pub async fn start(
         driver: driver.clone(),
         model: model.clone(),
         connections: config.connections.clone(),
-        workers: super::workers::WorkerGate {
+        workers: crate::worker::registration::WorkerGate {
             token_hash: worker_token_hash,
             config: config.workers.clone(),
+            metrics: metrics.clone(),
         },
+        metrics: metrics.clone(),
     });
     let openpi_task = openpi_listener.map(|listener| {
         tokio::spawn(crate::openpi::run(
@@ -340,6 +352,7 @@ pub async fn start(
             std::future::pending(),
         )))
     });
+    let report_driver = driver.clone();
     let task = tokio::spawn(async move {
         let transport = super::run(endpoint, context, stopped(stop_rx)).await;
         let openpi = match openpi_task {
@@ -351,10 +364,23 @@ pub async fn start(
             transport,
             driver,
             openpi,
+            driver_failure: report_driver.failure(),
         }
     });
     // Listening, engines loaded, driver running: probes may send traffic.
     readiness.set(true);
+    // A dead driver is a dead server: unready at once (probes stop sending traffic), then the
+    // same drain as a shutdown, and the report says why.
+    {
+        let (driver, readiness, stop) = (driver.clone(), readiness.clone(), stop.clone());
+        tokio::spawn(async move {
+            if let DriverEnd::Failed(reason) = driver.ended().await {
+                tracing::error!(%reason, "the driver died: the server is not ready and stops");
+                readiness.set(false);
+                let _ = stop.send(true);
+            }
+        });
+    }
     Ok(RunningServer {
         local_addr,
         openpi_addr,
@@ -371,6 +397,34 @@ pub async fn start(
         stop,
         task,
     })
+}
+
+/// The action manager (horizon policies) and the scheduler's priority policy: the configured
+/// plugins first, so that policies passed in by the caller shadow them. Blocking: plugins are
+/// compiled here.
+fn build_policies(
+    config: &Config,
+    policies: Policies,
+    metrics: &Metrics,
+) -> Result<(ActionManager, Box<dyn PriorityPolicy>), LaunchError> {
+    let (mut horizons, mut priorities) = crate::plugin::factory::load_configured(
+        &config.plugins,
+        &crate::data_dir::DataDir::new(&config.data_dir).plugin_cache(),
+        Some(metrics),
+    )?;
+    horizons.extend(policies.horizon);
+    priorities.extend(policies.priority);
+    let natives = native_horizon_policies();
+    let actions = ActionManager::new(
+        horizons,
+        &natives,
+        &config.horizon.policy,
+        config.horizon.params.clone(),
+    )?;
+    let mut all_priorities = native_priority_policies();
+    all_priorities.extend(priorities);
+    let priority = build_priority(&all_priorities, &config.scheduler.policy)?;
+    Ok((actions, priority))
 }
 
 /// The server's UDP socket, with `buffer` bytes of kernel buffer each way (best effort: the kernel

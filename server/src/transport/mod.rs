@@ -8,8 +8,10 @@
 //!   first packet. Over that budget the attempt is refused without a handshake (a QUIC
 //!   `CONNECTION_REFUSED`); over half of it, an attempt from an address QUIC has not validated
 //!   gets a Retry first, so spoofed or half-open handshakes take no place at all.
-//! - A `Hello` with a valid token moves the connection to one of `connections.max_connections`
-//!   places; over that the connection is closed with `close_code::AT_CAPACITY` and a reason.
+//! - A `Hello` with a valid token moves the connection to one of its robot's
+//!   `connections.max_connections_per_robot` places and to one of `connections.max_connections`
+//!   places; over either the connection is closed with `close_code::AT_CAPACITY` and a reason
+//!   ([`fairness`]: one tenant cannot take every place).
 //! - Wrong tokens are rate-limited per source address ([`admission::FailedAuthLimiter`]): a
 //!   source over its budget is refused before its token is looked at, at the first packet.
 //!
@@ -36,9 +38,9 @@
 pub mod admission;
 mod admit;
 mod connection;
+pub mod fairness;
 pub mod launch;
 pub mod tls;
-pub mod workers;
 
 use std::collections::HashMap;
 use std::future::Future;
@@ -125,7 +127,11 @@ pub struct ServerContext {
     /// Connection limits.
     pub connections: ConnectionsConfig,
     /// Remote engine workers: their token and `[workers]`.
-    pub workers: workers::WorkerGate,
+    pub workers: crate::worker::registration::WorkerGate,
+    /// What one robot may take: connection places and round rates, on every transport.
+    pub fairness: fairness::Fairness,
+    /// The server's metrics, for the counts the connection tasks own.
+    pub metrics: crate::metrics::Metrics,
 }
 
 impl ServerContext {
@@ -140,7 +146,8 @@ impl ServerContext {
 pub struct TransportStats {
     /// Connections authenticated and admitted.
     pub admitted: u64,
-    /// Authenticated connections closed at once because `max_connections` were open.
+    /// Authenticated connections closed at once because `max_connections` were open, or their
+    /// robot held `max_connections_per_robot`.
     pub refused: u64,
     /// Connection attempts refused without a handshake: `max_unauthenticated` were in progress.
     pub refused_unauthenticated: u64,
@@ -238,6 +245,13 @@ impl Gate {
             }
         }
     }
+
+    /// Counts an authenticated connection refused because its robot held all its places (it
+    /// had been counted as admitted when it took a place among all robots', given back now).
+    pub(crate) fn robot_at_capacity(&self) {
+        self.admitted.fetch_sub(1, Ordering::Relaxed);
+        self.refused.fetch_add(1, Ordering::Relaxed);
+    }
 }
 
 /// The limiter's clock: tokio's, so tests with a paused clock control it.
@@ -252,6 +266,11 @@ pub async fn run(
     shutdown: impl Future<Output = ()>,
 ) -> TransportStats {
     let gate = Arc::new(Gate::new(&context.connections));
+    context.metrics.watch_connection_places(
+        "quic",
+        &gate.authenticated,
+        context.connections.max_connections,
+    );
     let max_unauthenticated = context.connections.max_unauthenticated;
     let unauthenticated = Arc::new(Semaphore::new(max_unauthenticated));
     let (stop_tx, stop_rx) = watch::channel(false);

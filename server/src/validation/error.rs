@@ -62,6 +62,25 @@ pub enum RequestError {
     /// The core refused or failed the round (admission, superseded, lost, draining).
     #[error(transparent)]
     Round(#[from] RoundError),
+    /// Over a round rate of `[connections]`: `who` ("this connection", "robot `a`") sent
+    /// rounds faster than `limit` (the key) allows. Retryable after `retry_after`.
+    #[error(
+        "rate limited: {who} is over [connections] {limit}; retry in {} ms",
+        retry_after_ms(*.retry_after)
+    )]
+    RateLimited {
+        /// Whose rounds.
+        who: String,
+        /// The configuration key of the rate.
+        limit: &'static str,
+        /// How long until a round would be taken.
+        retry_after: std::time::Duration,
+    },
+}
+
+/// `wait` in whole ms for the wire's `retry_after_ms` (at least 1, saturating).
+fn retry_after_ms(wait: std::time::Duration) -> u32 {
+    u32::try_from(wait.as_millis()).unwrap_or(u32::MAX).max(1)
 }
 
 impl From<AdmitError> for RequestError {
@@ -100,6 +119,7 @@ impl RequestError {
             RequestError::Engine(_) => ErrorCode::Internal,
             RequestError::TooSlow(_) => ErrorCode::TooSlow,
             RequestError::Round(e) => e.code(),
+            RequestError::RateLimited { .. } => ErrorCode::Overloaded,
         }
     }
 }
@@ -108,6 +128,10 @@ impl From<&RequestError> for ErrorReply {
     fn from(error: &RequestError) -> ErrorReply {
         match error {
             RequestError::Round(round) => ErrorReply::from(round),
+            RequestError::RateLimited { retry_after, .. } => ErrorReply {
+                retry_after_ms: Some(retry_after_ms(*retry_after)),
+                ..ErrorReply::new(error.code(), error.to_string())
+            },
             other => ErrorReply::new(other.code(), other.to_string()),
         }
     }
@@ -187,6 +211,29 @@ mod tests {
         assert_eq!(
             ErrorReply::from(&RequestError::Unauthorized).code,
             ErrorCode::Unauthorized
+        );
+    }
+
+    #[test]
+    fn a_rate_limited_round_is_overloaded_with_the_wait() {
+        let limited = |wait| {
+            ErrorReply::from(&RequestError::RateLimited {
+                who: "robot `a`".into(),
+                limit: "rounds_per_s_per_robot",
+                retry_after: wait,
+            })
+        };
+        let reply = limited(std::time::Duration::from_millis(2_500));
+        assert_eq!(reply.code, ErrorCode::Overloaded);
+        assert!(reply.retryable);
+        assert_eq!(reply.retry_after_ms, Some(2_500));
+        assert!(reply.message.contains("robot `a`"), "{}", reply.message);
+        assert!(reply.message.contains("rounds_per_s_per_robot"));
+        // Never "retry in 0 ms", never an overflow.
+        assert_eq!(limited(std::time::Duration::ZERO).retry_after_ms, Some(1));
+        assert_eq!(
+            limited(std::time::Duration::MAX).retry_after_ms,
+            Some(u32::MAX)
         );
     }
 }

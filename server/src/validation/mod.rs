@@ -83,10 +83,10 @@ impl Validator {
             .transpose()?;
         let (policy, samples) = match &submit.horizon {
             Some(h) => (
-                actions.build(Some(&h.policy), Some(&h.params))?,
+                actions.build_for(robot, Some(&h.policy), Some(&h.params))?,
                 h.samples as usize,
             ),
-            None => (actions.build(None, None)?, 1),
+            None => (actions.build_for(robot, None, None)?, 1),
         };
         if samples > MAX_SAMPLES {
             return Err(invalid(

@@ -24,9 +24,10 @@ fn load_lasting(rng: &mut StdRng, actions: u32, hz: f32) -> Option<ServerLoad> {
         queued: rng.random_range(0..64),
         running: rng.random_range(0..32),
         open_tasks: rng.random_range(0..200),
-        backlog: Duration::from_secs_f64(
+        backlog: Duration::try_from_secs_f64(
             (f64::from(actions) - rng.random_range(0.0..1.0)) / f64::from(hz),
-        ),
+        )
+        .expect("a positive backlog of a few seconds"),
     })
 }
 

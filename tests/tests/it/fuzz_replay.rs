@@ -118,6 +118,24 @@ fn seeds() -> Vec<(&'static str, &'static str, Vec<u8>)> {
     let mut jpeg = vec![0];
     jpeg.extend(encoded(image::ImageFormat::Jpeg));
     seeds.push(("image", "rgb8x8.jpg", jpeg));
+    for (file, head) in [
+        (
+            "scrape.txt",
+            "GET /metrics HTTP/1.1\r\nHost: kairos:9100\r\nUser-Agent: Prometheus/2.42.0\r\n\
+             Accept: application/openmetrics-text;version=1.0.0\r\n\r\n",
+        ),
+        (
+            "probe.txt",
+            "GET /ready HTTP/1.1\r\nHost: 10.0.0.7:9100\r\nUser-Agent: kube-probe/1.32\r\n\r\n",
+        ),
+        ("head_page.txt", "HEAD / HTTP/1.0\r\n\r\n"),
+        (
+            "fleet.txt",
+            "GET /api/fleet?t=1 HTTP/1.1\r\nHost: localhost\r\nAccept: */*\r\n\r\n",
+        ),
+    ] {
+        seeds.push(("http", file, head.as_bytes().to_vec()));
+    }
     seeds
 }
 

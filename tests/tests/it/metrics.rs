@@ -83,7 +83,13 @@ async fn metrics_count_a_round_and_ready_flips_on_shutdown() {
     for family in ["kairos_worker_rtt_seconds", "kairos_plugin_fallbacks"] {
         assert!(!before.contains(family), "{family}:\n{before}");
     }
-    for reason in ["connection_lost", "stream_reset", "deadline", "gone"] {
+    for reason in [
+        "connection_lost",
+        "stream_reset",
+        "invalid_answer",
+        "deadline",
+        "gone",
+    ] {
         let series = format!("kairos_redispatch_total{{reason=\"{reason}\"}}");
         assert_eq!(sample(&before, &series), Some(0.0), "{series}:\n{before}");
     }

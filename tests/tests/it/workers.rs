@@ -351,7 +351,7 @@ async fn a_worker_in_a_network_namespace_behind_a_delay_relay_is_measured_and_pl
     let text = scrape(scheduler_metrics, "/metrics").await;
     let rtt = sample(&text, r#"kairos_worker_rtt_seconds{worker="worker:far@"}"#)
         .unwrap_or_else(|| panic!("no RTT of the far worker in\n{text}"));
-    let rtt = Duration::from_secs_f64(rtt);
+    let rtt = Duration::try_from_secs_f64(rtt).unwrap();
     eprintln!(
         "netns relay: injected {injected:?}, measured {rtt:?} (seed {:?}) after {rounds} batches; \
          near worker on loopback, no relay (the baseline): {:?}",

@@ -1,0 +1,298 @@
+//! The Candle layers the π model is built from: linear, LayerNorm, Gemma's RMSNorm (plain and
+//! adaptive), GeGLU, multi-head attention and Gemma's RoPE tables. Every op is a Candle op, so
+//! the model runs on any Candle device; activations are `[rows, features]` (or `[batch, rows,
+//! features]`) f32 tensors.
+//!
+//! Each layer computes what the PyTorch module it transcribes computes, in the same order of
+//! operations where that decides the rounding (the `(1 + w)` of Gemma's norm is made in f32
+//! first, the RoPE angle is `position * inv_freq` rounded once); sums are Candle's, so results
+//! differ from PyTorch's only in rounding.
+
+use candle_core::{D, Device, Tensor};
+
+use super::vars::Vars;
+use crate::EngineError;
+
+/// `y = x wᵀ + b` (`nn.Linear`).
+pub struct Linear {
+    /// `[in][out]`: transposed once at load, so the product reads it in place.
+    w_t: Tensor,
+    bias: Option<Tensor>,
+}
+
+impl Linear {
+    /// `vars.weight` `[out][in]` and, with `bias`, `vars.bias` `[out]`.
+    pub fn load(vars: &Vars<'_>, out: usize, inp: usize, bias: bool) -> Result<Self, EngineError> {
+        let w = vars.get(&[out, inp], "weight")?;
+        let bias = bias.then(|| vars.get(&[out], "bias")).transpose()?;
+        Ok(Linear {
+            w_t: w.t()?.contiguous()?,
+            bias,
+        })
+    }
+
+    /// From a weight `[out][in]` and a bias `[out]` already on the device.
+    pub fn from_parts(weight: Tensor, bias: Option<Tensor>) -> Result<Self, EngineError> {
+        Ok(Linear {
+            w_t: weight.t()?.contiguous()?,
+            bias,
+        })
+    }
+
+    /// `x` is `[.., in]`.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor, EngineError> {
+        let y = x.broadcast_matmul(&self.w_t)?;
+        Ok(match &self.bias {
+            Some(b) => y.broadcast_add(b)?,
+            None => y,
+        })
+    }
+}
+
+/// `nn.LayerNorm` with weight and bias.
+pub struct LayerNorm {
+    weight: Tensor,
+    bias: Tensor,
+    eps: f32,
+}
+
+impl LayerNorm {
+    /// `vars.weight`, `vars.bias`, `[width]` each.
+    pub fn load(vars: &Vars<'_>, width: usize, eps: f64) -> Result<Self, EngineError> {
+        Ok(LayerNorm {
+            weight: vars.get(&[width], "weight")?,
+            bias: vars.get(&[width], "bias")?,
+            eps: eps as f32,
+        })
+    }
+
+    /// Over the last dimension.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor, EngineError> {
+        Ok(candle_nn::ops::layer_norm(
+            &x.contiguous()?,
+            &self.weight,
+            &self.bias,
+            self.eps,
+        )?)
+    }
+}
+
+/// Gemma's RMSNorm as LeRobot's `PiGemmaRMSNorm` has it: `x / rms(x) * (1 + w)`, or, adaptive
+/// (π0.5's expert, `adarms_cond`), `x / rms(x) * (1 + scale) + shift` with
+/// `[scale | shift | gate] = dense(cond)` and the `gate` handed to the residual.
+pub enum GemmaNorm {
+    /// `weight` `[width]`, kept as `1 + weight` (rounded in f32 once, as PyTorch does).
+    Plain {
+        /// `1 + weight`.
+        one_plus_w: Tensor,
+        /// Epsilon.
+        eps: f32,
+    },
+    /// `dense` `[3 width][width]` with bias.
+    Adaptive {
+        /// The modulation layer.
+        dense: Linear,
+        /// `[width]` ones: the plain normalisation without a scale.
+        ones: Tensor,
+        /// Width.
+        width: usize,
+        /// Epsilon.
+        eps: f32,
+    },
+}
+
+/// What an adaptive norm's condition produced for one batch: `[batch, 1, width]` each.
+pub struct Modulation {
+    scale_plus_one: Tensor,
+    shift: Tensor,
+    gate: Tensor,
+}
+
+impl GemmaNorm {
+    /// A plain norm (`vars.weight`) or, when `adaptive`, `vars.dense.{weight,bias}`.
+    pub fn load(
+        vars: &Vars<'_>,
+        width: usize,
+        eps: f64,
+        adaptive: bool,
+    ) -> Result<Self, EngineError> {
+        let eps = eps as f32;
+        if adaptive {
+            Ok(GemmaNorm::Adaptive {
+                dense: Linear::load(&vars.pp("dense"), 3 * width, width, true)?,
+                ones: Tensor::ones(width, candle_core::DType::F32, vars.device())?,
+                width,
+                eps,
+            })
+        } else {
+            let w = vars.get(&[width], "weight")?;
+            Ok(GemmaNorm::Plain {
+                one_plus_w: (w + 1.0)?,
+                eps,
+            })
+        }
+    }
+
+    /// The modulation of an adaptive norm for conditions `cond` `[batch, width]`; `None` for a
+    /// plain norm.
+    pub fn modulation(&self, cond: &Tensor) -> Result<Option<Modulation>, EngineError> {
+        let GemmaNorm::Adaptive { dense, width, .. } = self else {
+            return Ok(None);
+        };
+        let m = dense.forward(cond)?.unsqueeze(1)?;
+        let w = *width;
+        Ok(Some(Modulation {
+            scale_plus_one: (m.narrow(D::Minus1, 0, w)? + 1.0)?,
+            shift: m.narrow(D::Minus1, w, w)?.contiguous()?,
+            gate: m.narrow(D::Minus1, 2 * w, w)?.contiguous()?,
+        }))
+    }
+
+    /// Normalise `x` (`[batch, rows, width]` when modulated, any rank otherwise); returns the
+    /// output and the residual gate (adaptive only).
+    pub fn forward(
+        &self,
+        x: &Tensor,
+        modulation: Option<&Modulation>,
+    ) -> Result<(Tensor, Option<Tensor>), EngineError> {
+        let x = x.contiguous()?;
+        match (self, modulation) {
+            (GemmaNorm::Plain { one_plus_w, eps }, None) => {
+                Ok((candle_nn::ops::rms_norm(&x, one_plus_w, *eps)?, None))
+            }
+            (GemmaNorm::Adaptive { ones, eps, .. }, Some(m)) => {
+                let normed = candle_nn::ops::rms_norm(&x, ones, *eps)?;
+                let out = normed
+                    .broadcast_mul(&m.scale_plus_one)?
+                    .broadcast_add(&m.shift)?;
+                Ok((out, Some(m.gate.clone())))
+            }
+            (GemmaNorm::Plain { .. }, Some(_)) | (GemmaNorm::Adaptive { .. }, None) => {
+                Err(EngineError::InvalidInput(
+                    "an adaptive norm needs its condition and a plain one takes none".into(),
+                ))
+            }
+        }
+    }
+}
+
+/// LeRobot's `_gated_residual`: `x + y`, or `x + y * gate`.
+pub fn gated_residual(
+    x: &Tensor,
+    y: &Tensor,
+    gate: Option<&Tensor>,
+) -> Result<Tensor, EngineError> {
+    Ok(match gate {
+        None => (x + y)?,
+        Some(g) => (x + y.broadcast_mul(g)?)?,
+    })
+}
+
+/// Gemma's MLP: `down(gelu_tanh(gate(x)) * up(x))`.
+pub struct GeGlu {
+    gate: Linear,
+    up: Linear,
+    down: Linear,
+}
+
+impl GeGlu {
+    /// `vars.{gate,up,down}_proj`, no biases.
+    pub fn load(vars: &Vars<'_>, width: usize, mlp: usize) -> Result<Self, EngineError> {
+        Ok(GeGlu {
+            gate: Linear::load(&vars.pp("gate_proj"), mlp, width, false)?,
+            up: Linear::load(&vars.pp("up_proj"), mlp, width, false)?,
+            down: Linear::load(&vars.pp("down_proj"), width, mlp, false)?,
+        })
+    }
+
+    /// Over the last dimension.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor, EngineError> {
+        let h = (self.gate.forward(x)?.gelu()? * self.up.forward(x)?)?;
+        self.down.forward(&h)
+    }
+}
+
+/// Softmax attention of `q` `[heads, lq, hd]` over `k`, `v` `[kv_heads, lk, hd]` (each KV head
+/// serves `heads / kv_heads` query heads), scaled by `scale`, with an optional additive `mask`
+/// `[lq, lk]`. Returns `[lq, heads * hd]`.
+pub fn attention(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    scale: f64,
+    mask: Option<&Tensor>,
+) -> Result<Tensor, EngineError> {
+    let (heads, lq, hd) = q.dims3()?;
+    let (kv_heads, lk, _) = k.dims3()?;
+    let group = heads / kv_heads;
+    // The query heads that share a KV head are one matrix product against its keys.
+    let q = q.reshape((kv_heads, group * lq, hd))?;
+    let scores = (q.matmul(&k.t()?)? * scale)?;
+    let scores = match mask {
+        Some(m) => scores
+            .reshape((kv_heads, group, lq, lk))?
+            .broadcast_add(m)?
+            .reshape((kv_heads, group * lq, lk))?,
+        None => scores,
+    };
+    let probs = candle_nn::ops::softmax_last_dim(&scores)?;
+    let out = probs.matmul(&v.contiguous()?)?;
+    Ok(out
+        .reshape((heads, lq, hd))?
+        .transpose(0, 1)?
+        .reshape((lq, heads * hd))?)
+}
+
+/// `[rows, heads * hd]` -> `[heads, rows, hd]`.
+pub fn split_heads(x: &Tensor, heads: usize, hd: usize) -> Result<Tensor, EngineError> {
+    let rows = x.dim(0)?;
+    Ok(x.reshape((rows, heads, hd))?
+        .transpose(0, 1)?
+        .contiguous()?)
+}
+
+/// Gemma's rotary embedding (`GemmaRotaryEmbedding` + `apply_rotary_pos_emb`, halves layout)
+/// for a run of positions.
+pub struct Rope {
+    cos: Tensor,
+    sin: Tensor,
+}
+
+impl Rope {
+    /// Tables for `positions`: `inv_freq_i = 1 / theta^(2i / hd)` in f32 (the power rounded
+    /// once from f64; PyTorch's float `pow` is within an ulp of it), angle `f32(p) * inv_freq_i`
+    /// rounded once, as `inv_freq @ position_ids` makes it.
+    pub fn new(
+        positions: impl IntoIterator<Item = usize>,
+        hd: usize,
+        theta: f64,
+        device: &Device,
+    ) -> Result<Self, EngineError> {
+        let half = hd / 2;
+        let inv_freq: Vec<f32> = (0..half)
+            .map(|i| {
+                let exponent = (2 * i) as f32 / hd as f32;
+                1.0 / (theta.powf(f64::from(exponent)) as f32)
+            })
+            .collect();
+        let (mut cos, mut sin) = (Vec::new(), Vec::new());
+        for p in positions {
+            for &f in &inv_freq {
+                let angle = p as f32 * f;
+                cos.push(angle.cos());
+                sin.push(angle.sin());
+            }
+        }
+        let rows = cos.len() / half.max(1);
+        Ok(Rope {
+            cos: Tensor::from_vec(cos, (rows, half), device)?,
+            sin: Tensor::from_vec(sin, (rows, half), device)?,
+        })
+    }
+
+    /// Rotate `x` `[heads, rows, hd]` (rows in this table's position order).
+    pub fn apply(&self, x: &Tensor) -> Result<Tensor, EngineError> {
+        let x = x.unsqueeze(0)?.contiguous()?;
+        Ok(candle_nn::rotary_emb::rope(&x, &self.cos, &self.sin)?.squeeze(0)?)
+    }
+}

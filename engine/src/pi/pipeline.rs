@@ -1,0 +1,339 @@
+//! The whole π0 / π0.5 policy for one checkpoint directory, LeRobot's `predict_action_chunk`
+//! with its pre- and postprocessor:
+//!
+//! ```text
+//! Observation --PiCheckpoint::prepare--> PiPrepared --PiModel::prefix--> PrefixCache
+//!     --PiModel::sample (Euler)--> normalised [chunk][max_action_dim]
+//!     --PiCheckpoint::finish_actions (cut, unnormalise, absolute)--> [chunk][action_dim]
+//! ```
+//!
+//! The model runs on Candle ops on the options' device: the CPU, or CUDA with the `cuda`
+//! feature. The engine's fast CPU kernels do not have this family yet, so on the CPU every
+//! `kernels` choice runs the Candle path, and `precision` is f32.
+
+use std::path::Path;
+use std::time::Instant;
+
+use candle_core::Device;
+
+use super::checkpoint::{PiCheckpoint, PiPrepared};
+use super::config::PiDims;
+use super::gemma::PrefixCache;
+use super::model::{PiModel, PiObservation, SampleInput};
+use crate::options::Target;
+use crate::sampler::{RowLayout, gaussian_noise};
+use crate::smolvla::checkpoint::{ACTION_KEY, Observation};
+use crate::smolvla::pipeline::{Prediction, StageTimes};
+use crate::weights::Checkpoint;
+use crate::{
+    ActionChunk, ActionModel, ActionRequest, EngineError, EngineOptions, Kernels, ModelSpec,
+    Precision,
+};
+
+/// A π checkpoint ready to predict: processors and model.
+pub struct PiPipeline {
+    checkpoint: PiCheckpoint,
+    model: PiModel,
+    spec: ModelSpec,
+}
+
+impl std::fmt::Debug for PiPipeline {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PiPipeline")
+            .field("checkpoint", &self.checkpoint.dir())
+            .field("model", &self.model)
+            .finish()
+    }
+}
+
+/// The Candle device `options` name (the CPU for every CPU kernel choice).
+fn device(options: &EngineOptions) -> Result<Device, EngineError> {
+    if matches!(options.kernels, Kernels::Fast | Kernels::Portable) {
+        tracing::warn!(
+            kernels = ?options.kernels,
+            "π0 / π0.5 run on Candle ops; the fast CPU kernels do not have this family yet"
+        );
+    }
+    if options.precision == Precision::Bf16 {
+        tracing::warn!("π0 / π0.5 compute in f32; --precision bf16 is not applied to them yet");
+    }
+    Ok(match options.target()? {
+        Target::Candle(device) => device,
+        Target::Fast(_) => Device::Cpu,
+    })
+}
+
+impl PiPipeline {
+    /// Load the processors and the model from `dir` (`tokenizer`: the PaliGemma tokenizer
+    /// file, else `tokenizer.json` beside the checkpoint).
+    pub fn load(
+        dir: &Path,
+        tokenizer: Option<&Path>,
+        options: &EngineOptions,
+    ) -> Result<Self, EngineError> {
+        let checkpoint = PiCheckpoint::open(dir, tokenizer)?;
+        let weights_path = dir.join("model.safetensors");
+        if !weights_path.exists() {
+            return Err(EngineError::MissingFile {
+                path: weights_path.display().to_string(),
+            });
+        }
+        let ckpt = Checkpoint::open(&weights_path)?;
+        let dims = PiDims::from_checkpoint(checkpoint.config(), checkpoint.family(), &ckpt)?;
+        let model = PiModel::load(&ckpt, &dims, &device(options)?)?;
+        let spec = ModelSpec {
+            name: checkpoint.family().policy_type().into(),
+            chunk_len: dims.chunk,
+            action_dim: checkpoint.action_dim(),
+            state_dim: checkpoint.state_dim(),
+            steps: dims.steps,
+            max_images: checkpoint.camera_keys().len(),
+            cameras: checkpoint.camera_keys(),
+            camera_aliases: checkpoint.camera_aliases(),
+        };
+        Ok(PiPipeline {
+            checkpoint,
+            model,
+            spec,
+        })
+    }
+
+    /// The processors.
+    pub fn checkpoint(&self) -> &PiCheckpoint {
+        &self.checkpoint
+    }
+
+    /// The network.
+    pub fn model(&self) -> &PiModel {
+        &self.model
+    }
+
+    /// Actions per chunk.
+    pub fn chunk(&self) -> usize {
+        self.model.dims().chunk
+    }
+
+    /// The robot's action width.
+    pub fn action_dim(&self) -> usize {
+        self.checkpoint.action_dim()
+    }
+
+    /// Predict one chunk per observation; the noise of observation `i` is
+    /// [`gaussian_noise`]`(seeds[i], 0, chunk * max_action_dim)`.
+    pub fn predict(
+        &self,
+        observations: &[Observation],
+        seeds: &[u64],
+    ) -> Result<(Vec<Prediction>, StageTimes), EngineError> {
+        let d = self.model.dims();
+        let noises: Vec<Vec<f32>> = seeds
+            .iter()
+            .map(|&s| gaussian_noise(s, 0, d.chunk * d.action_pad))
+            .collect();
+        self.predict_with_noise(observations, &noises)
+    }
+
+    /// [`PiPipeline::predict`] from given initial noise, `[chunk][max_action_dim]` per
+    /// observation (LeRobot's `noise` argument).
+    pub fn predict_with_noise(
+        &self,
+        observations: &[Observation],
+        noises: &[Vec<f32>],
+    ) -> Result<(Vec<Prediction>, StageTimes), EngineError> {
+        if observations.len() != noises.len() {
+            return Err(EngineError::InvalidInput(format!(
+                "{} observations but {} noises",
+                observations.len(),
+                noises.len()
+            )));
+        }
+        let start = Instant::now();
+        let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
+        let mut times = StageTimes::default();
+
+        let t = Instant::now();
+        let prepared = observations
+            .iter()
+            .map(|o| self.checkpoint.prepare(o))
+            .collect::<Result<Vec<_>, _>>()?;
+        times.preprocess = ms(t);
+
+        let t = Instant::now();
+        let prefixes = self.prefixes(&prepared)?;
+        times.prefix = ms(t);
+
+        let t = Instant::now();
+        let noises: Vec<Vec<Vec<f32>>> = noises.iter().map(|n| vec![n.clone()]).collect();
+        let samples = self
+            .model
+            .sample(&self.sample_inputs(&prepared, &prefixes, &noises))?;
+        times.expert = ms(t);
+
+        let t = Instant::now();
+        let pad = self.model.dims().action_pad;
+        let predictions = samples
+            .into_iter()
+            .zip(&prepared)
+            .map(|(s, p)| {
+                Ok(Prediction {
+                    actions: self
+                        .checkpoint
+                        .finish_actions(&s.actions, pad, &p.raw_state)?,
+                    normalized: s.actions,
+                })
+            })
+            .collect::<Result<Vec<_>, EngineError>>()?;
+        times.postprocess = ms(t);
+        times.total = ms(start);
+        Ok((predictions, times))
+    }
+
+    /// The prefix of each prepared observation, the cameras of the batch through the vision
+    /// tower together.
+    pub fn prefixes(&self, prepared: &[PiPrepared]) -> Result<Vec<PrefixCache>, EngineError> {
+        let observations: Vec<PiObservation<'_>> = prepared
+            .iter()
+            .map(|p| PiObservation {
+                images: p
+                    .images
+                    .iter()
+                    .map(|img| img.present.then_some(img.pixels.as_slice()))
+                    .collect(),
+                tokens: &p.tokens.ids,
+                token_mask: &p.tokens.mask,
+            })
+            .collect();
+        self.model.prefix(&observations)
+    }
+
+    fn sample_inputs<'a>(
+        &self,
+        prepared: &'a [PiPrepared],
+        prefixes: &'a [PrefixCache],
+        noises: &'a [Vec<Vec<f32>>],
+    ) -> Vec<SampleInput<'a>> {
+        prepared
+            .iter()
+            .zip(prefixes)
+            .zip(noises)
+            .map(|((p, prefix), noise)| SampleInput {
+                prefix,
+                state: Some(&p.state),
+                noise,
+            })
+            .collect()
+    }
+
+    /// A chunk in the robot's units: the actions as the postprocessor gives them, the noise
+    /// and the updates mapped by the same affine map (updates by its scale only), so
+    /// `noise + sum(updates)` is the actions up to rounding.
+    fn to_robot_units(
+        &self,
+        mut chunk: ActionChunk,
+        raw_state: &[f32],
+    ) -> Result<ActionChunk, EngineError> {
+        let dim = chunk.action_dim;
+        chunk.actions = self
+            .checkpoint
+            .finish_actions(&chunk.actions, dim, raw_state)?
+            .concat();
+        let affine = self
+            .checkpoint
+            .postprocessor()
+            .unnormalizer
+            .as_ref()
+            .and_then(|n| n.inverse_affine(ACTION_KEY));
+        let offset = self.checkpoint.absolute_offset(raw_state)?;
+        let (scale, mut shift) = match affine {
+            Some((scale, shift)) if scale.len() == dim => (scale, shift),
+            Some((scale, _)) => {
+                return Err(EngineError::InvalidInput(format!(
+                    "action stats have {} values, the action dim is {dim}",
+                    scale.len()
+                )));
+            }
+            None => (vec![1.0; dim], vec![0.0; dim]),
+        };
+        if let Some(offset) = offset {
+            for (s, o) in shift.iter_mut().zip(offset) {
+                *s += o;
+            }
+        }
+        for (i, x) in chunk.noise.iter_mut().enumerate() {
+            *x = scale[i % dim] * *x + shift[i % dim];
+        }
+        for (i, u) in chunk.updates.iter_mut().enumerate() {
+            *u *= scale[i % dim];
+        }
+        Ok(chunk)
+    }
+}
+
+/// The whole policy behind the server's model interface: a request's images are matched to the
+/// model's cameras by name (or, without names, are the cameras in order), its instruction is
+/// the task, its state the raw state; samples of one request share the prefix. Chunks are in
+/// the robot's units (see `to_robot_units`).
+impl ActionModel for PiPipeline {
+    fn spec(&self) -> &ModelSpec {
+        &self.spec
+    }
+
+    fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
+        self.spec.validate(batch)?;
+        let keys = self.checkpoint.camera_keys();
+        let prepared = batch
+            .iter()
+            .map(|r| {
+                let names = if r.cameras.is_empty() {
+                    &keys
+                } else {
+                    &r.cameras
+                };
+                let obs = Observation {
+                    images: names
+                        .iter()
+                        .cloned()
+                        .zip(r.images.iter().cloned())
+                        .collect(),
+                    state: r.state.clone(),
+                    task: r.instruction.clone(),
+                };
+                self.checkpoint.prepare(&obs)
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        let prefixes = self.prefixes(&prepared)?;
+        let d = self.model.dims();
+        let len = d.chunk * d.action_pad;
+        let noises: Vec<Vec<Vec<f32>>> = batch
+            .iter()
+            .map(|r| {
+                (0..r.samples)
+                    .map(|s| gaussian_noise(r.seed, s, len))
+                    .collect()
+            })
+            .collect();
+        let out = self
+            .model
+            .sample(&self.sample_inputs(&prepared, &prefixes, &noises))?;
+        let layout = RowLayout {
+            samples: batch.iter().map(|r| r.samples).collect(),
+            steps: d.steps,
+            chunk_len: d.chunk,
+            full_dim: d.action_pad,
+            action_dim: self.checkpoint.action_dim(),
+        };
+        let cat = |f: fn(&crate::smolvla::ExpertSample) -> &Vec<f32>| -> Vec<f32> {
+            out.iter().flat_map(|o| f(o).iter().copied()).collect()
+        };
+        layout
+            .chunks(
+                &cat(|o| &o.noise),
+                &cat(|o| &o.actions),
+                &cat(|o| &o.updates),
+            )
+            .into_iter()
+            .zip(&prepared)
+            .map(|(chunk, p)| self.to_robot_units(chunk, &p.raw_state))
+            .collect()
+    }
+}

@@ -1,0 +1,288 @@
+//! The SmolVLA action expert, as LeRobot 0.6.1 has it (`policies/smolvla/`).
+//!
+//! The expert is a 16-layer Llama-style transformer (hidden 720, GQA 15/5 heads of 64, RMSNorm,
+//! SwiGLU) over the 50 action tokens. Even layers self-attend over `[VLM prefix K/V of that layer
+//! ; their own K/V]` (causal among actions); odd layers project the cached prefix K/V with their
+//! own `k_proj`/`v_proj` and cross-attend to the prefix only. Action tokens are
+//! `action_time_mlp_out(silu(action_time_mlp_in([action_in_proj(x_t) ; sincos(t)])))`, and
+//! `action_out_proj` of the final norm is the velocity. The sampler is LeRobot's Euler loop.
+//!
+//! Input: the VLM's prefix KV cache ([`PrefixKv`]), which [`super::SmolVlaVlm`] computes from
+//! images, tokens and the state token. `state_proj` is loaded and exposed
+//! ([`SmolVlaExpert::embed_state`]) because in SmolVLA the state is the last prefix token the
+//! VLM encodes.
+//!
+//! Two backends run it: the engine's CPU kernels (`cpu`), and plain Candle tensor ops for any
+//! Candle device (`candle_backend`). Its weights are in [`weights`].
+
+pub mod weights;
+
+mod candle_backend;
+mod cpu;
+
+use std::path::Path;
+
+pub use weights::ExpertWeights;
+
+use super::config::{self, ExpertDims, SmolVlaConfig, VlmConfig};
+use super::prefix::PrefixKv;
+use crate::options::{EngineOptions, Target};
+use crate::sampler::{RowLayout, gaussian_noise};
+use crate::weights::Checkpoint;
+use crate::{ActionChunk, EngineError};
+
+/// Where the expert runs: the engine's CPU kernels on a pool of threads, or Candle.
+enum Backend {
+    Fast {
+        model: Box<cpu::CpuExpert>,
+        pool: crate::kernels::Pool,
+    },
+    Candle(Box<candle_backend::CandleExpert>),
+}
+
+/// A loaded SmolVLA action expert.
+pub struct SmolVlaExpert {
+    dims: ExpertDims,
+    backend: Backend,
+    description: String,
+}
+
+impl std::fmt::Debug for SmolVlaExpert {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SmolVlaExpert")
+            .field("dims", &self.dims)
+            .field("backend", &self.description)
+            .finish()
+    }
+}
+
+/// The result of one request: `S` samples, each `[chunk][action_pad]` wide (LeRobot's padded
+/// action width; the robot's actions are the first `action_dim` values of each action).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ExpertSample {
+    /// Samples.
+    pub samples: usize,
+    /// Initial noise, `[S][N][action_pad]`.
+    pub noise: Vec<f32>,
+    /// Final actions, `[S][N][action_pad]`.
+    pub actions: Vec<f32>,
+    /// Velocity of every Euler step, `[S][K][N][action_pad]`.
+    pub velocities: Vec<f32>,
+    /// Updates `dt * v`, `[S][K][N][action_pad]`.
+    pub updates: Vec<f32>,
+}
+
+/// One request to the expert: a prefix and the noise of each sample (`[N][action_pad]` each).
+#[derive(Clone, Copy, Debug)]
+pub struct ExpertInput<'a> {
+    /// The observation's VLM prefix.
+    pub prefix: &'a PrefixKv,
+    /// One initial noise per sample; samples share the prefix work.
+    pub noise: &'a [Vec<f32>],
+}
+
+impl SmolVlaExpert {
+    /// Load from a LeRobot SmolVLA checkpoint directory: `config.json`, `model.safetensors`
+    /// (LeRobot's parameter names; VLM tensors are ignored), and, for a VLM other than
+    /// SmolVLM2-500M, the VLM's own `vlm_config.json`.
+    pub fn load(dir: &Path, options: &EngineOptions) -> Result<Self, EngineError> {
+        let cfg: SmolVlaConfig = config::read_json(&dir.join("config.json"))?;
+        let text = VlmConfig::for_checkpoint(dir, &cfg)?.text_config;
+        let dims = ExpertDims::resolve(&cfg, &text)?;
+        let ckpt = Checkpoint::open(&dir.join("model.safetensors"))?;
+        let weights = ExpertWeights::load(&ckpt, &dims)?;
+        Self::from_weights(&weights, options)
+    }
+
+    /// Build from weights already in memory.
+    pub fn from_weights(
+        weights: &ExpertWeights,
+        options: &EngineOptions,
+    ) -> Result<Self, EngineError> {
+        let target = options.target()?;
+        let description = target.describe();
+        let backend = match target {
+            Target::Fast(pool) => Backend::Fast {
+                model: Box::new(cpu::CpuExpert::new(
+                    weights,
+                    options.precision.resolve(pool.isa()),
+                )),
+                pool,
+            },
+            Target::Candle(device) => Backend::Candle(Box::new(candle_backend::CandleExpert::new(
+                weights, &device,
+            )?)),
+        };
+        Ok(SmolVlaExpert {
+            dims: weights.dims.clone(),
+            backend,
+            description,
+        })
+    }
+
+    /// Shapes.
+    pub fn dims(&self) -> &ExpertDims {
+        &self.dims
+    }
+
+    /// Where and how it runs, e.g. `cpu, fast kernels Avx2Fma, 2 threads`.
+    pub fn description(&self) -> &str {
+        &self.description
+    }
+
+    /// `state_proj` of each state (zero-padded to `max_state_dim`): the state token the VLM
+    /// appends to the prefix.
+    pub fn embed_state(&self, states: &[Vec<f32>]) -> Result<Vec<Vec<f32>>, EngineError> {
+        let pad = self.dims.state_pad;
+        let mut flat = vec![0.0f32; states.len() * pad];
+        for (i, s) in states.iter().enumerate() {
+            if s.len() > pad {
+                return Err(EngineError::InvalidInput(format!(
+                    "state has {} values, at most {pad}",
+                    s.len()
+                )));
+            }
+            flat[i * pad..i * pad + s.len()].copy_from_slice(s);
+        }
+        let out = match &self.backend {
+            Backend::Fast { model, pool } => model.embed_state(pool, &flat, states.len()),
+            Backend::Candle(model) => model.embed_state(&flat, states.len())?,
+        };
+        Ok(out
+            .chunks_exact(self.dims.vlm_hidden)
+            .map(<[f32]>::to_vec)
+            .collect())
+    }
+
+    /// Run the sampler for a batch of requests in one forward pass per step.
+    pub fn sample(&self, inputs: &[ExpertInput<'_>]) -> Result<Vec<ExpertSample>, EngineError> {
+        let d = &self.dims;
+        let len = d.chunk * d.action_pad;
+        let mut row_prefix = Vec::new();
+        let mut x = Vec::new();
+        for (i, input) in inputs.iter().enumerate() {
+            if input.noise.is_empty() {
+                return Err(EngineError::InvalidInput(
+                    "a request needs at least one sample".into(),
+                ));
+            }
+            if input.prefix.keys(0).len() != input.prefix.len() * d.kv_width()
+                || input.prefix.is_empty()
+            {
+                return Err(EngineError::InvalidInput(
+                    "prefix does not match this expert".into(),
+                ));
+            }
+            for noise in input.noise {
+                if noise.len() != len {
+                    return Err(EngineError::InvalidInput(format!(
+                        "noise has {} values, expected {len}",
+                        noise.len()
+                    )));
+                }
+                x.extend_from_slice(noise);
+                row_prefix.push(i);
+            }
+        }
+        let rows = row_prefix.len();
+        if rows == 0 {
+            return Ok(Vec::new());
+        }
+        let prefixes: Vec<&PrefixKv> = inputs.iter().map(|i| i.prefix).collect();
+        let noise = x.clone();
+        let mut velocities = vec![0.0f32; rows * d.steps * len];
+        let mut updates = vec![0.0f32; rows * d.steps * len];
+        match &self.backend {
+            Backend::Fast { model, pool } => model.sample(
+                pool,
+                &prefixes,
+                &row_prefix,
+                &mut x,
+                &mut velocities,
+                &mut updates,
+            )?,
+            Backend::Candle(model) => model.sample(
+                &prefixes,
+                &row_prefix,
+                &mut x,
+                &mut velocities,
+                &mut updates,
+            )?,
+        }
+        let mut row = 0;
+        let per_step = d.steps * len;
+        Ok(inputs
+            .iter()
+            .map(|input| {
+                let s = input.noise.len();
+                let out = ExpertSample {
+                    samples: s,
+                    noise: noise[row * len..(row + s) * len].to_vec(),
+                    actions: x[row * len..(row + s) * len].to_vec(),
+                    velocities: velocities[row * per_step..(row + s) * per_step].to_vec(),
+                    updates: updates[row * per_step..(row + s) * per_step].to_vec(),
+                };
+                row += s;
+                out
+            })
+            .collect())
+    }
+
+    /// Serve a validated batch of requests: embed every state, build each request's prefix with
+    /// `prefix(request, state_token)`, and generate with each request's samples and seed. The
+    /// serving models differ only in how they build the prefix.
+    pub fn generate_requests(
+        &self,
+        batch: &[crate::ActionRequest],
+        prefix: impl Fn(&crate::ActionRequest, &[f32]) -> Result<PrefixKv, EngineError>,
+    ) -> Result<Vec<ActionChunk>, EngineError> {
+        let states: Vec<Vec<f32>> = batch.iter().map(|r| r.state.clone()).collect();
+        let state_tokens = self.embed_state(&states)?;
+        let prefixes = batch
+            .iter()
+            .zip(&state_tokens)
+            .map(|(r, s)| prefix(r, s))
+            .collect::<Result<Vec<_>, _>>()?;
+        let requests: Vec<(&PrefixKv, usize, u64)> = prefixes
+            .iter()
+            .zip(batch)
+            .map(|(p, r)| (p, r.samples, r.seed))
+            .collect();
+        self.generate(&requests)
+    }
+
+    /// Generate one [`ActionChunk`] per `(prefix, samples, seed)`, cut to the robot's action dim,
+    /// with noise from [`gaussian_noise`].
+    pub fn generate(
+        &self,
+        requests: &[(&PrefixKv, usize, u64)],
+    ) -> Result<Vec<ActionChunk>, EngineError> {
+        let d = &self.dims;
+        let len = d.chunk * d.action_pad;
+        let noises: Vec<Vec<Vec<f32>>> = requests
+            .iter()
+            .map(|&(_, s, seed)| (0..s).map(|i| gaussian_noise(seed, i, len)).collect())
+            .collect();
+        let inputs: Vec<ExpertInput<'_>> = requests
+            .iter()
+            .zip(&noises)
+            .map(|(&(prefix, _, _), noise)| ExpertInput { prefix, noise })
+            .collect();
+        let out = self.sample(&inputs)?;
+        let layout = RowLayout {
+            samples: requests.iter().map(|r| r.1).collect(),
+            steps: d.steps,
+            chunk_len: d.chunk,
+            full_dim: d.action_pad,
+            action_dim: d.action_dim,
+        };
+        let cat = |f: fn(&ExpertSample) -> &Vec<f32>| -> Vec<f32> {
+            out.iter().flat_map(|o| f(o).iter().copied()).collect()
+        };
+        Ok(layout.chunks(
+            &cat(|o| &o.noise),
+            &cat(|o| &o.actions),
+            &cat(|o| &o.updates),
+        ))
+    }
+}
