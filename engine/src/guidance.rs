@@ -53,7 +53,11 @@ pub fn prefix_weights(
             let ramp: Vec<f32> = linspace_inner(start, end, total)
                 .into_iter()
                 .map(|w| match schedule {
-                    PrefixSchedule::Exp => w * (w.exp_m1() / (std::f64::consts::E - 1.0) as f32),
+                    // expm1 in f64, rounded to f32: that gives torch's f32 expm1 on LeRobot's
+                    // goldens (`rtc.exp.*.weights`), where the platform's expm1f is an ulp off.
+                    PrefixSchedule::Exp => {
+                        w * ((f64::from(w).exp_m1() as f32) / (std::f64::consts::E - 1.0) as f32)
+                    }
                     _ => w,
                 })
                 .collect();
