@@ -365,7 +365,7 @@ mod tests {
             )
             .unwrap()
         };
-        let guides = vec![
+        let guides = [
             None,
             Some(guide(GuidanceMode::Rtc, 1)),
             Some(guide(GuidanceMode::Inpaint, 2)),

@@ -218,6 +218,8 @@ impl CpuExpert {
     /// Run the sampler for `rows` samples. `row_prefix[r]` is the request of row `r`; `x` holds
     /// the noise (`[rows][chunk][action_pad]`) and receives the result; `velocities` and
     /// `updates` receive `[rows][K][chunk][action_pad]`.
+    // The sampler's buffers and the rows' guides, as `integrate_guided` takes them.
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn sample(
         &self,
         pool: &Pool,
