@@ -312,7 +312,8 @@ async fn episode(
     seed: u64,
 ) -> Result<(Outcome, Delays), LiveError> {
     let mut env = Env::new(plan.env.clone(), seed);
-    let tick = Duration::from_secs_f64(1.0 / f64::from(plan.control_hz));
+    let tick = Duration::try_from_secs_f64(1.0 / f64::from(plan.control_hz))
+        .map_err(|e| live("--live-hz")(format!("{}: {e}", plan.control_hz)))?;
     let mut exec = ChunkExecutor::new(plan.control_hz, 1.0).with_alignment(alignment);
     let mut out = Outcome::default();
     let mut delays = Delays::default();

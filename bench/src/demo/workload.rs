@@ -110,7 +110,8 @@ pub fn fleet(args: &DemoOptions, sizing: &FleetSizing) -> Vec<FleetTask> {
         .into_iter()
         .map(|(actions, gap)| {
             let task = FleetTask {
-                start: Duration::from_secs_f64(at),
+                // `at` is a sum of finite, non-negative gaps; past the end of time it saturates.
+                start: Duration::try_from_secs_f64(at).unwrap_or(Duration::MAX),
                 actions,
             };
             at += gap * sizing.stagger_s;

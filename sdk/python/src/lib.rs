@@ -594,7 +594,7 @@ impl Client {
         let captured_at_us = self.inner.now_us();
         let observation = observation::from_python(observation, captured_at_us)?;
         if lock(&self.task).is_none() {
-            self.start_task(None, 30.0, 0.5, None, None, None)?;
+            self.start_task(None, 30.0, 0.5, None, None, None, None, "executed")?;
         }
         let mut slot = lock(&self.task);
         let Some(task) = slot.as_mut() else {

@@ -2,6 +2,8 @@
 //! the same rounds, and each gets exactly the chunk its strategy makes (recomputed in-process
 //! from the server's own start index), with the server's predicted `d` and start in the reply.
 
+#![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
+
 use std::sync::Arc;
 
 use kairos_bench::horizon_bench::env::{ACTION_DIM, Env, EnvConfig, OBS_DIM};
@@ -264,8 +266,7 @@ async fn a_strategy_the_model_cannot_apply_is_refused_with_the_reason() {
     let error = task
         .submit(request, &mut NoRefetch)
         .await
-        .err()
-        .expect("refused");
+        .expect_err("refused");
     let text = error.to_string();
     assert!(
         text.contains("invalid_request")
