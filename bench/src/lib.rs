@@ -5,7 +5,8 @@
 //!   paper's workloads turned into traces;
 //! - [`horizon_bench`]: the closed-loop control task that judges horizon policies by task
 //!   success, with its small flow-matching policy (trained here, served through the model scheme
-//!   it registers, `horizon-flow:DIR`);
+//!   it registers, `horizon-flow:DIR`); [`chunking_bench`]: the same tasks with a delay between
+//!   an observation and its chunk, judging the server's chunking strategies;
 //! - [`live_replay`]: traces replayed over real QUIC against a real server;
 //! - [`fleet`]: fleets of simulated robots against a server;
 //! - [`demo`]: the README's first command; [`plot`]: PNG and SVG plots of the results.
@@ -13,6 +14,7 @@
 //! Serving (`kairos-server`) never depends on this crate; the `kairos` binary (`kairos-cli`)
 //! does, for `kairos bench`, `kairos demo` and `kairos robot`.
 
+pub mod chunking_bench;
 pub mod demo;
 pub mod fleet;
 pub mod horizon_bench;

@@ -566,3 +566,55 @@ pub fn pareto(
     render(out, name, &[panel])?;
     Ok(out.join(format!("{name}.png")))
 }
+
+/// One panel of [`success_panels`]: its title and its lines.
+pub struct SuccessPanel<'a> {
+    /// The panel's title (a task).
+    pub title: String,
+    /// One line per series (an execution strategy), points `(x, success, CI low, CI high)`.
+    pub series: Vec<ParetoSeries<'a>>,
+}
+
+/// Success rate against `x_desc` (a delay), one panel per entry of `panels`, one line per
+/// series with 95% CI bars, into `out/<name>.png` (and `.svg`). Returns the PNG's path.
+pub fn success_panels(
+    out: &Path,
+    name: &str,
+    x_desc: &str,
+    panels: &[SuccessPanel<'_>],
+) -> anyhow::Result<std::path::PathBuf> {
+    register_font()?;
+    let panels: Vec<Panel> = panels
+        .iter()
+        .map(|p| Panel {
+            title: p.title.clone(),
+            x_desc: x_desc.to_string(),
+            y_desc: "success rate".into(),
+            x_labels: None,
+            series: p
+                .series
+                .iter()
+                .enumerate()
+                .map(|(i, f)| {
+                    let mut points: Vec<Point> = f
+                        .points
+                        .iter()
+                        .map(|&(x, mid, lo, hi)| Point { x, lo, mid, hi })
+                        .collect();
+                    points.sort_by(|a, b| a.x.total_cmp(&b.x));
+                    Series {
+                        label: f.label.to_string(),
+                        color: color("", i),
+                        points,
+                        bars: true,
+                    }
+                })
+                .collect(),
+            y_range: Some((0.0, 1.0)),
+            // Success falls as the delay grows: the upper right is where no line reaches.
+            legend: SeriesLabelPosition::UpperRight,
+        })
+        .collect();
+    render(out, name, &panels)?;
+    Ok(out.join(format!("{name}.png")))
+}

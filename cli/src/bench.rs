@@ -41,6 +41,10 @@ pub enum BenchCommand {
     /// Judge horizon policies in closed loop: task success against mean executed horizon on a
     /// seeded control task with a trained flow-matching policy (pareto.csv, summary.md, plot).
     Horizon(Box<super::bench_horizon::HorizonArgs>),
+    /// Judge what a robot does with a chunk that arrives D control steps after its observation
+    /// (every server chunking strategy and synchronous execution, in closed loop on the horizon
+    /// bench's tasks; results.csv, summary.md, plot).
+    Chunking(Box<super::bench_chunking::ChunkingArgs>),
 }
 
 /// `kairos bench calibrate`
@@ -142,6 +146,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
         BenchCommand::Calibrate(a) => run_calibrate(a),
         BenchCommand::Live(a) => super::bench_live::run(*a),
         BenchCommand::Horizon(a) => super::bench_horizon::run(*a),
+        BenchCommand::Chunking(a) => super::bench_chunking::run(*a),
     }
 }
 

@@ -5,6 +5,7 @@
 //! libraries.
 
 mod bench;
+mod bench_chunking;
 mod bench_horizon;
 mod bench_live;
 mod demo;

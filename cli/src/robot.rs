@@ -193,6 +193,7 @@ async fn observation_frame_bytes(
         attempt: 0,
         control_hz: None,
         seed: None,
+        chunking: None,
     };
     let bytes = encode_body(&submit, u32::MAX)?.len();
     Ok(u32::try_from(bytes).unwrap_or(u32::MAX))

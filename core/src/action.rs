@@ -400,6 +400,9 @@ pub fn build_reply(task: u64, round: u64, chunk: &ActionChunk, choice: &HorizonC
         },
         policy: choice.policy.clone(),
         timing: Timing::default(),
+        start: None,
+        delay: None,
+        chunking: None,
     }
 }
 

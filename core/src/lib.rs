@@ -6,6 +6,8 @@
 //! - [`horizon`]: horizon policies, which decide how many actions of a chunk a robot executes;
 //! - [`action`]: the action manager, the return path that applies a round's horizon policy
 //!   with its native fallback and builds the reply;
+//! - [`chunking`]: each round's predicted delay `d` and its chunking strategy (what the server
+//!   does about the actions a robot executes while its round is in flight);
 //! - [`registry`]: name → factory registries of horizon and priority policies (native and
 //!   plugin alike);
 //! - [`driver`]: the driver's sans-IO state machine around the scheduler, events with `now` in,
@@ -21,6 +23,7 @@
 //! protocol's types, the engine's data types, serde, thiserror and tracing.
 
 pub mod action;
+pub mod chunking;
 pub mod clock_map;
 pub mod driver;
 pub mod error;

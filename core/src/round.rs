@@ -7,6 +7,7 @@
 use kairos_engine_types::ActionRequest;
 
 use crate::action::RoundPolicy;
+use crate::chunking::RoundChunking;
 use crate::clock_map::ClockMap;
 use crate::scheduler::{ExecReport, RoundSubmit, TaskEnd, TaskId};
 use crate::time::Timestamp;
@@ -35,6 +36,13 @@ pub struct ValidSubmit {
     pub control_hz: Option<f32>,
     /// This request's clock mapping.
     pub clock: ClockMap,
+    /// The round's chunking strategy, resolved against the server's defaults.
+    pub chunking: RoundChunking,
+    /// The round whose chunk the robot executes, as its Last Exec Info names it (`None`: not
+    /// said, the task's last reply is assumed).
+    pub exec_round: Option<u64>,
+    /// The actual `d` of that round, as the robot reported it.
+    pub exec_delay: Option<u32>,
 }
 
 /// An `EndTask` that passed every check.

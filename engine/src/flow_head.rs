@@ -341,7 +341,16 @@ impl ActionModel for FlowHead {
 
     fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
         self.spec.validate(batch)?;
+        // The head samples in the robot's units: guidance prefixes need no mapping.
         self.expert
-            .generate_requests(batch, |request, state| self.encode(request, state))
+            .generate_requests(batch, |request, state| self.encode(request, state), &|_| {})
+    }
+
+    /// `rtc` and `inpaint` in its expert's sampler.
+    fn chunking(&self) -> crate::ModelChunking {
+        crate::ModelChunking {
+            guidance: self.expert.guidance_support(),
+            action_space: crate::ActionSpace::Unspecified,
+        }
     }
 }

@@ -11,6 +11,7 @@
 pub mod builtin;
 pub mod error;
 pub mod flow_head;
+pub mod guidance;
 pub mod image_features;
 pub mod kernels;
 pub mod model;
@@ -27,6 +28,9 @@ pub use error::{EngineError, InputError};
 pub use image_features::ImageLimits;
 pub use kairos_engine_types::ActionChunk;
 pub use kairos_engine_types::{ActionRequest, ImageFormat, ImageInput};
+pub use kairos_engine_types::{
+    ActionSpace, Guidance, GuidanceMode, GuidanceSupport, ModelChunking, PrefixSchedule,
+};
 pub use kairos_engine_types::{EngineProfile, ProfilePoint};
 pub use kernels::Precision;
 pub use model::{ActionModel, MAX_SAMPLES, ModelSpec, generate_isolated};

@@ -4,7 +4,7 @@ use std::collections::BTreeMap;
 
 use crate::error::InputError;
 use crate::image_features::{ImageLimits, check_image};
-use crate::{ActionChunk, ActionRequest, EngineError};
+use crate::{ActionChunk, ActionRequest, EngineError, ModelChunking};
 
 /// What a model produces and consumes; the server validates requests against it.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -114,6 +114,38 @@ impl ModelSpec {
                 }
             }
         }
+        if let Some(guidance) = &request.guidance {
+            let rows = guidance.prefix_rows(self.action_dim);
+            if rows * self.action_dim != guidance.prefix.len() || rows > self.chunk_len {
+                return fail(
+                    "guidance.prefix".into(),
+                    format!(
+                        "{} values are not at most {} whole actions of {}",
+                        guidance.prefix.len(),
+                        self.chunk_len,
+                        self.action_dim
+                    ),
+                );
+            }
+            if let Some(at) = guidance.prefix.iter().position(|v| !v.is_finite()) {
+                return fail(
+                    format!("guidance.prefix[{at}]"),
+                    "not a finite number".into(),
+                );
+            }
+            if guidance.delay > self.chunk_len {
+                return fail(
+                    "guidance.delay".into(),
+                    format!("{} is past the chunk of {}", guidance.delay, self.chunk_len),
+                );
+            }
+            if !(guidance.max_guidance_weight.is_finite() && guidance.max_guidance_weight > 0.0) {
+                return fail(
+                    "guidance.max_guidance_weight".into(),
+                    format!("{} is not a positive number", guidance.max_guidance_weight),
+                );
+            }
+        }
         if request.samples == 0 || request.samples > MAX_SAMPLES {
             return fail(
                 "samples".into(),
@@ -215,6 +247,14 @@ pub trait ActionModel: Send + Sync {
 
     /// Generate one [`ActionChunk`] per request, in request order.
     fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError>;
+
+    /// What the server's chunking strategies may do with this model: the guidance
+    /// ([`ActionRequest::guidance`]) its sampler applies on its backend, and what its actions
+    /// are. The default is neither: such a model refuses a request with guidance, and the
+    /// server refuses the strategies that need it before the round is queued.
+    fn chunking(&self) -> ModelChunking {
+        ModelChunking::default()
+    }
 }
 
 #[cfg(test)]
@@ -257,6 +297,7 @@ mod tests {
             instruction: "pick".into(),
             samples: 1,
             seed,
+            guidance: None,
         }
     }
 

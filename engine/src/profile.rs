@@ -65,6 +65,7 @@ pub fn synthetic_batch(model: &dyn ActionModel, batch: usize) -> Vec<ActionReque
             instruction: "pick up the red cube and place it".into(),
             samples: 1,
             seed: i as u64,
+            guidance: None,
         })
         .collect()
 }

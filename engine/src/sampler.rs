@@ -7,7 +7,10 @@
 //! records each `dt * v` as the update `U[k]`, so `noise + U[0] + .. + U[K-1]` is the chunk,
 //! exactly, when summed in that order.
 
-use crate::{ActionChunk, EngineError};
+use kairos_engine_types::GuidanceMode;
+
+use crate::guidance::RowGuide;
+use crate::{ActionChunk, ActionRequest, EngineError};
 
 /// LeRobot's Euler schedule with `steps` steps.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -37,26 +40,174 @@ pub fn integrate(
     len: usize,
     x: &mut [f32],
     updates: &mut [f32],
-    mut velocity: impl FnMut(usize, f32, &[f32], &mut [f32]) -> Result<(), EngineError>,
+    velocity: impl FnMut(usize, f32, &[f32], &mut [f32]) -> Result<(), EngineError>,
+) -> Result<(), EngineError> {
+    let guides = vec![None; rows];
+    let mut field = ClosureField(velocity);
+    integrate_guided(schedule, rows, len, x, updates, &guides, None, &mut field)
+}
+
+/// A model's velocity field over a batch of rows.
+pub trait VelocityField {
+    /// Writes the velocity of every row at `x` and step `k` (time `t`) into `v`.
+    fn velocity(&mut self, k: usize, t: f32, x: &[f32], v: &mut [f32]) -> Result<(), EngineError>;
+
+    /// As [`VelocityField::velocity`], and then `pullback = J_v(x)^T c` for the cotangent
+    /// `c = cotangent(v)` (all rows; zero on rows that need none): one backward pass through
+    /// the network. Models without autograd keep this default, which refuses.
+    fn velocity_vjp(
+        &mut self,
+        k: usize,
+        t: f32,
+        x: &[f32],
+        v: &mut [f32],
+        cotangent: &mut dyn FnMut(&[f32]) -> Vec<f32>,
+        pullback: &mut [f32],
+    ) -> Result<(), EngineError> {
+        let _ = (k, t, x, v, cotangent, pullback);
+        Err(EngineError::InvalidInput(
+            "rtc_vjp needs a backward pass through the velocity network, which this model \
+             path does not have"
+                .into(),
+        ))
+    }
+}
+
+/// A closure as a [`VelocityField`] without a backward pass.
+pub struct ClosureField<F>(pub F);
+
+impl<F: FnMut(usize, f32, &[f32], &mut [f32]) -> Result<(), EngineError>> VelocityField
+    for ClosureField<F>
+{
+    fn velocity(&mut self, k: usize, t: f32, x: &[f32], v: &mut [f32]) -> Result<(), EngineError> {
+        (self.0)(k, t, x, v)
+    }
+}
+
+/// [`integrate`] with a [`RowGuide`] per row (`None`: plain sampling): each guided row's
+/// velocity is replaced by the guided one before its Euler update, and a hard prefix is written
+/// after it ([`crate::guidance`]). Rows never read each other's guidance, so a row's result is
+/// what it would be in a batch of its own (for a model whose velocity is per row).
+/// `velocities`, when given (`[row][k][len]`), receives the velocity each step used: the
+/// guided one on guided rows.
+#[allow(clippy::too_many_arguments)]
+pub fn integrate_guided(
+    schedule: Schedule,
+    rows: usize,
+    len: usize,
+    x: &mut [f32],
+    updates: &mut [f32],
+    guides: &[Option<RowGuide>],
+    mut velocities: Option<&mut [f32]>,
+    field: &mut dyn VelocityField,
 ) -> Result<(), EngineError> {
     let steps = schedule.steps;
     assert_eq!(x.len(), rows * len);
     assert_eq!(updates.len(), rows * steps * len);
+    assert_eq!(guides.len(), rows);
+    if let Some(v) = &velocities {
+        assert_eq!(v.len(), rows * steps * len);
+    }
     let dt = schedule.dt();
     let mut v = vec![0.0f32; rows * len];
+    let vjp_rows: Vec<bool> = guides
+        .iter()
+        .map(|g| g.as_ref().is_some_and(|g| g.mode == GuidanceMode::RtcVjp))
+        .collect();
+    let any_vjp = vjp_rows.iter().any(|&b| b);
+    let mut pullback = if any_vjp {
+        vec![0.0f32; rows * len]
+    } else {
+        Vec::new()
+    };
+    let mut before = vec![0.0f32; len];
     for k in 0..steps {
-        velocity(k, schedule.time(k), x, &mut v)?;
+        let t = schedule.time(k);
+        // LeRobot passes `time` to the guidance as the f64 it computed (`1.0 + step * dt`).
+        let time = 1.0f64 + k as f64 * (-1.0f64 / steps as f64);
+        if any_vjp {
+            let mut cotangent = |v: &[f32]| {
+                let mut c = vec![0.0f32; rows * len];
+                for r in (0..rows).filter(|&r| vjp_rows[r]) {
+                    if let Some(g) = &guides[r] {
+                        let span = r * len..(r + 1) * len;
+                        let err = g.error(t, &x[span.clone()], &v[span.clone()]);
+                        for (ci, e) in c[span].iter_mut().zip(err) {
+                            *ci = t * e;
+                        }
+                    }
+                }
+                c
+            };
+            field.velocity_vjp(k, t, x, &mut v, &mut cotangent, &mut pullback)?;
+        } else {
+            field.velocity(k, t, x, &mut v)?;
+        }
+        let next_time = if k + 1 < steps {
+            schedule.time(k + 1)
+        } else {
+            0.0
+        };
         for r in 0..rows {
-            let xr = &mut x[r * len..(r + 1) * len];
-            let vr = &v[r * len..(r + 1) * len];
+            let span = r * len..(r + 1) * len;
+            let xr = &mut x[span.clone()];
+            let vr = &mut v[span.clone()];
+            if let Some(g) = &guides[r] {
+                let p = vjp_rows[r].then(|| &pullback[span.clone()]);
+                g.guide(time, t, xr, vr, p);
+            }
+            if let Some(out) = velocities.as_deref_mut() {
+                out[(r * steps + k) * len..(r * steps + k + 1) * len].copy_from_slice(vr);
+            }
             let ur = &mut updates[(r * steps + k) * len..(r * steps + k + 1) * len];
-            for ((xi, &vi), ui) in xr.iter_mut().zip(vr).zip(ur.iter_mut()) {
+            if guides[r].is_some() {
+                before.copy_from_slice(xr);
+            }
+            for ((xi, &vi), ui) in xr.iter_mut().zip(vr.iter()).zip(ur.iter_mut()) {
                 *ui = dt * vi;
                 *xi += *ui;
+            }
+            if let Some(g) = &guides[r] {
+                g.after_step(next_time, &before, xr, ur);
             }
         }
     }
     Ok(())
+}
+
+/// One [`RowGuide`] per row of `layout` (rows are `[request][sample]`), from each request's
+/// guidance: `None` for requests without it. `noise` is the rows' initial noise
+/// (`[row][N][full_dim]`); `to_model` maps one robot action into the model's action space.
+pub fn row_guides(
+    requests: &[ActionRequest],
+    layout: &RowLayout,
+    noise: &[f32],
+    to_model: &dyn Fn(&mut [f32]),
+) -> Result<Vec<Option<RowGuide>>, EngineError> {
+    let len = layout.chunk_len * layout.full_dim;
+    let mut out = Vec::with_capacity(layout.rows());
+    let mut row = 0;
+    for (request, &samples) in requests.iter().zip(&layout.samples) {
+        for _ in 0..samples {
+            let guide = request
+                .guidance
+                .as_ref()
+                .map(|g| {
+                    RowGuide::prepare(
+                        g,
+                        layout.chunk_len,
+                        layout.action_dim,
+                        layout.full_dim,
+                        noise.get(row * len..(row + 1) * len).unwrap_or(&[]),
+                        to_model,
+                    )
+                })
+                .transpose()?;
+            out.push(guide);
+            row += 1;
+        }
+    }
+    Ok(out)
 }
 
 /// Standard-normal noise for sample `sample` of a request with `seed`: `len` values.
@@ -183,6 +334,105 @@ mod tests {
             mean.abs() < 0.01 && (var - 1.0).abs() < 0.02,
             "mean {mean} var {var}"
         );
+    }
+
+    /// Rows of one batch with different guidance (none, `rtc`, `inpaint`) each get exactly what
+    /// they get alone: guidance reads and writes its own row only.
+    #[test]
+    fn a_mixed_batch_gives_each_row_what_it_gets_alone() {
+        use kairos_engine_types::{Guidance, PrefixSchedule};
+        let (rows, chunk, dim, steps) = (3, 4, 2, 5);
+        let len = chunk * dim;
+        let guidance = |mode| Guidance {
+            mode,
+            prefix: vec![0.5, -0.5, 0.25, 0.75, 1.0, 0.0],
+            delay: 2,
+            execution_horizon: 3,
+            schedule: PrefixSchedule::Exp,
+            max_guidance_weight: 5.0,
+        };
+        let noise: Vec<f32> = (0..rows)
+            .flat_map(|r| gaussian_noise(r as u64, 0, len))
+            .collect();
+        let guide = |mode, r: usize| {
+            RowGuide::prepare(
+                &guidance(mode),
+                chunk,
+                dim,
+                dim,
+                &noise[r * len..(r + 1) * len],
+                &|_| {},
+            )
+            .unwrap()
+        };
+        let guides = [
+            None,
+            Some(guide(GuidanceMode::Rtc, 1)),
+            Some(guide(GuidanceMode::Inpaint, 2)),
+        ];
+        // A per-row velocity field (as the models' are): row r pulls toward r - x.
+        let field = |rows: Vec<usize>| {
+            ClosureField(move |_k: usize, t: f32, x: &[f32], v: &mut [f32]| {
+                for (i, (vi, xi)) in v.iter_mut().zip(x).enumerate() {
+                    *vi = (rows[i / len] as f32 - xi) * t + 0.1;
+                }
+                Ok(())
+            })
+        };
+        let run = |which: Vec<usize>| {
+            let mut x: Vec<f32> = which
+                .iter()
+                .flat_map(|&r| noise[r * len..(r + 1) * len].to_vec())
+                .collect();
+            let n = which.len();
+            let mut u = vec![0.0; n * steps * len];
+            let mut v = vec![0.0; n * steps * len];
+            let g: Vec<Option<RowGuide>> = which.iter().map(|&r| guides[r].clone()).collect();
+            integrate_guided(
+                Schedule { steps },
+                n,
+                len,
+                &mut x,
+                &mut u,
+                &g,
+                Some(&mut v),
+                &mut field(which.clone()),
+            )
+            .unwrap();
+            (x, u, v)
+        };
+        let (x, u, v) = run(vec![0, 1, 2]);
+        for r in 0..rows {
+            let (xa, ua, va) = run(vec![r]);
+            assert_eq!(&x[r * len..(r + 1) * len], &xa[..], "row {r}: actions");
+            assert_eq!(
+                &u[r * steps * len..(r + 1) * steps * len],
+                &ua[..],
+                "row {r}: updates"
+            );
+            assert_eq!(
+                &v[r * steps * len..(r + 1) * steps * len],
+                &va[..],
+                "row {r}: velocities"
+            );
+        }
+        // The guidance did something: the inpainted row ends on the committed actions, the rtc
+        // row differs from the same row unguided.
+        assert_eq!(&x[2 * len..2 * len + 4], &[0.5, -0.5, 0.25, 0.75]);
+        let mut plain = noise[len..2 * len].to_vec();
+        let mut pu = vec![0.0; steps * len];
+        integrate_guided(
+            Schedule { steps },
+            1,
+            len,
+            &mut plain,
+            &mut pu,
+            &[None],
+            None,
+            &mut field(vec![1]),
+        )
+        .unwrap();
+        assert_ne!(&x[len..2 * len], &plain[..]);
     }
 
     #[test]

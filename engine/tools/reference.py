@@ -18,6 +18,19 @@ of three observations with fixed noise, and saves:
   the final chunk), plus the same outputs recomputed in float64 (`*_f64`) so the test can tell
   LeRobot's own float32 rounding from a real mismatch.
 
+With `--rtc` it writes real-time chunking goldens on `engine/tests/fixtures/smolvla_tiny`
+instead (`golden/rtc.safetensors`, described in `golden/rtc.json`): the checkpoint and its
+processors loaded with LeRobot's own `from_pretrained`, the fixture's `pair` observations, a
+previous chunk (LeRobot's plain chunk for the same observations with other noise, normalised, of
+which the robot executed 2 actions: the queue's leftover, LeRobot's `prev_chunk_left_over`),
+and for each prefix schedule (`linear`, `exp`) and inference delay `d` in {0, 3, 7}:
+`predict_action_chunk` with `rtc_config` (`RTCProcessor.denoise_step` unchanged, max guidance
+weight 10, execution horizon 10), recording the guided velocity each Euler step used, the prefix
+weights, and the chunk before and after the postprocessor. One more case runs the paper's
+guidance with the true vector–Jacobian product (`rtc_vjp`: the same formula with the sample
+marked as needing a gradient before the velocity is computed; LeRobot does not ship it, so this
+one is the script's own, on LeRobot's modules).
+
 The script creates `<repo>/.venv-lerobot` with the pinned LeRobot itself (see `lerobot_env.py`).
 """
 
@@ -70,6 +83,7 @@ ACTION_DIM = 6
 LANG_LEN = 12
 LANG_VALID = [12, 7, 3]  # per batch element: prefixes of different real lengths
 SEED = 20261121
+CHUNK_TINY = 16  # smolvla_tiny's chunk
 
 
 def build_policy():
@@ -177,10 +191,176 @@ def denoise_f64(policy, record, noise):
     return x, torch.stack(vs)
 
 
+RTC_DELAYS = [0, 3, 7]
+RTC_EXECUTED = 2  # actions of the previous chunk the robot executed before the capture
+RTC_EXECUTION_HORIZON = 10
+RTC_MAX_GUIDANCE_WEIGHT = 10.0
+RTC_VJP_CASE = ("linear", 3)
+
+
+def vjp_denoise_step(processor, x_t, prev, inference_delay, time, denoise, execution_horizon):
+    """`rtc_vjp`: LeRobot's `RTCProcessor.denoise_step` with one change, the paper's guidance:
+    the sample needs a gradient before the velocity is computed, so the correction is the
+    weighted error pulled back through the velocity network (`err - J^T (time * err)`)."""
+    tau = 1 - time
+    x_t = x_t.clone().detach()
+    batch, chunk, dim = x_t.shape
+    eh = min(execution_horizon, prev.shape[1])
+    padded = torch.zeros(batch, chunk, dim)
+    padded[:, : prev.shape[1], : prev.shape[2]] = prev
+    weights = processor.get_prefix_weights(inference_delay, eh, chunk).unsqueeze(0).unsqueeze(-1)
+    with torch.enable_grad():
+        x_t.requires_grad_(True)
+        v_t = denoise(x_t)
+        x1_t = x_t - time * v_t
+        err = (padded - x1_t) * weights
+        correction = torch.autograd.grad(x1_t, x_t, err.clone().detach())[0]
+    max_w = torch.as_tensor(processor.rtc_config.max_guidance_weight)
+    tau_t = torch.as_tensor(tau)
+    sq = (1 - tau_t) ** 2
+    inv_r2 = (sq + tau_t**2) / sq
+    c = torch.nan_to_num((1 - tau_t) / tau_t, posinf=max_w)
+    w = torch.minimum(torch.nan_to_num(c * inv_r2, posinf=max_w), max_w)
+    return (v_t - w * correction).detach()
+
+
+def rtc_goldens(fixture: Path):
+    """The real-time chunking goldens (module docs, `--rtc`)."""
+    from safetensors.torch import load_file
+
+    from lerobot.configs.types import RTCAttentionSchedule
+    from lerobot.policies.rtc.configuration_rtc import RTCConfig
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+    from lerobot.processor import PolicyProcessorPipeline
+    from lerobot.processor.converters import policy_action_to_transition, transition_to_policy_action
+
+    from transformers import PreTrainedTokenizerFast, SmolVLMConfig
+
+    torch.set_num_threads(2)
+    # The fixture's own VLM config and tokenizer, handed to LeRobot instead of the hub's.
+    vlm_config = SmolVLMConfig.from_dict(json.loads((fixture / "vlm_config.json").read_text()))
+    tokenizer = PreTrainedTokenizerFast(
+        tokenizer_file=str(fixture / "tokenizer.json"),
+        pad_token="<|im_end|>",
+        eos_token="<|im_end|>",
+        bos_token="<|im_start|>",
+    )
+    patch_hub(vlm_config, tokenizer)
+    policy = SmolVLAPolicy.from_pretrained(fixture).eval()
+    pre = PolicyProcessorPipeline.from_pretrained(fixture, config_filename="policy_preprocessor.json")
+    post = PolicyProcessorPipeline.from_pretrained(
+        fixture,
+        config_filename="policy_postprocessor.json",
+        to_transition=policy_action_to_transition,
+        to_output=transition_to_policy_action,
+    )
+    golden = load_file(str(fixture / "golden/goldens.safetensors"))
+    meta = json.loads((fixture / "golden/meta.json").read_text())
+    raw = {k.removeprefix("pair.raw."): v for k, v in golden.items() if k.startswith("pair.raw.")}
+    obs = {k: (v.float() / 255).permute(0, 3, 1, 2).contiguous() for k, v in raw.items() if k != "state"}
+    obs["observation.state"] = raw["state"]
+    obs["task"] = list(meta["cases"]["pair"]["tasks"])
+    batch = pre(obs)
+    noise = golden["pair.noise"]
+    gen = torch.Generator().manual_seed(SEED + 7)
+    prev_noise = torch.randn(noise.shape, generator=gen)
+    with torch.no_grad():
+        policy.reset()
+        prev_norm = policy.predict_action_chunk(dict(batch), noise=prev_noise)
+    leftover_norm = prev_norm[:, RTC_EXECUTED:].contiguous()
+    leftover = post(leftover_norm.clone())
+    out = {
+        "noise": noise.contiguous(),
+        "prev_actions_norm": prev_norm.contiguous(),
+        "leftover_norm": leftover_norm,
+        "leftover": leftover.contiguous(),
+    }
+    schedules = {"linear": RTCAttentionSchedule.LINEAR, "exp": RTCAttentionSchedule.EXP}
+    cases = [(name, d, False) for name in schedules for d in RTC_DELAYS] + [(*RTC_VJP_CASE, True)]
+    for name, d, vjp in cases:
+        policy.config.rtc_config = RTCConfig(
+            prefix_attention_schedule=schedules[name],
+            max_guidance_weight=RTC_MAX_GUIDANCE_WEIGHT,
+            execution_horizon=RTC_EXECUTION_HORIZON,
+        )
+        policy.init_rtc_processor()
+        processor = policy.rtc_processor
+        guided = []
+        original = processor.denoise_step
+
+        def recording(**kw):
+            if vjp:
+                v = vjp_denoise_step(
+                    processor,
+                    kw["x_t"],
+                    kw["prev_chunk_left_over"],
+                    kw["inference_delay"],
+                    kw["time"],
+                    kw["original_denoise_step_partial"],
+                    kw["execution_horizon"],
+                )
+            else:
+                v = original(**kw)
+            guided.append(v.detach().clone())
+            return v
+
+        processor.denoise_step = recording
+        try:
+            with torch.no_grad():
+                policy.reset()
+                actions_norm = policy.predict_action_chunk(
+                    dict(batch),
+                    noise=noise,
+                    inference_delay=d,
+                    prev_chunk_left_over=leftover_norm,
+                    execution_horizon=RTC_EXECUTION_HORIZON,
+                )
+        finally:
+            processor.denoise_step = original
+        key = f"{'rtc_vjp' if vjp else 'rtc'}.{name}.d{d}"
+        eh = min(RTC_EXECUTION_HORIZON, leftover_norm.shape[1])
+        out[f"{key}.weights"] = processor.get_prefix_weights(d, eh, CHUNK_TINY).contiguous()
+        out[f"{key}.velocities"] = torch.stack(guided).contiguous()
+        out[f"{key}.actions_norm"] = actions_norm.contiguous()
+        out[f"{key}.actions"] = post(actions_norm.clone()).contiguous()
+    import lerobot
+
+    save_file(out, str(fixture / "golden/rtc.safetensors"), metadata={"lerobot": lerobot.__version__})
+    described = {
+        "generator": "engine/tools/reference.py --rtc",
+        "versions": {"lerobot": lerobot.__version__, "torch": torch.__version__},
+        "case": "pair (golden/goldens.safetensors: raw images, state, tasks, noise)",
+        "executed": RTC_EXECUTED,
+        "execution_horizon": RTC_EXECUTION_HORIZON,
+        "max_guidance_weight": RTC_MAX_GUIDANCE_WEIGHT,
+        "delays": RTC_DELAYS,
+        "schedules": list(schedules),
+        "vjp_case": {"schedule": RTC_VJP_CASE[0], "delay": RTC_VJP_CASE[1]},
+        "tensors": {
+            "noise": "[batch, chunk, max_action_dim] f32, the Euler loop's initial x (pair.noise)",
+            "prev_actions_norm": "[batch, chunk, action_dim] f32, the previous chunk (normalised)",
+            "leftover_norm": f"[batch, chunk - {RTC_EXECUTED}, action_dim] f32, LeRobot's prev_chunk_left_over",
+            "leftover": "the same after the postprocessor (the robot's units: what Kairos' guidance prefix holds)",
+            "rtc.{schedule}.d{d}.weights": "[chunk] f32, get_prefix_weights(d, min(execution_horizon, leftover), chunk)",
+            "rtc.{schedule}.d{d}.velocities": "[steps, batch, chunk, max_action_dim] f32, the guided velocity each step used",
+            "rtc.{schedule}.d{d}.actions_norm": "[batch, chunk, action_dim] f32, predict_action_chunk's output",
+            "rtc.{schedule}.d{d}.actions": "the same after the postprocessor",
+            "rtc_vjp.*": "as rtc.*, with the true vector-Jacobian product (vjp_denoise_step)",
+        },
+    }
+    (fixture / "golden/rtc.json").write_text(json.dumps(described, indent=1) + "\n")
+    print(f"wrote {fixture / 'golden/rtc.safetensors'} ({len(out)} tensors)")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=REPO / "engine/tests/golden/smolvla_small")
+    ap.add_argument("--rtc", action="store_true", help="write the real-time chunking goldens instead")
+    ap.add_argument("--fixture", type=Path, default=REPO / "engine/tests/fixtures/smolvla_tiny")
     args = ap.parse_args()
+    if args.rtc:
+        rtc_goldens(args.fixture)
+        return
     args.out.mkdir(parents=True, exist_ok=True)
 
     torch.manual_seed(SEED)

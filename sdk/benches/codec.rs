@@ -36,6 +36,7 @@ fn submit() -> Submit {
         attempt: 0,
         control_hz: None,
         seed: None,
+        chunking: None,
     }
 }
 

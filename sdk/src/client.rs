@@ -28,9 +28,10 @@ use tokio::sync::Mutex;
 use tokio::time::Instant;
 
 use crate::protocol::{
-    self, EndTask, ErrorCode, ErrorReply, FetchObservation, FreshObservation, Hello,
-    HorizonSelection, LastExecInfo, Limits, Message, Observation, ReadFrameError, RemainingHint,
-    Reply, Submit, TaskEnded, TaskOutcome, Validate, ValidationError, Welcome, WriteFrameError,
+    self, ChunkingSelection, EndTask, ErrorCode, ErrorReply, FetchObservation, FreshObservation,
+    Hello, HorizonSelection, LastExecInfo, Limits, Message, Observation, ReadFrameError,
+    RemainingHint, Reply, Submit, TaskEnded, TaskOutcome, Validate, ValidationError, Welcome,
+    WriteFrameError,
 };
 use crate::tls::{Fingerprint, PinMismatchSlot, ServerTrust, TlsConfigError};
 use crate::transport::TransportTuning;
@@ -377,6 +378,8 @@ pub struct RoundRequest {
     pub control_hz: Option<f32>,
     /// Seed of the sampler noise; `None` = the server derives it from task and round.
     pub seed: Option<u64>,
+    /// The chunking strategy; `None` = the server's default (docs/PROTOCOL.md §12).
+    pub chunking: Option<ChunkingSelection>,
 }
 
 impl RoundRequest {
@@ -389,6 +392,7 @@ impl RoundRequest {
             remaining: None,
             control_hz: None,
             seed: None,
+            chunking: None,
         }
     }
 }
@@ -965,6 +969,7 @@ impl Task {
             attempt: 0,
             control_hz: request.control_hz,
             seed: request.seed,
+            chunking: request.chunking,
         };
         let sent_at_us = submit.sent_at_us;
         let mut refetches = 0;

@@ -25,5 +25,7 @@ pub use blocking::{BlockingClient, BlockingTask};
 pub use client::{
     Client, ClientConfig, ClientError, NoRefetch, ObservationSource, RoundReply, RoundRequest, Task,
 };
-pub use robot::{Robot, RobotRunner, RunnerConfig, RunnerEvent, SimulatedRobot, TaskSummary};
+pub use robot::{
+    Alignment, Robot, RobotRunner, RunnerConfig, RunnerEvent, SimulatedRobot, TaskSummary,
+};
 pub use tls::{Fingerprint, ServerTrust};

@@ -1067,6 +1067,8 @@ mod tests {
                 exec_started_at_us: 0,
                 actions_remaining,
                 control_hz: 10.0,
+                round: None,
+                delay: None,
             }),
         };
         let ended = |round, executed| RunnerEvent::ChunkEnded {
@@ -1170,6 +1172,8 @@ mod tests {
                     exec_started_at_us: 0,
                     actions_remaining: 4,
                     control_hz: 10.0,
+                    round: None,
+                    delay: None,
                 }),
             },
             RunnerEvent::ObservationRefetched {

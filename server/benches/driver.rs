@@ -216,6 +216,7 @@ fn driver(c: &mut Criterion) {
     let validator = Validator {
         spec,
         limits: Limits::default(),
+        chunking: Default::default(),
     };
 
     group.bench_function("stats_query", |b| {
@@ -258,6 +259,7 @@ fn driver(c: &mut Criterion) {
                         attempt: 0,
                         control_hz: None,
                         seed: None,
+                        chunking: None,
                     };
                     let valid = validator
                         .submit(submit, RobotId(0), &actions, clock)

@@ -73,6 +73,7 @@ fn validator() -> &'static Validator {
             max_images: 2,
         },
         limits: Limits::default(),
+        chunking: Default::default(),
     })
 }
 
@@ -313,6 +314,7 @@ pub fn image(data: &[u8]) -> bool {
         control_hz: None,
         attempt: 0,
         seed: None,
+        chunking: None,
     };
     let validator = validator();
     let Ok(valid) = validator.submit(submit, RobotId(1), actions(), clock(1_000)) else {
@@ -423,6 +425,7 @@ pub fn openpi_observation(data: &[u8]) -> bool {
         sent_at_us: 1_000,
         observation,
         last_exec: None,
+        chunking: None,
         horizon: Some(HorizonSelection {
             policy: "static".into(),
             params: BTreeMap::from([("h".to_string(), validator.spec.chunk_len as f64)]),
@@ -511,6 +514,7 @@ pub fn worker(data: &[u8]) -> bool {
                             instruction: String::new(),
                             samples: 1,
                             seed: 0,
+                            guidance: None,
                         };
                         usable &= check_output("fuzz", spec, &[request], &[chunk]).is_ok();
                     }

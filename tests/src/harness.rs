@@ -380,6 +380,8 @@ pub async fn run_task(
                 exec_started_at_us: start.min(now),
                 actions_remaining: horizon.saturating_sub(done),
                 control_hz: plan.control_hz,
+                round: None,
+                delay: None,
             }
         })
     };

@@ -205,6 +205,7 @@ mod tests {
             instruction: String::new(),
             samples: 2,
             seed: 9,
+            guidance: None,
         };
         let chunks = model.generate(&[request.clone(), request]).unwrap();
         assert_eq!(chunks[0], chunks[1]);

@@ -82,6 +82,11 @@ pub struct EnvConfig {
     /// configurations (and committed model) do not mention it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub contact: Option<ContactConfig>,
+    /// The reactive variant ([`EnvConfig::reactive_task`]): a goal that moves fast and turns
+    /// often, no pushes. Only the task's name depends on it; the physics are the constants
+    /// above. Absent from the other tasks' configurations.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub reactive: bool,
 }
 
 /// The contact variant's constants (module docs, "The contact variant").
@@ -116,7 +121,7 @@ impl Default for ContactConfig {
 }
 
 /// Names of the tasks, as `kairos bench horizon --task` takes them.
-pub const TASKS: [&str; 2] = ["uniform", "contact"];
+pub const TASKS: [&str; 3] = ["uniform", "contact", "reactive"];
 
 impl Default for EnvConfig {
     fn default() -> Self {
@@ -132,6 +137,7 @@ impl Default for EnvConfig {
             goal_turn_rate: 0.05,
             action_noise: 0.3,
             contact: None,
+            reactive: false,
         }
     }
 }
@@ -151,11 +157,27 @@ impl EnvConfig {
         }
     }
 
+    /// The reactive variant: the carry leg chases a goal that moves at 40% of the gripper's
+    /// full speed and turns about every 8 steps, into a tighter goal zone; no pushes, so what
+    /// separates good plans from bad ones is how current they are. A chunk planned from an
+    /// observation `d` steps old heads for where the goal was.
+    pub fn reactive_task() -> EnvConfig {
+        EnvConfig {
+            push_rate: 0.0,
+            goal_speed: 0.012,
+            goal_turn_rate: 0.12,
+            goal_radius: 0.05,
+            reactive: true,
+            ..EnvConfig::default()
+        }
+    }
+
     /// The task named `name` (one of [`TASKS`]).
     pub fn for_task(name: &str) -> Option<EnvConfig> {
         match name {
             "uniform" => Some(EnvConfig::default()),
             "contact" => Some(EnvConfig::contact_task()),
+            "reactive" => Some(EnvConfig::reactive_task()),
             _ => None,
         }
     }
@@ -164,6 +186,8 @@ impl EnvConfig {
     pub fn task_name(&self) -> &'static str {
         if self.contact.is_some() {
             "contact"
+        } else if self.reactive {
+            "reactive"
         } else {
             "uniform"
         }

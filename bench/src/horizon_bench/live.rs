@@ -214,6 +214,7 @@ pub async fn run_live_episode(
                 remaining: None,
                 control_hz: Some(hz),
                 seed: Some(super::noise_seed(seed, out.calls)),
+                chunking: None,
             };
             let reply = handle
                 .submit(request, &mut NoRefetch)

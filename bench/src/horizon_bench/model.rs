@@ -10,10 +10,12 @@
 
 use std::path::Path;
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{Linear, Module, Optimizer, VarBuilder, VarMap, linear};
-use kairos_engine::ActionChunk;
-use kairos_engine::sampler::{RowLayout, Schedule, gaussian_noise, integrate};
+use kairos_engine::sampler::{
+    RowLayout, Schedule, VelocityField, gaussian_noise, integrate_guided, row_guides,
+};
+use kairos_engine::{ActionChunk, Guidance};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use rand_distr::StandardNormal;
 
@@ -242,7 +244,22 @@ impl FlowPolicy {
         samples: usize,
         seed: u64,
     ) -> Result<ActionChunk, ModelError> {
-        on_own_pool(|| self.sample_here(obs, samples, seed))
+        self.sample_guided(obs, samples, seed, None)
+    }
+
+    /// [`FlowPolicy::sample`] with `guidance` toward the actions the robot committed to
+    /// (`kairos_engine::guidance`: LeRobot's real-time chunking, the paper's with a true
+    /// vector–Jacobian product through this network by Candle's autograd, or a hard prefix).
+    /// The actions are in the network's own space (the task's commands), so the prefix needs
+    /// no mapping. `None` gives exactly [`FlowPolicy::sample`]'s chunk.
+    pub fn sample_guided(
+        &self,
+        obs: &[f32; OBS_DIM],
+        samples: usize,
+        seed: u64,
+        guidance: Option<&Guidance>,
+    ) -> Result<ActionChunk, ModelError> {
+        on_own_pool(|| self.sample_here(obs, samples, seed, guidance))
     }
 
     fn sample_here(
@@ -250,6 +267,7 @@ impl FlowPolicy {
         obs: &[f32; OBS_DIM],
         samples: usize,
         seed: u64,
+        guidance: Option<&Guidance>,
     ) -> Result<ActionChunk, ModelError> {
         let (n, k) = (self.cfg.chunk_len, self.cfg.steps);
         let len = n * ACTION_DIM;
@@ -266,19 +284,6 @@ impl FlowPolicy {
             (rows, OBS_DIM),
             &self.device,
         )?;
-        integrate(
-            Schedule { steps: k },
-            rows,
-            len,
-            &mut x,
-            &mut updates,
-            |_, t, x, v| {
-                let xt = Tensor::from_slice(x, (rows, len), &self.device)?;
-                let out = self.velocity(&obs_rows, &xt, &vec![t; rows])?;
-                v.copy_from_slice(&out.flatten_all()?.to_vec1::<f32>()?);
-                Ok(())
-            },
-        )?;
         let layout = RowLayout {
             samples: vec![rows],
             steps: k,
@@ -286,11 +291,119 @@ impl FlowPolicy {
             full_dim: ACTION_DIM,
             action_dim: ACTION_DIM,
         };
+        let guides = match guidance {
+            Some(g) => {
+                let request = guided_request(g);
+                row_guides(std::slice::from_ref(&request), &layout, &noise, &|_| {})?
+            }
+            None => vec![None; rows],
+        };
+        let mut field = PolicyField {
+            policy: self,
+            obs: obs_rows,
+            rows,
+            len,
+        };
+        integrate_guided(
+            Schedule { steps: k },
+            rows,
+            len,
+            &mut x,
+            &mut updates,
+            &guides,
+            None,
+            &mut field,
+        )?;
         layout.chunks(&noise, &x, &updates).pop().ok_or_else(|| {
             ModelError::Sampler(kairos_engine::EngineError::InvalidInput(
                 "the sampler returned no chunk".into(),
             ))
         })
+    }
+}
+
+/// A request that carries only `guidance` (what [`row_guides`] reads of it).
+fn guided_request(guidance: &Guidance) -> kairos_engine::ActionRequest {
+    kairos_engine::ActionRequest {
+        state: Vec::new(),
+        images: Vec::new(),
+        cameras: Vec::new(),
+        instruction: String::new(),
+        samples: 1,
+        seed: 0,
+        guidance: Some(guidance.clone()),
+    }
+}
+
+/// The network's velocity field over a batch of rows of one observation, with Candle's
+/// autograd for the vector–Jacobian product `rtc_vjp` needs.
+struct PolicyField<'a> {
+    policy: &'a FlowPolicy,
+    obs: Tensor,
+    rows: usize,
+    len: usize,
+}
+
+fn engine_error(e: candle_core::Error) -> kairos_engine::EngineError {
+    kairos_engine::EngineError::InvalidInput(format!("candle: {e}"))
+}
+
+impl VelocityField for PolicyField<'_> {
+    fn velocity(
+        &mut self,
+        _k: usize,
+        t: f32,
+        x: &[f32],
+        v: &mut [f32],
+    ) -> Result<(), kairos_engine::EngineError> {
+        let device = &self.policy.device;
+        let xt = Tensor::from_slice(x, (self.rows, self.len), device).map_err(engine_error)?;
+        let out = self
+            .policy
+            .velocity(&self.obs, &xt, &vec![t; self.rows])
+            .and_then(|o| o.flatten_all()?.to_vec1::<f32>())
+            .map_err(engine_error)?;
+        v.copy_from_slice(&out);
+        Ok(())
+    }
+
+    fn velocity_vjp(
+        &mut self,
+        _k: usize,
+        t: f32,
+        x: &[f32],
+        v: &mut [f32],
+        cotangent: &mut dyn FnMut(&[f32]) -> Vec<f32>,
+        pullback: &mut [f32],
+    ) -> Result<(), kairos_engine::EngineError> {
+        let device = &self.policy.device;
+        let shape = (self.rows, self.len);
+        let xt = Var::from_tensor(&Tensor::from_slice(x, shape, device).map_err(engine_error)?)
+            .map_err(engine_error)?;
+        let out = self
+            .policy
+            .velocity(&self.obs, xt.as_tensor(), &vec![t; self.rows])
+            .map_err(engine_error)?;
+        let values = out
+            .flatten_all()
+            .and_then(|o| o.to_vec1::<f32>())
+            .map_err(engine_error)?;
+        v.copy_from_slice(&values);
+        // One backward pass of <v(x), c> gives J_v(x)^T c at x.
+        let c = Tensor::from_vec(cotangent(v), shape, device).map_err(engine_error)?;
+        let grads = (out * c)
+            .and_then(|p| p.sum_all())
+            .and_then(|l| l.backward())
+            .map_err(engine_error)?;
+        let g = grads.get(xt.as_tensor()).ok_or_else(|| {
+            kairos_engine::EngineError::InvalidInput("no gradient reached the sample".into())
+        })?;
+        let g = g
+            .flatten_all()
+            .and_then(|g| g.to_vec1::<f32>())
+            .map_err(engine_error)?;
+        pullback.copy_from_slice(&g);
+        Ok(())
     }
 }
 
@@ -421,6 +534,119 @@ mod tests {
             iterations: 30,
             batch: 32,
             ..TrainConfig::default()
+        }
+    }
+
+    fn guidance(mode: kairos_engine::GuidanceMode, prefix: Vec<f32>, delay: usize) -> Guidance {
+        Guidance {
+            mode,
+            prefix,
+            delay,
+            execution_horizon: 8,
+            schedule: kairos_engine::PrefixSchedule::Linear,
+            max_guidance_weight: 10.0,
+        }
+    }
+
+    /// The pullback `rtc_vjp` takes from Candle's autograd is the network's Jacobian applied
+    /// to the cotangent: central differences of `<v(x), c>` agree with it.
+    #[test]
+    fn the_vector_jacobian_product_matches_finite_differences() {
+        let policy = FlowPolicy::new(ModelConfig {
+            chunk_len: 4,
+            hidden: 16,
+            depth: 2,
+            steps: 3,
+        })
+        .unwrap();
+        let obs = Env::new(EnvConfig::default(), 3).observe();
+        let len = 4 * ACTION_DIM;
+        let obs_rows = Tensor::from_vec(obs.to_vec(), (1, OBS_DIM), &policy.device).unwrap();
+        let mut field = PolicyField {
+            policy: &policy,
+            obs: obs_rows,
+            rows: 1,
+            len,
+        };
+        let x: Vec<f32> = gaussian_noise(5, 0, len);
+        let c: Vec<f32> = gaussian_noise(6, 0, len);
+        let (mut v, mut pullback) = (vec![0.0; len], vec![0.0; len]);
+        field
+            .velocity_vjp(0, 0.6, &x, &mut v, &mut |_| c.clone(), &mut pullback)
+            .unwrap();
+        let mut plain = vec![0.0; len];
+        field.velocity(0, 0.6, &x, &mut plain).unwrap();
+        assert_eq!(
+            v, plain,
+            "the velocity is the same with or without the graph"
+        );
+        let dot = |field: &mut PolicyField<'_>, x: &[f32]| {
+            let mut v = vec![0.0; len];
+            field.velocity(0, 0.6, x, &mut v).unwrap();
+            v.iter()
+                .zip(&c)
+                .map(|(a, b)| f64::from(*a) * f64::from(*b))
+                .sum::<f64>()
+        };
+        let h = 1e-2f32;
+        for i in 0..len {
+            let (mut up, mut down) = (x.clone(), x.clone());
+            up[i] += h;
+            down[i] -= h;
+            let numeric = (dot(&mut field, &up) - dot(&mut field, &down)) / f64::from(2.0 * h);
+            let analytic = f64::from(pullback[i]);
+            assert!(
+                (numeric - analytic).abs() < 2e-2 * (1.0 + analytic.abs()),
+                "{i}: numeric {numeric}, autograd {analytic}"
+            );
+        }
+    }
+
+    /// Guidance pulls the chunk's committed actions toward the previous chunk (a hard prefix
+    /// lands on them exactly), and no guidance is plain sampling.
+    #[test]
+    fn guided_chunks_start_on_the_committed_actions() {
+        use kairos_engine::GuidanceMode;
+        let policy = FlowPolicy::new(ModelConfig {
+            hidden: 16,
+            steps: 5,
+            ..ModelConfig::default()
+        })
+        .unwrap();
+        let obs = Env::new(EnvConfig::default(), 4).observe();
+        let plain = policy.sample(&obs, 1, 9).unwrap();
+        assert_eq!(policy.sample_guided(&obs, 1, 9, None).unwrap(), plain);
+        let prefix: Vec<f32> = (0..6 * ACTION_DIM).map(|i| 0.5 - 0.05 * i as f32).collect();
+        let distance = |chunk: &ActionChunk, actions: usize| {
+            chunk.actions[..actions * ACTION_DIM]
+                .iter()
+                .zip(&prefix)
+                .map(|(a, p)| (a - p).abs())
+                .sum::<f32>()
+        };
+        let inpaint = policy
+            .sample_guided(
+                &obs,
+                1,
+                9,
+                Some(&guidance(GuidanceMode::Inpaint, prefix.clone(), 3)),
+            )
+            .unwrap();
+        assert_eq!(
+            &inpaint.actions[..3 * ACTION_DIM],
+            &prefix[..3 * ACTION_DIM]
+        );
+        for mode in [GuidanceMode::Rtc, GuidanceMode::RtcVjp] {
+            let guided = policy
+                .sample_guided(&obs, 1, 9, Some(&guidance(mode, prefix.clone(), 3)))
+                .unwrap();
+            assert!(
+                distance(&guided, 3) < 0.5 * distance(&plain, 3),
+                "{mode:?}: {} vs {}",
+                distance(&guided, 3),
+                distance(&plain, 3)
+            );
+            assert_ne!(guided.actions, plain.actions);
         }
     }
 

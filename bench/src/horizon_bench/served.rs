@@ -11,7 +11,9 @@
 
 use std::path::Path;
 
-use kairos_engine::{ActionChunk, ActionModel, ActionRequest, EngineError, ModelSpec};
+use kairos_engine::{
+    ActionChunk, ActionModel, ActionRequest, EngineError, GuidanceSupport, ModelChunking, ModelSpec,
+};
 use kairos_server::pool::ModelSchemes;
 
 use super::env::{ACTION_DIM, OBS_DIM};
@@ -117,10 +119,24 @@ impl ActionModel for HorizonFlowModel {
                     ))
                 })?;
                 self.policy
-                    .sample(&obs, request.samples.max(1), request.seed)
+                    .sample_guided(
+                        &obs,
+                        request.samples.max(1),
+                        request.seed,
+                        request.guidance.as_ref(),
+                    )
                     .map_err(|e| EngineError::InvalidInput(format!("sampling: {e}")))
             })
             .collect()
+    }
+
+    /// Every guidance mode (the sampler's, with Candle's autograd for `rtc_vjp`); the task's
+    /// actions are velocity commands, from which the server cannot roll a state forward.
+    fn chunking(&self) -> ModelChunking {
+        ModelChunking {
+            guidance: GuidanceSupport::ALL,
+            action_space: kairos_engine::ActionSpace::Unspecified,
+        }
     }
 }
 
@@ -138,6 +154,7 @@ mod tests {
             instruction: String::new(),
             samples,
             seed,
+            guidance: None,
         }
     }
 

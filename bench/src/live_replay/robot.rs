@@ -156,6 +156,7 @@ impl Requests {
             }),
             control_hz: Some(self.trace.control_hz),
             seed: None,
+            chunking: None,
         }
     }
 }

@@ -19,13 +19,17 @@ use super::stats::{
 };
 use super::{RoundAnswer, TaskSnapshot, WaiterId};
 use crate::action::{HorizonJob, RoundPolicy};
+use crate::chunking::{
+    DelayErrorStats, DelayInputs, DurationAverage, NetworkEstimate, PreviousChunk, RoundChunking,
+    RoundPlan, actual_delay_from_times, plan_round, predict_delay,
+};
 use crate::clock_map::ClockMap;
 use crate::error::{LossReason, RoundError};
 use crate::lifecycle::exec_interval;
 use crate::round::{ValidEndTask, ValidObservation, ValidSubmit};
 use crate::scheduler::{
-    AdmitError, BatchId, CancelOutcome, Dispatch, EngineId, EngineSpec, RequestId, RobotId,
-    RoundOutcome, Scheduler, ServerLoad, TaskId,
+    AdmitError, BatchId, CancelOutcome, Dispatch, EngineId, EngineSpec, ExecReport, RequestId,
+    RobotId, RoundOutcome, Scheduler, ServerLoad, TaskId,
 };
 use crate::time::{Timestamp, duration_micros};
 
@@ -117,6 +121,15 @@ pub struct BatchJob {
     pub rounds: Vec<HorizonJob>,
 }
 
+/// What the chunking strategies need to know about the served model.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ChunkingModel {
+    /// Values per action the robot receives.
+    pub action_dim: usize,
+    /// What the model's actions are (whether a state can be rolled forward through them).
+    pub action_space: kairos_engine_types::ActionSpace,
+}
+
 /// What the core counts per engine instance beside the scheduler's own state.
 #[derive(Clone, Copy, Debug, Default)]
 struct EngineFacts {
@@ -147,6 +160,19 @@ struct RequestState {
     /// When the observation handed to the engine was captured (kept to put it back if the
     /// batch is lost).
     captured_at: Timestamp,
+    /// When its `Submit` was sent (server clock): the instant `exec` describes.
+    sent_at: Timestamp,
+    /// The robot's execution phase when it sent the round.
+    exec: Option<ExecReport>,
+    /// The round whose chunk the robot executes (`None`: not said).
+    exec_round: Option<u64>,
+    /// The round's chunking strategy.
+    chunking: RoundChunking,
+    /// Its plan, made when its batch starts.
+    plan: Option<RoundPlan>,
+    /// The observed state, kept while the engine plans from another one (to put it back if
+    /// the batch is lost).
+    observed_state: Option<Vec<f32>>,
 }
 
 /// What the core keeps of an open task beyond the scheduler's record.
@@ -155,6 +181,13 @@ struct TaskFacts {
     control_hz: Option<f32>,
     last_reply: Option<Reply>,
     generated: BTreeMap<u64, u32>,
+    /// The one-way network time to the robot.
+    network: NetworkEstimate,
+    /// The last answered round's predicted `d`, until the robot's next Last Exec Info says
+    /// what it was: (round, predicted `d`, capture time).
+    predicted: Option<(u64, u32, Timestamp)>,
+    /// Predicted against actual `d`.
+    delay_errors: DelayErrorStats,
 }
 
 struct BatchState {
@@ -165,6 +198,8 @@ struct BatchState {
     inference: Duration,
     /// Requests of the batch that could not be given to the engine.
     missing: Vec<RequestId>,
+    /// When its forward pass ended.
+    generation_end: Option<Timestamp>,
 }
 
 /// The driver's state machine.
@@ -187,6 +222,10 @@ pub struct DriverCore {
     /// The latest `now` seen: events' times never go backwards inside the core.
     now: Timestamp,
     effects: VecDeque<Effect>,
+    /// The served model, as the chunking strategies see it.
+    chunking_model: ChunkingModel,
+    /// The server's own time from the end of a batch's generation to its answers.
+    reply_overhead: DurationAverage,
 }
 
 impl std::fmt::Debug for DriverCore {
@@ -214,6 +253,8 @@ impl DriverCore {
                 round_latency: Histogram::round_latency(),
                 batch_size: Histogram::batch_size(),
                 horizon: Histogram::horizon(),
+                delay_predicted: Histogram::delay_steps(),
+                delay_error: Histogram::delay_error(),
                 ..DriverStats::default()
             },
             latencies: RecentLatencies::default(),
@@ -223,7 +264,15 @@ impl DriverCore {
             timer: None,
             now: Timestamp::ZERO,
             effects: VecDeque::new(),
+            chunking_model: ChunkingModel::default(),
+            reply_overhead: DurationAverage::default(),
         }
+    }
+
+    /// Sets what the chunking strategies know of the served model (its action width and
+    /// action space); without it no state is rolled forward.
+    pub fn set_chunking_model(&mut self, model: ChunkingModel) {
+        self.chunking_model = model;
     }
 
     /// Sets what happens to rounds lost with a remote engine.
@@ -284,8 +333,14 @@ impl DriverCore {
                 .nth(state.dispatch.engine.0)
                 .map(|e| e.spec.name.clone())
                 .unwrap_or_default();
-            for (input, job) in inputs.into_iter().zip(rounds) {
+            for (mut input, job) in inputs.into_iter().zip(rounds) {
                 if let Some(req) = self.requests.get_mut(&job.request) {
+                    // The round is planned again when it runs again.
+                    if let Some(state) = req.observed_state.take() {
+                        input.state = state;
+                    }
+                    input.guidance = None;
+                    req.plan = None;
                     req.observation = Some(ValidObservation {
                         captured_at: req.captured_at,
                         request: input,
@@ -439,6 +494,7 @@ impl DriverCore {
         let now = self.advance(now);
         if let Some(state) = self.batches.get_mut(&batch) {
             state.inference = inference;
+            state.generation_end = Some(now);
             let engine = state.dispatch.engine;
             self.engine_facts_mut(engine).busy_time += inference;
             self.scheduler.handle_generation_ended(now, batch);
@@ -458,6 +514,9 @@ impl DriverCore {
     ) {
         let now = self.advance(now);
         if let Some(state) = self.batches.remove(&batch) {
+            if let Some(end) = state.generation_end {
+                self.reply_overhead.observe(now.saturating_since(end));
+            }
             self.finish_batch(now, batch, state, results);
         }
         self.after_event(now);
@@ -583,8 +642,27 @@ impl DriverCore {
                     control_hz: None,
                     last_reply: None,
                     generated: BTreeMap::new(),
+                    network: NetworkEstimate::default(),
+                    predicted: None,
+                    delay_errors: DelayErrorStats::default(),
                 });
                 facts.clock = submit.clock;
+                facts.network.observe(submit.round.sent_at, received);
+                // The robot's Last Exec Info says what the previous round's `d` was.
+                if let (Some(exec), Some((predicted_round, predicted, captured))) =
+                    (submit.round.last_exec, facts.predicted)
+                    && submit.exec_round.is_none_or(|r| r == predicted_round)
+                {
+                    let actual = submit
+                        .exec_delay
+                        .unwrap_or_else(|| actual_delay_from_times(captured, &exec));
+                    facts.delay_errors.record(predicted, actual);
+                    let error = i64::from(predicted) - i64::from(actual);
+                    self.stats.delay_error.observe(error.unsigned_abs() as f64);
+                    self.stats.delay_error_signed =
+                        self.stats.delay_error_signed.saturating_add(error);
+                    facts.predicted = None;
+                }
                 if submit.control_hz.is_some() {
                     facts.control_hz = submit.control_hz;
                 }
@@ -605,6 +683,12 @@ impl DriverCore {
                         batch_size: 0,
                         attempts: 0,
                         captured_at: now,
+                        sent_at: submit.round.sent_at,
+                        exec: submit.round.last_exec,
+                        exec_round: submit.exec_round,
+                        chunking: submit.chunking,
+                        plan: None,
+                        observed_state: None,
                     },
                 );
             }
@@ -617,6 +701,7 @@ impl DriverCore {
                         state.waiters.push(waiter);
                         if state.dispatched.is_none() {
                             state.observation = Some(submit.observation);
+                            state.chunking = submit.chunking;
                         }
                     }
                     None => self.refuse(
@@ -714,6 +799,7 @@ impl DriverCore {
             history: record.history().copied().collect(),
             clock: facts.clock,
             generated: facts.generated.clone(),
+            delay_errors: facts.delay_errors,
             ended: false,
         })
     }
@@ -807,6 +893,7 @@ impl DriverCore {
                     refetch_started: now,
                     inference: Duration::ZERO,
                     missing: Vec::new(),
+                    generation_end: None,
                 },
             );
             if outstanding == 0 {
@@ -823,6 +910,17 @@ impl DriverCore {
         self.scheduler.handle_batch_started(now, batch);
         self.stats.batches += 1;
         let engine = state.dispatch.engine;
+        // What is ahead of every round of the batch once it starts: its generation on this
+        // instance (the profile's latency at the batch's size, and a remote instance's round
+        // trip) and the server's own time before the answers go out.
+        let batch_size = u32::try_from(state.dispatch.requests.len()).unwrap_or(u32::MAX);
+        let generation = self
+            .scheduler
+            .engines()
+            .nth(engine.0)
+            .map(|e| e.spec.profile.latency(batch_size) + e.spec.rtt)
+            .unwrap_or_default();
+        let reply_overhead = self.reply_overhead.get();
         let mut inputs = Vec::with_capacity(state.dispatch.requests.len());
         let mut attempt = 0;
         let mut rounds = Vec::with_capacity(state.dispatch.requests.len());
@@ -832,15 +930,50 @@ impl DriverCore {
             let recent_horizons = record
                 .map(|r| r.recent_horizons().to_vec())
                 .unwrap_or_default();
+            let facts = self.tasks.get(&entry.task);
+            let network = facts.map(|f| f.network.get()).unwrap_or_default();
             let taken = self
                 .requests
                 .get_mut(&entry.request)
-                .and_then(|req| Some((req.observation.take()?, req.policy.take()?, &*req)));
-            let Some((observation, policy, req)) = taken else {
+                .and_then(|req| Some((req.observation.take()?, req.policy.take()?, req)));
+            let Some((mut observation, policy, req)) = taken else {
                 state.missing.push(entry.request);
                 continue;
             };
             let captured_at = observation.captured_at;
+            let prediction = predict_delay(&DelayInputs {
+                captured_at,
+                now,
+                queue_wait: Duration::ZERO,
+                generation,
+                reply_overhead,
+                network,
+                exec: req.exec,
+                sent_at: req.sent_at,
+            });
+            // The chunk the robot executes is the task's last reply, unless its Last Exec Info
+            // names another round.
+            let previous = facts
+                .and_then(|f| f.last_reply.as_ref())
+                .filter(|r| req.exec_round.is_none_or(|round| round == r.round))
+                .and_then(|r| Some((r.actions.to_f32().ok()?, r.actions.shape.get(1).copied()?)));
+            let (plan, planned) = plan_round(
+                &req.chunking,
+                prediction,
+                previous.as_ref().map(|(actions, width)| PreviousChunk {
+                    actions,
+                    action_dim: *width as usize,
+                }),
+                &observation.request.state,
+                &self.chunking_model.action_space,
+                self.chunking_model.action_dim,
+            );
+            if let Some(state) = planned.state {
+                req.observed_state = Some(std::mem::replace(&mut observation.request.state, state));
+            }
+            observation.request.guidance = planned.guidance;
+            req.plan = Some(plan);
+            let req = &*req;
             attempt = attempt.max(req.attempts.saturating_sub(1));
             inputs.push(observation.request);
             rounds.push(HorizonJob {
@@ -885,6 +1018,23 @@ impl DriverCore {
             let error = RoundError::Internal("the round's observation was lost".into());
             (request, Err(ErrorReply::from(&error)))
         }));
+        // Each chunk goes into its reply as the round's strategy says, before its horizon is
+        // recorded.
+        for (request, result) in &mut results {
+            if let (Ok(reply), Some(plan)) = (
+                result,
+                self.requests.get(request).and_then(|r| r.plan.as_ref()),
+            ) {
+                plan.finish(reply);
+                self.stats.chunking.count(plan.applied);
+                if plan.applied != plan.requested {
+                    self.stats.chunking.fallbacks += 1;
+                }
+                self.stats
+                    .delay_predicted
+                    .observe(f64::from(plan.prediction.delay));
+            }
+        }
         let outcomes: Vec<(RequestId, RoundOutcome)> = results
             .iter()
             .map(|(request, result)| {
@@ -954,6 +1104,10 @@ impl DriverCore {
                             .is_some_and(|r| r.round > req.round);
                         if !newer {
                             facts.last_reply = Some(reply.clone());
+                            facts.predicted = req
+                                .plan
+                                .as_ref()
+                                .map(|plan| (req.round, plan.prediction.delay, req.captured_at));
                         }
                     }
                 }

@@ -4,11 +4,12 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use kairos_engine_types::{ActionChunk, ActionRequest};
-use kairos_protocol::ErrorCode;
+use kairos_protocol::{ErrorCode, Reply};
 
 use super::core::{BatchJob, DriverCore, Effect};
 use super::*;
 use crate::action::ActionManager;
+use crate::chunking::RoundChunking;
 use crate::registry::native_horizon_policies;
 use crate::round::{ValidObservation, ValidSubmit, round_seed};
 use crate::scheduler::fifo::Fifo;
@@ -111,6 +112,10 @@ impl Bench {
         last_exec: Option<kairos_protocol::LastExecInfo>,
     ) -> ValidSubmit {
         let at = self.clock.to_server(at.as_micros());
+        let (exec_round, exec_delay) = (
+            last_exec.and_then(|e| e.round),
+            last_exec.and_then(|e| e.delay),
+        );
         let last_exec = last_exec.map(|e| ExecReport {
             started_at: self.clock.to_server(e.exec_started_at_us),
             actions_remaining: e.actions_remaining,
@@ -136,12 +141,16 @@ impl Bench {
                     instruction: String::new(),
                     samples: 1,
                     seed: round_seed(task, round),
+                    guidance: None,
                 },
             },
             policy: self.actions.build(None, None).unwrap(),
             samples: 1,
             control_hz: last_exec.map(|e| e.control_hz),
             clock: self.clock,
+            chunking: RoundChunking::default(),
+            exec_round,
+            exec_delay,
         }
     }
 
@@ -560,6 +569,8 @@ fn the_report_follows_the_rounds_and_counts_a_late_reply_as_a_deadline_miss() {
             exec_started_at_us: ms(at).as_micros(),
             actions_remaining: 1,
             control_hz: 100.0,
+            round: None,
+            delay: None,
         };
         let submit = b.valid_after(0, 1, round, ms(at), 1.0, Some(exec));
         b.core.submit(ms(at), submit, ms(at), WaiterId(10 + round));
@@ -613,4 +624,163 @@ fn a_reclassified_worker_moves_tier_in_the_scheduler_and_the_report() {
     // A worker that leaves with nothing running leaves the report.
     b.core.remove_engine(ms(1), worker);
     assert!(b.core.report().engines.iter().all(|e| e.name != "worker:w"));
+}
+
+/// The driver predicts every round's `d` from the robot's Last Exec Info, the engine profile's
+/// time for the batch, the server's own reply time and the task's network time; puts it and the
+/// start index in the reply; plans the round with its strategy; and compares the prediction with
+/// what the robot's next Last Exec Info says, per task and in the report.
+#[test]
+fn the_driver_predicts_d_plans_the_strategy_and_scores_the_prediction() {
+    let mut b = bench(Duration::from_secs(10), Duration::MAX);
+    // An engine whose profile says 25 ms at batch 1.
+    let engine = EngineSpec {
+        name: "e0".into(),
+        tier: Tier::Edge,
+        profile: kairos_engine_types::EngineProfile {
+            model: "linear-flow".into(),
+            device: "cpu".into(),
+            points: vec![kairos_engine_types::ProfilePoint {
+                batch: 1,
+                latency_ms: 25.0,
+            }],
+            max_batch: 1,
+        },
+        rtt: Duration::ZERO,
+    };
+    let scheduler = Scheduler::new(
+        SchedulerConfig {
+            task_idle_timeout: Duration::MAX,
+            ..SchedulerConfig::default()
+        },
+        vec![engine],
+        Box::new(Fifo::default()),
+    );
+    b.core = DriverCore::new(scheduler, 16);
+    b.core.set_chunking_model(ChunkingModel {
+        action_dim: DIM,
+        action_space: kairos_engine_types::ActionSpace::Unspecified,
+    });
+    let answer = |b: &mut Bench, job: BatchJob, generated: u64, sent: u64| -> Reply {
+        let batch = job.batch;
+        let answers = b.answers(job);
+        b.core
+            .generation_ended(ms(generated), batch, Duration::from_millis(1));
+        b.core.batch_done(ms(sent), batch, answers);
+        let effects = b.effects();
+        let answers = answers_of(&effects);
+        answers[0].1.clone().unwrap()
+    };
+
+    // Round 0: the robot is idle (no Last Exec Info): nothing to skip. The server's own time
+    // from the end of generation to the reply is 5 ms.
+    b.core
+        .submit(ms(0), b.valid(0, 1, 0, ms(0), 1.0), ms(0), WaiterId(1));
+    let job = only_batch(b.effects());
+    assert!(job.inputs[0].guidance.is_none());
+    let r0 = answer(&mut b, job, 25, 30);
+    assert_eq!((r0.start, r0.delay), (Some(0), Some(0)));
+    assert_eq!(r0.chunking.as_deref(), Some("skip"));
+    assert_eq!(r0.horizon, 2, "static h = 2");
+
+    // Round 1 at 100 ms: the robot (100 Hz, ticks from 60 ms) has 1 action of round 0 left.
+    // The batch starts at once; the chunk is expected at 100 + 25 (profile) + 5 (reply time)
+    // + 0 (network) = 130 ms: ticks at 110, 120, 130 are 3 steps, of which the robot spends
+    // 1 executing its last action.
+    let exec = |started: u64, remaining: u32, round: Option<u64>, delay: Option<u32>| {
+        kairos_protocol::LastExecInfo {
+            exec_started_at_us: ms(started).as_micros(),
+            actions_remaining: remaining,
+            control_hz: 100.0,
+            round,
+            delay,
+        }
+    };
+    let mut submit = b.valid_after(0, 1, 1, ms(100), 1.0, Some(exec(60, 1, Some(0), Some(0))));
+    submit.chunking = RoundChunking::with_defaults(
+        kairos_protocol::ChunkingStrategy::Rtc,
+        &crate::chunking::ChunkingDefaults::default(),
+    );
+    b.core.submit(ms(100), submit, ms(100), WaiterId(2));
+    let job = only_batch(b.effects());
+    // rtc guides toward round 0's reply from the capture on: its last action.
+    let guidance = job.inputs[0].guidance.clone().unwrap();
+    let r0_actions = r0.actions.to_f32().unwrap();
+    assert_eq!(guidance.prefix, r0_actions[DIM..]);
+    assert_eq!(guidance.delay, 1);
+    let r1 = answer(&mut b, job, 125, 130);
+    assert_eq!((r1.start, r1.delay), (Some(1), Some(3)));
+    assert_eq!(r1.chunking.as_deref(), Some("rtc"));
+    // Round 0 was predicted 0 and the robot said 0.
+    let snapshot = b.core.snapshot(TaskId(1)).unwrap();
+    assert_eq!(
+        (snapshot.delay_errors.rounds, snapshot.delay_errors.exact),
+        (1, 1)
+    );
+
+    // Round 2 at 200 ms: the robot says round 1's actual d was 2 (the prediction, 3, was one
+    // too many) and it has 2 of round 1's actions left; it asks for `arrival_state` with its
+    // own forecast of its state after each of them.
+    let mut submit = b.valid_after(0, 1, 2, ms(200), 1.0, Some(exec(140, 1, Some(1), Some(2))));
+    submit.chunking = RoundChunking {
+        forecast: Some(vec![vec![7.0, 7.0, 7.0], vec![8.0, 8.0, 8.0]]),
+        ..RoundChunking::with_defaults(
+            kairos_protocol::ChunkingStrategy::ArrivalState,
+            &crate::chunking::ChunkingDefaults::default(),
+        )
+    };
+    b.core.submit(ms(200), submit, ms(200), WaiterId(3));
+    let job = only_batch(b.effects());
+    // Arrival at 200 + 25 + 5 = 230 ms; ticks at 210, 220, 230; the robot has 1 action left,
+    // so it plans from the forecast after that one action.
+    assert_eq!(job.inputs[0].state, vec![7.0, 7.0, 7.0]);
+    let r2 = answer(&mut b, job, 225, 230);
+    assert_eq!((r2.start, r2.delay), (Some(1), Some(3)));
+    // Action 0 of the reply is round 1's committed action, then the chunk planned from the
+    // forecast state.
+    let r1_actions = r1.actions.to_f32().unwrap();
+    let r2_actions = r2.actions.to_f32().unwrap();
+    assert_eq!(&r2_actions[..DIM], &r1_actions[r1_actions.len() - DIM..]);
+    assert_eq!(r2.horizon, 3, "1 committed + the chunk's 2");
+    let errors = b.core.snapshot(TaskId(1)).unwrap().delay_errors;
+    assert_eq!((errors.rounds, errors.exact, errors.sum_error), (2, 1, 1));
+    assert_eq!(errors.max_abs_error, 1);
+
+    // Round 3 at 300 ms from a client that does not report `delay`: the server takes the
+    // actual d from when the robot started round 2's chunk (250 ms, 5 ticks after the 200 ms
+    // capture); it predicted 3.
+    b.core.submit(
+        ms(300),
+        b.valid_after(0, 1, 3, ms(300), 1.0, Some(exec(250, 1, None, None))),
+        ms(300),
+        WaiterId(4),
+    );
+    let job = only_batch(b.effects());
+    let _ = answer(&mut b, job, 325, 330);
+    let errors = b.core.snapshot(TaskId(1)).unwrap().delay_errors;
+    assert_eq!(
+        (errors.rounds, errors.sum_error, errors.sum_abs_error),
+        (3, -1, 3)
+    );
+    let report = b.core.report();
+    assert_eq!(report.stats.delay_error.count(), 3);
+    assert_eq!(report.stats.delay_error.sum(), 3.0);
+    assert_eq!(report.stats.delay_error_signed, -1);
+    assert_eq!(report.stats.delay_predicted.count(), 4);
+    let counts: Vec<(String, u64)> = report
+        .stats
+        .chunking
+        .iter()
+        .filter(|(_, n)| *n > 0)
+        .map(|(s, n)| (s.to_string(), n))
+        .collect();
+    assert_eq!(
+        counts,
+        [
+            ("skip".to_string(), 2),
+            ("arrival_state".to_string(), 1),
+            ("rtc".to_string(), 1)
+        ]
+    );
+    assert_eq!(report.stats.chunking.fallbacks, 0);
 }

@@ -18,7 +18,7 @@ use std::collections::BTreeMap;
 
 use kairos_protocol::{ErrorReply, IntervalUs, Reply, RoundRecordWire};
 
-pub use self::core::{BatchJob, DriverCore, Effect, Redispatch, RedispatchRule};
+pub use self::core::{BatchJob, ChunkingModel, DriverCore, Effect, Redispatch, RedispatchRule};
 pub use self::stats::{
     DriverReport, DriverStats, EngineReport, EngineState, Histogram, LatencySummary,
     RECENT_LATENCIES, RedispatchCounts,
@@ -51,6 +51,8 @@ pub struct TaskSnapshot {
     /// Chunks generated and sent per round id (cached re-sends not counted), for the most recent
     /// rounds (as many as the scheduler's history keeps).
     pub generated: BTreeMap<u64, u32>,
+    /// How well the task's `d` was predicted (rounds whose next Last Exec Info came).
+    pub delay_errors: crate::chunking::DelayErrorStats,
     /// Whether the task has ended.
     pub ended: bool,
 }

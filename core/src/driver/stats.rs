@@ -50,6 +50,16 @@ pub struct DriverStats {
     pub batch_size: Histogram,
     /// Horizons of answered rounds: the actions each reply asked its robot to execute.
     pub horizon: Histogram,
+    /// Rounds per chunking strategy applied, and those that fell back to `skip`.
+    pub chunking: crate::chunking::StrategyCounts,
+    /// The predicted `d` of answered rounds, control steps.
+    pub delay_predicted: Histogram,
+    /// |predicted − actual| `d`, control steps, of rounds whose robot said what it was (its
+    /// next Last Exec Info).
+    pub delay_error: Histogram,
+    /// Σ (predicted − actual) `d` over the same rounds: the prediction's bias, with
+    /// `delay_error`'s count.
+    pub delay_error_signed: i64,
     /// Server-added latency of recent replies: `timing.total − timing.inference` (queueing
     /// behind other batches included).
     pub overhead: LatencySummary,
@@ -98,16 +108,30 @@ impl Histogram {
     /// Horizon, actions per reply: every count up to 8, then coarser up to 64, with a bound at
     /// 50 so that SmolVLA's and π0's whole chunk has a bucket of its own.
     pub fn horizon() -> Histogram {
-        let bounds = vec![
+        Histogram::with_bounds(&[
             1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 16.0, 20.0, 25.0, 32.0, 40.0, 49.0,
             50.0, 64.0,
-        ];
+        ])
+    }
+
+    /// Buckets at the given upper bounds (ascending).
+    pub fn with_bounds(bounds: &[f64]) -> Histogram {
         Histogram {
+            bounds: bounds.to_vec(),
             counts: vec![0; bounds.len()],
-            bounds,
             sum: 0.0,
             count: 0,
         }
+    }
+
+    /// A delay in control steps: 0 .. 64.
+    pub fn delay_steps() -> Histogram {
+        Histogram::with_bounds(&[0.0, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 32.0, 64.0])
+    }
+
+    /// A delay's absolute prediction error in control steps: 0 .. 16.
+    pub fn delay_error() -> Histogram {
+        Histogram::with_bounds(&[0.0, 1.0, 2.0, 3.0, 4.0, 8.0, 16.0])
     }
 
     /// Counts `value` (a non-finite value counts in `count` and the `+Inf` bucket only).

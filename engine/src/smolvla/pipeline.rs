@@ -253,6 +253,15 @@ impl ActionModel for SmolVlaPipeline {
         &self.spec
     }
 
+    /// `rtc` and `inpaint` in the expert's sampler; the action space is not declared (SmolVLA's
+    /// config does not say whether its actions are absolute positions).
+    fn chunking(&self) -> crate::ModelChunking {
+        crate::ModelChunking {
+            guidance: self.expert.guidance_support(),
+            action_space: crate::ActionSpace::Unspecified,
+        }
+    }
+
     fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
         self.spec.validate(batch)?;
         let keys = self.checkpoint.camera_keys();
@@ -282,8 +291,20 @@ impl ActionModel for SmolVlaPipeline {
             .zip(batch)
             .map(|(p, r)| (p, r.samples, r.seed))
             .collect();
+        let guidance: Vec<Option<&crate::Guidance>> =
+            batch.iter().map(|r| r.guidance.as_ref()).collect();
+        // A guidance prefix is in the robot's units; the expert samples normalised actions, so
+        // the committed actions are normalised with the postprocessor's own action stats (the
+        // inverse of what `unnormalize_chunk` applies). Stats that do not fit the action are
+        // refused there, for the whole chunk.
+        let unnormalizer = self.checkpoint.postprocessor().unnormalizer.as_ref();
+        let to_model = |action: &mut [f32]| {
+            if let Some(n) = unnormalizer {
+                let _ = n.normalize(ACTION_KEY, action);
+            }
+        };
         self.expert
-            .generate(&requests)?
+            .generate_guided(&requests, &guidance, &to_model)?
             .into_iter()
             .map(|chunk| self.unnormalize_chunk(chunk))
             .collect()

@@ -162,9 +162,22 @@ impl ActionModel for SmolVlaStandIn {
         &self.spec
     }
 
+    /// `rtc` and `inpaint` in the expert's sampler.
+    fn chunking(&self) -> crate::ModelChunking {
+        crate::ModelChunking {
+            guidance: self.expert.guidance_support(),
+            action_space: crate::ActionSpace::Unspecified,
+        }
+    }
+
     fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
         self.spec.validate(batch)?;
         self.expert
-            .generate_requests(batch, |request, state| self.stand_in_prefix(request, state))
+            // The stand-in samples in the robot's units: guidance prefixes need no mapping.
+            .generate_requests(
+                batch,
+                |request, state| self.stand_in_prefix(request, state),
+                &|_| {},
+            )
     }
 }

@@ -22,6 +22,7 @@ fn the_timing_examples_answer_help_with_their_usage() {
         ("expert_timing", "Usage: expert_timing"),
         ("gemm_timing", "Usage: gemm_timing"),
         ("vision_timing", "Usage: vision_timing"),
+        ("rtc_timing", "Usage: rtc_timing"),
     ] {
         for flag in ["--help", "-h"] {
             let output = Command::new(example(name))

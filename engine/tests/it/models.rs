@@ -72,6 +72,7 @@ fn requests(state_dim: usize) -> Vec<ActionRequest> {
             instruction: "pick".into(),
             samples: 1,
             seed: 11,
+            guidance: None,
         },
         ActionRequest {
             cameras: Vec::new(),
@@ -80,6 +81,7 @@ fn requests(state_dim: usize) -> Vec<ActionRequest> {
             instruction: "place the cube".into(),
             samples: 3,
             seed: 12,
+            guidance: None,
         },
         ActionRequest {
             cameras: Vec::new(),
@@ -88,6 +90,7 @@ fn requests(state_dim: usize) -> Vec<ActionRequest> {
             instruction: String::new(),
             samples: 2,
             seed: 13,
+            guidance: None,
         },
     ]
 }

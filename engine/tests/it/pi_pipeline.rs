@@ -210,6 +210,7 @@ fn the_family_comes_from_the_config_and_serves_as_an_action_model() {
             instruction: obs.task.clone(),
             samples: 2,
             seed: 7,
+            guidance: None,
         };
         let chunks = model.generate(&[request.clone(), request]).unwrap();
         assert_eq!(chunks[0], chunks[1], "{fixture}: same request, same chunk");

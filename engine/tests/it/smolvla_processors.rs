@@ -572,6 +572,7 @@ fn the_checkpoint_serves_as_an_action_model() {
         instruction: obs.task.clone(),
         samples: 2,
         seed: 5,
+        guidance: None,
     };
     let chunk = model
         .generate(std::slice::from_ref(&request))
@@ -642,6 +643,7 @@ fn named_cameras_match_in_any_order() {
         instruction: obs.task.clone(),
         samples: 1,
         seed: 9,
+        guidance: None,
     };
     let reversed = kairos_engine::ActionRequest {
         cameras: keys.iter().rev().cloned().collect(),

@@ -6,9 +6,13 @@
 //! `kairos-engine`, and `kairos-engine` re-exports every type.
 
 pub mod chunk;
+pub mod guidance;
 pub mod profile;
 pub mod request;
 
 pub use chunk::ActionChunk;
+pub use guidance::{
+    ActionSpace, Guidance, GuidanceMode, GuidanceSupport, ModelChunking, PrefixSchedule,
+};
 pub use profile::{DEFAULT_MIN_GAIN, EngineProfile, ProfilePoint, saturation_batch};
 pub use request::{ActionRequest, ImageFormat, ImageInput};

@@ -60,4 +60,8 @@ pub struct ActionRequest {
     pub samples: usize,
     /// Seed of the initial noise, so a retried round reproduces its chunk.
     pub seed: u64,
+    /// Guidance toward the actions the robot committed to while this request is in flight
+    /// (real-time chunking, inpainting); `None`: plain sampling. It applies to this request's
+    /// rows only: the other requests of the batch get what they would get alone.
+    pub guidance: Option<crate::Guidance>,
 }

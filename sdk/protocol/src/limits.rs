@@ -11,9 +11,9 @@ use std::collections::HashSet;
 use serde::{Deserialize, Serialize};
 
 use super::messages::{
-    EndTask, ErrorCode, ErrorReply, FetchObservation, FreshObservation, Hello, HorizonSelection,
-    Image, ImagePayload, LastExecInfo, Observation, RemainingHint, Reply, Submit, TaskEnded,
-    Tensor, Welcome,
+    ChunkingSelection, ChunkingStrategy, EndTask, ErrorCode, ErrorReply, FetchObservation,
+    FreshObservation, Hello, HorizonSelection, Image, ImagePayload, LastExecInfo, Observation,
+    RemainingHint, Reply, Submit, TaskEnded, Tensor, Welcome,
 };
 use super::{DType, Message};
 
@@ -394,6 +394,63 @@ impl Validate for HorizonSelection {
     }
 }
 
+impl Validate for ChunkingSelection {
+    fn validate(&self, limits: &Limits) -> Result<(), ValidationError> {
+        if let Some(weight) = self.max_guidance_weight
+            && !(weight.is_finite() && weight > 0.0)
+        {
+            return Err(invalid_request(
+                "chunking.max_guidance_weight",
+                format!("must be a positive finite number, got {weight}"),
+            ));
+        }
+        if self.execution_horizon == Some(0) {
+            return Err(invalid_request(
+                "chunking.execution_horizon",
+                "must be at least 1",
+            ));
+        }
+        let Some(forecast) = &self.forecast else {
+            return Ok(());
+        };
+        if self.strategy != ChunkingStrategy::ArrivalState {
+            return Err(invalid_request(
+                "chunking.forecast",
+                format!(
+                    "a state forecast is for `arrival_state`, not `{}`",
+                    self.strategy
+                ),
+            ));
+        }
+        check_tensor("chunking.forecast", forecast, limits, invalid_request)?;
+        if forecast.dtype != DType::F32 || forecast.shape.len() != 2 || forecast.shape[0] == 0 {
+            return Err(invalid_request(
+                "chunking.forecast",
+                format!(
+                    "a forecast is f32 [M >= 1, state_dim], got {:?} with shape {:?}",
+                    forecast.dtype, forecast.shape
+                ),
+            ));
+        }
+        check_size(
+            || "chunking.forecast.shape[1]".to_owned(),
+            forecast.shape[1] as usize,
+            limits.max_state_len,
+        )?;
+        if let Some(at) = forecast
+            .data
+            .chunks_exact(4)
+            .position(|b| !f32::from_le_bytes([b[0], b[1], b[2], b[3]]).is_finite())
+        {
+            return Err(invalid_request(
+                format!("chunking.forecast[{at}]"),
+                "not a finite number",
+            ));
+        }
+        Ok(())
+    }
+}
+
 impl Validate for RemainingHint {
     fn validate(&self, _limits: &Limits) -> Result<(), ValidationError> {
         if let Some(seconds) = self.seconds
@@ -453,6 +510,9 @@ impl Validate for Submit {
         if let Some(remaining) = &self.remaining {
             remaining.validate(limits)?;
         }
+        if let Some(chunking) = &self.chunking {
+            chunking.validate(limits)?;
+        }
         Ok(())
     }
 }
@@ -498,6 +558,9 @@ impl Validate for Reply {
                     self.horizon, self.chunk_len
                 ),
             ));
+        }
+        if let Some(chunking) = &self.chunking {
+            check_name("chunking", chunking, limits)?;
         }
         check_name("policy", &self.policy, limits)
     }

@@ -243,6 +243,162 @@ pub struct LastExecInfo {
     pub actions_remaining: u32,
     /// Control frequency, actions per second.
     pub control_hz: f32,
+    /// The round whose chunk this is, so the server knows which of its replies the robot is
+    /// executing (the committed actions a chunking strategy plans around). Absent from older
+    /// clients: the server then assumes the task's last reply.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub round: Option<u64>,
+    /// The actual `d` of that round: actions the robot executed between the capture of the
+    /// round's observation and the arrival of its chunk. The server compares it with the `d` it
+    /// predicted (`Reply::delay`); absent, it estimates it from the timestamps.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub delay: Option<u32>,
+}
+
+/// What the server does about the actions a robot executes while its round is in flight
+/// (docs/PROTOCOL.md §12, "Chunking strategies").
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ChunkingStrategy {
+    /// The chunk is planned from the observation; the robot skips the actions whose time passed.
+    Skip,
+    /// The chunk is planned from the observation and executed from its first action on arrival.
+    FromStart,
+    /// The chunk is planned from the state the robot will have on arrival (rolled forward
+    /// through its committed actions, or the robot's own forecast).
+    ArrivalState,
+    /// Real-time chunking as LeRobot 0.6.1 has it (`RTCProcessor.denoise_step`, whose
+    /// vector–Jacobian product is the identity).
+    Rtc,
+    /// Real-time chunking with the true vector–Jacobian product through the velocity network
+    /// (the paper's guidance); only on model paths with autograd.
+    RtcVjp,
+    /// A hard prefix: the committed actions are written into the sample at every step.
+    Inpaint,
+    /// LeRobot's blend of the overlap, 0.3 × previous chunk + 0.7 × new chunk, on the server.
+    Ensemble,
+}
+
+impl ChunkingStrategy {
+    /// Every strategy, in the order docs/PROTOCOL.md lists them.
+    pub const ALL: [ChunkingStrategy; 7] = [
+        ChunkingStrategy::Skip,
+        ChunkingStrategy::FromStart,
+        ChunkingStrategy::ArrivalState,
+        ChunkingStrategy::Rtc,
+        ChunkingStrategy::RtcVjp,
+        ChunkingStrategy::Inpaint,
+        ChunkingStrategy::Ensemble,
+    ];
+
+    /// The name on the wire (`snake_case`).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ChunkingStrategy::Skip => "skip",
+            ChunkingStrategy::FromStart => "from_start",
+            ChunkingStrategy::ArrivalState => "arrival_state",
+            ChunkingStrategy::Rtc => "rtc",
+            ChunkingStrategy::RtcVjp => "rtc_vjp",
+            ChunkingStrategy::Inpaint => "inpaint",
+            ChunkingStrategy::Ensemble => "ensemble",
+        }
+    }
+
+    /// The strategy named `name` (its wire name).
+    pub fn from_name(name: &str) -> Option<ChunkingStrategy> {
+        ChunkingStrategy::ALL
+            .into_iter()
+            .find(|s| s.as_str() == name)
+    }
+}
+
+impl std::fmt::Display for ChunkingStrategy {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// How real-time chunking weighs the previous chunk's actions beyond the committed ones
+/// (LeRobot 0.6.1's `RTCAttentionSchedule`, `get_prefix_weights`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PrefixSchedule {
+    /// Weight 1 on the committed actions, 0 after.
+    Zeros,
+    /// Weight 1 up to the execution horizon, 0 after.
+    Ones,
+    /// 1 on the committed actions, then falling linearly to 0 at the execution horizon.
+    Linear,
+    /// As `Linear`, shaped by `w · expm1(w) / (e − 1)`.
+    Exp,
+}
+
+impl PrefixSchedule {
+    /// The name on the wire.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            PrefixSchedule::Zeros => "zeros",
+            PrefixSchedule::Ones => "ones",
+            PrefixSchedule::Linear => "linear",
+            PrefixSchedule::Exp => "exp",
+        }
+    }
+
+    /// The schedule named `name`.
+    pub fn from_name(name: &str) -> Option<PrefixSchedule> {
+        [
+            PrefixSchedule::Zeros,
+            PrefixSchedule::Ones,
+            PrefixSchedule::Linear,
+            PrefixSchedule::Exp,
+        ]
+        .into_iter()
+        .find(|s| s.as_str() == name)
+    }
+}
+
+/// `Submit.chunking`: the round's chunking strategy and its settings; absent settings take the
+/// server's.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChunkingSelection {
+    /// The strategy.
+    #[serde(deserialize_with = "strict::name")]
+    pub strategy: ChunkingStrategy,
+    /// `rtc`, `rtc_vjp`: the prefix schedule.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "strict::opt_name"
+    )]
+    pub schedule: Option<PrefixSchedule>,
+    /// `rtc`, `rtc_vjp`: the most the guidance weight may reach (LeRobot's
+    /// `max_guidance_weight`), finite and > 0.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_guidance_weight: Option<f32>,
+    /// `rtc`, `rtc_vjp`: how many of the previous chunk's actions guide the new one (LeRobot's
+    /// `execution_horizon`), ≥ 1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub execution_horizon: Option<u32>,
+    /// `arrival_state`: the robot's own forecast of its state, `f32` `[M, state_dim]`: row `j`
+    /// is the state after it executes `j + 1` more of its committed actions. The server takes
+    /// the row of the `d` it predicts (the observed state for `d = 0`, the last row past `M`).
+    /// Absent: the server rolls the state forward itself, which only a model whose actions are
+    /// absolute position targets allows.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub forecast: Option<Tensor>,
+}
+
+impl ChunkingSelection {
+    /// `strategy` with the server's settings.
+    pub fn new(strategy: ChunkingStrategy) -> ChunkingSelection {
+        ChunkingSelection {
+            strategy,
+            schedule: None,
+            max_guidance_weight: None,
+            execution_horizon: None,
+            forecast: None,
+        }
+    }
 }
 
 /// Which horizon policy to apply to this round's chunk, with its parameters.
@@ -363,6 +519,9 @@ pub struct Submit {
     /// seed, so it reproduces its chunk either way.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub seed: Option<u64>,
+    /// The chunking strategy (docs/PROTOCOL.md §12); absent = the server's default.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub chunking: Option<ChunkingSelection>,
 }
 
 fn is_zero(value: &u32) -> bool {
@@ -423,6 +582,24 @@ pub struct Reply {
     pub policy: String,
     /// Server-side timing.
     pub timing: Timing,
+    /// The index of `actions` the server predicts the robot executes when the reply arrives:
+    /// the actions it executes between the observation's capture and the arrival (the
+    /// predicted `d`, less any the robot would have run out of). Action `i` still belongs to
+    /// `i` control steps after the capture, whatever the strategy (§12). Absent from older
+    /// servers.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start: Option<u32>,
+    /// The predicted `d`: control steps from the observation's capture to the reply's arrival.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub delay: Option<u32>,
+    /// The chunking strategy that made the chunk (its wire name; text, so an older client
+    /// reads a newer server's strategies).
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "strict::opt_text"
+    )]
+    pub chunking: Option<String>,
 }
 
 /// C→S: the task is over.

@@ -107,6 +107,32 @@ pub fn name<'de, D: Deserializer<'de>, T: serde::de::DeserializeOwned>(
     T::deserialize(name.into_deserializer())
 }
 
+/// An optional enumeration field: absent, `nil` or a MessagePack `str` naming a variant (see
+/// [`name`]).
+pub fn opt_name<'de, D: Deserializer<'de>, T: serde::de::DeserializeOwned>(
+    deserializer: D,
+) -> Result<Option<T>, D::Error> {
+    use serde::de::IntoDeserializer;
+    match Option::<Text>::deserialize(deserializer)? {
+        None => Ok(None),
+        Some(Text(name)) => T::deserialize(name.into_deserializer()).map(Some),
+    }
+}
+
+/// A `str`-only string as a deserializable value (for optional fields).
+struct Text(String);
+
+impl<'de> Deserialize<'de> for Text {
+    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Text, D::Error> {
+        text(deserializer).map(Text)
+    }
+}
+
+/// An optional text field: absent, `nil` or a MessagePack `str`.
+pub fn opt_text<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Option<String>, D::Error> {
+    Ok(Option::<Text>::deserialize(deserializer)?.map(|Text(text)| text))
+}
+
 /// An optional byte field: absent, `nil` or MessagePack `bin`.
 pub fn opt_bin<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Option<Vec<u8>>, D::Error> {
     struct Bin(Vec<u8>);

@@ -125,8 +125,11 @@ class Client:
         """The last completed round: ``task``, ``round``, ``horizon`` (H), ``chunk_len`` (N),
         ``policy`` (the horizon policy that chose H), the server's timing in µs (``queue_us``,
         ``refetch_us``, ``inference_us``, ``total_us``) and ``batch_size``, ``attempts`` (more
-        than 1 after a resume), ``refetches``, and ``latency_us`` (client clock, from sending to
-        the reply). None before the first round."""
+        than 1 after a resume), ``refetches``, ``latency_us`` (client clock, from sending to
+        the reply), and the chunking facts: ``start`` (the chunk's index the server predicted for
+        the reply's arrival), ``delay`` (its predicted d, control steps from the observation's
+        capture to the arrival) and ``chunking`` (the strategy applied); these three are None
+        from a server that does not send them. None before the first round."""
 
     def start_task(
         self,
@@ -137,6 +140,8 @@ class Client:
         horizon: Optional[str] = None,
         horizon_params: Optional[Mapping[str, float]] = None,
         observation_source: Optional[Callable[[], Observation]] = None,
+        chunking: Optional[str] = None,
+        alignment: str = "executed",
     ) -> int:
         """Starts a task and returns its id (random unless given).
 
@@ -146,8 +151,13 @@ class Client:
         ``"static"`` or a plugin) and ``horizon_params`` its parameters, e.g. ``{"h": 10}``; None
         uses the server's default. ``observation_source`` is called (on a client thread) when the
         server finds a queued observation stale and asks for a fresh one (re-fetch); without it, or
-        if it raises, the observation already sent goes again. `infer` starts a task with the
-        defaults if none is running.
+        if it raises, the observation already sent goes again. ``chunking`` names the server's
+        strategy for the actions executed while a round is in flight (``"skip"``,
+        ``"from_start"``, ``"arrival_state"``, ``"rtc"``, ``"rtc_vjp"``, ``"inpaint"``,
+        ``"ensemble"``; None: the server's default; docs/PROTOCOL.md §12). ``alignment`` is where
+        an arriving chunk starts executing: ``"executed"`` skips the actions taken with
+        `next_action` since its observation was sent, ``"server_start"`` skips as many as the
+        reply's start index says. `infer` starts a task with the defaults if none is running.
         Raises `TaskError` if a task is running.
         """
 

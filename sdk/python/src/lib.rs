@@ -22,9 +22,10 @@ use kairos_sdk::client::{
     ClientConfig, ClientError, Clock, ObservationSource, RoundReply, RoundRequest, Task,
 };
 use kairos_sdk::protocol::{
-    FetchObservation, HorizonSelection, Observation, TaskOutcome, Tensor, Timing,
+    ChunkingSelection, ChunkingStrategy, FetchObservation, HorizonSelection, Observation,
+    TaskOutcome, Tensor, Timing,
 };
-use kairos_sdk::robot::ChunkExecutor;
+use kairos_sdk::robot::{Alignment, ChunkExecutor};
 use kairos_sdk::{BlockingClient, Fingerprint, data_dir};
 use numpy::PyArray1;
 use pyo3::prelude::*;
@@ -40,6 +41,8 @@ struct ActiveTask {
     handle: Option<Task>,
     executor: ChunkExecutor,
     horizon: Option<HorizonSelection>,
+    /// The chunking strategy sent with every round (`None`: the server's default).
+    chunking: Option<ChunkingSelection>,
     /// Called for a fresh observation when the server re-fetches a stale one.
     source: Option<Arc<Py<PyAny>>>,
 }
@@ -116,6 +119,9 @@ struct RoundSummary {
     chunk_len: u32,
     policy: String,
     timing: Timing,
+    start: Option<u32>,
+    delay: Option<u32>,
+    chunking: Option<String>,
     attempts: u32,
     refetches: u32,
     latency_us: u64,
@@ -140,6 +146,9 @@ fn finish_round(
             chunk_len: done.reply.chunk_len,
             policy: done.reply.policy.clone(),
             timing: done.reply.timing,
+            start: done.reply.start,
+            delay: done.reply.delay,
+            chunking: done.reply.chunking.clone(),
             attempts: done.attempts,
             refetches: done.refetches,
             latency_us: done.received_at_us.saturating_sub(done.sent_at_us),
@@ -158,7 +167,8 @@ fn finish_round(
             Ok(values) => {
                 let dim = (reply.reply.actions.shape.get(1).copied().unwrap_or(1) as usize).max(1);
                 let actions = values.chunks(dim).map(<[f32]>::to_vec).collect();
-                task.executor.reply_arrived(round, actions);
+                task.executor
+                    .reply_arrived_from(round, actions, reply.reply.start);
             }
             Err(error) => {
                 task.executor.request_failed();
@@ -304,7 +314,9 @@ impl Client {
     }
 
     /// The last completed round: task, round, horizon, chunk_len, policy, the server's timing
-    /// (queue_us, refetch_us, inference_us, total_us, batch_size), attempts, refetches and
+    /// (queue_us, refetch_us, inference_us, total_us, batch_size), the chunking facts (start:
+    /// the index the server predicted for the arrival, delay: its predicted d, chunking: the
+    /// strategy applied; None from a server that sends none), attempts, refetches and
     /// latency_us (client clock, from sending to the reply). None before the first.
     #[getter]
     fn last_round<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
@@ -327,14 +339,22 @@ impl Client {
         dict.set_item("inference_us", last.timing.inference_us)?;
         dict.set_item("total_us", last.timing.total_us)?;
         dict.set_item("batch_size", last.timing.batch_size)?;
+        dict.set_item("start", last.start)?;
+        dict.set_item("delay", last.delay)?;
+        dict.set_item("chunking", last.chunking)?;
         dict.set_item("attempts", last.attempts)?;
         dict.set_item("refetches", last.refetches)?;
         dict.set_item("latency_us", last.latency_us)?;
         Ok(Some(dict))
     }
 
-    /// Starts a task; returns its id.
-    #[pyo3(signature = (task_id = None, *, control_hz = 30.0, trigger = 0.5, horizon = None, horizon_params = None, observation_source = None))]
+    /// Starts a task; returns its id. `chunking` names the server's chunking strategy for its
+    /// rounds (`skip`, `from_start`, `arrival_state`, `rtc`, `rtc_vjp`, `inpaint`, `ensemble`;
+    /// None: the server's default); `alignment` is where an arriving chunk starts executing:
+    /// `executed` (the actions executed since its observation, counted here) or `server_start`
+    /// (the reply's start index).
+    #[pyo3(signature = (task_id = None, *, control_hz = 30.0, trigger = 0.5, horizon = None, horizon_params = None, observation_source = None, chunking = None, alignment = "executed"))]
+    #[allow(clippy::too_many_arguments)]
     fn start_task(
         &self,
         task_id: Option<u64>,
@@ -343,7 +363,32 @@ impl Client {
         horizon: Option<String>,
         horizon_params: Option<std::collections::BTreeMap<String, f64>>,
         observation_source: Option<Py<PyAny>>,
+        chunking: Option<String>,
+        alignment: &str,
     ) -> PyResult<u64> {
+        let chunking = chunking
+            .map(|name| {
+                ChunkingStrategy::from_name(&name)
+                    .map(ChunkingSelection::new)
+                    .ok_or_else(|| {
+                        let names: Vec<&str> =
+                            ChunkingStrategy::ALL.iter().map(|s| s.as_str()).collect();
+                        InvalidRequest::new_err(format!(
+                            "chunking: `{name}` is not one of {}",
+                            names.join(", ")
+                        ))
+                    })
+            })
+            .transpose()?;
+        let alignment = match alignment {
+            "executed" => Alignment::Executed,
+            "server_start" => Alignment::ServerStart,
+            other => {
+                return Err(InvalidRequest::new_err(format!(
+                    "alignment: `{other}` is not `executed` or `server_start`"
+                )));
+            }
+        };
         if !(control_hz.is_finite() && control_hz > 0.0) {
             return Err(InvalidRequest::new_err(format!(
                 "control_hz: expected a positive number, got {control_hz}"
@@ -374,8 +419,9 @@ impl Client {
         *slot = Some(ActiveTask {
             id,
             handle: Some(self.inner.client().task(id)),
-            executor: ChunkExecutor::new(control_hz, trigger),
+            executor: ChunkExecutor::new(control_hz, trigger).with_alignment(alignment),
             horizon,
+            chunking,
             source: observation_source.map(Arc::new),
         });
         Ok(id)
@@ -548,7 +594,7 @@ impl Client {
         let captured_at_us = self.inner.now_us();
         let observation = observation::from_python(observation, captured_at_us)?;
         if lock(&self.task).is_none() {
-            self.start_task(None, 30.0, 0.5, None, None, None)?;
+            self.start_task(None, 30.0, 0.5, None, None, None, None, "executed")?;
         }
         let mut slot = lock(&self.task);
         let Some(task) = slot.as_mut() else {
@@ -572,6 +618,7 @@ impl Client {
                 // The server accounts the first chunk's execution at this rate (no last_exec yet).
                 control_hz: Some(task.executor.control_hz()),
                 seed: None,
+                chunking: task.chunking.clone(),
             },
             id,
             source: Refetch {

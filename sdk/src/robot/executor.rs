@@ -13,6 +13,9 @@ struct ActiveChunk {
     /// Index of the next action to execute.
     next: usize,
     started_at_us: Option<u64>,
+    /// Actions the robot executed between the capture of the chunk's observation and its
+    /// arrival (the round's actual `d`).
+    delay: u32,
 }
 
 impl ActiveChunk {
@@ -33,6 +36,18 @@ impl ActiveChunk {
 struct Pending {
     round: u64,
     executed_at_capture: u64,
+}
+
+/// Where a robot starts executing a chunk that arrives (module docs, "Alignment").
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Alignment {
+    /// At the robot's own count of the actions it executed since the chunk's observation was
+    /// captured: exact, whatever the server predicted.
+    #[default]
+    Executed,
+    /// At the reply's `start`, the server's prediction of that count (the robot's own count
+    /// when the server sends none).
+    ServerStart,
 }
 
 /// How a new chunk was applied.
@@ -65,6 +80,7 @@ pub struct ActionStep<'a> {
 pub struct ChunkExecutor {
     control_hz: f32,
     trigger: f32,
+    alignment: Alignment,
     chunk: Option<ActiveChunk>,
     executed_total: u64,
     pending: Option<Pending>,
@@ -76,10 +92,17 @@ impl ChunkExecutor {
         ChunkExecutor {
             control_hz,
             trigger: trigger.clamp(0.0, 1.0),
+            alignment: Alignment::default(),
             chunk: None,
             executed_total: 0,
             pending: None,
         }
+    }
+
+    /// The same executor aligning arriving chunks by `alignment`.
+    pub fn with_alignment(mut self, alignment: Alignment) -> ChunkExecutor {
+        self.alignment = alignment;
+        self
     }
 
     /// The robot's control rate, actions per second.
@@ -138,6 +161,8 @@ impl ChunkExecutor {
             exec_started_at_us: chunk.started_at_us.unwrap_or(now_us),
             actions_remaining: u32::try_from(chunk.remaining()).unwrap_or(u32::MAX),
             control_hz: self.control_hz,
+            round: Some(chunk.round),
+            delay: Some(chunk.delay),
         })
     }
 
@@ -153,17 +178,36 @@ impl ChunkExecutor {
         self.pending = None;
     }
 
-    /// Applies the chunk of `round` that arrived now.
+    /// Applies the chunk of `round` that arrived now, aligned by the robot's own count.
     pub fn reply_arrived(&mut self, round: u64, actions: Vec<Vec<f32>>) -> ChunkApplied {
+        self.reply_arrived_from(round, actions, None)
+    }
+
+    /// Applies the chunk of `round` that arrived now; `server_start` is the reply's `start`,
+    /// which [`Alignment::ServerStart`] follows.
+    pub fn reply_arrived_from(
+        &mut self,
+        round: u64,
+        actions: Vec<Vec<f32>>,
+        server_start: Option<u32>,
+    ) -> ChunkApplied {
         let executed_at_capture = match self.pending.take() {
-            Some(pending) if pending.round == round => pending.executed_at_capture,
+            Some(pending) if pending.round == round => Some(pending.executed_at_capture),
             // A reply nobody waits for: treat its observation as captured now.
-            _ => self.executed_total,
+            _ => None,
         };
-        let since_capture = self.executed_total.saturating_sub(executed_at_capture);
-        let discarded = usize::try_from(since_capture)
-            .unwrap_or(usize::MAX)
-            .min(actions.len());
+        let since_capture =
+            executed_at_capture.map_or(0, |at| self.executed_total.saturating_sub(at));
+        let own = usize::try_from(since_capture).unwrap_or(usize::MAX);
+        let first = match (self.alignment, server_start) {
+            (Alignment::ServerStart, Some(start)) => usize::try_from(start).unwrap_or(usize::MAX),
+            // A reply nobody waits for has no capture to count from: the server's index.
+            (Alignment::Executed, Some(start)) if executed_at_capture.is_none() => {
+                usize::try_from(start).unwrap_or(usize::MAX)
+            }
+            _ => own,
+        };
+        let discarded = first.min(actions.len());
         let as_u32 = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
         if discarded == actions.len() {
             return ChunkApplied {
@@ -185,6 +229,7 @@ impl ChunkExecutor {
             first: discarded,
             next: discarded,
             started_at_us: None,
+            delay: u32::try_from(since_capture).unwrap_or(u32::MAX),
         });
         ChunkApplied {
             discarded: as_u32(discarded),
@@ -296,6 +341,41 @@ mod tests {
         let step = executor.next_action(7).unwrap();
         assert_eq!((step.round, step.index), (1, 3));
         assert_eq!(step.action, &[1.0, 3.0]);
+    }
+
+    /// Last Exec Info names the chunk's round and its actual d; `ServerStart` follows the
+    /// reply's start index, `Executed` the robot's own count, and a reply nobody waited for takes
+    /// the server's index either way.
+    #[test]
+    fn alignment_follows_the_own_count_or_the_servers_start() {
+        let run = |alignment: Alignment, start: Option<u32>| {
+            let mut executor = ChunkExecutor::new(10.0, 0.5).with_alignment(alignment);
+            executor.request_sent(0, 0);
+            executor.reply_arrived(0, chunk(0, 8));
+            executor.next_action(0);
+            executor.request_sent(1, 1);
+            // Two actions while round 1 is in flight: its actual d is 2.
+            executor.next_action(1);
+            executor.next_action(2);
+            let applied = executor.reply_arrived_from(1, chunk(1, 8), start);
+            let info = executor.last_exec(3).unwrap();
+            (applied.discarded, info.round, info.delay)
+        };
+        assert_eq!(run(Alignment::Executed, Some(3)), (2, Some(1), Some(2)));
+        assert_eq!(run(Alignment::ServerStart, Some(3)), (3, Some(1), Some(2)));
+        assert_eq!(run(Alignment::ServerStart, None), (2, Some(1), Some(2)));
+        let mut executor = ChunkExecutor::new(10.0, 0.5);
+        executor.request_sent(0, 0);
+        executor.reply_arrived(0, chunk(0, 8));
+        // Round 5 was never requested here (a reply to a round resent after a reconnect).
+        assert_eq!(
+            executor
+                .reply_arrived_from(5, chunk(5, 8), Some(4))
+                .discarded,
+            4
+        );
+        let info = executor.last_exec(10).unwrap();
+        assert_eq!((info.round, info.delay), (Some(5), Some(0)));
     }
 
     #[test]

@@ -10,17 +10,21 @@
 //!   once if the robot has no actions. With `trigger = 1.0` inference is synchronous; with `0.0` a
 //!   request goes out as soon as a chunk arrives. At most one request per task is in flight.
 //! - **Alignment.** A chunk's action 0 is the action for the instant its observation was captured
-//!   (the latest observation sent, re-fetches included). Every action the robot executed since
-//!   that capture has used up one of the chunk's time slots, so when the chunk arrives its first
-//!   `executed since capture` actions are discarded and execution continues at the next one.
+//!   (the latest observation sent, re-fetches included), whatever the round's chunking strategy
+//!   (docs/PROTOCOL.md §12). Every action the robot executed since that capture has used up one
+//!   of the chunk's time slots, so when the chunk arrives its first `executed since capture`
+//!   actions are discarded and execution continues at the next one ([`Alignment::Executed`]).
+//!   The reply's `start` is the server's prediction of that count; [`Alignment::ServerStart`]
+//!   follows it instead of the robot's own count.
 //!   Actions of the previous chunk still queued are dropped: the new chunk, planned from a newer
 //!   observation, replaces them (LeRobot instead blends the overlap, 0.3 old + 0.7 new; Kairos
 //!   replaces so that `H` means what the horizon policy chose). A robot that sat idle executed
 //!   nothing, so nothing is discarded. If every action of the new chunk is already in the past,
 //!   the old chunk keeps running and the next request goes out at once.
-//! - **Last Exec Info.** Each request reports the chunk being executed: when its first action
-//!   executed, how many of its actions are still to execute, and the control frequency. The first
-//!   request of a task has none.
+//! - **Last Exec Info.** Each request reports the chunk being executed: its round, when its
+//!   first action executed, how many of its actions are still to execute, the control frequency,
+//!   and its actual `d` (actions executed between its observation's capture and its arrival), which
+//!   the server compares with the `d` it predicted. The first request of a task has none.
 //!
 //! [`ChunkExecutor`] holds these rules with time as an argument ([`executor`], pure);
 //! [`RobotRunner`] drives it with the tokio clock, a [`Robot`], and a [`RoundTransport`]
@@ -36,7 +40,7 @@ use std::future::Future;
 use crate::client::{ClientError, Clock, ObservationSource, RoundReply, RoundRequest, Task};
 use crate::protocol::{LastExecInfo, Observation, TaskEnded, TaskOutcome};
 
-pub use executor::{ActionStep, ChunkApplied, ChunkExecutor};
+pub use executor::{ActionStep, Alignment, ChunkApplied, ChunkExecutor};
 pub use runner::{RobotRunner, RoundRecord, RunnerConfig, RunnerError, RunnerEvent, TaskSummary};
 pub use simulated::SimulatedRobot;
 

@@ -8,11 +8,11 @@ use std::time::Duration;
 use tokio::sync::{mpsc, oneshot};
 use tokio::time::Instant;
 
-use super::{ChunkExecutor, Robot, RobotError, RoundTransport};
+use super::{Alignment, ChunkExecutor, Robot, RobotError, RoundTransport};
 use crate::client::{ClientError, Clock, ObservationSource, RoundReply, RoundRequest};
 use crate::protocol::{
-    FetchObservation, HorizonSelection, LastExecInfo, Observation, RemainingHint, TaskEnded,
-    TaskOutcome, Timing,
+    ChunkingSelection, FetchObservation, HorizonSelection, LastExecInfo, Observation,
+    RemainingHint, TaskEnded, TaskOutcome, Timing,
 };
 
 /// The time between two actions at `control_hz` (at least 1 mHz; never a panic, whatever the
@@ -39,6 +39,10 @@ pub struct RunnerConfig {
     pub max_consecutive_failures: u32,
     /// Wait before re-requesting after a retryable failure, unless the server says otherwise.
     pub retry_delay: Duration,
+    /// Chunking strategy sent with every round; `None` = the server's default.
+    pub chunking: Option<ChunkingSelection>,
+    /// Where an arriving chunk starts executing.
+    pub alignment: Alignment,
 }
 
 impl Default for RunnerConfig {
@@ -51,6 +55,8 @@ impl Default for RunnerConfig {
             refetch: true,
             max_consecutive_failures: 5,
             retry_delay: Duration::from_millis(100),
+            chunking: None,
+            alignment: Alignment::default(),
         }
     }
 }
@@ -268,7 +274,8 @@ impl RobotRunner {
             task: transport.task_id(),
             clock: transport.clock(),
             period: control_period(self.config.control_hz),
-            executor: ChunkExecutor::new(self.config.control_hz, self.config.trigger),
+            executor: ChunkExecutor::new(self.config.control_hz, self.config.trigger)
+                .with_alignment(self.config.alignment),
             robot,
             transport: Some(transport),
             in_flight: None,
@@ -388,6 +395,7 @@ impl<R: Robot, T: RoundTransport, E: FnMut(&RunnerEvent) + Send> Run<'_, R, T, E
             }),
             control_hz: Some(self.config.control_hz),
             seed: None,
+            chunking: self.config.chunking.clone(),
         };
         let refetch = self.config.refetch;
         let requests = self.fetch_tx.clone();
@@ -436,7 +444,9 @@ impl<R: Robot, T: RoundTransport, E: FnMut(&RunnerEvent) + Send> Run<'_, R, T, E
                 self.replies += 1;
                 let actions =
                     chunk_rows(&reply).map_err(|reason| RunnerError::BadChunk { round, reason })?;
-                let applied = self.executor.reply_arrived(round, actions);
+                let applied = self
+                    .executor
+                    .reply_arrived_from(round, actions, reply.reply.start);
                 if let Some((old, executed, dropped)) = applied.replaced {
                     self.chunk_ended(old, executed, dropped);
                 }

@@ -63,13 +63,22 @@ fn finite_f32() -> impl Strategy<Value = f32> {
 }
 
 fn last_exec() -> impl Strategy<Value = LastExecInfo> {
-    (any::<u64>(), any::<u32>(), finite_f32()).prop_map(
-        |(exec_started_at_us, actions_remaining, control_hz)| LastExecInfo {
-            exec_started_at_us,
-            actions_remaining,
-            control_hz,
-        },
+    (
+        any::<u64>(),
+        any::<u32>(),
+        finite_f32(),
+        proptest::option::of(any::<u64>()),
+        proptest::option::of(any::<u32>()),
     )
+        .prop_map(
+            |(exec_started_at_us, actions_remaining, control_hz, round, delay)| LastExecInfo {
+                exec_started_at_us,
+                actions_remaining,
+                control_hz,
+                round,
+                delay,
+            },
+        )
 }
 
 fn horizon() -> impl Strategy<Value = HorizonSelection> {
@@ -182,6 +191,12 @@ fn message() -> impl Strategy<Value = Message> {
                     // The optional sampler seed round-trips when present and stays absent when
                     // not.
                     seed: (ids[0] % 3 == 0).then_some(ids[1] ^ ids[2]),
+                    chunking: (ids[1] % 4 == 0).then(|| ChunkingSelection {
+                        schedule: Some(PrefixSchedule::Exp),
+                        max_guidance_weight: Some(5.0),
+                        execution_horizon: Some(8),
+                        ..ChunkingSelection::new(ChunkingStrategy::ALL[(ids[2] % 7) as usize])
+                    }),
                 })
             },
         );
@@ -221,6 +236,10 @@ fn message() -> impl Strategy<Value = Message> {
                 actions,
                 policy,
                 timing,
+                // The chunking fields round-trip when present and stay absent when not.
+                start: (ids[0] % 2 == 0).then_some(sizes[0] / 2),
+                delay: (ids[0] % 2 == 0).then_some(sizes[1]),
+                chunking: (ids[1] % 2 == 0).then(|| "rtc".to_owned()),
             })
         });
     let outcome = prop_oneof![Just(TaskOutcome::Done), Just(TaskOutcome::Failed)];
@@ -348,6 +367,7 @@ fn small_submit() -> Submit {
         attempt: 0,
         control_hz: None,
         seed: None,
+        chunking: None,
     }
 }
 
@@ -694,6 +714,8 @@ fn validation_enforces_every_limit() {
                 exec_started_at_us: 0,
                 actions_remaining: 3,
                 control_hz: 0.0,
+                round: None,
+                delay: None,
             })
         },
         ErrorCode::InvalidRequest,
@@ -728,6 +750,9 @@ fn validation_enforces_every_limit() {
         actions: Tensor::from_f32(vec![rows, 2], &vec![0.0; rows as usize * 2]).unwrap(),
         policy: "static".to_owned(),
         timing: Timing::default(),
+        start: None,
+        delay: None,
+        chunking: None,
     };
     reply(3, 3).validate(&limits).unwrap();
     assert!(reply(3, 2).validate(&limits).is_err());

@@ -118,6 +118,9 @@ impl RoundTransport for Scripted {
                 actions: Tensor::from_f32(vec![self.horizon, 2], &values).unwrap(),
                 policy: "static".to_owned(),
                 timing: Timing::default(),
+                start: None,
+                delay: None,
+                chunking: None,
             },
             sent_at_us,
             received_at_us: self.clock.now_us(),
@@ -206,11 +209,13 @@ async fn async_inference_triggers_at_half_and_aligns_chunks() {
         .await
         .unwrap();
 
-    let info = |started_ms: u64, remaining: u32| {
+    let info = |started_ms: u64, remaining: u32, round: u64, delay: u32| {
         Some(LastExecInfo {
             exec_started_at_us: started_ms * 1000,
             actions_remaining: remaining,
             control_hz: 10.0,
+            round: Some(round),
+            delay: Some(delay),
         })
     };
     assert_eq!(
@@ -221,17 +226,19 @@ async fn async_inference_triggers_at_half_and_aligns_chunks() {
                 sent_at_ms: 0,
                 last_exec: None
             },
-            // 5 of round 0's 10 actions executed (350..750 ms).
+            // 5 of round 0's 10 actions executed (350..750 ms); the robot was idle while
+            // round 0 was generated, so its actual d was 0.
             Seen {
                 round: 1,
                 sent_at_ms: 750,
-                last_exec: info(350, 5)
+                last_exec: info(350, 5, 0, 0)
             },
-            // Round 1 started at 1150 with 7 executable; 4 of them done.
+            // Round 1 started at 1150 with 7 executable; 4 of them done. Its actual d: the 3
+            // actions executed while it was generated.
             Seen {
                 round: 2,
                 sent_at_ms: 1450,
-                last_exec: info(1150, 3)
+                last_exec: info(1150, 3, 1, 3)
             },
         ]
     );

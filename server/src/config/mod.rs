@@ -7,8 +7,10 @@
 //! names the file and the offending key. Relative paths inside the file are resolved against the
 //! directory that contains it. See `docs/SERVER.md` for a full example.
 
+mod chunking;
 mod overrides;
 
+pub use chunking::ChunkingSection;
 pub use overrides::Overrides;
 
 use std::collections::{BTreeMap, HashSet};
@@ -90,6 +92,8 @@ pub struct Config {
     pub scheduler: SchedulerSection,
     /// The horizon policy used when a request names none, and as the fallback when one fails.
     pub horizon: HorizonSection,
+    /// The chunking strategy used when a round names none, and real-time chunking's settings.
+    pub chunking: ChunkingSection,
     /// Size limits on every message field (the protocol's `Limits`, sent to clients).
     #[serde(deserialize_with = "strict_limits")]
     pub limits: Limits,
@@ -198,6 +202,7 @@ impl Default for Config {
             engines: Vec::new(),
             scheduler: SchedulerSection::default(),
             horizon: HorizonSection::default(),
+            chunking: ChunkingSection::default(),
             limits: Limits::default(),
             connections: ConnectionsConfig::default(),
             plugins: Vec::new(),
@@ -828,6 +833,9 @@ impl Config {
                 "workers.batch_deadline_factor".into(),
                 "must be a finite number >= 1".into(),
             ));
+        }
+        if let Err((key, reason)) = self.chunking.defaults() {
+            return Err(invalid(format!("chunking.{key}"), reason));
         }
         if let Some((name, _)) = self.horizon.params.iter().find(|(_, v)| !v.is_finite()) {
             return Err(invalid(

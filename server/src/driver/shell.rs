@@ -18,7 +18,7 @@ use super::{DriverConfig, DriverStats, RefetchAsk, RoundAnswer, TaskSnapshot, Wa
 use crate::pool::BatchLabel;
 use crate::pool::{EngineInstance, EnginePool, PoolBuildError, PoolError};
 use kairos_core::action::ActionManager;
-use kairos_core::driver::{BatchJob, DriverCore, Effect};
+use kairos_core::driver::{BatchJob, ChunkingModel, DriverCore, Effect};
 use kairos_core::error::LossReason;
 use kairos_core::scheduler::{
     BatchId, EngineId, EngineSpec, RequestId, RobotId, Scheduler, ServerLoad, TaskId, Tier,
@@ -342,6 +342,10 @@ pub fn spawn(
     runtime.spawn(watch_shutdown(shutdown.clone(), commands_tx.downgrade()));
     let mut core = DriverCore::new(scheduler, config.ended_snapshots);
     core.set_redispatch_rule(config.redispatch);
+    core.set_chunking_model(ChunkingModel {
+        action_dim: pool.spec().action_dim,
+        action_space: pool.chunking().action_space,
+    });
     let export = config.metrics.driver().cloned();
     if let Some(export) = &export {
         export.attach_actions(actions.clone());

@@ -168,6 +168,7 @@ fn fixture_with(setup: Setup) -> Fixture {
         validator: Validator {
             spec,
             limits: Limits::default(),
+            chunking: Default::default(),
         },
         actions,
     }
@@ -200,6 +201,7 @@ fn wire_submit(
         attempt: 0,
         control_hz: None,
         seed: None,
+        chunking: None,
     }
 }
 
@@ -261,6 +263,8 @@ impl Fixture {
                 exec_started_at_us: now,
                 actions_remaining: 0,
                 control_hz: 10.0,
+                round: None,
+                delay: None,
             }),
         };
         let valid = self.validator.end_task(end, self.client_clock).unwrap();
@@ -359,6 +363,8 @@ async fn task_end_returns_the_history_and_later_rounds_are_refused() {
         exec_started_at_us: exec_start,
         actions_remaining: 1,
         control_hz: 10.0,
+        round: None,
+        delay: None,
     };
     let submit1 = wire_submit(&f, 7, 1, 1.0, Some(exec));
     let sent1 = submit1.sent_at_us;

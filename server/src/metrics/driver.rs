@@ -166,6 +166,11 @@ struct ReasonLabel {
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct StrategyLabel {
+    strategy: &'static str,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct WorkerLabel {
     worker: String,
 }
@@ -274,6 +279,51 @@ impl Collector for DriverCollector {
             None,
             &stats.horizon,
         )?;
+        encode_histogram(
+            &mut encoder,
+            "kairos_delay_predicted_steps",
+            "The d predicted for answered rounds: control steps from the observation's capture \
+             to the reply's arrival",
+            None,
+            &stats.delay_predicted,
+        )?;
+        encode_histogram(
+            &mut encoder,
+            "kairos_delay_prediction_error_steps",
+            "|predicted - actual| d of rounds whose robot reported the actual d (its next Last \
+             Exec Info), control steps",
+            None,
+            &stats.delay_error,
+        )?;
+        ConstGauge::new(
+            stats.delay_error_signed as f64 / stats.delay_error.count().max(1) as f64,
+        )
+        .encode(encoder.encode_descriptor(
+            "kairos_delay_prediction_bias_steps",
+            "Mean of predicted - actual d over the rounds of kairos_delay_prediction_error_steps \
+             (positive: the server predicts late arrivals)",
+            None,
+            MetricType::Gauge,
+        )?)?;
+        let mut chunking = encoder.encode_descriptor(
+            "kairos_chunking_rounds",
+            "Answered rounds by the chunking strategy applied",
+            None,
+            MetricType::Counter,
+        )?;
+        for (strategy, rounds) in stats.chunking.iter() {
+            let labels = StrategyLabel {
+                strategy: strategy.as_str(),
+            };
+            ConstCounter::new(rounds).encode(chunking.encode_family(&labels)?)?;
+        }
+        ConstCounter::new(stats.chunking.fallbacks).encode(encoder.encode_descriptor(
+            "kairos_chunking_fallbacks",
+            "Rounds whose chunking strategy could not apply (the robot executes a chunk the \
+             server does not know, or arrival_state without a forecast) and fell back to skip",
+            None,
+            MetricType::Counter,
+        )?)?;
 
         ConstCounter::new(stats.deadline_misses).encode(encoder.encode_descriptor(
             "kairos_deadline_misses",

@@ -557,6 +557,16 @@ mod tests {
         };
         stats.round_latency.observe(0.003);
         stats.batch_size.observe(4.0);
+        stats.delay_predicted = CoreHistogram::delay_steps();
+        stats.delay_predicted.observe(3.0);
+        stats.delay_error = CoreHistogram::delay_error();
+        stats.delay_error.observe(1.0);
+        stats.delay_error.observe(0.0);
+        stats.delay_error_signed = -1;
+        stats
+            .chunking
+            .count(kairos_sdk::protocol::ChunkingStrategy::Rtc);
+        stats.chunking.fallbacks = 2;
         for _ in 0..3 {
             stats.redispatched.count(LossReason::ConnectionLost);
         }
@@ -605,6 +615,17 @@ mod tests {
             ),
             (r#"kairos_engine_busy_seconds_total{engine="edge-0"}"#, 0.25),
             (r#"kairos_engine_busy_ratio{engine="edge-0"}"#, 0.0),
+            ("kairos_delay_predicted_steps_count", 1.0),
+            (r#"kairos_delay_predicted_steps_bucket{le="3.0"}"#, 1.0),
+            ("kairos_delay_prediction_error_steps_count", 2.0),
+            (
+                r#"kairos_delay_prediction_error_steps_bucket{le="0.0"}"#,
+                1.0,
+            ),
+            ("kairos_delay_prediction_bias_steps", -0.5),
+            (r#"kairos_chunking_rounds_total{strategy="rtc"}"#, 1.0),
+            (r#"kairos_chunking_rounds_total{strategy="skip"}"#, 0.0),
+            ("kairos_chunking_fallbacks_total", 2.0),
         ] {
             assert_eq!(sample(&text, series), Some(value), "{series} in\n{text}");
         }

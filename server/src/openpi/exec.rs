@@ -18,6 +18,15 @@
 //!
 //! The first request has no Last Exec Info. When the connection closes, the last chunk is
 //! reported executed until the close.
+//!
+//! What this cannot know, and what the chunking strategies make of it: a blocking client
+//! executes nothing while its call is in flight, so every round is planned as for an idle
+//! robot (nothing committed: the reply's `start` is 0, `rtc` and `inpaint` have no previous
+//! actions to guide toward, `arrival_state` no state to roll forward, `ensemble` no overlap to
+//! blend). A client that does keep executing (its own thread running the previous chunk) is
+//! invisible here; the server cannot tell it from a blocking one. The robot's actual `d` is not
+//! reported either (there is no control clock on the wire), so the server scores its
+//! prediction from the timestamps alone.
 
 use kairos_sdk::protocol::LastExecInfo;
 
@@ -31,8 +40,8 @@ pub const HZ_RANGE: (f64, f64) = (0.1, 1000.0);
 #[derive(Clone, Debug, Default)]
 pub struct ExecEstimate {
     configured_hz: Option<f32>,
-    /// When the last reply was written and how many actions it held.
-    last_reply: Option<(Timestamp, u32)>,
+    /// When the last reply was written, how many actions it held, and its round.
+    last_reply: Option<(Timestamp, u32, u64)>,
     /// Running estimate of the control rate.
     estimated_hz: Option<f64>,
 }
@@ -49,7 +58,7 @@ impl ExecEstimate {
     /// A request arrived at `now`: the Last Exec Info it stands for (times in µs on the server
     /// clock), `None` before the first reply.
     pub fn on_request(&mut self, now: Timestamp) -> Option<LastExecInfo> {
-        let (replied_at, actions) = self.last_reply?;
+        let (replied_at, actions, _) = self.last_reply?;
         let interval = now.saturating_since(replied_at).as_secs_f64();
         let sample = (f64::from(actions) / interval.max(1e-6)).clamp(HZ_RANGE.0, HZ_RANGE.1);
         self.estimated_hz = Some(match self.estimated_hz {
@@ -62,13 +71,13 @@ impl ExecEstimate {
     /// The connection closed: the execution of the last chunk, if any, ends at the close (the
     /// task end's `sent_at`).
     pub fn on_close(&self) -> Option<LastExecInfo> {
-        let (replied_at, _) = self.last_reply?;
+        let (replied_at, _, _) = self.last_reply?;
         self.report(replied_at)
     }
 
-    /// A reply with `actions` actions was written at `at`.
-    pub fn on_reply(&mut self, at: Timestamp, actions: u32) {
-        self.last_reply = Some((at, actions));
+    /// The reply of round `round` with `actions` actions was written at `at`.
+    pub fn on_reply(&mut self, at: Timestamp, actions: u32, round: u64) {
+        self.last_reply = Some((at, actions, round));
     }
 
     /// The control rate reported: configured, else estimated (`None` before any interval).
@@ -82,6 +91,8 @@ impl ExecEstimate {
             exec_started_at_us: replied_at.as_micros(),
             actions_remaining: 0,
             control_hz: self.control_hz()?,
+            round: self.last_reply.map(|(_, _, round)| round),
+            delay: None,
         })
     }
 }
@@ -103,17 +114,17 @@ mod tests {
             "nothing before the first reply"
         );
         assert_eq!(exec.on_close(), None);
-        exec.on_reply(at_ms(100), 10);
+        exec.on_reply(at_ms(100), 10, 0);
         // Ten actions, the next call 200 ms after the reply: 50 Hz.
         let info = exec.on_request(at_ms(300)).unwrap();
         assert_eq!(info.exec_started_at_us, 100_000);
         assert_eq!(info.actions_remaining, 0);
         assert!((info.control_hz - 50.0).abs() < 1e-3, "{info:?}");
         // The next interval says 25 Hz: the estimate moves halfway.
-        exec.on_reply(at_ms(400), 10);
+        exec.on_reply(at_ms(400), 10, 0);
         let info = exec.on_request(at_ms(800)).unwrap();
         assert!((info.control_hz - 37.5).abs() < 1e-3, "{info:?}");
-        exec.on_reply(at_ms(900), 10);
+        exec.on_reply(at_ms(900), 10, 0);
         let closed = exec.on_close().unwrap();
         assert_eq!(closed.exec_started_at_us, 900_000);
     }
@@ -121,10 +132,10 @@ mod tests {
     #[test]
     fn a_configured_rate_wins_and_an_immediate_call_is_clamped() {
         let mut exec = ExecEstimate::new(Some(15.0));
-        exec.on_reply(at_ms(10), 50);
+        exec.on_reply(at_ms(10), 50, 0);
         assert_eq!(exec.on_request(at_ms(10)).unwrap().control_hz, 15.0);
         let mut exec = ExecEstimate::new(None);
-        exec.on_reply(at_ms(10), 50);
+        exec.on_reply(at_ms(10), 50, 0);
         let info = exec.on_request(at_ms(10)).unwrap();
         assert_eq!(f64::from(info.control_hz), HZ_RANGE.1);
     }

@@ -729,6 +729,7 @@ impl Session {
             // client executes before its next call, from the first round on.
             control_hz: self.exec.control_hz(),
             seed: None,
+            chunking: None,
         };
         // The server clock is the "robot" clock here: the identity mapping.
         let identity = ClockMap::new(received, at_us, Duration::ZERO);
@@ -784,7 +785,7 @@ impl Session {
             return Err(End::Closed);
         }
         let sent = clock.now();
-        self.exec.on_reply(sent, reply.horizon);
+        self.exec.on_reply(sent, reply.horizon, reply.round);
         self.prev_total = Some(sent.saturating_since(received));
         Ok(())
     }
@@ -796,14 +797,21 @@ impl Session {
         let mut w = Writer::new();
         w.map(4);
         w.str("actions");
-        let shape: Vec<usize> = reply.actions.shape.iter().map(|&d| d as usize).collect();
+        let mut shape: Vec<usize> = reply.actions.shape.iter().map(|&d| d as usize).collect();
+        // From the server's start index on: the actions whose time had passed at the arrival
+        // are not sent.
+        let skip = (reply.start.unwrap_or(0) as usize).min(shape.first().copied().unwrap_or(0));
+        let width: usize = shape.iter().skip(1).product();
+        if let Some(rows) = shape.first_mut() {
+            *rows -= skip;
+        }
         match reply.actions.dtype {
             kairos_sdk::protocol::DType::F32 => {
-                w.ndarray_raw(&shape, "<f4", &reply.actions.data);
+                w.ndarray_raw(&shape, "<f4", &reply.actions.data[skip * width * 4..]);
             }
             _ => {
                 let values = reply.actions.to_f32().unwrap_or_default();
-                w.ndarray_f32(&shape, &values);
+                w.ndarray_f32(&shape, &values[(skip * width).min(values.len())..]);
             }
         }
         w.str("server_timing")
@@ -819,12 +827,19 @@ impl Session {
         w.str("batch_size").uint(u64::from(t.batch_size));
         w.str("policy_timing").map(1);
         w.str("infer_ms").float(ms(t.inference_us));
-        w.str("kairos").map(5);
+        w.str("kairos").map(8);
         w.str("task").uint(reply.task);
         w.str("round").uint(reply.round);
         w.str("horizon").uint(u64::from(reply.horizon));
         w.str("chunk_len").uint(u64::from(reply.chunk_len));
         w.str("policy").str(&reply.policy);
+        // The client gets the chunk from the server's start index on (its actions that belong
+        // to the reply's arrival); a blocking client executes nothing while it waits, so that
+        // is the whole chunk (`exec`'s module docs).
+        w.str("start").uint(u64::from(reply.start.unwrap_or(0)));
+        w.str("delay").uint(u64::from(reply.delay.unwrap_or(0)));
+        w.str("chunking")
+            .str(reply.chunking.as_deref().unwrap_or("skip"));
         w.finish()
     }
 

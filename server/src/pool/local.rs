@@ -8,8 +8,8 @@ use std::time::Duration;
 use futures::FutureExt;
 use futures::future::BoxFuture;
 use kairos_engine::{
-    ActionChunk, ActionModel, ActionRequest, EngineProfile, ImageLimits, ModelSpec,
-    generate_isolated,
+    ActionChunk, ActionModel, ActionRequest, EngineError, EngineProfile, ImageLimits,
+    ModelChunking, ModelSpec, generate_isolated,
 };
 use tokio::sync::oneshot;
 
@@ -31,6 +31,7 @@ struct Job {
 pub struct LocalEngine {
     name: String,
     spec: ModelSpec,
+    chunking: ModelChunking,
     profile: EngineProfile,
     jobs: mpsc::Sender<Job>,
 }
@@ -44,6 +45,7 @@ impl LocalEngine {
     ) -> LocalEngine {
         let name = name.into();
         let spec = model.spec().clone();
+        let chunking = model.chunking();
         let (jobs, queue) = mpsc::channel::<Job>();
         let thread_name = format!("engine-{name}");
         let worker_name = name.clone();
@@ -58,6 +60,7 @@ impl LocalEngine {
         LocalEngine {
             name,
             spec,
+            chunking,
             profile,
             jobs,
         }
@@ -85,13 +88,27 @@ fn run_isolated(
     batch: &[ActionRequest],
 ) -> BatchChunks {
     let images = ImageLimits::default();
+    let guidance = model.chunking().guidance;
     generate_isolated(
         batch,
         |request| {
             spec.check_request(request, &images)
+                .map_err(EngineError::from)
+                .and_then(|()| match &request.guidance {
+                    // A model that cannot apply the guidance must not sample as if there were
+                    // none.
+                    Some(g) if !guidance.supports(g.mode) => {
+                        Err(EngineError::InvalidInput(format!(
+                            "model `{}` cannot apply `{}` guidance",
+                            spec.name,
+                            g.mode.as_str()
+                        )))
+                    }
+                    _ => Ok(()),
+                })
                 .map_err(|error| PoolError::Engine {
                     engine: name.to_string(),
-                    source: error.into(),
+                    source: error,
                 })
         },
         |requests| generate_guarded(name, spec, model, requests),
@@ -137,6 +154,10 @@ impl EngineInstance for LocalEngine {
 
     fn spec(&self) -> &ModelSpec {
         &self.spec
+    }
+
+    fn chunking(&self) -> ModelChunking {
+        self.chunking.clone()
     }
 
     fn profile(&self) -> &EngineProfile {

@@ -23,7 +23,10 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use futures::future::BoxFuture;
-use kairos_engine::{ActionChunk, ActionRequest, EngineError, EngineProfile, ModelSpec};
+use kairos_engine::{
+    ActionChunk, ActionRequest, ActionSpace, EngineError, EngineProfile, GuidanceSupport,
+    ModelChunking, ModelSpec,
+};
 
 pub use build::{BuildEvent, ModelSchemes, PoolConfigError, ResolveModel, build_pool};
 pub use link::EmulatedLinkEngine;
@@ -95,6 +98,11 @@ pub trait EngineInstance: Send + Sync {
     fn name(&self) -> &str;
     /// What the model consumes and produces.
     fn spec(&self) -> &ModelSpec;
+    /// What the chunking strategies may do with the instance's model. A remote worker does not
+    /// say, so it gets the default: no guidance, no action space.
+    fn chunking(&self) -> ModelChunking {
+        ModelChunking::default()
+    }
     /// Latency by batch size; `max_batch` caps the batches the scheduler forms for it.
     fn profile(&self) -> &EngineProfile;
     /// Edge or cloud.
@@ -234,6 +242,26 @@ impl EnginePool {
     /// Every instance in the pool, in [`EngineId`] order.
     pub fn iter(&self) -> impl Iterator<Item = &Arc<dyn EngineInstance>> {
         self.instances.iter().flatten()
+    }
+
+    /// What the chunking strategies may do with every instance of the pool now: the guidance
+    /// all of them apply, and their action space if they agree on it.
+    pub fn chunking(&self) -> ModelChunking {
+        let mut instances = self.iter().map(|i| i.chunking());
+        let Some(first) = instances.next() else {
+            return ModelChunking::default();
+        };
+        instances.fold(first, |all, one| ModelChunking {
+            guidance: GuidanceSupport {
+                prefix: all.guidance.prefix && one.guidance.prefix,
+                vjp: all.guidance.vjp && one.guidance.vjp,
+            },
+            action_space: if all.action_space == one.action_space {
+                all.action_space
+            } else {
+                ActionSpace::Unspecified
+            },
+        })
     }
 
     /// What the scheduler plans with, in [`EngineId`] order (call it before any instance
@@ -402,6 +430,7 @@ pub(crate) mod test_model {
             instruction: String::new(),
             samples: 1,
             seed,
+            guidance: None,
         }
     }
 }

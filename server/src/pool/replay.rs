@@ -171,6 +171,7 @@ mod tests {
             instruction: String::new(),
             samples: 1,
             seed: 0,
+            guidance: None,
         }
     }
 

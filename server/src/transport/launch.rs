@@ -5,7 +5,7 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
 
-use kairos_sdk::protocol::ModelInfo;
+use kairos_sdk::protocol::{ChunkingStrategy, ModelInfo};
 use kairos_sdk::transport::TransportTuning;
 use quinn::VarInt;
 use rustls_pki_types::CertificateDer;
@@ -19,7 +19,7 @@ use crate::data_dir::DataDir;
 use crate::driver::{DriverConfig, DriverEnd, DriverHandle, DriverStats};
 use crate::metrics::{Metrics, Readiness};
 use crate::pool::EnginePool;
-use crate::validation::{DecodePool, Validator};
+use crate::validation::{ChunkingRules, DecodePool, Validator};
 use kairos_core::action::{ActionConfigError, ActionManager};
 use kairos_core::registry::{build_priority, native_horizon_policies, native_priority_policies};
 use kairos_core::scheduler::registry::PolicySpecError;
@@ -43,6 +43,9 @@ pub enum LaunchError {
     /// A configured `[[plugin]]`.
     #[error(transparent)]
     Plugin(#[from] crate::plugin::factory::PluginSetupError),
+    /// `[chunking]` names a default strategy the served model cannot apply.
+    #[error("[chunking]: {0}")]
+    Chunking(String),
     /// The model does not fit the configured limits.
     #[error("model `{model}` needs {what}, but [limits] allows {limit}")]
     ModelOverLimits {
@@ -170,6 +173,34 @@ impl RunningServer {
     }
 }
 
+/// The chunking rules of `config` for the model `pool` serves; a default strategy the model
+/// cannot apply is refused here, at start, rather than on every round.
+fn chunking_rules(
+    config: &Config,
+    pool: &EnginePool,
+    model: &str,
+) -> Result<ChunkingRules, LaunchError> {
+    let defaults = config
+        .chunking
+        .defaults()
+        .map_err(|(key, reason)| LaunchError::Chunking(format!("`chunking.{key}`: {reason}")))?;
+    let model_chunking = pool.chunking();
+    let rules = ChunkingRules {
+        defaults,
+        guidance: model_chunking.guidance,
+        action_space: model_chunking.action_space,
+    };
+    // A default `arrival_state` falls back to `skip` round by round where the robot sends no
+    // forecast and the model's actions cannot be rolled through; a default guidance the model
+    // cannot apply would fail every round, so it is refused here.
+    match rules.refusal(defaults.strategy, model) {
+        Some(reason) if defaults.strategy != ChunkingStrategy::ArrivalState => {
+            Err(LaunchError::Chunking(reason))
+        }
+        _ => Ok(rules),
+    }
+}
+
 /// Builds every part from `config` and starts serving on `config.listen`.
 pub async fn start(
     config: &Config,
@@ -177,6 +208,7 @@ pub async fn start(
     policies: Policies,
 ) -> Result<RunningServer, LaunchError> {
     let spec = pool.spec().clone();
+    let chunking = chunking_rules(config, &pool, &spec.name)?;
     let mut limits = config.limits.clone();
     limits.max_images = limits
         .max_images
@@ -280,7 +312,11 @@ pub async fn start(
         max_images: limits.max_images,
         cameras: spec.cameras.clone(),
     };
-    let validator = Validator { spec, limits };
+    let validator = Validator {
+        spec,
+        limits,
+        chunking,
+    };
     let decode = DecodePool::for_this_machine(validator.image_limits());
     let fairness = super::fairness::Fairness::new(&config.connections, robots.len());
     let context = Arc::new(ServerContext {

@@ -11,6 +11,7 @@
 //! Then [`decode`] decodes images on a bounded pool, before the queue. [`error`] holds
 //! [`RequestError`], the one error type a connection task answers with.
 
+pub mod chunking;
 pub mod decode;
 pub mod error;
 
@@ -25,6 +26,7 @@ use kairos_sdk::protocol::{
     PROTOCOL_VERSION, Submit, TaskOutcome, Validate,
 };
 
+pub use self::chunking::ChunkingRules;
 pub use self::decode::{DecodePool, decode_images};
 pub use self::error::RequestError;
 
@@ -34,6 +36,8 @@ pub struct Validator {
     pub spec: ModelSpec,
     /// The limits announced in `Welcome`.
     pub limits: Limits,
+    /// What the chunking strategies may do for the model.
+    pub chunking: ChunkingRules,
 }
 
 pub(crate) fn observation_error(
@@ -90,6 +94,13 @@ impl Validator {
                 format!("{samples}, the engine draws at most {MAX_SAMPLES}"),
             ));
         }
+        let committed = submit.last_exec.is_some_and(|e| e.actions_remaining > 0);
+        let chunking = self.chunking.resolve(
+            submit.chunking,
+            &self.spec.name,
+            self.spec.state_dim,
+            committed,
+        )?;
         let mut observation = observation;
         observation.request.samples = samples;
         // The client's own sampler seed when it sent one (reproducible evaluation), else the
@@ -116,6 +127,9 @@ impl Validator {
             samples,
             control_hz: submit.last_exec.map(|e| e.control_hz).or(submit.control_hz),
             clock,
+            chunking,
+            exec_round: submit.last_exec.and_then(|e| e.round),
+            exec_delay: submit.last_exec.and_then(|e| e.delay),
         })
     }
 
@@ -182,6 +196,7 @@ impl Validator {
             instruction: observation.instruction,
             samples: 1,
             seed: 0,
+            guidance: None,
         };
         // Everything the engine would refuse, refused here with the field named, so that a bad
         // observation fails only its own round and never reaches a batch.
@@ -300,6 +315,7 @@ mod tests {
                 max_images: 1,
             },
             limits: Limits::default(),
+            chunking: ChunkingRules::default(),
         }
     }
 
@@ -323,12 +339,15 @@ mod tests {
                 exec_started_at_us: 900_000,
                 actions_remaining: 4,
                 control_hz: 50.0,
+                round: None,
+                delay: None,
             }),
             horizon: None,
             remaining: None,
             attempt: 0,
             control_hz: None,
             seed: None,
+            chunking: None,
         }
     }
 

@@ -487,6 +487,18 @@ mod tests {
         req.cameras = vec!["top".into(), "observation.images.wrist".into()];
         let back = request_from_wire(request_to_wire(&req).unwrap()).unwrap();
         assert_eq!(back, req);
+        // So does a request's guidance.
+        let mut guided = req.clone();
+        guided.guidance = Some(kairos_engine::Guidance {
+            mode: kairos_engine::GuidanceMode::Inpaint,
+            prefix: vec![0.5; 6],
+            delay: 2,
+            execution_horizon: 3,
+            schedule: kairos_engine::PrefixSchedule::Exp,
+            max_guidance_weight: 4.0,
+        });
+        let back = request_from_wire(request_to_wire(&guided).unwrap()).unwrap();
+        assert_eq!(back, guided);
         let chunk = model
             .generate(std::slice::from_ref(&req))
             .unwrap()

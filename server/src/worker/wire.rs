@@ -2,10 +2,16 @@
 //! used by both ends: the scheduler (`registration`, `remote`) and `kairos worker` (`client`).
 
 use kairos_engine::{
-    ActionChunk, ActionRequest, EngineProfile, ImageFormat, ImageInput, ModelSpec, ProfilePoint,
+    ActionChunk, ActionRequest, EngineProfile, Guidance, GuidanceMode, ImageFormat, ImageInput,
+    ModelSpec, PrefixSchedule, ProfilePoint,
 };
-use kairos_sdk::protocol::worker::{ProfilePointWire, ProfileWire, WorkChunk, WorkRequest};
-use kairos_sdk::protocol::{DType, Image, ImagePayload, Limits, ModelInfo, Tensor, Validate};
+use kairos_sdk::protocol::worker::{
+    ProfilePointWire, ProfileWire, WorkChunk, WorkGuidance, WorkRequest,
+};
+use kairos_sdk::protocol::{
+    ChunkingStrategy, DType, Image, ImagePayload, Limits, ModelInfo,
+    PrefixSchedule as WirePrefixSchedule, Tensor, Validate,
+};
 
 fn usize_u32(value: usize) -> u32 {
     u32::try_from(value).unwrap_or(u32::MAX)
@@ -75,6 +81,55 @@ pub fn request_to_wire(request: &ActionRequest) -> Result<WorkRequest, String> {
         instruction: request.instruction.clone(),
         samples: usize_u32(request.samples),
         seed: request.seed,
+        guidance: request
+            .guidance
+            .as_ref()
+            .map(guidance_to_wire)
+            .transpose()?,
+    })
+}
+
+fn guidance_to_wire(guidance: &Guidance) -> Result<WorkGuidance, String> {
+    Ok(WorkGuidance {
+        mode: match guidance.mode {
+            GuidanceMode::Rtc => ChunkingStrategy::Rtc,
+            GuidanceMode::RtcVjp => ChunkingStrategy::RtcVjp,
+            GuidanceMode::Inpaint => ChunkingStrategy::Inpaint,
+        },
+        prefix: Tensor::from_f32(vec![usize_u32(guidance.prefix.len())], &guidance.prefix)
+            .map_err(|e| e.to_string())?,
+        delay: usize_u32(guidance.delay),
+        execution_horizon: usize_u32(guidance.execution_horizon),
+        schedule: match guidance.schedule {
+            PrefixSchedule::Zeros => WirePrefixSchedule::Zeros,
+            PrefixSchedule::Ones => WirePrefixSchedule::Ones,
+            PrefixSchedule::Linear => WirePrefixSchedule::Linear,
+            PrefixSchedule::Exp => WirePrefixSchedule::Exp,
+        },
+        max_guidance_weight: guidance.max_guidance_weight,
+    })
+}
+
+fn guidance_from_wire(guidance: WorkGuidance) -> Result<Guidance, String> {
+    let mode = match guidance.mode {
+        ChunkingStrategy::Rtc => GuidanceMode::Rtc,
+        ChunkingStrategy::RtcVjp => GuidanceMode::RtcVjp,
+        ChunkingStrategy::Inpaint => GuidanceMode::Inpaint,
+        other => return Err(format!("`{other}` is not a guidance mode")),
+    };
+    if guidance.prefix.shape.len() != 1 {
+        return Err(format!(
+            "a guidance prefix is flat [rows × action_dim], got shape {:?}",
+            guidance.prefix.shape
+        ));
+    }
+    Ok(Guidance {
+        mode,
+        prefix: guidance.prefix.to_f32().map_err(|e| e.to_string())?,
+        delay: guidance.delay as usize,
+        execution_horizon: guidance.execution_horizon as usize,
+        schedule: kairos_core::chunking::engine_schedule(guidance.schedule),
+        max_guidance_weight: guidance.max_guidance_weight,
     })
 }
 
@@ -126,6 +181,7 @@ pub fn request_from_wire(request: WorkRequest) -> Result<ActionRequest, String> 
         instruction: request.instruction,
         samples: request.samples as usize,
         seed: request.seed,
+        guidance: request.guidance.map(guidance_from_wire).transpose()?,
     })
 }
 

@@ -309,6 +309,7 @@ fn worker_messages() -> Vec<(&'static str, WorkerMessage)> {
                     instruction: "pick".into(),
                     samples: 1,
                     seed: 42,
+                    guidance: None,
                 }],
             }),
         ),
@@ -369,6 +370,8 @@ fn last_exec() -> LastExecInfo {
         exec_started_at_us: 900_000,
         actions_remaining: 4,
         control_hz: 50.0,
+        round: None,
+        delay: None,
     }
 }
 
@@ -391,6 +394,7 @@ fn submit(images: Vec<ImagePayload>) -> Submit {
         attempt: 0,
         control_hz: Some(50.0),
         seed: None,
+        chunking: None,
     }
 }
 
@@ -481,6 +485,9 @@ fn wire_messages() -> Vec<(&'static str, Message)> {
                     total_us: 2_100,
                     batch_size: 1,
                 },
+                start: None,
+                delay: None,
+                chunking: None,
             }),
         ),
         (

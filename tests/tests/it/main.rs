@@ -11,6 +11,7 @@ mod attackers;
 mod auth;
 mod binaries;
 mod boundaries;
+mod chunking;
 mod dead_driver;
 mod demo;
 mod e2e;

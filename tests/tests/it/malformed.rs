@@ -28,6 +28,7 @@ fn submit(task: u64, round: u64, state: Tensor, images: Vec<Image>) -> Submit {
         attempt: 0,
         control_hz: None,
         seed: None,
+        chunking: None,
     }
 }
 

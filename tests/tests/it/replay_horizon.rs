@@ -38,6 +38,7 @@ fn request(state: Vec<f32>) -> ActionRequest {
         instruction: String::new(),
         samples: 1,
         seed: 0,
+        guidance: None,
     }
 }
 

@@ -63,6 +63,9 @@ impl RoundTransport for Scripted {
                     inference_us: self.latency.as_micros() as u64,
                     ..Timing::default()
                 },
+                start: None,
+                delay: None,
+                chunking: None,
             },
             sent_at_us,
             received_at_us: self.clock.now_us(),

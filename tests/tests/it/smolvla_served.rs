@@ -157,6 +157,7 @@ async fn cameras_are_matched_by_name_over_quic() {
             instruction: TASK.into(),
             samples: 1,
             seed: round_seed(task, 0),
+            guidance: None,
         };
         model.generate(&[request]).unwrap().remove(0)
     };
@@ -179,6 +180,7 @@ async fn cameras_are_matched_by_name_over_quic() {
         instruction: TASK.into(),
         samples: 1,
         seed: round_seed(2, 0),
+        guidance: None,
     };
     assert_ne!(
         model.generate(&[swapped]).unwrap()[0].sample_actions(0),

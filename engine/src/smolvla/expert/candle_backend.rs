@@ -9,6 +9,8 @@ use candle_core::{DType, Device, Tensor};
 
 use super::weights::{ExpertWeights, time_embedding};
 use crate::EngineError;
+use crate::guidance::RowGuide;
+use crate::sampler::ClosureField;
 use crate::smolvla::config::{ExpertDims, LayerKind};
 use crate::smolvla::linear::LinearWeights;
 use crate::smolvla::prefix::PrefixKv;
@@ -116,6 +118,7 @@ impl CandleExpert {
         x: &mut [f32],
         velocities: &mut [f32],
         updates: &mut [f32],
+        guides: &[Option<RowGuide>],
     ) -> Result<(), EngineError> {
         let d = &self.dims;
         let dev = &self.device;
@@ -123,23 +126,23 @@ impl CandleExpert {
         let context = self.attention_context(prefixes, row_prefix)?;
         let len = n * d.action_pad;
         let steps = d.steps;
-        crate::sampler::integrate(
+        // An `rtc_vjp` row is refused by the field's default `velocity_vjp`: candle_nn's fused
+        // softmax, RMSNorm and RoPE ops, which this expert runs, have no backward pass.
+        let mut field = ClosureField(|_k: usize, t: f32, xt: &[f32], v: &mut [f32]| {
+            let xt = Tensor::from_slice(xt, (rows, n, d.action_pad), dev)?;
+            let out = self.velocity(&xt, t, &context)?;
+            v.copy_from_slice(&out.flatten_all()?.to_vec1::<f32>()?);
+            Ok(())
+        });
+        crate::sampler::integrate_guided(
             crate::sampler::Schedule { steps },
             rows,
             len,
             x,
             updates,
-            |k, t, xt, v| {
-                let xt = Tensor::from_slice(xt, (rows, n, d.action_pad), dev)?;
-                let out = self.velocity(&xt, t, &context)?;
-                let out: Vec<f32> = out.flatten_all()?.to_vec1()?;
-                v.copy_from_slice(&out);
-                for r in 0..rows {
-                    velocities[(r * steps + k) * len..(r * steps + k + 1) * len]
-                        .copy_from_slice(&out[r * len..(r + 1) * len]);
-                }
-                Ok(())
-            },
+            guides,
+            Some(velocities),
+            &mut field,
         )
     }
 

@@ -26,10 +26,11 @@ pub use weights::ExpertWeights;
 
 use super::config::{self, ExpertDims, SmolVlaConfig, VlmConfig};
 use super::prefix::PrefixKv;
+use crate::guidance::RowGuide;
 use crate::options::{EngineOptions, Target};
 use crate::sampler::{RowLayout, gaussian_noise};
 use crate::weights::Checkpoint;
-use crate::{ActionChunk, EngineError};
+use crate::{ActionChunk, ActionRequest, EngineError, Guidance, GuidanceSupport};
 
 /// Where the expert runs: the engine's CPU kernels on a pool of threads, or Candle.
 enum Backend {
@@ -154,8 +155,26 @@ impl SmolVlaExpert {
             .collect())
     }
 
+    /// The guidance its sampler applies: `rtc` and `inpaint` on both backends (per-row work in
+    /// the shared sampler); `rtc_vjp` on neither: the fast kernels have no backward pass, and
+    /// the Candle path's attention and norm ops have none either.
+    pub fn guidance_support(&self) -> GuidanceSupport {
+        GuidanceSupport::PREFIX
+    }
+
     /// Run the sampler for a batch of requests in one forward pass per step.
     pub fn sample(&self, inputs: &[ExpertInput<'_>]) -> Result<Vec<ExpertSample>, EngineError> {
+        self.sample_guided(inputs, &[])
+    }
+
+    /// [`SmolVlaExpert::sample`] with a [`RowGuide`] per row (rows are `[input][sample]`; an
+    /// empty `guides` is plain sampling for every row). The velocities recorded are those each
+    /// step used: the guided ones on guided rows.
+    pub fn sample_guided(
+        &self,
+        inputs: &[ExpertInput<'_>],
+        guides: &[Option<RowGuide>],
+    ) -> Result<Vec<ExpertSample>, EngineError> {
         let d = &self.dims;
         let len = d.chunk * d.action_pad;
         let mut row_prefix = Vec::new();
@@ -188,6 +207,18 @@ impl SmolVlaExpert {
         if rows == 0 {
             return Ok(Vec::new());
         }
+        let plain;
+        let guides = if guides.is_empty() {
+            plain = vec![None; rows];
+            &plain[..]
+        } else if guides.len() == rows {
+            guides
+        } else {
+            return Err(EngineError::InvalidInput(format!(
+                "{} row guides for {rows} rows",
+                guides.len()
+            )));
+        };
         let prefixes: Vec<&PrefixKv> = inputs.iter().map(|i| i.prefix).collect();
         let noise = x.clone();
         let mut velocities = vec![0.0f32; rows * d.steps * len];
@@ -200,6 +231,7 @@ impl SmolVlaExpert {
                 &mut x,
                 &mut velocities,
                 &mut updates,
+                guides,
             )?,
             Backend::Candle(model) => model.sample(
                 &prefixes,
@@ -207,6 +239,7 @@ impl SmolVlaExpert {
                 &mut x,
                 &mut velocities,
                 &mut updates,
+                guides,
             )?,
         }
         let mut row = 0;
@@ -229,12 +262,14 @@ impl SmolVlaExpert {
     }
 
     /// Serve a validated batch of requests: embed every state, build each request's prefix with
-    /// `prefix(request, state_token)`, and generate with each request's samples and seed. The
+    /// `prefix(request, state_token)`, and generate with each request's samples, seed and
+    /// guidance (`to_model` maps one robot action into the model's normalised action space). The
     /// serving models differ only in how they build the prefix.
     pub fn generate_requests(
         &self,
-        batch: &[crate::ActionRequest],
-        prefix: impl Fn(&crate::ActionRequest, &[f32]) -> Result<PrefixKv, EngineError>,
+        batch: &[ActionRequest],
+        prefix: impl Fn(&ActionRequest, &[f32]) -> Result<PrefixKv, EngineError>,
+        to_model: &dyn Fn(&mut [f32]),
     ) -> Result<Vec<ActionChunk>, EngineError> {
         let states: Vec<Vec<f32>> = batch.iter().map(|r| r.state.clone()).collect();
         let state_tokens = self.embed_state(&states)?;
@@ -248,7 +283,8 @@ impl SmolVlaExpert {
             .zip(batch)
             .map(|(p, r)| (p, r.samples, r.seed))
             .collect();
-        self.generate(&requests)
+        let guidance: Vec<Option<&Guidance>> = batch.iter().map(|r| r.guidance.as_ref()).collect();
+        self.generate_guided(&requests, &guidance, to_model)
     }
 
     /// Generate one [`ActionChunk`] per `(prefix, samples, seed)`, cut to the robot's action dim,
@@ -257,8 +293,39 @@ impl SmolVlaExpert {
         &self,
         requests: &[(&PrefixKv, usize, u64)],
     ) -> Result<Vec<ActionChunk>, EngineError> {
+        self.generate_guided(requests, &vec![None; requests.len()], &|_| {})
+    }
+
+    /// [`SmolVlaExpert::generate`] with each request's guidance (`None`: plain sampling);
+    /// `to_model` maps one robot action into the model's normalised action space.
+    pub fn generate_guided(
+        &self,
+        requests: &[(&PrefixKv, usize, u64)],
+        guidance: &[Option<&Guidance>],
+        to_model: &dyn Fn(&mut [f32]),
+    ) -> Result<Vec<ActionChunk>, EngineError> {
         let d = &self.dims;
         let len = d.chunk * d.action_pad;
+        if guidance.len() != requests.len() {
+            return Err(EngineError::InvalidInput(format!(
+                "{} guidances for {} requests",
+                guidance.len(),
+                requests.len()
+            )));
+        }
+        if let Some(mode) = guidance
+            .iter()
+            .flatten()
+            .map(|g| g.mode)
+            .find(|&mode| !self.guidance_support().supports(mode))
+        {
+            return Err(EngineError::InvalidInput(format!(
+                "guidance `{}`: SmolVLA's expert has no backward pass on {} (rtc and inpaint \
+                 work)",
+                mode.as_str(),
+                self.description
+            )));
+        }
         let noises: Vec<Vec<Vec<f32>>> = requests
             .iter()
             .map(|&(_, s, seed)| (0..s).map(|i| gaussian_noise(seed, i, len)).collect())
@@ -268,7 +335,6 @@ impl SmolVlaExpert {
             .zip(&noises)
             .map(|(&(prefix, _, _), noise)| ExpertInput { prefix, noise })
             .collect();
-        let out = self.sample(&inputs)?;
         let layout = RowLayout {
             samples: requests.iter().map(|r| r.1).collect(),
             steps: d.steps,
@@ -276,6 +342,27 @@ impl SmolVlaExpert {
             full_dim: d.action_pad,
             action_dim: d.action_dim,
         };
+        let mut guides = Vec::new();
+        if guidance.iter().any(Option::is_some) {
+            for (g, noise) in guidance.iter().zip(&noises) {
+                for sample_noise in noise {
+                    guides.push(
+                        g.map(|g| {
+                            RowGuide::prepare(
+                                g,
+                                d.chunk,
+                                d.action_dim,
+                                d.action_pad,
+                                sample_noise,
+                                to_model,
+                            )
+                        })
+                        .transpose()?,
+                    );
+                }
+            }
+        }
+        let out = self.sample_guided(&inputs, &guides)?;
         let cat = |f: fn(&ExpertSample) -> &Vec<f32>| -> Vec<f32> {
             out.iter().flat_map(|o| f(o).iter().copied()).collect()
         };

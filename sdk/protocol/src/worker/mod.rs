@@ -27,7 +27,7 @@ use serde::{Deserialize, Serialize};
 
 use super::codec::{WireBody, decode_body};
 use super::frame::{Frame, FrameError};
-use super::messages::{Image, MessageKind, ModelInfo, Tensor};
+use super::messages::{ChunkingStrategy, Image, MessageKind, ModelInfo, PrefixSchedule, Tensor};
 use super::strict;
 
 /// ALPN identifier of worker protocol version 1.
@@ -170,6 +170,31 @@ pub struct WorkRequest {
     pub samples: u32,
     /// Seed of the initial noise.
     pub seed: u64,
+    /// Guidance toward the actions the robot committed to (real-time chunking, a hard
+    /// prefix); absent: plain sampling. An older worker ignores the key and samples plainly,
+    /// so guidance needs workers of this version.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub guidance: Option<WorkGuidance>,
+}
+
+/// A request's guidance on the wire (`kairos_engine_types::Guidance`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WorkGuidance {
+    /// `rtc`, `rtc_vjp` or `inpaint`.
+    #[serde(deserialize_with = "strict::name")]
+    pub mode: ChunkingStrategy,
+    /// The previous chunk from the capture on, `f32 [L × action_dim]` (flat: the worker's
+    /// model knows its action width).
+    pub prefix: Tensor,
+    /// Actions the robot executes before the chunk arrives.
+    pub delay: u32,
+    /// Previous actions that guide the chunk.
+    pub execution_horizon: u32,
+    /// The weights beyond the committed actions.
+    #[serde(deserialize_with = "strict::name")]
+    pub schedule: PrefixSchedule,
+    /// The cap on the guidance weight.
+    pub max_guidance_weight: f32,
 }
 
 /// S→W, the only message on a batch stream: run these requests.
@@ -389,6 +414,14 @@ mod tests {
                     instruction: "pick".into(),
                     samples: 1,
                     seed: 42,
+                    guidance: Some(WorkGuidance {
+                        mode: ChunkingStrategy::Rtc,
+                        prefix: tensor.clone(),
+                        delay: 2,
+                        execution_horizon: 10,
+                        schedule: PrefixSchedule::Exp,
+                        max_guidance_weight: 10.0,
+                    }),
                 }],
             }
             .into(),

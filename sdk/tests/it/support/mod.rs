@@ -342,6 +342,9 @@ async fn serve_stream(
                     total_us: behavior.generation.as_micros() as u64 + 10,
                     batch_size: 1,
                 },
+                start: None,
+                delay: None,
+                chunking: None,
             };
             seen.lock().unwrap().generated.push(key);
             replies.lock().unwrap().insert(key, reply.clone());

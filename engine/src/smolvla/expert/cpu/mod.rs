@@ -9,9 +9,11 @@ use std::sync::Mutex;
 
 use super::weights::{ExpertWeights, time_embedding};
 use crate::EngineError;
+use crate::guidance::RowGuide;
 use crate::kernels::attention::AttendScratch;
 use crate::kernels::gemm::{ActivationRows, gemm, gemm_par};
 use crate::kernels::{Init, MatMut, MatRef, PackedMatrix, Pool, Precision, vecmath};
+use crate::sampler::ClosureField;
 use crate::smolvla::config::{ExpertDims, LayerKind};
 use crate::smolvla::linear::Linear;
 use crate::smolvla::llama_layer::LayerWeights;
@@ -216,6 +218,8 @@ impl CpuExpert {
     /// Run the sampler for `rows` samples. `row_prefix[r]` is the request of row `r`; `x` holds
     /// the noise (`[rows][chunk][action_pad]`) and receives the result; `velocities` and
     /// `updates` receive `[rows][K][chunk][action_pad]`.
+    // The sampler's buffers and the rows' guides, as `integrate_guided` takes them.
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn sample(
         &self,
         pool: &Pool,
@@ -224,6 +228,7 @@ impl CpuExpert {
         x: &mut [f32],
         velocities: &mut [f32],
         updates: &mut [f32],
+        guides: &[Option<RowGuide>],
     ) -> Result<(), EngineError> {
         let d = &self.dims;
         let rows = row_prefix.len();
@@ -256,14 +261,22 @@ impl CpuExpert {
         let len = d.chunk * d.action_pad;
         let steps = d.steps;
         let schedule = crate::sampler::Schedule { steps };
-        crate::sampler::integrate(schedule, rows, len, x, updates, |k, t, xt, v| {
+        // No backward pass here: an `rtc_vjp` row is refused by the field's default
+        // `velocity_vjp`.
+        let mut field = ClosureField(|_k: usize, t: f32, xt: &[f32], v: &mut [f32]| {
             self.velocity(pool, &ctx, &mut ws, t, xt, v);
-            for r in 0..rows {
-                velocities[(r * steps + k) * len..(r * steps + k + 1) * len]
-                    .copy_from_slice(&v[r * len..(r + 1) * len]);
-            }
             Ok(())
-        })
+        });
+        crate::sampler::integrate_guided(
+            schedule,
+            rows,
+            len,
+            x,
+            updates,
+            guides,
+            Some(velocities),
+            &mut field,
+        )
     }
 
     /// One evaluation of the velocity field for all rows at time `t`.

@@ -1,0 +1,147 @@
+//! Time what real-time chunking adds to a whole SmolVLA policy: one request through
+//! `ActionModel::generate` (preprocessing, vision tower, VLM prefix, expert, postprocessing)
+//! plainly, with `rtc` guidance and with `inpaint`, in an order rotating run by run, on a
+//! checkpoint directory (e.g. the smolvla_base-shaped one `engine/tools/bench_smolvla_full.py
+//! --write-checkpoint` writes).
+//!
+//! `cargo run --release -p kairos-engine --example rtc_timing -- --model DIR [--iters 5]
+//! [--threads 2] [--kernels fast|candle] [--delay 3]`
+//!
+//! The guidance: the committed actions are a previous chunk of the model's (its own plain
+//! output, from action 2 on: the robot executed 2 before the capture), `d = --delay`, LeRobot's
+//! defaults (linear schedule, execution horizon 10, max guidance weight 10). Prints one JSON
+//! line per mode: `{"mode":..,"median_ms":..,"min_ms":..,"runs":[..]}`, then one with the
+//! medians' ratios to plain sampling and the guidance's own work per chunk (`RowGuide::prepare`
+//! and its ten velocity corrections, timed alone: on a shared machine the whole-chunk medians
+//! move by more than that).
+
+use std::time::Instant;
+
+use kairos_engine::guidance::RowGuide;
+use kairos_engine::smolvla::SmolVlaPipeline;
+use kairos_engine::{
+    ActionModel, ActionRequest, EngineOptions, Guidance, GuidanceMode, Kernels, PrefixSchedule,
+};
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let mut model = None;
+    let mut iters = 5usize;
+    let mut threads = 0usize;
+    let mut kernels = Kernels::Fast;
+    let mut delay = 3usize;
+    let mut args = std::env::args().skip(1);
+    while let Some(flag) = args.next() {
+        if flag == "--help" || flag == "-h" {
+            println!(
+                "Times a whole SmolVLA policy's chunk plainly, with rtc and with inpaint.\n\n\
+                 Usage: rtc_timing --model DIR [--iters 5] [--threads 2] \
+                 [--kernels fast|candle] [--delay 3]"
+            );
+            return Ok(());
+        }
+        let value = args.next().ok_or_else(|| format!("{flag} needs a value"))?;
+        match flag.as_str() {
+            "--model" => model = Some(std::path::PathBuf::from(value)),
+            "--iters" => iters = value.parse()?,
+            "--threads" => threads = value.parse()?,
+            "--delay" => delay = value.parse()?,
+            "--kernels" => {
+                kernels = match value.as_str() {
+                    "fast" => Kernels::Fast,
+                    "candle" => Kernels::Candle,
+                    other => return Err(format!("--kernels {other}: fast or candle").into()),
+                }
+            }
+            other => return Err(format!("unknown flag {other}").into()),
+        }
+    }
+    let model = model.ok_or("--model DIR is required")?;
+    let options = EngineOptions {
+        kernels,
+        threads,
+        ..Default::default()
+    };
+    let pipeline = SmolVlaPipeline::load(&model, None, &options)?;
+    let obs = pipeline.checkpoint().synthetic_observation();
+    let request = |guidance: Option<Guidance>| ActionRequest {
+        cameras: obs.images.keys().cloned().collect(),
+        images: obs.images.values().cloned().collect(),
+        state: obs.state.clone(),
+        instruction: obs.task.clone(),
+        samples: 1,
+        seed: 1,
+        guidance,
+    };
+    // Warm-up, and the previous chunk the guided runs follow.
+    let previous = pipeline.generate(&[request(None)])?.remove(0);
+    let dim = previous.action_dim;
+    let guidance = |mode| Guidance {
+        mode,
+        prefix: previous.actions[2 * dim..].to_vec(),
+        delay,
+        execution_horizon: 10,
+        schedule: PrefixSchedule::Linear,
+        max_guidance_weight: 10.0,
+    };
+    let modes: [(&str, Option<Guidance>); 3] = [
+        ("plain", None),
+        ("rtc", Some(guidance(GuidanceMode::Rtc))),
+        ("inpaint", Some(guidance(GuidanceMode::Inpaint))),
+    ];
+    let mut runs = vec![Vec::new(); modes.len()];
+    for i in 0..iters {
+        // The order rotates run by run, so that no mode always follows another.
+        for j in 0..modes.len() {
+            let m = (i + j) % modes.len();
+            let batch = [request(modes[m].1.clone())];
+            let started = Instant::now();
+            pipeline.generate(&batch)?;
+            runs[m].push(started.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    let median = |v: &[f64]| {
+        let mut s = v.to_vec();
+        s.sort_by(f64::total_cmp);
+        s[s.len() / 2]
+    };
+    let medians: Vec<f64> = runs.iter().map(|r| median(r)).collect();
+    for ((name, _), times) in modes.iter().zip(&runs) {
+        let min = times.iter().copied().fold(f64::INFINITY, f64::min);
+        let runs: Vec<String> = times.iter().map(|t| format!("{t:.1}")).collect();
+        println!(
+            "{{\"mode\":\"{name}\",\"median_ms\":{:.1},\"min_ms\":{min:.1},\"runs\":[{}]}}",
+            median(times),
+            runs.join(",")
+        );
+    }
+    // The guidance's own work for one chunk, timed alone.
+    let d = pipeline.expert().dims().clone();
+    let len = d.chunk * d.action_pad;
+    let noise = kairos_engine::sampler::gaussian_noise(1, 0, len);
+    let (mut x, mut v) = (noise.clone(), vec![0.5f32; len]);
+    let reps = 200;
+    let started = Instant::now();
+    for _ in 0..reps {
+        let guide = RowGuide::prepare(
+            &guidance(GuidanceMode::Rtc),
+            d.chunk,
+            d.action_dim,
+            d.action_pad,
+            &noise,
+            &|_| {},
+        )?;
+        for k in 0..d.steps {
+            let t = 1.0 - k as f64 / d.steps as f64;
+            guide.guide(t, t as f32, &x, &mut v, None);
+            x.iter_mut().zip(&v).for_each(|(xi, vi)| *xi -= vi * 1e-3);
+        }
+    }
+    let guidance_us = started.elapsed().as_secs_f64() * 1e6 / reps as f64;
+    println!(
+        "{{\"rtc_over_plain\":{:.4},\"inpaint_over_plain\":{:.4},\"rtc_guidance_us_per_chunk\":{guidance_us:.1},\"description\":\"{}\"}}",
+        medians[1] / medians[0],
+        medians[2] / medians[0],
+        pipeline.expert().description()
+    );
+    Ok(())
+}

@@ -1,0 +1,287 @@
+//! Real-time chunking in the SmolVLA expert against LeRobot 0.6.1 with `rtc_config`
+//! (`engine/tools/reference.py --rtc`, `golden/rtc.safetensors`): the `pair` observations, a
+//! previous chunk of which the robot executed 2 actions, `d` in {0, 3, 7}, the linear and exp
+//! prefix schedules; the guided velocity of every step and the chunk, on the fast kernels and on
+//! the Candle path. Rows with different guidance share a batch bit for bit.
+
+#![allow(clippy::unwrap_used)]
+
+use kairos_engine::guidance::RowGuide;
+use kairos_engine::smolvla::{ExpertInput, SmolVlaPipeline};
+use kairos_engine::weights::Checkpoint;
+use kairos_engine::{
+    ActionModel, ActionRequest, DeviceKind, EngineOptions, Guidance, GuidanceMode, Kernels,
+    PrefixSchedule,
+};
+
+use crate::smolvla_goldens::{Goldens, fixture};
+use crate::smolvla_processors::{max_abs_diff, observations};
+
+/// `golden/rtc.safetensors` and `golden/rtc.json`.
+struct RtcGoldens {
+    ckpt: Checkpoint,
+    meta: serde_json::Value,
+}
+
+impl RtcGoldens {
+    fn open() -> Self {
+        let dir = fixture().join("golden");
+        let bytes = std::fs::read(dir.join("rtc.safetensors")).unwrap();
+        let meta =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("rtc.json")).unwrap()).unwrap();
+        RtcGoldens {
+            ckpt: Checkpoint::from_bytes("rtc", bytes).unwrap(),
+            meta,
+        }
+    }
+
+    fn f32(&self, key: &str) -> Vec<f32> {
+        let shape = self
+            .ckpt
+            .shape(key)
+            .unwrap_or_else(|| panic!("no golden `{key}`"))
+            .to_vec();
+        self.ckpt.tensor(key, &shape).unwrap()
+    }
+
+    fn shape(&self, key: &str) -> Vec<usize> {
+        self.ckpt.shape(key).unwrap().to_vec()
+    }
+}
+
+fn options(kernels: Kernels) -> EngineOptions {
+    EngineOptions {
+        device: DeviceKind::Cpu,
+        kernels,
+        threads: 2,
+        ..Default::default()
+    }
+}
+
+fn schedule(name: &str) -> PrefixSchedule {
+    match name {
+        "linear" => PrefixSchedule::Linear,
+        "exp" => PrefixSchedule::Exp,
+        other => panic!("schedule {other}"),
+    }
+}
+
+/// The guidance Kairos' server sends for the golden case: the previous chunk from the capture on
+/// in the robot's units (LeRobot's `prev_chunk_left_over` after the postprocessor).
+fn guidance(r: &RtcGoldens, row: usize, mode: GuidanceMode, sched: &str, d: usize) -> Guidance {
+    let shape = r.shape("leftover");
+    let per = shape[1] * shape[2];
+    Guidance {
+        mode,
+        prefix: r.f32("leftover")[row * per..(row + 1) * per].to_vec(),
+        delay: d,
+        execution_horizon: r.meta["execution_horizon"].as_u64().unwrap() as usize,
+        schedule: schedule(sched),
+        max_guidance_weight: r.meta["max_guidance_weight"].as_f64().unwrap() as f32,
+    }
+}
+
+/// Runs every golden case through `kernels` and compares the guided velocity of every step, the
+/// normalised chunk and the chunk in the robot's units.
+fn rtc_matches_lerobot(kernels: Kernels) {
+    let g = Goldens::open();
+    let r = RtcGoldens::open();
+    let pipeline = SmolVlaPipeline::load(&fixture(), None, &options(kernels)).unwrap();
+    let expert = pipeline.expert();
+    let d = expert.dims().clone();
+    let observations = observations(&g, "pair");
+    let prepared: Vec<_> = observations
+        .iter()
+        .map(|o| pipeline.checkpoint().prepare(o).unwrap())
+        .collect();
+    let prefixes = pipeline.prefixes(&prepared).unwrap();
+    let batch = observations.len();
+    let len = d.chunk * d.action_pad;
+    let noise = r.f32("noise");
+    assert_eq!(noise.len(), batch * len);
+    let noises: Vec<Vec<Vec<f32>>> = (0..batch)
+        .map(|b| vec![noise[b * len..(b + 1) * len].to_vec()])
+        .collect();
+    let inputs: Vec<ExpertInput<'_>> = prefixes
+        .iter()
+        .zip(&noises)
+        .map(|(prefix, noise)| ExpertInput { prefix, noise })
+        .collect();
+    let unnormalizer = pipeline.checkpoint().postprocessor().unnormalizer.as_ref();
+    let to_model = |a: &mut [f32]| {
+        if let Some(n) = unnormalizer {
+            n.normalize("action", a).unwrap();
+        }
+    };
+    // The tolerance: LeRobot's own f32-vs-f64 error of the plain chunk, times the largest
+    // guidance weight (the guidance multiplies the error of `x - t v` by up to it), with room
+    // for the ten steps it compounds over.
+    let bound = 10.0
+        * r.meta["max_guidance_weight"].as_f64().unwrap() as f32
+        * g.e_lr("pair.actions").max(16.0 * f32::EPSILON);
+    let delays: Vec<usize> = r.meta["delays"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap() as usize)
+        .collect();
+    for sched in ["linear", "exp"] {
+        for &delay in &delays {
+            let key = format!("rtc.{sched}.d{delay}");
+            let guides: Vec<Option<RowGuide>> = (0..batch)
+                .map(|b| {
+                    Some(
+                        RowGuide::prepare(
+                            &guidance(&r, b, GuidanceMode::Rtc, sched, delay),
+                            d.chunk,
+                            d.action_dim,
+                            d.action_pad,
+                            &noises[b][0],
+                            &to_model,
+                        )
+                        .unwrap(),
+                    )
+                })
+                .collect();
+            // LeRobot's get_prefix_weights, exactly.
+            assert_eq!(
+                guides[0].as_ref().unwrap().weights,
+                r.f32(&format!("{key}.weights")),
+                "{key}.weights"
+            );
+            let out = expert.sample_guided(&inputs, &guides).unwrap();
+            // Velocities: ours [row][step][N][pad], LeRobot's [step][row][N][pad].
+            let want_v = r.f32(&format!("{key}.velocities"));
+            let mut dv = 0.0f32;
+            for (b, o) in out.iter().enumerate() {
+                for k in 0..d.steps {
+                    let ours = &o.velocities[k * len..(k + 1) * len];
+                    let want = &want_v[(k * batch + b) * len..(k * batch + b + 1) * len];
+                    dv = dv.max(max_abs_diff(ours, want));
+                }
+            }
+            let ours_norm: Vec<f32> = out
+                .iter()
+                .flat_map(|o| {
+                    o.actions
+                        .chunks_exact(d.action_pad)
+                        .flat_map(|a| a[..d.action_dim].to_vec())
+                        .collect::<Vec<_>>()
+                })
+                .collect();
+            let da = max_abs_diff(&ours_norm, &r.f32(&format!("{key}.actions_norm")));
+            let ours: Vec<f32> = out
+                .iter()
+                .flat_map(|o| {
+                    pipeline
+                        .checkpoint()
+                        .finish_actions(&o.actions, d.action_pad)
+                        .unwrap()
+                        .concat()
+                })
+                .collect();
+            let du = max_abs_diff(&ours, &r.f32(&format!("{key}.actions")));
+            eprintln!(
+                "{kernels:?} {key}: velocities {dv:.3e}, actions_norm {da:.3e}, actions {du:.3e}, bound {bound:.3e}"
+            );
+            assert!(dv <= bound, "{key}: velocities differ by {dv:e}");
+            assert!(da <= bound, "{key}: normalised actions differ by {da:e}");
+            let scale = ours.iter().fold(1.0f32, |m, v| m.max(v.abs()));
+            assert!(du <= bound * scale, "{key}: actions differ by {du:e}");
+        }
+    }
+
+    // A mixed batch: row 0 guided (rtc, d = 3), row 1 plain; each is what it is alone.
+    let rtc = RowGuide::prepare(
+        &guidance(&r, 0, GuidanceMode::Rtc, "linear", 3),
+        d.chunk,
+        d.action_dim,
+        d.action_pad,
+        &noises[0][0],
+        &to_model,
+    )
+    .unwrap();
+    let mixed = expert
+        .sample_guided(&inputs, &[Some(rtc.clone()), None])
+        .unwrap();
+    let alone_guided = expert.sample_guided(&inputs[..1], &[Some(rtc)]).unwrap();
+    let alone_plain = expert.sample(&inputs[1..]).unwrap();
+    assert_eq!(mixed[0], alone_guided[0], "{kernels:?}: the guided row");
+    assert_eq!(mixed[1], alone_plain[0], "{kernels:?}: the plain row");
+    assert_ne!(mixed[0], expert.sample(&inputs[..1]).unwrap()[0]);
+}
+
+#[test]
+fn rtc_on_the_fast_kernels_matches_lerobot() {
+    rtc_matches_lerobot(Kernels::Auto);
+}
+
+#[test]
+fn rtc_on_the_candle_path_matches_lerobot() {
+    rtc_matches_lerobot(Kernels::Candle);
+}
+
+/// Served through the model interface: `rtc` and `inpaint` change the chunk (`inpaint` ends on
+/// the committed actions), `rtc_vjp` is refused saying why, and the model says what it supports.
+#[test]
+fn the_served_model_applies_rtc_and_inpaint_and_refuses_rtc_vjp() {
+    let r = RtcGoldens::open();
+    let g = Goldens::open();
+    let obs = observations(&g, "pair").remove(0);
+    for kernels in [Kernels::Auto, Kernels::Candle] {
+        let model = SmolVlaPipeline::load(&fixture(), None, &options(kernels)).unwrap();
+        let support = model.chunking().guidance;
+        assert!(support.supports(GuidanceMode::Rtc) && support.supports(GuidanceMode::Inpaint));
+        assert!(!support.supports(GuidanceMode::RtcVjp));
+        let request = |g: Option<Guidance>| ActionRequest {
+            cameras: obs.images.keys().cloned().collect(),
+            images: obs.images.values().cloned().collect(),
+            state: obs.state.clone(),
+            instruction: obs.task.clone(),
+            samples: 1,
+            seed: 5,
+            guidance: g,
+        };
+        let plain = model.generate(&[request(None)]).unwrap().remove(0);
+        let rtc = model
+            .generate(&[request(Some(guidance(
+                &r,
+                0,
+                GuidanceMode::Rtc,
+                "linear",
+                3,
+            )))])
+            .unwrap()
+            .remove(0);
+        assert_ne!(plain.actions, rtc.actions);
+        let inpaint = guidance(&r, 0, GuidanceMode::Inpaint, "linear", 3);
+        let chunk = model
+            .generate(&[request(Some(inpaint.clone()))])
+            .unwrap()
+            .remove(0);
+        // The hard prefix: the first d actions are the committed ones (through the model's
+        // normalisation and back).
+        let dim = chunk.action_dim;
+        let got = &chunk.actions[..3 * dim];
+        let want = &inpaint.prefix[..3 * dim];
+        let scale = want.iter().fold(1.0f32, |m, v| m.max(v.abs()));
+        assert!(
+            max_abs_diff(got, want) <= 1e-5 * scale,
+            "{kernels:?}: {got:?} vs {want:?}"
+        );
+        let refused = model
+            .generate(&[request(Some(guidance(
+                &r,
+                0,
+                GuidanceMode::RtcVjp,
+                "linear",
+                3,
+            )))])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            refused.contains("rtc_vjp") && refused.contains("backward"),
+            "{refused}"
+        );
+    }
+}
