@@ -29,5 +29,5 @@ pub use kairos_engine_types::ActionChunk;
 pub use kairos_engine_types::{ActionRequest, ImageFormat, ImageInput};
 pub use kairos_engine_types::{EngineProfile, ProfilePoint};
 pub use kernels::Precision;
-pub use model::{ActionModel, MAX_SAMPLES, ModelSpec, generate_isolated};
+pub use model::{ActionModel, MAX_SAMPLES, ModelSpec, StagePaths, generate_isolated};
 pub use options::{DeviceKind, EngineOptions, Kernels};

@@ -7,11 +7,13 @@
 //! - [`expert`]: the action expert and its Euler loop ([`SmolVlaExpert`]: [`PrefixKv`] ->
 //!   actions), on the engine's CPU kernels or in Candle.
 //! - Shared by both: the checkpoint's configs ([`config`]), its `Linear` and Llama-layer weights
-//!   ([`linear`], [`llama_layer`]), and the prefix cache between them ([`prefix`]).
+//!   ([`linear`], [`llama_layer`]; on a Candle device through `candle_weights`), and the prefix
+//!   cache between them ([`prefix`]).
 //! - The policy around them: the processors ([`processors`], [`tokenize`], [`images`],
 //!   [`checkpoint`]), the whole pipeline ([`pipeline`]), and the expert served with a stand-in
 //!   prefix ([`serving`]).
 
+mod candle_weights;
 pub mod checkpoint;
 pub mod config;
 pub mod expert;

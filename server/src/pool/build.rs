@@ -7,7 +7,9 @@ use std::sync::Arc;
 use kairos_engine::profile::{
     DEFAULT_MIN_GAIN, MeasureEvent, MeasureOptions, measure, saturation_batch,
 };
-use kairos_engine::{ActionModel, EngineError, EngineOptions, EngineProfile, ProfilePoint};
+use kairos_engine::{
+    ActionModel, EngineError, EngineOptions, EngineProfile, ProfilePoint, StagePaths,
+};
 
 use super::{EmulatedLinkEngine, EngineInstance, EnginePool, LocalEngine, PoolBuildError};
 use crate::config::EngineConfig;
@@ -82,6 +84,8 @@ pub enum BuildEvent {
         index: usize,
         /// Its profile.
         profile: EngineProfile,
+        /// The path each stage of its model runs on, when the model says.
+        paths: Option<StagePaths>,
     },
 }
 
@@ -131,6 +135,7 @@ pub fn build_pool(
         progress(BuildEvent::Ready {
             index,
             profile: profile.clone(),
+            paths: model.paths(),
         });
         for i in 0..config.instances {
             let name = format!("{}-{index}.{i}", tier_name(config.tier));

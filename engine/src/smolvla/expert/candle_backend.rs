@@ -1,59 +1,34 @@
-//! The expert in plain Candle tensor ops, for any Candle device (CUDA with `--features cuda`).
+//! The expert in plain Candle tensor ops, for any Candle device (CUDA with `--features cuda`),
+//! built from the shared Candle layers ([`crate::pi::layers`]).
 //!
 //! This is a direct transcription of LeRobot's modules: prefixes are padded to the longest in
-//! the batch and hidden by an additive `-inf` mask built with LeRobot's rules, GQA expands the
-//! KV heads, and every op runs in f32. On the CPU it is the reference the fast path is tested
-//! against (besides the LeRobot golden files).
+//! the batch and hidden by an additive `-inf` mask built with LeRobot's rules, and attention is
+//! grouped-query over the KV heads. The weight products run in the precision's dtype (f32, or
+//! bf16 with f32 norms, softmax and residuals). On the CPU in f32 it is the reference the fast
+//! path is tested against (besides the LeRobot golden files).
+//!
+//! Per `sample` call the prefix keys and values (projected once for the cross-attention
+//! layers), the masks and the RoPE tables go to the device once and serve all Euler steps.
 
 use candle_core::{DType, Device, Tensor};
 
 use super::weights::{ExpertWeights, time_embedding};
 use crate::EngineError;
+use crate::kernels::Precision;
+use crate::pi::layers::{Linear, RmsNorm, SwiGlu, batched_attention};
+use crate::smolvla::candle_weights::{linear, matmul_dtype, vector};
 use crate::smolvla::config::{ExpertDims, LayerKind};
-use crate::smolvla::linear::LinearWeights;
 use crate::smolvla::prefix::PrefixKv;
-
-struct Linear {
-    /// `[in][out]` (transposed once at load so the matmul needs no strided view).
-    w_t: Tensor,
-    bias: Option<Tensor>,
-}
-
-impl Linear {
-    fn new(l: &LinearWeights, dev: &Device) -> Result<Self, EngineError> {
-        let w = Tensor::from_slice(&l.weight, (l.out_dim, l.in_dim), dev)?;
-        let bias = l
-            .bias
-            .as_ref()
-            .map(|b| Tensor::from_slice(b, l.out_dim, dev))
-            .transpose()?;
-        Ok(Linear {
-            w_t: w.t()?.contiguous()?,
-            bias,
-        })
-    }
-
-    /// `x wᵀ + b` for `x` of shape `[.., in]`.
-    fn forward(&self, x: &Tensor) -> Result<Tensor, EngineError> {
-        let y = x.broadcast_matmul(&self.w_t)?;
-        Ok(match &self.bias {
-            Some(b) => y.broadcast_add(b)?,
-            None => y,
-        })
-    }
-}
 
 struct Layer {
     kind: LayerKind,
-    input_norm: Tensor,
-    post_norm: Tensor,
+    input_norm: RmsNorm,
+    post_norm: RmsNorm,
     q: Linear,
     k: Linear,
     v: Linear,
     o: Linear,
-    gate: Linear,
-    up: Linear,
-    down: Linear,
+    mlp: SwiGlu,
 }
 
 /// The expert's weights on a Candle device.
@@ -61,7 +36,7 @@ pub(crate) struct CandleExpert {
     dims: ExpertDims,
     device: Device,
     layers: Vec<Layer>,
-    final_norm: Tensor,
+    final_norm: RmsNorm,
     action_in: Linear,
     time_in: Linear,
     time_out: Linear,
@@ -70,23 +45,30 @@ pub(crate) struct CandleExpert {
 }
 
 impl CandleExpert {
-    pub(crate) fn new(w: &ExpertWeights, device: &Device) -> Result<Self, EngineError> {
-        let h = w.dims.hidden;
+    pub(crate) fn new(
+        w: &ExpertWeights,
+        device: &Device,
+        precision: Precision,
+    ) -> Result<Self, EngineError> {
+        let dtype = matmul_dtype(precision);
+        let eps = f64::from(w.dims.rms_eps);
         let layers = w
             .layers
             .iter()
             .map(|l| {
                 Ok(Layer {
                     kind: l.kind,
-                    input_norm: Tensor::from_slice(&l.input_norm, h, device)?,
-                    post_norm: Tensor::from_slice(&l.post_norm, h, device)?,
-                    q: Linear::new(&l.q_proj, device)?,
-                    k: Linear::new(&l.k_proj, device)?,
-                    v: Linear::new(&l.v_proj, device)?,
-                    o: Linear::new(&l.o_proj, device)?,
-                    gate: Linear::new(&l.gate_proj, device)?,
-                    up: Linear::new(&l.up_proj, device)?,
-                    down: Linear::new(&l.down_proj, device)?,
+                    input_norm: RmsNorm::from_parts(vector(&l.input_norm, device)?, eps),
+                    post_norm: RmsNorm::from_parts(vector(&l.post_norm, device)?, eps),
+                    q: linear(&l.q_proj, dtype, device)?,
+                    k: linear(&l.k_proj, dtype, device)?,
+                    v: linear(&l.v_proj, dtype, device)?,
+                    o: linear(&l.o_proj, dtype, device)?,
+                    mlp: SwiGlu::from_parts(
+                        linear(&l.gate_proj, dtype, device)?,
+                        linear(&l.up_proj, dtype, device)?,
+                        linear(&l.down_proj, dtype, device)?,
+                    ),
                 })
             })
             .collect::<Result<Vec<_>, EngineError>>()?;
@@ -94,12 +76,14 @@ impl CandleExpert {
             dims: w.dims.clone(),
             device: device.clone(),
             layers,
-            final_norm: Tensor::from_slice(&w.final_norm, h, device)?,
-            action_in: Linear::new(&w.action_in_proj, device)?,
-            time_in: Linear::new(&w.action_time_mlp_in, device)?,
-            time_out: Linear::new(&w.action_time_mlp_out, device)?,
-            out: Linear::new(&w.action_out_proj, device)?,
-            state: Linear::new(&w.state_proj, device)?,
+            final_norm: RmsNorm::from_parts(vector(&w.final_norm, device)?, eps),
+            action_in: linear(&w.action_in_proj, dtype, device)?,
+            time_in: linear(&w.action_time_mlp_in, dtype, device)?,
+            time_out: linear(&w.action_time_mlp_out, dtype, device)?,
+            // LeRobot upcasts the expert's output to f32 before `action_out_proj`, and the
+            // state token is the VLM's input: both stay f32.
+            out: linear(&w.action_out_proj, DType::F32, device)?,
+            state: linear(&w.state_proj, DType::F32, device)?,
         })
     }
 
@@ -257,7 +241,7 @@ impl CandleExpert {
         let mut x = self.time_out.forward(&h)?;
         let scale = (hd as f64).powf(-0.5);
         for (layer, (pk, pv)) in self.layers.iter().zip(prefix_kv) {
-            let h = candle_nn::ops::rms_norm(&x, &layer.input_norm, d.rms_eps)?;
+            let h = layer.input_norm.forward(&x)?;
             let to_heads = |t: Tensor, nh: usize| -> Result<Tensor, EngineError> {
                 Ok(t.reshape((rows, n, nh, hd))?
                     .transpose(1, 2)?
@@ -279,27 +263,12 @@ impl CandleExpert {
             };
             let q = to_heads(layer.q.forward(&h)?, heads)?;
             let q = candle_nn::rotary_emb::rope(&q, &rope.0, &rope.1)?;
-            let expand = |t: &Tensor| -> Result<Tensor, EngineError> {
-                let (b, g, s, e) = t.dims4()?;
-                Ok(t.unsqueeze(2)?
-                    .broadcast_as((b, g, heads / kvh, s, e))?
-                    .reshape((b, heads, s, e))?)
-            };
-            let (keys, values) = (expand(&keys)?, expand(&values)?);
-            let scores = (q.matmul(&keys.t()?)? * scale)?.broadcast_add(mask)?;
-            let probs = candle_nn::ops::softmax_last_dim(&scores)?;
-            let att = probs
-                .matmul(&values)?
-                .transpose(1, 2)?
-                .reshape((rows, n, heads * hd))?;
+            let att = batched_attention(&q, &keys, &values, scale, Some(mask))?;
             x = (layer.o.forward(&att)? + &x)?;
-            let h = candle_nn::ops::rms_norm(&x, &layer.post_norm, d.rms_eps)?;
-            let mlp = (candle_nn::ops::silu(&layer.gate.forward(&h)?)? * layer.up.forward(&h)?)?;
-            x = (layer.down.forward(&mlp)? + &x)?;
+            x = (layer.mlp.forward(&layer.post_norm.forward(&x)?)? + &x)?;
         }
-        let h = candle_nn::ops::rms_norm(&x, &self.final_norm, d.rms_eps)?;
-        // LeRobot upcasts the expert output to f32 before action_out_proj (a no-op in f32).
-        self.out.forward(&h.to_dtype(DType::F32)?)
+        let h = self.final_norm.forward(&x)?;
+        self.out.forward(&h)
     }
 }
 
