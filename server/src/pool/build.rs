@@ -131,6 +131,11 @@ pub fn build_pool(
         };
         if let Some(cap) = config.max_batch {
             profile.max_batch = profile.max_batch.min(cap).max(1);
+            // The scheduler's online refinement never forms batches larger than the profile's
+            // largest point: the points past the cap go.
+            if profile.points.iter().any(|p| p.batch <= cap) {
+                profile.points.retain(|p| p.batch <= cap);
+            }
         }
         progress(BuildEvent::Ready {
             index,
