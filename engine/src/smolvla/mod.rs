@@ -12,6 +12,8 @@
 //! - The policy around them: the processors ([`processors`], [`tokenize`], [`images`],
 //!   [`checkpoint`]), the whole pipeline ([`pipeline`]), and the expert served with a stand-in
 //!   prefix ([`serving`]).
+//! - A seeded random checkpoint folder of any SmolVLA shape, `smolvla_base`'s included
+//!   ([`random_checkpoint`]).
 
 mod candle_weights;
 pub mod checkpoint;
@@ -23,6 +25,7 @@ pub mod llama_layer;
 pub mod pipeline;
 pub mod prefix;
 pub mod processors;
+pub mod random_checkpoint;
 pub mod serving;
 pub mod tokenize;
 pub mod vlm;

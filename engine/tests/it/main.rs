@@ -15,4 +15,5 @@ mod smolvla_goldens;
 mod smolvla_loading;
 mod smolvla_parity;
 mod smolvla_processors;
+mod smolvla_random_checkpoint;
 mod smolvla_vlm;
