@@ -46,6 +46,11 @@ impl Linear {
     pub fn forward(&self, x: &Tensor) -> Result<Tensor, EngineError> {
         let dims = x.dims();
         let (inp, out) = self.w_t.dims2()?;
+        if dims.last() != Some(&inp) {
+            return Err(EngineError::InvalidInput(format!(
+                "a linear layer of {inp} inputs got a tensor of shape {dims:?}"
+            )));
+        }
         let rows = x.elem_count() / inp.max(1);
         let flat = x.reshape((rows, inp))?;
         let wd = self.w_t.dtype();
@@ -400,5 +405,76 @@ impl Rope {
     pub fn apply(&self, x: &Tensor) -> Result<Tensor, EngineError> {
         let x = x.unsqueeze(0)?.contiguous()?;
         Ok(candle_nn::rotary_emb::rope(&x, &self.cos, &self.sin)?.squeeze(0)?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tensor(seed: u64, shape: &[usize]) -> Tensor {
+        let n = shape.iter().product();
+        Tensor::from_vec(
+            crate::sampler::gaussian_noise(seed, 0, n),
+            shape,
+            &Device::Cpu,
+        )
+        .unwrap()
+    }
+
+    fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
+        (a - b)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar()
+            .unwrap()
+    }
+
+    /// A bf16 weight multiplies in bf16 and answers in f32, within bf16's rounding of the f32
+    /// product; an input of the wrong width is an error, not a silent reshape.
+    #[test]
+    fn linear_runs_in_its_weights_dtype_and_checks_the_width() {
+        let (w, b) = (tensor(1, &[6, 8]), tensor(2, &[6]));
+        let exact = Linear::from_parts(w.clone(), Some(b.clone())).unwrap();
+        let half = Linear::from_parts(w.to_dtype(DType::BF16).unwrap(), Some(b)).unwrap();
+        let x = tensor(3, &[2, 5, 8]);
+        let (y, y16) = (exact.forward(&x).unwrap(), half.forward(&x).unwrap());
+        assert_eq!(y.dims(), [2, 5, 6]);
+        assert_eq!(y16.dtype(), DType::F32);
+        let d = max_diff(&y, &y16);
+        assert!(d > 0.0 && d < 0.1, "{d}");
+        assert!(exact.forward(&tensor(4, &[4, 6])).is_err());
+    }
+
+    /// Attention over a batch is attention over each sequence, with grouped KV heads and a
+    /// per-sequence mask.
+    #[test]
+    fn batched_attention_is_attention_per_sequence() {
+        let (b, heads, kvh, lq, lk, hd) = (3, 4, 2, 5, 7, 8);
+        let q = tensor(5, &[b, heads, lq, hd]);
+        let k = tensor(6, &[b, kvh, lk, hd]);
+        let v = tensor(7, &[b, kvh, lk, hd]);
+        let mask: Vec<f32> = (0..b * lq * lk)
+            .map(|i| if i % 3 == 0 { f32::NEG_INFINITY } else { 0.0 })
+            .collect();
+        let mask = Tensor::from_vec(mask, (b, 1, lq, lk), &Device::Cpu).unwrap();
+        let all = batched_attention(&q, &k, &v, 0.3, Some(&mask)).unwrap();
+        for i in 0..b {
+            let m = mask.get(i).unwrap().squeeze(0).unwrap();
+            let one = attention(
+                &q.get(i).unwrap(),
+                &k.get(i).unwrap(),
+                &v.get(i).unwrap(),
+                0.3,
+                Some(&m),
+            )
+            .unwrap();
+            assert!(max_diff(&all.get(i).unwrap(), &one) < 1e-6);
+        }
     }
 }
