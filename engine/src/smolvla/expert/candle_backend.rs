@@ -8,7 +8,8 @@
 //! path is tested against (besides the LeRobot golden files).
 //!
 //! Per `sample` call the prefix keys and values (projected once for the cross-attention
-//! layers), the masks and the RoPE tables go to the device once and serve all Euler steps.
+//! layers), the masks, the RoPE tables and the time embeddings go to the device once and serve
+//! all Euler steps, and the Euler loop itself runs on the device.
 
 use candle_core::{DType, Device, Tensor};
 
@@ -92,7 +93,10 @@ impl CandleExpert {
         Ok(self.state.forward(&s)?.flatten_all()?.to_vec1()?)
     }
 
-    /// Same contract as the CPU expert's `sample`.
+    /// Same contract as the CPU expert's `sample`. The Euler loop stays on the device: `x_t`,
+    /// the velocities and the updates never leave it between steps (the same f32 operations
+    /// as `sampler::integrate`, `u = dt v`, `x += u`), and come back to the host in one copy
+    /// each at the end.
     pub(crate) fn sample(
         &self,
         prefixes: &[&PrefixKv],
@@ -106,25 +110,35 @@ impl CandleExpert {
         let (rows, n) = (row_prefix.len(), d.chunk);
         let context = self.attention_context(prefixes, row_prefix)?;
         let len = n * d.action_pad;
-        let steps = d.steps;
-        crate::sampler::integrate(
-            crate::sampler::Schedule { steps },
-            rows,
-            len,
-            x,
-            updates,
-            |k, t, xt, v| {
-                let xt = Tensor::from_slice(xt, (rows, n, d.action_pad), dev)?;
-                let out = self.velocity(&xt, t, &context)?;
-                let out: Vec<f32> = out.flatten_all()?.to_vec1()?;
-                v.copy_from_slice(&out);
+        let schedule = crate::sampler::Schedule { steps: d.steps };
+        let steps = schedule.steps;
+        // Every step's time embedding, uploaded once.
+        let temb: Vec<f32> = (0..steps)
+            .flat_map(|k| time_embedding(schedule.time(k), d.hidden, d.min_period, d.max_period))
+            .collect();
+        let temb = Tensor::from_vec(temb, (steps, 1, 1, d.hidden), dev)?;
+        let dt = f64::from(schedule.dt());
+        let mut xt = Tensor::from_slice(x, (rows, n, d.action_pad), dev)?;
+        let (mut vs, mut us) = (Vec::with_capacity(steps), Vec::with_capacity(steps));
+        for k in 0..steps {
+            let v = self.velocity(&xt, &temb.get(k)?, &context)?;
+            let u = (&v * dt)?;
+            xt = (&xt + &u)?;
+            vs.push(v);
+            us.push(u);
+        }
+        x.copy_from_slice(&xt.flatten_all()?.to_vec1::<f32>()?);
+        // `[steps][rows][len]` on the device -> `[rows][steps][len]` on the host.
+        for (all, out) in [(vs, &mut *velocities), (us, &mut *updates)] {
+            let host: Vec<f32> = Tensor::stack(&all, 0)?.flatten_all()?.to_vec1()?;
+            for k in 0..steps {
                 for r in 0..rows {
-                    velocities[(r * steps + k) * len..(r * steps + k + 1) * len]
-                        .copy_from_slice(&out[r * len..(r + 1) * len]);
+                    out[(r * steps + k) * len..][..len]
+                        .copy_from_slice(&host[(k * rows + r) * len..][..len]);
                 }
-                Ok(())
-            },
-        )
+            }
+        }
+        Ok(())
     }
 
     /// The prefix keys and values, masks and RoPE tables that every step of a `sample` call
@@ -212,11 +226,12 @@ impl CandleExpert {
         Ok(prefix_kv)
     }
 
-    /// The velocity of the action tokens `xt` (`[rows, chunk, action_pad]`) at time `t`.
+    /// The velocity of the action tokens `xt` (`[rows, chunk, action_pad]`) at the time whose
+    /// embedding is `temb` (`[1, 1, hidden]`).
     fn velocity(
         &self,
         xt: &Tensor,
-        t: f32,
+        temb: &Tensor,
         context: &AttentionContext,
     ) -> Result<Tensor, EngineError> {
         let AttentionContext {
@@ -230,11 +245,6 @@ impl CandleExpert {
         let (rows, n, _) = xt.dims3()?;
         let (heads, kvh, hd) = (d.heads, d.kv_heads, d.head_dim);
         let action_emb = self.action_in.forward(xt)?;
-        let temb = Tensor::from_vec(
-            time_embedding(t, d.hidden, d.min_period, d.max_period),
-            (1, 1, d.hidden),
-            &self.device,
-        )?;
         let temb = temb.broadcast_as(action_emb.shape())?;
         let h = Tensor::cat(&[&action_emb, &temb], 2)?;
         let h = candle_nn::ops::silu(&self.time_in.forward(&h)?)?;
