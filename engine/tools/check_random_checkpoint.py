@@ -2,8 +2,8 @@
 """Check that LeRobot 0.6.1 loads a random SmolVLA checkpoint folder written by
 `kairos-tiny-model --preset smolvla-base` (`kairos_engine::smolvla::random_checkpoint`).
 
-    cargo run -p kairos-tests --bin kairos-tiny-model -- --preset smolvla-base /tmp/base
-    python3 engine/tools/check_random_checkpoint.py /tmp/base
+    cargo run -p kairos-tests --bin kairos-tiny-model -- --preset smolvla-base DIR
+    python3 engine/tools/check_random_checkpoint.py DIR
 
 LeRobot's own loaders read the folder: `SmolVLAPolicy.from_pretrained` (the VLM built from the
 folder's `vlm_config.json` instead of the hub's, as `smolvla_fixture.py` does) and both
