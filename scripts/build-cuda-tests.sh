@@ -3,7 +3,8 @@
 # toolkit, for a GPU machine that has the NVIDIA driver and CUDA 13.0 libraries but no Rust
 # (the lent H100/H200 machines: `scripts/run-cuda-tests.sh` runs them there).
 #
-#   bash scripts/build-cuda-tests.sh        # -> .devbin/{it,unit,kairos}.xz and run-cuda-tests.sh
+#   bash scripts/build-cuda-tests.sh        # -> .devbin/{it,unit,kairos,kairos-tiny-model}.xz
+#                                           #    and run-cuda-tests.sh
 #
 # Why not scripts/check-cuda-build.sh's toolchain: that one is CUDA 13.5 (it only type-checks).
 # A binary that runs must match the GPU machine's driver: PTX from nvcc 13.5 is newer than a
@@ -55,6 +56,8 @@ for line in sys.stdin:
     if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["name"] in ("kairos_engine", "it"):
         print(m["target"]["name"], m["executable"])' > target/cuda-gpu/test-binaries.txt
 cargo build --locked -p kairos-cli --bin kairos --features cuda
+# The random smolvla_base writer: the GPU machine has no checkpoint and no network.
+cargo build --locked -p kairos-tests --bin kairos-tiny-model
 
 mkdir -p .devbin
 while read -r name exe; do
@@ -62,6 +65,8 @@ while read -r name exe; do
     strip -o "$out" "$exe" && xz -T2 -6 -f "$out"
 done < target/cuda-gpu/test-binaries.txt
 strip -o .devbin/kairos target/cuda-gpu/debug/kairos && xz -T2 -6 -f .devbin/kairos
+strip -o .devbin/kairos-tiny-model target/cuda-gpu/debug/kairos-tiny-model \
+    && xz -T2 -6 -f .devbin/kairos-tiny-model
 cp scripts/run-cuda-tests.sh .devbin/run.sh
 echo "$PWD" > .devbin/built-at
 ls -la .devbin

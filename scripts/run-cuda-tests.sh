@@ -1,7 +1,10 @@
 #!/bin/bash
 # On a GPU machine with the NVIDIA driver and CUDA 13.0 libraries (no Rust needed): the engine's
-# CUDA tests and the rest of its suites, then `kairos profile` of the SmolVLA expert on CUDA and
-# on this machine's CPU. Runs the binaries that scripts/build-cuda-tests.sh put in .devbin/
+# CUDA tests (the whole SmolVLA pipeline's parity with LeRobot's goldens on CUDA among them) and
+# the rest of its suites; then the whole SmolVLA pipeline at smolvla_base's shapes (a random
+# checkpoint written here by kairos-tiny-model, two 512x512 cameras) with `kairos predict` at
+# B = 1, 4, 16, 64 in f32 and bf16 on CUDA, each run's peak GPU memory, the same pipeline on this
+# machine's CPU with the fast kernels, and `kairos profile` of it on CUDA. Runs the binaries that scripts/build-cuda-tests.sh put in .devbin/
 # (as .devbin/run.sh, from the checkout's root); writes logs and profiles to $OUT (default /tmp/cuda-out).
 #
 # examples_help::the_timing_examples_answer_help_with_their_usage fails here by design: it runs
@@ -30,9 +33,49 @@ echo "== all engine integration tests (this CPU)"
 .devbin/it --test-threads 8 2>&1 | tee $OUT/it.log | tail -6
 echo "== engine unit tests (this CPU)"
 .devbin/unit --test-threads 8 2>&1 | tee $OUT/unit.log | tail -6
-if [ -x .devbin/kairos ]; then
-  echo "== profile: SmolVLA expert (random weights), CUDA vs this CPU"
-  .devbin/kairos profile --model builtin:smolvla-random --device cuda:0 --batches 1,4,16,64 --iterations 5 --out $OUT/profile_cuda.json 2>&1 | tail -12
-  .devbin/kairos profile --model builtin:smolvla-random --device cpu --kernels fast --threads 16 --batches 1,4,16,64 --iterations 3 --out $OUT/profile_cpu16.json 2>&1 | tail -12
-  nvidia-smi --query-gpu=memory.used --format=csv,noheader
+if [ -x .devbin/kairos ] && [ -x .devbin/kairos-tiny-model ]; then
+  # Outside $OUT: the 1.1 GB checkpoint is not a result to bring back.
+  BASE=${BASE:-$(mktemp -d)/smolvla_base}
+  echo "== random smolvla_base checkpoint"
+  .devbin/kairos-tiny-model --preset smolvla-base --seed 0 "$BASE" | tail -1
+  # One predict: the batch, the paths, every timed run's total and the stage times of the last,
+  # peak host RSS and (sampled every 20 ms) peak GPU memory.
+  predict() {  # label, then kairos predict arguments
+    local label=$1; shift
+    nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 20 > "$OUT/mem_$label.log" 2>/dev/null &
+    local sampler=$!
+    timeout 240 .devbin/kairos predict --model "$BASE" "$@" > "$OUT/predict_$label.json" 2> "$OUT/predict_$label.err"
+    local rc=$?
+    kill "$sampler" 2>/dev/null; wait "$sampler" 2>/dev/null
+    python3 - "$label" "$rc" "$OUT/predict_$label.json" "$OUT/mem_$label.log" <<'P'
+import json, sys
+label, rc, path, mem = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4]
+try:
+    v = json.load(open(path))
+except Exception as e:
+    print(f"{label}: failed (rc {rc}): {e}"); sys.exit()
+peak = max((int(l) for l in open(mem) if l.strip().isdigit()), default=0)
+runs = sorted(v.get("runs_ms", []))
+median = runs[len(runs) // 2] if runs else v["timing_ms"]["total"]
+stages = {k: round(x, 1) for k, x in v["timing_ms"].items()}
+print(f"{label}: batch {v.get('batch', 1)} median {median:.1f} ms ({median / max(v.get('batch', 1), 1):.1f} ms/robot) "
+      f"runs {[round(r, 1) for r in v.get('runs_ms', [])]} stages {stages} paths {v['paths']} "
+      f"peak gpu {peak} MiB, peak rss {v.get('peak_rss_mb', 0):.0f} MB")
+P
+  }
+  echo "== full pipeline on CUDA (Candle), smolvla_base shapes, 2 cameras 512x512"
+  for precision in bf16 f32; do
+    for b in 1 4 16 64; do
+      predict "cuda_${precision}_b$b" --device cuda:0 --precision "$precision" --batch "$b" --repeat 5
+    done
+  done | tee "$OUT/pipeline_cuda.txt"
+  echo "== the same pipeline on this CPU (fast kernels, $(nproc) threads)"
+  for precision in bf16 f32; do
+    for b in 1 4; do
+      predict "cpu_${precision}_b$b" --device cpu --kernels fast --threads "$(nproc)" --precision "$precision" --batch "$b" --repeat 2
+    done
+  done | tee "$OUT/pipeline_cpu.txt"
+  echo "== profile: the whole pipeline on CUDA, bf16"
+  timeout 240 .devbin/kairos profile --model "$BASE" --device cuda:0 --precision bf16 --batches 1,2,4,8,16,32,64 \
+    --iterations 3 --out "$OUT/profile_cuda_bf16.json" 2>&1 | tail -12
 fi

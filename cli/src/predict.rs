@@ -10,7 +10,9 @@
 //! names, a zero state, the task "pick up the cube". The processors and the models live in
 //! `kairos_engine::smolvla` ([`SmolVlaPipeline`]) and `kairos_engine::pi` ([`PiPipeline`]); this
 //! command only assembles the observation and prints
-//! `{"actions": [[..]..], "chunk": C, "action_dim": D, "timing_ms": {..}}`.
+//! `{"actions": [[..]..], "chunk": C, "action_dim": D, "timing_ms": {..}, "paths": {..}}`, where
+//! `paths` names the path each stage ran on (`{"vision": "candle:cuda:0", "prefix": ..,
+//! "expert": ..}`, or `"fast:avx512-bf16"` and the like).
 
 use std::path::PathBuf;
 
@@ -20,7 +22,7 @@ use kairos_engine::smolvla::SmolVlaPipeline;
 use kairos_engine::smolvla::checkpoint::Observation;
 use kairos_engine::smolvla::images::image_file;
 use kairos_engine::smolvla::pipeline::{Prediction, StageTimes};
-use kairos_engine::{DeviceKind, EngineOptions, Kernels, Precision, profile};
+use kairos_engine::{DeviceKind, EngineOptions, Kernels, Precision, StagePaths, profile};
 
 /// Arguments of `kairos predict`.
 #[derive(clap::Args, Debug, Clone)]
@@ -78,6 +80,8 @@ struct Output {
     chunk: usize,
     action_dim: usize,
     timing_ms: StageTimes,
+    /// The path each stage ran on.
+    paths: StagePaths,
     /// With `--batch N > 1`: every copy's chunk.
     #[serde(skip_serializing_if = "Option::is_none")]
     batch_actions: Option<Vec<Vec<Vec<f32>>>>,
@@ -139,6 +143,14 @@ impl Policy {
         match self {
             Policy::SmolVla(p) => p.predict(observations, seeds),
             Policy::Pi(p) => p.predict(observations, seeds),
+        }
+    }
+
+    /// The path each stage runs on (π0 / π0.5: Candle ops on the options' device, f32).
+    fn paths(&self, options: &EngineOptions) -> StagePaths {
+        match self {
+            Policy::SmolVla(p) => p.paths(),
+            Policy::Pi(_) => StagePaths::all(&options.candle_path()),
         }
     }
 
@@ -215,6 +227,7 @@ pub fn run(args: PredictArgs) -> anyhow::Result<()> {
         action_dim: pipeline.action_dim(),
         actions,
         timing_ms: timing,
+        paths: pipeline.paths(&options),
         batch_actions,
         bench,
     };

@@ -91,6 +91,9 @@ pub fn run(args: ProfileArgs) -> anyhow::Result<()> {
         )
         .context("progress bar template")?,
     );
+    if let Some(paths) = model.paths() {
+        println!("{}: {paths}", model.spec().name);
+    }
     bar.set_message(format!("{} on {device_desc}", model.spec().name));
     let profile = measure(model.as_ref(), &measure_options, |event| match event {
         MeasureEvent::Started { runs } => bar.set_length(runs as u64),

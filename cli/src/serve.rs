@@ -185,9 +185,14 @@ pub fn start_engines(config: &Config) -> anyhow::Result<EnginePool> {
             bar.set_position(done as u64);
             bar.set_message(format!("engine {index}: profiling batch {batch}"));
         }
-        BuildEvent::Ready { index, profile } => bar.suspend(|| {
+        BuildEvent::Ready {
+            index,
+            profile,
+            paths,
+        } => bar.suspend(|| {
+            let paths = paths.map(|p| format!(" [{p}]")).unwrap_or_default();
             println!(
-                "engine {index}: {} on {}, batches up to {} ({})",
+                "engine {index}: {} on {}{paths}, batches up to {} ({})",
                 profile.model,
                 profile.device,
                 profile.max_batch,

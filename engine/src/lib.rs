@@ -33,5 +33,5 @@ pub use kairos_engine_types::{
 };
 pub use kairos_engine_types::{EngineProfile, ProfilePoint};
 pub use kernels::Precision;
-pub use model::{ActionModel, MAX_SAMPLES, ModelSpec, generate_isolated};
+pub use model::{ActionModel, MAX_SAMPLES, ModelSpec, StagePaths, generate_isolated};
 pub use options::{DeviceKind, EngineOptions, Kernels};

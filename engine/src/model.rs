@@ -255,6 +255,47 @@ pub trait ActionModel: Send + Sync {
     fn chunking(&self) -> ModelChunking {
         ModelChunking::default()
     }
+
+    /// The path each stage runs on, for a model made of a vision tower, a prefix and an
+    /// expert (`None`: the model does not say).
+    fn paths(&self) -> Option<StagePaths> {
+        None
+    }
+}
+
+/// The path each stage of the policy runs on (what `kairos predict` prints as `paths`):
+/// `fast:<isa>` for the engine's CPU kernels (`fast:avx512-bf16`, `fast:avx2-fma`, ...) or
+/// `candle:<device>` for Candle ops (`candle:cpu`, `candle:cuda:0`, `-bf16` in bf16).
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct StagePaths {
+    /// The vision tower and connector.
+    pub vision: String,
+    /// The SmolLM2 prefix layers.
+    pub prefix: String,
+    /// The action expert and its Euler loop.
+    pub expert: String,
+}
+
+impl StagePaths {
+    /// Every stage on one path (a model that runs on one backend).
+    pub fn all(path: &str) -> Self {
+        StagePaths {
+            vision: path.to_owned(),
+            prefix: path.to_owned(),
+            expert: path.to_owned(),
+        }
+    }
+}
+
+impl std::fmt::Display for StagePaths {
+    /// `vision <path>, prefix <path>, expert <path>`.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "vision {}, prefix {}, expert {}",
+            self.vision, self.prefix, self.expert
+        )
+    }
 }
 
 #[cfg(test)]

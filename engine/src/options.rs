@@ -94,6 +94,15 @@ impl EngineOptions {
         Ok(self.target()?.describe())
     }
 
+    /// The path of a model that runs on Candle ops wherever these options put it (the CPU
+    /// for every CPU kernel choice, as the π models do): `candle:cpu` or `candle:cuda:N`.
+    pub fn candle_path(&self) -> String {
+        match self.device {
+            DeviceKind::Cpu => "candle:cpu".into(),
+            DeviceKind::Cuda(i) => format!("candle:cuda:{i}"),
+        }
+    }
+
     pub(crate) fn target(&self) -> Result<Target, EngineError> {
         match (self.device, self.kernels) {
             (DeviceKind::Cpu, Kernels::Auto | Kernels::Fast) => {
@@ -114,6 +123,35 @@ impl EngineOptions {
 }
 
 impl Target {
+    /// The path a stage runs on here, in `precision`, as `kairos predict` reports it:
+    /// `fast:<isa>` (`avx512`, `avx2-fma`, `portable`) or `candle:<device>` (`cpu`, `cuda:N`),
+    /// with `-bf16` when the weight products run in bf16 (for the fast kernels: when this CPU
+    /// runs them natively; otherwise they fall back to f32 and the path says so).
+    pub(crate) fn path(&self, precision: Precision) -> String {
+        let (base, precision) = match self {
+            Target::Fast(pool) => {
+                let isa = match pool.isa() {
+                    Isa::Avx512 => "avx512",
+                    Isa::Avx2Fma => "avx2-fma",
+                    Isa::Portable => "portable",
+                };
+                (format!("fast:{isa}"), precision.resolve(pool.isa()))
+            }
+            Target::Candle(d) => {
+                let device = match d.location() {
+                    candle_core::DeviceLocation::Cpu => "cpu".to_string(),
+                    candle_core::DeviceLocation::Cuda { gpu_id } => format!("cuda:{gpu_id}"),
+                    other => format!("{other:?}").to_lowercase(),
+                };
+                (format!("candle:{device}"), precision)
+            }
+        };
+        match precision {
+            Precision::F32 => base,
+            Precision::Bf16 => format!("{base}-bf16"),
+        }
+    }
+
     /// Human-readable description, e.g. `cpu fast avx2 (2 threads)`.
     pub(crate) fn describe(&self) -> String {
         match self {

@@ -12,7 +12,9 @@ import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
-VENV = REPO / ".venv-lerobot"
+# KAIROS_LEROBOT_VENV names an existing venv with the pinned requirements (e.g. one shared by
+# several checkouts); the default is `<repo>/.venv-lerobot`.
+VENV = Path(os.environ.get("KAIROS_LEROBOT_VENV") or REPO / ".venv-lerobot")
 # `lerobot[smolvla,pi]` (SmolVLA, π0 and π0.5) pulls torch from PyPI, whose Linux wheel links the
 # CUDA runtime (about 4 GB of nvidia-* wheels); it still runs on CPU, which is all these tools use.
 REQUIREMENTS = ["lerobot[smolvla,pi]==0.6.1", "safetensors>=0.4.3"]

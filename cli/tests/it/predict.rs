@@ -231,3 +231,42 @@ fn pi_checkpoints_print_the_chunk() {
         assert_eq!(actions(&v), want.remove(0).actions, "{fixture}");
     }
 }
+
+/// `--kernels candle` moves the whole pipeline: `paths` says `candle:cpu` for every stage, and
+/// the chunk equals the fast kernels' within the parity bound. Each path is within
+/// `5 e_lr + 16 ulp` of LeRobot's f32 actions (`engine/tests/it/smolvla_processors.rs`; `e_lr`
+/// is LeRobot's own f32-vs-f64 error on the fixture's actions, `golden/meta.json`), so the two
+/// are within twice that of each other.
+#[test]
+fn candle_kernels_run_every_stage_on_candle_and_agree_with_the_fast_kernels() {
+    let candle = parse(&predict(&["--kernels", "candle"]));
+    for stage in ["vision", "prefix", "expert"] {
+        assert_eq!(candle["paths"][stage], "candle:cpu", "{stage}");
+    }
+    let fast = parse(&predict(&["--kernels", "fast"]));
+    for stage in ["vision", "prefix", "expert"] {
+        let path = fast["paths"][stage].as_str().unwrap();
+        assert!(path.starts_with("fast:"), "{stage}: {path}");
+    }
+    let meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(fixture().join("golden/meta.json")).unwrap())
+            .unwrap();
+    let e_lr = ["pair.actions", "missing.actions"]
+        .iter()
+        .map(|k| meta["lerobot_f32_vs_f64"][k]["max_abs"].as_f64().unwrap() as f32)
+        .fold(0.0f32, f32::max);
+    let (a, b) = (actions(&candle).concat(), actions(&fast).concat());
+    let big = b.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    let bound = 2.0 * (5.0 * e_lr + 16.0 * f32::EPSILON * big);
+    let diff = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max);
+    assert_eq!(a.len(), b.len());
+    assert!(diff <= bound, "|candle - fast| = {diff:e} > {bound:e}");
+    assert_ne!(
+        a, b,
+        "the two paths computed bit-identical results: one path ran twice"
+    );
+}

@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use super::placement::{self, EngineSlot};
 use super::policy::{PendingView, PriorityPolicy, RemainingWork, validate_order};
+use super::refine::{ProfileRefiner, RefineConfig};
 use super::{
     AdmitError, BatchId, Dispatch, DispatchedRequest, EngineId, EngineSpec, ExecReport, RequestId,
     RobotId, RoundOutcome, RoundSubmit, SchedulerConfig, ServerLoad, TaskEnd, TaskId, Tier,
@@ -54,6 +55,9 @@ struct EngineState {
     busy: Option<BatchId>,
     /// Estimated end of the current batch (meaningful while `busy`).
     busy_until: Timestamp,
+    /// The profile refined from the batch times this instance really takes, when
+    /// [`Scheduler::refine_profiles`] turned refinement on.
+    refiner: Option<ProfileRefiner>,
 }
 
 /// What `handle_cancel` did.
@@ -166,6 +170,8 @@ pub struct Scheduler {
     views: Vec<PendingView>,
     keys: Vec<RequestId>,
     order: Vec<usize>,
+    /// Online profile refinement, for every instance present and to come (off: `None`).
+    refine: Option<RefineConfig>,
 }
 
 impl Scheduler {
@@ -198,7 +204,36 @@ impl Scheduler {
             views: Vec::new(),
             keys: Vec::new(),
             order: Vec::new(),
+            refine: None,
         }
+    }
+
+    /// Refine every instance's profile online from the batch times it really takes (see
+    /// [`super::refine`]), from now on and for instances that join later: the batch limit and
+    /// the latency estimates follow the refined profile. Off by default: the profile is then
+    /// what the instance was given.
+    pub fn refine_profiles(&mut self, config: RefineConfig) {
+        self.refine = Some(config);
+        for engine in &mut self.engines {
+            engine.refiner = Some(ProfileRefiner::new(&engine.spec.profile, config));
+        }
+    }
+
+    /// A generation of `size` requests took `took` on `engine` (without the network round
+    /// trip): the refined profile, if refinement is on, learns it.
+    fn observe_generation(&mut self, engine: EngineId, size: usize, took: Duration) {
+        let Some(e) = self.engines.get_mut(engine.0) else {
+            return;
+        };
+        let Some(refiner) = e.refiner.as_mut() else {
+            return;
+        };
+        refiner.observe(
+            u32::try_from(size).unwrap_or(u32::MAX),
+            took.saturating_sub(e.spec.rtt),
+        );
+        e.spec.profile = refiner.current_profile();
+        e.max_batch = usize::try_from(refiner.allowed_batch()).unwrap_or(usize::MAX);
     }
 
     /// Accepts a round request, or says why not.
@@ -464,7 +499,10 @@ impl Scheduler {
         }
         b.generated_at = Some(now);
         let engine = b.engine;
+        let took = now.saturating_since(b.started_at.unwrap_or(b.dispatched_at));
+        let size = b.entries.len();
         self.release_engine(engine, batch);
+        self.observe_generation(engine, size, took);
     }
 
     /// The engine instance is idle, unless it already runs another batch than `batch`.
@@ -492,9 +530,13 @@ impl Scheduler {
             return;
         };
         self.release_engine(b.engine, batch);
+        let reported = b.generated_at.is_some();
         let now = b.generated_at.unwrap_or(now);
         let started = b.started_at.unwrap_or(b.dispatched_at);
         let generation = now.saturating_since(started);
+        if !reported {
+            self.observe_generation(b.engine, b.entries.len(), generation);
+        }
         for entry in &b.entries {
             if b.started_at.is_none() {
                 self.tasks
@@ -698,7 +740,11 @@ impl Scheduler {
     /// [`EngineId`]; ids are never reused, so a late event about an instance that left cannot
     /// hit a new one.
     pub fn add_engine(&mut self, spec: EngineSpec) -> EngineId {
-        self.engines.push(EngineState::new(spec));
+        let mut engine = EngineState::new(spec);
+        if let Some(config) = self.refine {
+            engine.refiner = Some(ProfileRefiner::new(&engine.spec.profile, config));
+        }
+        self.engines.push(engine);
         EngineId(self.engines.len() - 1)
     }
 
@@ -800,6 +846,7 @@ impl EngineState {
             live: true,
             busy: None,
             busy_until: Timestamp::ZERO,
+            refiner: None,
         }
     }
 }

@@ -43,6 +43,7 @@ pub mod kairos;
 mod placement;
 pub mod plas;
 pub mod policy;
+pub mod refine;
 pub mod registry;
 pub mod srw;
 #[cfg(test)]

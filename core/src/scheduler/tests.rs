@@ -1215,3 +1215,92 @@ mod membership {
         assert!(!s.fail_pending(t(8), r[2]));
     }
 }
+
+/// Online profile refinement through the event API. The start-up profile measured batch 2 on a
+/// busy machine (3.5x batch 1), so it batches nothing; the engine really takes 1.8x. Without
+/// refinement every batch has one request for good; with it, probes of batch 2 and the real
+/// batch times bring batching back. One injected slow batch (10x) afterwards moves batch 2's
+/// estimate by a bounded step: with batch 2 only 11% ahead of batch 1 in throughput, that may
+/// switch batching off, but only until the next probes measure batch 2 again.
+#[test]
+fn refined_profiles_recover_from_a_noisy_start_up_measurement() {
+    let noisy = EngineProfile {
+        model: "test".into(),
+        device: "virtual".into(),
+        points: vec![
+            ProfilePoint {
+                batch: 1,
+                latency_ms: 100.0,
+            },
+            ProfilePoint {
+                batch: 2,
+                latency_ms: 350.0,
+            },
+        ],
+        max_batch: 1,
+    };
+    let real = |size: usize| Duration::from_millis(if size >= 2 { 180 } else { 100 });
+    let run = |refine: bool, rounds: u64, slow_at: Option<u64>| -> (Vec<usize>, Scheduler) {
+        let mut s = Scheduler::new(
+            SchedulerConfig::default(),
+            vec![EngineSpec {
+                name: "edge".into(),
+                tier: Tier::Edge,
+                profile: noisy.clone(),
+                rtt: Duration::ZERO,
+            }],
+            policy("fifo"),
+        );
+        if refine {
+            s.refine_profiles(refine::RefineConfig::default());
+        }
+        let (mut now, mut sizes, mut task) = (Timestamp::ZERO, Vec::new(), 0u64);
+        for round in 0..rounds {
+            while s.pending_len() < 4 {
+                s.handle_submit(now, submit_at(task, 1, now, None)).unwrap();
+                task += 1;
+            }
+            for d in s.poll_dispatch(now) {
+                s.handle_batch_started(now, d.batch);
+                let size = d.requests.len();
+                let took = if slow_at == Some(round) {
+                    real(size) * 10
+                } else {
+                    real(size)
+                };
+                let end = now + took;
+                s.handle_generation_ended(end, d.batch);
+                let outcomes: Vec<_> = d
+                    .requests
+                    .iter()
+                    .map(|r| (r.request, RoundOutcome::Answered { horizon: 1 }))
+                    .collect();
+                s.handle_batch_finished(end, d.batch, &outcomes);
+                sizes.push(size);
+                now = end;
+            }
+        }
+        (sizes, s)
+    };
+    let (plain, _) = run(false, 600, None);
+    assert!(
+        plain.iter().all(|&n| n == 1),
+        "the noisy profile batches nothing"
+    );
+    let (refined, s) = run(true, 600, None);
+    assert!(refined[..10].iter().all(|&n| n == 1));
+    assert!(
+        refined[refined.len() - 100..].iter().all(|&n| n == 2),
+        "batching is back: {:?}",
+        &refined[refined.len() - 100..]
+    );
+    assert_eq!(s.engines().next().unwrap().spec.profile.max_batch, 2);
+    let (slowed, s) = run(true, 600, Some(300));
+    assert_eq!(slowed[..300], refined[..300]);
+    assert!(
+        slowed[slowed.len() - 100..].iter().all(|&n| n == 2),
+        "batching is back after the slow batch: {:?}",
+        &slowed[slowed.len() - 100..]
+    );
+    assert_eq!(s.engines().next().unwrap().spec.profile.max_batch, 2);
+}

@@ -1,14 +1,16 @@
-//! The Candle layers the π model is built from: linear, LayerNorm, Gemma's RMSNorm (plain and
-//! adaptive), GeGLU, multi-head attention and Gemma's RoPE tables. Every op is a Candle op, so
-//! the model runs on any Candle device; activations are `[rows, features]` (or `[batch, rows,
-//! features]`) f32 tensors.
+//! The Candle layers the π models and SmolVLA are built from: linear, LayerNorm, Gemma's RMSNorm
+//! (plain and adaptive), Llama's RMSNorm, GeGLU and SwiGLU, multi-head attention (one sequence or
+//! a batch of them, grouped-query) and Gemma's RoPE tables. Every op is a Candle op, so the
+//! models run on any Candle device; activations are `[rows, features]` (or `[batch, rows,
+//! features]`) f32 tensors. A [`Linear`] may hold its weight in bf16: its product then runs in
+//! bf16 and its output comes back as f32, so norms, softmax and residuals stay in f32.
 //!
 //! Each layer computes what the PyTorch module it transcribes computes, in the same order of
 //! operations where that decides the rounding (the `(1 + w)` of Gemma's norm is made in f32
 //! first, the RoPE angle is `position * inv_freq` rounded once); sums are Candle's, so results
 //! differ from PyTorch's only in rounding.
 
-use candle_core::{D, Device, Tensor};
+use candle_core::{D, DType, Device, Tensor};
 
 use super::vars::Vars;
 use crate::EngineError;
@@ -39,13 +41,38 @@ impl Linear {
         })
     }
 
-    /// `x` is `[.., in]`.
+    /// `x` is `[.., in]`. The rows are one matrix product (one GEMM launch on a GPU), in the
+    /// weight's dtype; the output has `x`'s dtype.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor, EngineError> {
-        let y = x.broadcast_matmul(&self.w_t)?;
-        Ok(match &self.bias {
+        let dims = x.dims();
+        let (inp, out) = self.w_t.dims2()?;
+        if dims.last() != Some(&inp) {
+            return Err(EngineError::InvalidInput(format!(
+                "a linear layer of {inp} inputs got a tensor of shape {dims:?}"
+            )));
+        }
+        let rows = x.elem_count() / inp.max(1);
+        let flat = x.reshape((rows, inp))?;
+        let wd = self.w_t.dtype();
+        let y = if x.dtype() == wd {
+            flat.matmul(&self.w_t)?
+        } else {
+            flat.to_dtype(wd)?.matmul(&self.w_t)?.to_dtype(x.dtype())?
+        };
+        let y = match &self.bias {
             Some(b) => y.broadcast_add(b)?,
             None => y,
-        })
+        };
+        let mut shape = dims.to_vec();
+        if let Some(last) = shape.last_mut() {
+            *last = out;
+        }
+        Ok(y.reshape(shape)?)
+    }
+
+    /// The dtype the product runs in (the weight's).
+    pub fn dtype(&self) -> DType {
+        self.w_t.dtype()
     }
 }
 
@@ -64,6 +91,15 @@ impl LayerNorm {
             bias: vars.get(&[width], "bias")?,
             eps: eps as f32,
         })
+    }
+
+    /// From `[width]` weight and bias already on the device.
+    pub fn from_parts(weight: Tensor, bias: Tensor, eps: f64) -> Self {
+        LayerNorm {
+            weight,
+            bias,
+            eps: eps as f32,
+        }
     }
 
     /// Over the last dimension.
@@ -176,6 +212,31 @@ impl GemmaNorm {
     }
 }
 
+/// Llama's RMSNorm (`LlamaRMSNorm`: `x / rms(x) * w`), Candle's fused op.
+pub struct RmsNorm {
+    weight: Tensor,
+    eps: f32,
+}
+
+impl RmsNorm {
+    /// From a `[width]` weight already on the device.
+    pub fn from_parts(weight: Tensor, eps: f64) -> Self {
+        RmsNorm {
+            weight,
+            eps: eps as f32,
+        }
+    }
+
+    /// Over the last dimension.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor, EngineError> {
+        Ok(candle_nn::ops::rms_norm(
+            &x.contiguous()?,
+            &self.weight,
+            self.eps,
+        )?)
+    }
+}
+
 /// LeRobot's `_gated_residual`: `x + y`, or `x + y * gate`.
 pub fn gated_residual(
     x: &Tensor,
@@ -212,9 +273,64 @@ impl GeGlu {
     }
 }
 
+/// Llama's MLP: `down(silu(gate(x)) * up(x))`.
+pub struct SwiGlu {
+    gate: Linear,
+    up: Linear,
+    down: Linear,
+}
+
+impl SwiGlu {
+    /// From its three projections.
+    pub fn from_parts(gate: Linear, up: Linear, down: Linear) -> Self {
+        SwiGlu { gate, up, down }
+    }
+
+    /// Over the last dimension.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor, EngineError> {
+        let h = (candle_nn::ops::silu(&self.gate.forward(x)?)? * self.up.forward(x)?)?;
+        self.down.forward(&h)
+    }
+}
+
+/// Softmax attention over a batch of sequences: `q` `[batch, heads, lq, hd]` over `k`, `v`
+/// `[batch, kv_heads, lk, hd]` (each KV head serves `heads / kv_heads` query heads), scaled by
+/// `scale`, with an optional additive `mask` broadcastable to `[batch, 1, lq, lk]`. Returns
+/// `[batch, lq, heads * hd]`. The whole batch is two batched matrix products and one softmax.
+pub fn batched_attention(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    scale: f64,
+    mask: Option<&Tensor>,
+) -> Result<Tensor, EngineError> {
+    let (b, heads, lq, hd) = q.dims4()?;
+    let (_, kv_heads, lk, _) = k.dims4()?;
+    let group = heads / kv_heads.max(1);
+    // The query heads that share a KV head are one matrix product against its keys.
+    let q = q.contiguous()?.reshape((b, kv_heads, group * lq, hd))?;
+    let scores = (q.matmul(&k.contiguous()?.t()?)? * scale)?;
+    let scores = match mask {
+        Some(m) => {
+            let m = m.reshape((m.dim(0)?, 1, 1, lq, lk))?;
+            scores
+                .reshape((b, kv_heads, group, lq, lk))?
+                .broadcast_add(&m)?
+                .reshape((b, kv_heads, group * lq, lk))?
+        }
+        None => scores,
+    };
+    let probs = candle_nn::ops::softmax_last_dim(&scores)?;
+    let out = probs.matmul(&v.contiguous()?)?;
+    Ok(out
+        .reshape((b, heads, lq, hd))?
+        .transpose(1, 2)?
+        .reshape((b, lq, heads * hd))?)
+}
+
 /// Softmax attention of `q` `[heads, lq, hd]` over `k`, `v` `[kv_heads, lk, hd]` (each KV head
 /// serves `heads / kv_heads` query heads), scaled by `scale`, with an optional additive `mask`
-/// `[lq, lk]`. Returns `[lq, heads * hd]`.
+/// `[lq, lk]`. Returns `[lq, heads * hd]`: [`batched_attention`] on a batch of one.
 pub fn attention(
     q: &Tensor,
     k: &Tensor,
@@ -222,25 +338,20 @@ pub fn attention(
     scale: f64,
     mask: Option<&Tensor>,
 ) -> Result<Tensor, EngineError> {
-    let (heads, lq, hd) = q.dims3()?;
-    let (kv_heads, lk, _) = k.dims3()?;
-    let group = heads / kv_heads;
-    // The query heads that share a KV head are one matrix product against its keys.
-    let q = q.reshape((kv_heads, group * lq, hd))?;
-    let scores = (q.matmul(&k.t()?)? * scale)?;
-    let scores = match mask {
-        Some(m) => scores
-            .reshape((kv_heads, group, lq, lk))?
-            .broadcast_add(m)?
-            .reshape((kv_heads, group * lq, lk))?,
-        None => scores,
-    };
-    let probs = candle_nn::ops::softmax_last_dim(&scores)?;
-    let out = probs.matmul(&v.contiguous()?)?;
-    Ok(out
-        .reshape((heads, lq, hd))?
-        .transpose(0, 1)?
-        .reshape((lq, heads * hd))?)
+    let mask = mask
+        .map(|m| -> Result<Tensor, EngineError> {
+            let (lq, lk) = m.dims2()?;
+            Ok(m.reshape((1, 1, lq, lk))?)
+        })
+        .transpose()?;
+    let out = batched_attention(
+        &q.unsqueeze(0)?,
+        &k.unsqueeze(0)?,
+        &v.unsqueeze(0)?,
+        scale,
+        mask.as_ref(),
+    )?;
+    Ok(out.squeeze(0)?)
 }
 
 /// `[rows, heads * hd]` -> `[heads, rows, hd]`.
@@ -294,5 +405,76 @@ impl Rope {
     pub fn apply(&self, x: &Tensor) -> Result<Tensor, EngineError> {
         let x = x.unsqueeze(0)?.contiguous()?;
         Ok(candle_nn::rotary_emb::rope(&x, &self.cos, &self.sin)?.squeeze(0)?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tensor(seed: u64, shape: &[usize]) -> Tensor {
+        let n = shape.iter().product();
+        Tensor::from_vec(
+            crate::sampler::gaussian_noise(seed, 0, n),
+            shape,
+            &Device::Cpu,
+        )
+        .unwrap()
+    }
+
+    fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
+        (a - b)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar()
+            .unwrap()
+    }
+
+    /// A bf16 weight multiplies in bf16 and answers in f32, within bf16's rounding of the f32
+    /// product; an input of the wrong width is an error, not a silent reshape.
+    #[test]
+    fn linear_runs_in_its_weights_dtype_and_checks_the_width() {
+        let (w, b) = (tensor(1, &[6, 8]), tensor(2, &[6]));
+        let exact = Linear::from_parts(w.clone(), Some(b.clone())).unwrap();
+        let half = Linear::from_parts(w.to_dtype(DType::BF16).unwrap(), Some(b)).unwrap();
+        let x = tensor(3, &[2, 5, 8]);
+        let (y, y16) = (exact.forward(&x).unwrap(), half.forward(&x).unwrap());
+        assert_eq!(y.dims(), [2, 5, 6]);
+        assert_eq!(y16.dtype(), DType::F32);
+        let d = max_diff(&y, &y16);
+        assert!(d > 0.0 && d < 0.1, "{d}");
+        assert!(exact.forward(&tensor(4, &[4, 6])).is_err());
+    }
+
+    /// Attention over a batch is attention over each sequence, with grouped KV heads and a
+    /// per-sequence mask.
+    #[test]
+    fn batched_attention_is_attention_per_sequence() {
+        let (b, heads, kvh, lq, lk, hd) = (3, 4, 2, 5, 7, 8);
+        let q = tensor(5, &[b, heads, lq, hd]);
+        let k = tensor(6, &[b, kvh, lk, hd]);
+        let v = tensor(7, &[b, kvh, lk, hd]);
+        let mask: Vec<f32> = (0..b * lq * lk)
+            .map(|i| if i % 3 == 0 { f32::NEG_INFINITY } else { 0.0 })
+            .collect();
+        let mask = Tensor::from_vec(mask, (b, 1, lq, lk), &Device::Cpu).unwrap();
+        let all = batched_attention(&q, &k, &v, 0.3, Some(&mask)).unwrap();
+        for i in 0..b {
+            let m = mask.get(i).unwrap().squeeze(0).unwrap();
+            let one = attention(
+                &q.get(i).unwrap(),
+                &k.get(i).unwrap(),
+                &v.get(i).unwrap(),
+                0.3,
+                Some(&m),
+            )
+            .unwrap();
+            assert!(max_diff(&all.get(i).unwrap(), &one) < 1e-6);
+        }
     }
 }

@@ -13,11 +13,13 @@
 use candle_core::Tensor;
 
 use super::config::{SiglipDims, keys};
-use super::layers::{LayerNorm, Linear, attention};
+use super::layers::{LayerNorm, Linear, batched_attention};
 use super::vars::Vars;
 use crate::EngineError;
 
-struct SiglipLayer {
+/// One pre-LN SigLIP encoder layer: `x += out(attn(ln1 x)); x += fc2(gelu_tanh(fc1(ln2 x)))`
+/// (transformers' `SiglipEncoderLayer`; SmolVLM's vision tower uses the same layer).
+pub struct SiglipLayer {
     layer_norm1: LayerNorm,
     q_proj: Linear,
     k_proj: Linear,
@@ -45,26 +47,48 @@ impl SiglipLayer {
         })
     }
 
-    /// `x` is `[images, patches, hidden]`.
-    fn forward(&self, x: &Tensor, d: &SiglipDims) -> Result<Tensor, EngineError> {
+    /// From its parts: the two LayerNorms, the attention's `q`, `k`, `v` and `out` projections
+    /// (`[hidden][hidden]` each, with biases) and the MLP's `fc1`, `fc2`.
+    #[allow(clippy::too_many_arguments)] // one argument per submodule of the PyTorch layer
+    pub fn from_parts(
+        layer_norm1: LayerNorm,
+        q_proj: Linear,
+        k_proj: Linear,
+        v_proj: Linear,
+        out_proj: Linear,
+        layer_norm2: LayerNorm,
+        fc1: Linear,
+        fc2: Linear,
+    ) -> Self {
+        SiglipLayer {
+            layer_norm1,
+            q_proj,
+            k_proj,
+            v_proj,
+            out_proj,
+            layer_norm2,
+            fc1,
+            fc2,
+        }
+    }
+
+    /// `x` is `[images, patches, hidden]`, attention with `heads` heads per image (all images
+    /// in one batched product).
+    pub fn forward(&self, x: &Tensor, heads: usize) -> Result<Tensor, EngineError> {
         let (n, p, h) = x.dims3()?;
-        let hd = h / d.heads;
+        let hd = h / heads;
         let y = self.layer_norm1.forward(x)?;
         // [images, patches, hidden] -> [images, heads, patches, hd]
-        let heads = |t: Tensor| -> Result<Tensor, EngineError> {
-            Ok(t.reshape((n, p, d.heads, hd))?
+        let split = |t: Tensor| -> Result<Tensor, EngineError> {
+            Ok(t.reshape((n, p, heads, hd))?
                 .transpose(1, 2)?
                 .contiguous()?)
         };
-        let q = heads(self.q_proj.forward(&y)?)?;
-        let k = heads(self.k_proj.forward(&y)?)?;
-        let v = heads(self.v_proj.forward(&y)?)?;
+        let q = split(self.q_proj.forward(&y)?)?;
+        let k = split(self.k_proj.forward(&y)?)?;
+        let v = split(self.v_proj.forward(&y)?)?;
         let scale = (hd as f64).powf(-0.5);
-        let mut outs = Vec::with_capacity(n);
-        for i in 0..n {
-            outs.push(attention(&q.get(i)?, &k.get(i)?, &v.get(i)?, scale, None)?);
-        }
-        let att = Tensor::stack(&outs, 0)?;
+        let att = batched_attention(&q, &k, &v, scale, None)?;
         let x = (x + self.out_proj.forward(&att)?)?;
         let y = self.layer_norm2.forward(&x)?;
         let y = self.fc2.forward(&self.fc1.forward(&y)?.gelu()?)?;
@@ -143,7 +167,7 @@ impl SiglipTower {
             .forward(&patches)?
             .broadcast_add(&self.position_embedding)?;
         for layer in &self.layers {
-            x = layer.forward(&x, d)?;
+            x = layer.forward(&x, d.heads)?;
         }
         let hidden = self.post_layernorm.forward(&x)?;
         let embeddings = self.projector.forward(&hidden)?;

@@ -7,11 +7,15 @@
 //! - [`expert`]: the action expert and its Euler loop ([`SmolVlaExpert`]: [`PrefixKv`] ->
 //!   actions), on the engine's CPU kernels or in Candle.
 //! - Shared by both: the checkpoint's configs ([`config`]), its `Linear` and Llama-layer weights
-//!   ([`linear`], [`llama_layer`]), and the prefix cache between them ([`prefix`]).
+//!   ([`linear`], [`llama_layer`]; on a Candle device through `candle_weights`), and the prefix
+//!   cache between them ([`prefix`]).
 //! - The policy around them: the processors ([`processors`], [`tokenize`], [`images`],
 //!   [`checkpoint`]), the whole pipeline ([`pipeline`]), and the expert served with a stand-in
 //!   prefix ([`serving`]).
+//! - A seeded random checkpoint folder of any SmolVLA shape, `smolvla_base`'s included
+//!   ([`random_checkpoint`]).
 
+mod candle_weights;
 pub mod checkpoint;
 pub mod config;
 pub mod expert;
@@ -21,6 +25,7 @@ pub mod llama_layer;
 pub mod pipeline;
 pub mod prefix;
 pub mod processors;
+pub mod random_checkpoint;
 pub mod serving;
 pub mod tokenize;
 pub mod vlm;

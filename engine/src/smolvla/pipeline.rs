@@ -19,6 +19,7 @@ use super::config::{ExpertDims, VlmConfig};
 use super::vlm::vision::VisionImage;
 use super::vlm::{SmolVlaVlm, VlmObservation};
 use super::{ExpertWeights, SmolVlaExpert};
+pub use crate::model::StagePaths;
 use crate::sampler::gaussian_noise;
 use crate::weights::Checkpoint;
 use crate::{ActionChunk, ActionModel, ActionRequest, EngineError, EngineOptions, ModelSpec};
@@ -102,6 +103,15 @@ impl SmolVlaPipeline {
             expert,
             spec,
         })
+    }
+
+    /// The path each stage runs on.
+    pub fn paths(&self) -> StagePaths {
+        StagePaths {
+            vision: self.vlm.path().to_owned(),
+            prefix: self.vlm.path().to_owned(),
+            expert: self.expert.path().to_owned(),
+        }
     }
 
     /// The VLM.
@@ -260,6 +270,10 @@ impl ActionModel for SmolVlaPipeline {
             guidance: self.expert.guidance_support(),
             action_space: crate::ActionSpace::Unspecified,
         }
+    }
+
+    fn paths(&self) -> Option<StagePaths> {
+        Some(SmolVlaPipeline::paths(self))
     }
 
     fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {

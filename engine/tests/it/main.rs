@@ -16,4 +16,5 @@ mod smolvla_loading;
 mod smolvla_parity;
 mod smolvla_processors;
 mod smolvla_rtc;
+mod smolvla_random_checkpoint;
 mod smolvla_vlm;

@@ -129,15 +129,22 @@ impl Case {
 }
 
 fn models(kernels: Kernels) -> (SmolVlaVlm, SmolVlaExpert) {
-    let vlm = SmolVlaVlm::load(&fixture(), &cpu(kernels)).unwrap();
-    let expert = SmolVlaExpert::load(&fixture(), &cpu(kernels)).unwrap();
+    models_with(&cpu(kernels))
+}
+
+fn models_with(options: &EngineOptions) -> (SmolVlaVlm, SmolVlaExpert) {
+    let vlm = SmolVlaVlm::load(&fixture(), options).unwrap();
+    let expert = SmolVlaExpert::load(&fixture(), options).unwrap();
     (vlm, expert)
 }
 
 fn parity(kernels: Kernels, name: &str) {
-    let g = Goldens::open();
-    let (vlm, expert) = models(kernels);
-    let c = case(&g, name);
+    parity_with(&Goldens::open(), &cpu(kernels), name);
+}
+
+fn parity_with(g: &Goldens, options: &EngineOptions, name: &str) {
+    let (vlm, expert) = models_with(options);
+    let c = case(g, name);
     let d = expert.dims().clone();
 
     // Vision tower and connector on every slot's image (the empty camera's all -1 image too).
@@ -145,14 +152,11 @@ fn parity(kernels: Kernels, name: &str) {
         let images: Vec<VisionImage<'_>> = (0..c.batch).map(|b| c.image(s, b)).collect();
         let out = vlm.embed_images(&images).unwrap();
         let cat = |v: &[Vec<f32>]| -> Vec<f32> { v.concat() };
+        check(g, &format!("{name}.vision.{s}"), &cat(&out.hidden), &|_| {
+            true
+        });
         check(
-            &g,
-            &format!("{name}.vision.{s}"),
-            &cat(&out.hidden),
-            &|_| true,
-        );
-        check(
-            &g,
+            g,
             &format!("{name}.connector.{s}"),
             &cat(&out.embeddings),
             &|_| true,
@@ -174,7 +178,7 @@ fn parity(kernels: Kernels, name: &str) {
     }
     let h = vlm.config().text_config.hidden_size;
     let flat: Vec<f32> = embedded.iter().flat_map(|e| e.embeddings.clone()).collect();
-    check(&g, &format!("{name}.prefix_embs"), &flat, &|i| {
+    check(g, &format!("{name}.prefix_embs"), &flat, &|i| {
         pad[i / h] != 0
     });
 
@@ -183,10 +187,10 @@ fn parity(kernels: Kernels, name: &str) {
     for l in 0..d.layers.len() {
         let keys: Vec<f32> = prefixes.iter().flat_map(|p| p.keys(l).to_vec()).collect();
         let values: Vec<f32> = prefixes.iter().flat_map(|p| p.values(l).to_vec()).collect();
-        check(&g, &format!("{name}.layer.{l}.key"), &keys, &|i| {
+        check(g, &format!("{name}.layer.{l}.key"), &keys, &|i| {
             pad[i / kvw] != 0
         });
-        check(&g, &format!("{name}.layer.{l}.value"), &values, &|i| {
+        check(g, &format!("{name}.layer.{l}.value"), &values, &|i| {
             pad[i / kvw] != 0
         });
     }
@@ -210,7 +214,7 @@ fn parity(kernels: Kernels, name: &str) {
                 .collect::<Vec<_>>()
         })
         .collect();
-    check(&g, &format!("{name}.actions_norm"), &actions, &|_| true);
+    check(g, &format!("{name}.actions_norm"), &actions, &|_| true);
 }
 
 #[test]
@@ -226,6 +230,30 @@ fn a_missing_camera_matches_lerobot() {
 #[test]
 fn portable_kernels_match_lerobot() {
     parity(Kernels::Portable, "pair");
+}
+
+/// The Candle path (vision tower, connector, text layers and expert in Candle ops) on the CPU,
+/// the reference for CUDA: the same bound.
+#[test]
+fn candle_path_matches_lerobot() {
+    parity(Kernels::Candle, "pair");
+    parity(Kernels::Candle, "missing");
+}
+
+/// The same on the first GPU (`scripts/run-cuda-tests.sh`): the same f32 bound, as for the
+/// expert alone (`smolvla_parity.rs`: Candle keeps cuBLAS's f32 products at full precision).
+#[cfg(feature = "cuda")]
+#[test]
+fn cuda_path_matches_lerobot() {
+    let options = EngineOptions {
+        device: DeviceKind::Cuda(0),
+        kernels: Kernels::Candle,
+        ..Default::default()
+    };
+    let g = Goldens::open();
+    for name in ["pair", "missing"] {
+        parity_with(&g, &options, name);
+    }
 }
 
 /// A batch mixing both cases (different cameras and text lengths) gives every observation

@@ -7,7 +7,9 @@ use std::sync::Arc;
 use kairos_engine::profile::{
     DEFAULT_MIN_GAIN, MeasureEvent, MeasureOptions, measure, saturation_batch,
 };
-use kairos_engine::{ActionModel, EngineError, EngineOptions, EngineProfile, ProfilePoint};
+use kairos_engine::{
+    ActionModel, EngineError, EngineOptions, EngineProfile, ProfilePoint, StagePaths,
+};
 
 use super::{EmulatedLinkEngine, EngineInstance, EnginePool, LocalEngine, PoolBuildError};
 use crate::config::EngineConfig;
@@ -82,6 +84,8 @@ pub enum BuildEvent {
         index: usize,
         /// Its profile.
         profile: EngineProfile,
+        /// The path each stage of its model runs on, when the model says.
+        paths: Option<StagePaths>,
     },
 }
 
@@ -127,10 +131,16 @@ pub fn build_pool(
         };
         if let Some(cap) = config.max_batch {
             profile.max_batch = profile.max_batch.min(cap).max(1);
+            // The scheduler's online refinement never forms batches larger than the profile's
+            // largest point: the points past the cap go.
+            if profile.points.iter().any(|p| p.batch <= cap) {
+                profile.points.retain(|p| p.batch <= cap);
+            }
         }
         progress(BuildEvent::Ready {
             index,
             profile: profile.clone(),
+            paths: model.paths(),
         });
         for i in 0..config.instances {
             let name = format!("{}-{index}.{i}", tier_name(config.tier));

@@ -241,7 +241,11 @@ pub async fn start(
     };
     let actions = Arc::new(actions);
     let specs = pool.specs();
-    let scheduler = Scheduler::new(config.scheduler.core(), specs, priority);
+    let mut scheduler = Scheduler::new(config.scheduler.core(), specs, priority);
+    // The profiles measured at start (or read from files) are refined from the batch times
+    // the engines really take: one noisy start-up measurement must not fix the batch limit for
+    // the server's life.
+    scheduler.refine_profiles(kairos_core::scheduler::refine::RefineConfig::default());
 
     let server_config = quinn_server_config(&identity, config)?;
     let bind_error = |source| LaunchError::Bind {

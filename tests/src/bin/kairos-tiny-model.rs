@@ -3,6 +3,11 @@
 //! `cargo run -p kairos-tests --bin kairos-tiny-model -- DIR`, then `[[engine]] model = "DIR"`.
 //!
 //! Shapes: state 8, actions 16 × 7, 4 flow steps, no cameras, one transformer layer of width 32.
+//!
+//! `--preset smolvla-base` instead writes a seeded random SmolVLA checkpoint folder of
+//! `lerobot/smolvla_base`'s shapes (the files LeRobot's `save_pretrained` writes, 1.2 GB; see
+//! `kairos_engine::smolvla::random_checkpoint`), to measure the full-size model where no
+//! checkpoint can be downloaded: `kairos predict --model DIR`.
 
 use std::path::PathBuf;
 
@@ -10,6 +15,7 @@ use anyhow::Context;
 use clap::Parser;
 use kairos_engine::EngineOptions;
 use kairos_engine::flow_head::{FlowHead, FlowHeadConfig};
+use kairos_engine::smolvla::random_checkpoint::RandomCheckpoint;
 
 /// Write a tiny flow-head checkpoint (state 8, actions 16 × 7, 4 flow steps, no cameras, one
 /// transformer layer of width 32) for load runs: `[[engine]] model = "DIR"`.
@@ -18,11 +24,33 @@ use kairos_engine::flow_head::{FlowHead, FlowHeadConfig};
 struct Args {
     /// Directory to write the checkpoint into (created if missing).
     dir: PathBuf,
+    /// What to write.
+    #[arg(long, value_enum, default_value_t = Preset::FlowHead)]
+    preset: Preset,
+    /// Seed of the weights (`smolvla-base`).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+}
+
+/// The checkpoints this command writes.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum Preset {
+    /// The tiny flow head for load runs.
+    FlowHead,
+    /// A random SmolVLA folder of `lerobot/smolvla_base`'s shapes.
+    SmolvlaBase,
 }
 
 fn main() -> anyhow::Result<()> {
     // Parsing comes first: `--help` and bad arguments end here, before anything is written.
-    let Args { dir } = Args::parse();
+    let Args { dir, preset, seed } = Args::parse();
+    if preset == Preset::SmolvlaBase {
+        RandomCheckpoint::smolvla_base(seed)
+            .write(&dir)
+            .with_context(|| format!("writing {}", dir.display()))?;
+        println!("wrote {}", dir.display());
+        return Ok(());
+    }
     let config = FlowHeadConfig {
         name: "flow-head-tiny".into(),
         state_dim: 8,

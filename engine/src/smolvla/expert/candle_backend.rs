@@ -1,61 +1,37 @@
-//! The expert in plain Candle tensor ops, for any Candle device (CUDA with `--features cuda`).
+//! The expert in plain Candle tensor ops, for any Candle device (CUDA with `--features cuda`),
+//! built from the shared Candle layers ([`crate::pi::layers`]).
 //!
 //! This is a direct transcription of LeRobot's modules: prefixes are padded to the longest in
-//! the batch and hidden by an additive `-inf` mask built with LeRobot's rules, GQA expands the
-//! KV heads, and every op runs in f32. On the CPU it is the reference the fast path is tested
-//! against (besides the LeRobot golden files).
+//! the batch and hidden by an additive `-inf` mask built with LeRobot's rules, and attention is
+//! grouped-query over the KV heads. The weight products run in the precision's dtype (f32, or
+//! bf16 with f32 norms, softmax and residuals). On the CPU in f32 it is the reference the fast
+//! path is tested against (besides the LeRobot golden files).
+//!
+//! Per `sample` call the prefix keys and values (projected once for the cross-attention
+//! layers), the masks, the RoPE tables and the time embeddings go to the device once and serve
+//! all Euler steps, and the Euler loop itself runs on the device.
 
 use candle_core::{DType, Device, Tensor};
 
 use super::weights::{ExpertWeights, time_embedding};
 use crate::EngineError;
 use crate::guidance::RowGuide;
+use crate::kernels::Precision;
+use crate::pi::layers::{Linear, RmsNorm, SwiGlu, batched_attention};
 use crate::sampler::ClosureField;
+use crate::smolvla::candle_weights::{linear, matmul_dtype, vector};
 use crate::smolvla::config::{ExpertDims, LayerKind};
-use crate::smolvla::linear::LinearWeights;
 use crate::smolvla::prefix::PrefixKv;
-
-struct Linear {
-    /// `[in][out]` (transposed once at load so the matmul needs no strided view).
-    w_t: Tensor,
-    bias: Option<Tensor>,
-}
-
-impl Linear {
-    fn new(l: &LinearWeights, dev: &Device) -> Result<Self, EngineError> {
-        let w = Tensor::from_slice(&l.weight, (l.out_dim, l.in_dim), dev)?;
-        let bias = l
-            .bias
-            .as_ref()
-            .map(|b| Tensor::from_slice(b, l.out_dim, dev))
-            .transpose()?;
-        Ok(Linear {
-            w_t: w.t()?.contiguous()?,
-            bias,
-        })
-    }
-
-    /// `x wᵀ + b` for `x` of shape `[.., in]`.
-    fn forward(&self, x: &Tensor) -> Result<Tensor, EngineError> {
-        let y = x.broadcast_matmul(&self.w_t)?;
-        Ok(match &self.bias {
-            Some(b) => y.broadcast_add(b)?,
-            None => y,
-        })
-    }
-}
 
 struct Layer {
     kind: LayerKind,
-    input_norm: Tensor,
-    post_norm: Tensor,
+    input_norm: RmsNorm,
+    post_norm: RmsNorm,
     q: Linear,
     k: Linear,
     v: Linear,
     o: Linear,
-    gate: Linear,
-    up: Linear,
-    down: Linear,
+    mlp: SwiGlu,
 }
 
 /// The expert's weights on a Candle device.
@@ -63,7 +39,7 @@ pub(crate) struct CandleExpert {
     dims: ExpertDims,
     device: Device,
     layers: Vec<Layer>,
-    final_norm: Tensor,
+    final_norm: RmsNorm,
     action_in: Linear,
     time_in: Linear,
     time_out: Linear,
@@ -72,23 +48,30 @@ pub(crate) struct CandleExpert {
 }
 
 impl CandleExpert {
-    pub(crate) fn new(w: &ExpertWeights, device: &Device) -> Result<Self, EngineError> {
-        let h = w.dims.hidden;
+    pub(crate) fn new(
+        w: &ExpertWeights,
+        device: &Device,
+        precision: Precision,
+    ) -> Result<Self, EngineError> {
+        let dtype = matmul_dtype(precision);
+        let eps = f64::from(w.dims.rms_eps);
         let layers = w
             .layers
             .iter()
             .map(|l| {
                 Ok(Layer {
                     kind: l.kind,
-                    input_norm: Tensor::from_slice(&l.input_norm, h, device)?,
-                    post_norm: Tensor::from_slice(&l.post_norm, h, device)?,
-                    q: Linear::new(&l.q_proj, device)?,
-                    k: Linear::new(&l.k_proj, device)?,
-                    v: Linear::new(&l.v_proj, device)?,
-                    o: Linear::new(&l.o_proj, device)?,
-                    gate: Linear::new(&l.gate_proj, device)?,
-                    up: Linear::new(&l.up_proj, device)?,
-                    down: Linear::new(&l.down_proj, device)?,
+                    input_norm: RmsNorm::from_parts(vector(&l.input_norm, device)?, eps),
+                    post_norm: RmsNorm::from_parts(vector(&l.post_norm, device)?, eps),
+                    q: linear(&l.q_proj, dtype, device)?,
+                    k: linear(&l.k_proj, dtype, device)?,
+                    v: linear(&l.v_proj, dtype, device)?,
+                    o: linear(&l.o_proj, dtype, device)?,
+                    mlp: SwiGlu::from_parts(
+                        linear(&l.gate_proj, dtype, device)?,
+                        linear(&l.up_proj, dtype, device)?,
+                        linear(&l.down_proj, dtype, device)?,
+                    ),
                 })
             })
             .collect::<Result<Vec<_>, EngineError>>()?;
@@ -96,12 +79,14 @@ impl CandleExpert {
             dims: w.dims.clone(),
             device: device.clone(),
             layers,
-            final_norm: Tensor::from_slice(&w.final_norm, h, device)?,
-            action_in: Linear::new(&w.action_in_proj, device)?,
-            time_in: Linear::new(&w.action_time_mlp_in, device)?,
-            time_out: Linear::new(&w.action_time_mlp_out, device)?,
-            out: Linear::new(&w.action_out_proj, device)?,
-            state: Linear::new(&w.state_proj, device)?,
+            final_norm: RmsNorm::from_parts(vector(&w.final_norm, device)?, eps),
+            action_in: linear(&w.action_in_proj, dtype, device)?,
+            time_in: linear(&w.action_time_mlp_in, dtype, device)?,
+            time_out: linear(&w.action_time_mlp_out, dtype, device)?,
+            // LeRobot upcasts the expert's output to f32 before `action_out_proj`, and the
+            // state token is the VLM's input: both stay f32.
+            out: linear(&w.action_out_proj, DType::F32, device)?,
+            state: linear(&w.state_proj, DType::F32, device)?,
         })
     }
 
@@ -110,7 +95,10 @@ impl CandleExpert {
         Ok(self.state.forward(&s)?.flatten_all()?.to_vec1()?)
     }
 
-    /// Same contract as the CPU expert's `sample`.
+    /// Same contract as the CPU expert's `sample`. The Euler loop stays on the device: `x_t`,
+    /// the velocities and the updates never leave it between steps (the same f32 operations
+    /// as `sampler::integrate`, `u = dt v`, `x += u`), and come back to the host in one copy
+    /// each at the end.
     pub(crate) fn sample(
         &self,
         prefixes: &[&PrefixKv],
@@ -125,25 +113,58 @@ impl CandleExpert {
         let (rows, n) = (row_prefix.len(), d.chunk);
         let context = self.attention_context(prefixes, row_prefix)?;
         let len = n * d.action_pad;
-        let steps = d.steps;
-        // An `rtc_vjp` row is refused by the field's default `velocity_vjp`: candle_nn's fused
-        // softmax, RMSNorm and RoPE ops, which this expert runs, have no backward pass.
-        let mut field = ClosureField(|_k: usize, t: f32, xt: &[f32], v: &mut [f32]| {
-            let xt = Tensor::from_slice(xt, (rows, n, d.action_pad), dev)?;
-            let out = self.velocity(&xt, t, &context)?;
-            v.copy_from_slice(&out.flatten_all()?.to_vec1::<f32>()?);
-            Ok(())
-        });
-        crate::sampler::integrate_guided(
-            crate::sampler::Schedule { steps },
-            rows,
-            len,
-            x,
-            updates,
-            guides,
-            Some(velocities),
-            &mut field,
-        )
+        let schedule = crate::sampler::Schedule { steps: d.steps };
+        let steps = schedule.steps;
+        // Every step's time embedding, uploaded once.
+        let temb: Vec<f32> = (0..steps)
+            .flat_map(|k| time_embedding(schedule.time(k), d.hidden, d.min_period, d.max_period))
+            .collect();
+        let temb = Tensor::from_vec(temb, (steps, 1, 1, d.hidden), dev)?;
+        if guides.iter().any(Option::is_some) {
+            // Guidance reads and changes each row's velocity and sample between steps, on the
+            // host, in the shared sampler (the same operations as the loop below, so a row
+            // without guidance gets the same bits here as in a batch without any). An `rtc_vjp`
+            // row is refused by the field's default `velocity_vjp`: candle_nn's fused softmax,
+            // RMSNorm and RoPE ops, which this expert runs, have no backward pass.
+            let mut field = ClosureField(|k: usize, _t: f32, xt: &[f32], v: &mut [f32]| {
+                let xt = Tensor::from_slice(xt, (rows, n, d.action_pad), dev)?;
+                let out = self.velocity(&xt, &temb.get(k)?, &context)?;
+                v.copy_from_slice(&out.flatten_all()?.to_vec1::<f32>()?);
+                Ok(())
+            });
+            return crate::sampler::integrate_guided(
+                schedule,
+                rows,
+                len,
+                x,
+                updates,
+                guides,
+                Some(velocities),
+                &mut field,
+            );
+        }
+        let dt = f64::from(schedule.dt());
+        let mut xt = Tensor::from_slice(x, (rows, n, d.action_pad), dev)?;
+        let (mut vs, mut us) = (Vec::with_capacity(steps), Vec::with_capacity(steps));
+        for k in 0..steps {
+            let v = self.velocity(&xt, &temb.get(k)?, &context)?;
+            let u = (&v * dt)?;
+            xt = (&xt + &u)?;
+            vs.push(v);
+            us.push(u);
+        }
+        x.copy_from_slice(&xt.flatten_all()?.to_vec1::<f32>()?);
+        // `[steps][rows][len]` on the device -> `[rows][steps][len]` on the host.
+        for (all, out) in [(vs, &mut *velocities), (us, &mut *updates)] {
+            let host: Vec<f32> = Tensor::stack(&all, 0)?.flatten_all()?.to_vec1()?;
+            for k in 0..steps {
+                for r in 0..rows {
+                    out[(r * steps + k) * len..][..len]
+                        .copy_from_slice(&host[(k * rows + r) * len..][..len]);
+                }
+            }
+        }
+        Ok(())
     }
 
     /// The prefix keys and values, masks and RoPE tables that every step of a `sample` call
@@ -231,11 +252,12 @@ impl CandleExpert {
         Ok(prefix_kv)
     }
 
-    /// The velocity of the action tokens `xt` (`[rows, chunk, action_pad]`) at time `t`.
+    /// The velocity of the action tokens `xt` (`[rows, chunk, action_pad]`) at the time whose
+    /// embedding is `temb` (`[1, 1, hidden]`).
     fn velocity(
         &self,
         xt: &Tensor,
-        t: f32,
+        temb: &Tensor,
         context: &AttentionContext,
     ) -> Result<Tensor, EngineError> {
         let AttentionContext {
@@ -249,18 +271,13 @@ impl CandleExpert {
         let (rows, n, _) = xt.dims3()?;
         let (heads, kvh, hd) = (d.heads, d.kv_heads, d.head_dim);
         let action_emb = self.action_in.forward(xt)?;
-        let temb = Tensor::from_vec(
-            time_embedding(t, d.hidden, d.min_period, d.max_period),
-            (1, 1, d.hidden),
-            &self.device,
-        )?;
         let temb = temb.broadcast_as(action_emb.shape())?;
         let h = Tensor::cat(&[&action_emb, &temb], 2)?;
         let h = candle_nn::ops::silu(&self.time_in.forward(&h)?)?;
         let mut x = self.time_out.forward(&h)?;
         let scale = (hd as f64).powf(-0.5);
         for (layer, (pk, pv)) in self.layers.iter().zip(prefix_kv) {
-            let h = candle_nn::ops::rms_norm(&x, &layer.input_norm, d.rms_eps)?;
+            let h = layer.input_norm.forward(&x)?;
             let to_heads = |t: Tensor, nh: usize| -> Result<Tensor, EngineError> {
                 Ok(t.reshape((rows, n, nh, hd))?
                     .transpose(1, 2)?
@@ -282,27 +299,12 @@ impl CandleExpert {
             };
             let q = to_heads(layer.q.forward(&h)?, heads)?;
             let q = candle_nn::rotary_emb::rope(&q, &rope.0, &rope.1)?;
-            let expand = |t: &Tensor| -> Result<Tensor, EngineError> {
-                let (b, g, s, e) = t.dims4()?;
-                Ok(t.unsqueeze(2)?
-                    .broadcast_as((b, g, heads / kvh, s, e))?
-                    .reshape((b, heads, s, e))?)
-            };
-            let (keys, values) = (expand(&keys)?, expand(&values)?);
-            let scores = (q.matmul(&keys.t()?)? * scale)?.broadcast_add(mask)?;
-            let probs = candle_nn::ops::softmax_last_dim(&scores)?;
-            let att = probs
-                .matmul(&values)?
-                .transpose(1, 2)?
-                .reshape((rows, n, heads * hd))?;
+            let att = batched_attention(&q, &keys, &values, scale, Some(mask))?;
             x = (layer.o.forward(&att)? + &x)?;
-            let h = candle_nn::ops::rms_norm(&x, &layer.post_norm, d.rms_eps)?;
-            let mlp = (candle_nn::ops::silu(&layer.gate.forward(&h)?)? * layer.up.forward(&h)?)?;
-            x = (layer.down.forward(&mlp)? + &x)?;
+            x = (layer.mlp.forward(&layer.post_norm.forward(&x)?)? + &x)?;
         }
-        let h = candle_nn::ops::rms_norm(&x, &self.final_norm, d.rms_eps)?;
-        // LeRobot upcasts the expert output to f32 before action_out_proj (a no-op in f32).
-        self.out.forward(&h.to_dtype(DType::F32)?)
+        let h = self.final_norm.forward(&x)?;
+        self.out.forward(&h)
     }
 }
 

@@ -46,6 +46,7 @@ pub struct SmolVlaExpert {
     dims: ExpertDims,
     backend: Backend,
     description: String,
+    path: String,
 }
 
 impl std::fmt::Debug for SmolVlaExpert {
@@ -102,23 +103,31 @@ impl SmolVlaExpert {
     ) -> Result<Self, EngineError> {
         let target = options.target()?;
         let description = target.describe();
-        let backend = match target {
-            Target::Fast(pool) => Backend::Fast {
-                model: Box::new(cpu::CpuExpert::new(
-                    weights,
-                    options.precision.resolve(pool.isa()),
+        let path = target.path(options.precision);
+        let backend =
+            match target {
+                Target::Fast(pool) => Backend::Fast {
+                    model: Box::new(cpu::CpuExpert::new(
+                        weights,
+                        options.precision.resolve(pool.isa()),
+                    )),
+                    pool,
+                },
+                Target::Candle(device) => Backend::Candle(Box::new(
+                    candle_backend::CandleExpert::new(weights, &device, options.precision)?,
                 )),
-                pool,
-            },
-            Target::Candle(device) => Backend::Candle(Box::new(candle_backend::CandleExpert::new(
-                weights, &device,
-            )?)),
-        };
+            };
         Ok(SmolVlaExpert {
             dims: weights.dims.clone(),
             backend,
             description,
+            path,
         })
+    }
+
+    /// The path it runs on, e.g. `fast:avx2-fma` or `candle:cuda:0-bf16`.
+    pub fn path(&self) -> &str {
+        &self.path
     }
 
     /// Shapes.

@@ -7,10 +7,12 @@
 //! tokenizer's attention mask is 0); the state token `state_proj(state)`; then padding up to
 //! `prefix_length` if that is set. See `text` for the layers and masks.
 //!
-//! It runs on the engine's CPU kernels only (the vision tower is 212 GFLOP per 512x512 camera;
-//! see docs/ENGINE.md for why not Candle's `siglip`): the vision tower and connector in
-//! [`vision`], the text layers in `text`, the weights in [`weights`].
+//! Two backends run it, as for the expert: the engine's CPU kernels (the vision tower and
+//! connector in [`vision`], the text layers in `text`), and Candle ops on any Candle device
+//! (`vision`'s Candle tower, `candle_text`), the reference on the CPU and the path on CUDA. The
+//! prefix embeddings are assembled on the host for both. The weights are in [`weights`].
 
+mod candle_text;
 mod text;
 pub mod vision;
 pub mod weights;
@@ -22,9 +24,11 @@ use super::prefix::PrefixKv;
 use crate::EngineError;
 use crate::kernels::Pool;
 use crate::options::{EngineOptions, Target};
+use crate::smolvla::candle_weights::matmul_dtype;
 use crate::weights::{Checkpoint, StoredTensor};
-use text::{CpuText, ValidPrefix};
-use vision::{CpuVision, VisionImage, VisionOutput};
+use candle_text::CandleText;
+use text::{CpuText, ValidKv, ValidPrefix};
+use vision::{CandleVision, CpuVision, VisionImage, VisionOutput};
 use weights::VlmWeights;
 
 /// One observation as the VLM takes it (after LeRobot's processors and `prepare_images`).
@@ -51,23 +55,38 @@ pub struct PrefixEmbeddings {
     pub valid: Vec<bool>,
 }
 
+/// Where the vision tower and the text layers run.
+enum Backend {
+    /// The engine's CPU kernels on a pool of threads.
+    Fast {
+        vision: Box<CpuVision>,
+        text: CpuText,
+        pool: Pool,
+    },
+    /// Candle ops on one device.
+    Candle {
+        vision: Box<CandleVision>,
+        text: CandleText,
+    },
+}
+
 /// The loaded VLM: vision tower, connector, token embeddings and the kept text layers.
 pub struct SmolVlaVlm {
     config: VlmConfig,
     prefix_length: usize,
-    vision: CpuVision,
-    text: CpuText,
+    backend: Backend,
     /// As the checkpoint stores it (bf16 for SmolVLM2: 95 MB instead of 189 MB in `f32`); rows
     /// are widened, exactly, when looked up.
     embed_tokens: StoredTensor,
-    pool: Pool,
+    /// The path it runs on, e.g. `fast:avx2-fma` or `candle:cuda:0` (see [`Target::path`]).
+    path: String,
 }
 
 impl std::fmt::Debug for SmolVlaVlm {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("SmolVlaVlm")
             .field("config", &self.config)
-            .field("pool", &self.pool)
+            .field("path", &self.path)
             .finish()
     }
 }
@@ -96,8 +115,8 @@ impl SmolVlaVlm {
         Self::build(weights, cfg, options)
     }
 
-    /// Build from weights in memory (a copy of them is packed). The VLM runs on the fast CPU
-    /// kernels; `options` gives the threads and instruction set (CUDA is not supported).
+    /// Build from weights in memory (a copy of them is packed, or put on the device). The VLM
+    /// runs where `options` say: the fast CPU kernels, or Candle on the CPU or a GPU.
     pub fn from_weights(
         weights: &VlmWeights,
         cfg: &SmolVlaConfig,
@@ -106,7 +125,8 @@ impl SmolVlaVlm {
         Self::build(weights.clone(), cfg, options)
     }
 
-    /// [`Self::from_weights`], consuming the weights: each tensor is dropped once packed.
+    /// [`Self::from_weights`], consuming the weights: each tensor is dropped once packed (or
+    /// once on the device).
     fn build(
         mut weights: VlmWeights,
         cfg: &SmolVlaConfig,
@@ -118,31 +138,47 @@ impl SmolVlaVlm {
                 reason: "add_image_special_tokens = true is not supported".into(),
             });
         }
-        let pool = match options.target()? {
-            Target::Fast(pool) => pool,
-            Target::Candle(candle_core::Device::Cpu) => Pool::new(options.threads)?,
-            Target::Candle(d) => {
-                return Err(EngineError::InvalidInput(format!(
-                    "the SmolVLA VLM runs on the CPU kernels only, not on {d:?}"
-                )));
-            }
-        };
-        let precision = options.precision.resolve(pool.isa());
+        let target = options.target()?;
+        let path = target.path(options.precision);
         let config = weights.config.clone();
         let embed_tokens = std::mem::take(&mut weights.embed_tokens);
-        let text = CpuText::new(
-            &config.text_config,
-            std::mem::take(&mut weights.layers),
-            precision,
-        );
+        let backend = match target {
+            Target::Fast(pool) => {
+                let precision = options.precision.resolve(pool.isa());
+                let text = CpuText::new(
+                    &config.text_config,
+                    std::mem::take(&mut weights.layers),
+                    precision,
+                );
+                Backend::Fast {
+                    vision: Box::new(CpuVision::new(weights, precision)),
+                    text,
+                    pool,
+                }
+            }
+            Target::Candle(device) => {
+                let dtype = matmul_dtype(options.precision);
+                let text = CandleText::new(&config.text_config, &weights.layers, dtype, &device)?;
+                weights.layers = Vec::new();
+                Backend::Candle {
+                    vision: Box::new(CandleVision::new(&weights, dtype, &device)?),
+                    text,
+                }
+            }
+        };
         Ok(SmolVlaVlm {
             config,
             prefix_length: usize::try_from(cfg.prefix_length).unwrap_or(0),
-            vision: CpuVision::new(weights, precision),
-            text,
+            backend,
             embed_tokens,
-            pool,
+            path,
         })
+    }
+
+    /// The path the vision tower, connector and text layers run on, e.g. `fast:avx2-fma`,
+    /// `fast:avx512-bf16`, `candle:cpu` or `candle:cuda:0`.
+    pub fn path(&self) -> &str {
+        &self.path
     }
 
     /// The VLM's config.
@@ -152,12 +188,34 @@ impl SmolVlaVlm {
 
     /// Tokens one `side x side` image becomes.
     pub fn tokens_per_image(&self, side: usize) -> usize {
-        self.vision.tokens_per_image(side)
+        vision::tokens_per_image(&self.config, side)
     }
 
     /// LeRobot's `embed_image` for each image: the vision tower and the connector, batched.
     pub fn embed_images(&self, images: &[VisionImage<'_>]) -> Result<VisionOutput, EngineError> {
-        self.vision.forward(&self.pool, images)
+        match &self.backend {
+            Backend::Fast { vision, pool, .. } => vision.forward(pool, images),
+            Backend::Candle { vision: tower, .. } => {
+                let grids = vision::validate(&self.config, images)?;
+                tower.forward(images, &grids)
+            }
+        }
+    }
+
+    /// Number of kept text layers.
+    fn text_layers(&self) -> usize {
+        match &self.backend {
+            Backend::Fast { text, .. } => text.layers(),
+            Backend::Candle { text, .. } => text.layers(),
+        }
+    }
+
+    /// The text layers over the valid tokens of each observation.
+    fn text_forward(&self, inputs: &[ValidPrefix<'_>]) -> Result<Vec<ValidKv>, EngineError> {
+        match &self.backend {
+            Backend::Fast { text, pool, .. } => Ok(text.forward(pool, inputs)),
+            Backend::Candle { text, .. } => text.forward(inputs),
+        }
     }
 
     /// LeRobot's `embed_prefix` for each observation (all images of the batch in one pass).
@@ -254,14 +312,14 @@ impl SmolVlaVlm {
         let t = &self.config.text_config;
         let kvw = t.num_key_value_heads * t.head_dim;
         if dims.kv_width() != kvw
-            || dims.layers.len() != self.text.layers()
+            || dims.layers.len() != self.text_layers()
             || dims.vlm_hidden != t.hidden_size
         {
             return Err(EngineError::InvalidInput(format!(
                 "the expert ({} layers, kv width {}) does not fit this VLM ({} layers, kv width {kvw})",
                 dims.layers.len(),
                 dims.kv_width(),
-                self.text.layers()
+                self.text_layers()
             )));
         }
         let h = t.hidden_size;
@@ -281,7 +339,7 @@ impl SmolVlaVlm {
             .iter()
             .map(|e| ValidPrefix { embeddings: e })
             .collect();
-        let kv = self.text.forward(&self.pool, &inputs);
+        let kv = self.text_forward(&inputs)?;
         embedded
             .into_iter()
             .zip(kv)

@@ -12,6 +12,9 @@
 //! alone or batched.
 
 mod attention;
+mod candle;
+
+pub(crate) use candle::CandleVision;
 
 use std::sync::Mutex;
 
@@ -188,52 +191,13 @@ impl CpuVision {
         }
     }
 
-    /// Patches per side of an image, or an error naming the image.
-    pub(crate) fn grid(&self, index: usize, side: usize) -> Result<usize, EngineError> {
-        let v = &self.config.vision_config;
-        let s = self.config.scale_factor;
-        if side == 0
-            || !side.is_multiple_of(v.patch_size)
-            || !(side / v.patch_size).is_multiple_of(s)
-        {
-            return Err(EngineError::InvalidInput(format!(
-                "images[{index}]: side {side} must be a multiple of patch_size {} x scale_factor {s}",
-                v.patch_size
-            )));
-        }
-        Ok(side / v.patch_size)
-    }
-
-    /// Tokens the connector makes of a `side x side` image.
-    pub(crate) fn tokens_per_image(&self, side: usize) -> usize {
-        let n = side / self.config.vision_config.patch_size / self.config.scale_factor;
-        n * n
-    }
-
     /// Run the tower and the connector on `images`.
     pub(crate) fn forward(
         &self,
         pool: &Pool,
         images: &[VisionImage<'_>],
     ) -> Result<VisionOutput, EngineError> {
-        let v = &self.config.vision_config;
-        let c = v.num_channels;
-        let grids = images
-            .iter()
-            .enumerate()
-            .map(|(i, im)| {
-                let g = self.grid(i, im.side)?;
-                if im.pixels.len() != c * im.side * im.side {
-                    return Err(EngineError::InvalidInput(format!(
-                        "images[{i}]: {} values, expected {c} x {} x {}",
-                        im.pixels.len(),
-                        im.side,
-                        im.side
-                    )));
-                }
-                Ok(g)
-            })
-            .collect::<Result<Vec<_>, EngineError>>()?;
+        let grids = validate(&self.config, images)?;
         // Consecutive images whose patches fit in one group (see [`GROUP_ROWS`]).
         let mut groups = Vec::new();
         let mut first = 0;
@@ -520,6 +484,45 @@ impl CpuVision {
             t0 += tk;
         }
     }
+}
+
+/// Patches per side of each image, or an error naming the first image the tower cannot take
+/// (a side that is not a multiple of `patch_size x scale_factor`, or the wrong pixel count).
+pub(crate) fn validate(
+    config: &VlmConfig,
+    images: &[VisionImage<'_>],
+) -> Result<Vec<usize>, EngineError> {
+    let v = &config.vision_config;
+    let (c, s) = (v.num_channels, config.scale_factor);
+    images
+        .iter()
+        .enumerate()
+        .map(|(i, im)| {
+            let side = im.side;
+            if side == 0
+                || !side.is_multiple_of(v.patch_size)
+                || !(side / v.patch_size).is_multiple_of(s)
+            {
+                return Err(EngineError::InvalidInput(format!(
+                    "images[{i}]: side {side} must be a multiple of patch_size {} x scale_factor {s}",
+                    v.patch_size
+                )));
+            }
+            if im.pixels.len() != c * side * side {
+                return Err(EngineError::InvalidInput(format!(
+                    "images[{i}]: {} values, expected {c} x {side} x {side}",
+                    im.pixels.len(),
+                )));
+            }
+            Ok(side / v.patch_size)
+        })
+        .collect()
+}
+
+/// Tokens the connector makes of a `side x side` image.
+pub(crate) fn tokens_per_image(config: &VlmConfig, side: usize) -> usize {
+    let n = side / config.vision_config.patch_size / config.scale_factor;
+    n * n
 }
 
 /// Images run through the tower together while their patches add up to at most this many
