@@ -15,6 +15,6 @@ mod smolvla_goldens;
 mod smolvla_loading;
 mod smolvla_parity;
 mod smolvla_processors;
-mod smolvla_rtc;
 mod smolvla_random_checkpoint;
+mod smolvla_rtc;
 mod smolvla_vlm;
