@@ -25,6 +25,7 @@ use super::vars::Vars;
 use super::vision::{SiglipTower, VisionOutput};
 use crate::EngineError;
 use crate::smolvla::ExpertSample;
+use crate::smolvla::expert::SampledRows;
 use crate::smolvla::expert::weights::time_embedding;
 use crate::weights::Checkpoint;
 
@@ -340,23 +341,15 @@ impl PiModel {
                 Ok(())
             },
         )?;
-        let per_step = steps * len;
-        let mut row = 0;
-        Ok(inputs
-            .iter()
-            .map(|input| {
-                let s = input.noise.len();
-                let out = ExpertSample {
-                    samples: s,
-                    noise: noise[row * len..(row + s) * len].to_vec(),
-                    actions: x[row * len..(row + s) * len].to_vec(),
-                    velocities: velocities[row * per_step..(row + s) * per_step].to_vec(),
-                    updates: updates[row * per_step..(row + s) * per_step].to_vec(),
-                };
-                row += s;
-                out
-            })
-            .collect())
+        let rows = SampledRows {
+            noise: &noise,
+            actions: &x,
+            velocities: &velocities,
+            updates: &updates,
+            len,
+            steps,
+        };
+        Ok(rows.split(inputs.iter().map(|input| input.noise.len())))
     }
 
     /// `v_t` for `xt` `[rows][chunk][max_action_dim]` at time `t` (LeRobot's `denoise_step`).

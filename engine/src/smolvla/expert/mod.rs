@@ -74,6 +74,43 @@ pub struct ExpertSample {
     pub updates: Vec<f32>,
 }
 
+/// The flat buffers of one sampling call, the rows of every request one after another: `noise`
+/// and `actions` `[row][len]`, `velocities` and `updates` `[row][step][len]`. Every flow
+/// expert (SmolVLA's, π's) samples all rows at once and cuts them per request with
+/// [`SampledRows::split`].
+pub(crate) struct SampledRows<'a> {
+    pub noise: &'a [f32],
+    pub actions: &'a [f32],
+    pub velocities: &'a [f32],
+    pub updates: &'a [f32],
+    /// Values per row (`chunk * action_pad`).
+    pub len: usize,
+    /// Euler steps.
+    pub steps: usize,
+}
+
+impl SampledRows<'_> {
+    /// One [`ExpertSample`] per request, request `i` taking the next `samples[i]` rows.
+    pub(crate) fn split(&self, samples: impl IntoIterator<Item = usize>) -> Vec<ExpertSample> {
+        let (len, per_step) = (self.len, self.steps * self.len);
+        let mut row = 0;
+        samples
+            .into_iter()
+            .map(|s| {
+                let out = ExpertSample {
+                    samples: s,
+                    noise: self.noise[row * len..(row + s) * len].to_vec(),
+                    actions: self.actions[row * len..(row + s) * len].to_vec(),
+                    velocities: self.velocities[row * per_step..(row + s) * per_step].to_vec(),
+                    updates: self.updates[row * per_step..(row + s) * per_step].to_vec(),
+                };
+                row += s;
+                out
+            })
+            .collect()
+    }
+}
+
 /// One request to the expert: a prefix and the noise of each sample (`[N][action_pad]` each).
 #[derive(Clone, Copy, Debug)]
 pub struct ExpertInput<'a> {
@@ -251,23 +288,15 @@ impl SmolVlaExpert {
                 guides,
             )?,
         }
-        let mut row = 0;
-        let per_step = d.steps * len;
-        Ok(inputs
-            .iter()
-            .map(|input| {
-                let s = input.noise.len();
-                let out = ExpertSample {
-                    samples: s,
-                    noise: noise[row * len..(row + s) * len].to_vec(),
-                    actions: x[row * len..(row + s) * len].to_vec(),
-                    velocities: velocities[row * per_step..(row + s) * per_step].to_vec(),
-                    updates: updates[row * per_step..(row + s) * per_step].to_vec(),
-                };
-                row += s;
-                out
-            })
-            .collect())
+        let rows = SampledRows {
+            noise: &noise,
+            actions: &x,
+            velocities: &velocities,
+            updates: &updates,
+            len,
+            steps: d.steps,
+        };
+        Ok(rows.split(inputs.iter().map(|input| input.noise.len())))
     }
 
     /// Serve a validated batch of requests: embed every state, build each request's prefix with
