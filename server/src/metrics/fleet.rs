@@ -625,4 +625,16 @@ mod tests {
         }
         assert!(!json.to_string().to_lowercase().contains("token"));
     }
+
+    /// The page and its tests read the snapshot's numbers back: each must parse to the double
+    /// that was printed. This one is a latency the fleet page once showed, which a parser that
+    /// is not exact reads one unit in the last place off.
+    #[test]
+    fn numbers_in_the_json_read_back_to_the_same_double() {
+        let printed = 0.025758241758241762_f64;
+        let text = serde_json::to_string(&printed).unwrap();
+        assert_eq!(text, "0.025758241758241762");
+        let read: f64 = serde_json::from_str(&text).unwrap();
+        assert_eq!(read.to_bits(), printed.to_bits());
+    }
 }
