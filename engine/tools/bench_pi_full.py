@@ -47,9 +47,8 @@ sides compute on the same numbers. Weights are seeded unit-gain random values
 stored dtypes. The tokenizer (`pi_common.write_tokenizer`) is a Gemma-style BPE trained offline
 on a small corpus, its vocabulary filled with unused tokens up to PaliGemma's 257 152 ids, so
 the embedding table has its real shape; the prompt's tokens are the trained ones. `--small`
-writes the same structure at toy widths and depths (`pi_common.ToySizes`, a 1 024-token
-vocabulary) with the real image size, prompt length and chunk, to check the whole tool in a
-minute.
+writes the same structure at toy widths and depths (`pi_common.ToySizes`) with the real image
+size, prompt length, chunk and vocabulary, to check the whole tool in a minute.
 """
 
 import argparse
@@ -87,9 +86,9 @@ CAMERAS = (
     "observation.images.right_wrist_0_rgb",
 )
 TASK = "pick up the cube"
-PALIGEMMA_VOCAB = 257152  # pi_common's; this process imports no torch
+PALIGEMMA_VOCAB = 257152  # pi_common's; the parent process imports no torch
+GEMMA_2B_WIDTH = 2048
 EMBED_KEY = "model.paligemma_with_expert.paligemma.model.language_model.embed_tokens.weight"
-SMALL_VOCAB = 1024
 TARGETS = {"f32": 0.75, "bf16": 0.4}  # Kairos time / PyTorch float32 time, issue 31
 
 
@@ -98,9 +97,10 @@ def progress(t0, what):
 
 
 def toy_sizes(small):
+    """`--small`: toy widths and depths, PaliGemma's real vocabulary (so its tokenizer is checked)."""
     from pi_common import ToySizes
 
-    return ToySizes(vocab=SMALL_VOCAB) if small else None
+    return ToySizes(vocab=PALIGEMMA_VOCAB) if small else None
 
 
 def write_checkpoint(family, small, dtype, out: Path):
@@ -110,13 +110,15 @@ def write_checkpoint(family, small, dtype, out: Path):
     from transformers.initialization import no_init_weights
 
     from lerobot.configs.types import FeatureType, PolicyFeature
-    from pi_common import PALIGEMMA_VOCAB, feature_stats, hf_tokenizer, patch_lerobot, policy_classes, write_tokenizer
+    import pi_common
+    from pi_common import feature_stats, hf_tokenizer, patch_lerobot, policy_classes, write_tokenizer
     from smolvla_common import rescale_weights
+
+    assert pi_common.PALIGEMMA_VOCAB == PALIGEMMA_VOCAB
 
     t0 = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
-    vocab = SMALL_VOCAB if small else PALIGEMMA_VOCAB
-    write_tokenizer(out / "tokenizer.json", vocab)
+    write_tokenizer(out / "tokenizer.json", PALIGEMMA_VOCAB)
     tokenizer = hf_tokenizer(out / "tokenizer.json")
     patch_lerobot(tokenizer, toy_sizes(small))
     progress(t0, f"tokenizer.json: {len(tokenizer)} tokens")
@@ -321,7 +323,7 @@ def main():
     ckpt = ckpt.resolve()
     # LeRobot builds a toy checkpoint's modules only with the same size patches it was written with.
     embed = safetensors_shapes(ckpt / "model.safetensors")[EMBED_KEY]
-    size_flags = ["--small"] if embed[0] != PALIGEMMA_VOCAB else []
+    size_flags = ["--small"] if embed[1] != GEMMA_2B_WIDTH else []
     try:
         bench(args, ckpt, batches, precisions, me, size_flags, t0)
     finally:

@@ -72,7 +72,7 @@ def rescale_weights(module, seed, progress=None):
     for name, p in named:
         if p.ndim >= 2:
             fan_in = p.shape[1] if p.ndim == 2 else p[0].numel()
-            p.copy_(torch.randn(p.shape, generator=gen) / fan_in**0.5)
+            p.copy_(torch.randn(p.shape, generator=gen).div_(fan_in**0.5))  # one temporary, not two
         elif "norm" in name:
             p.copy_(1.0 + 0.2 * torch.randn(p.shape, generator=gen))
         else:
