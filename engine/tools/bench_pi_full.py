@@ -6,28 +6,25 @@ pipeline (`kairos predict --repeat`) on the same checkpoint, side by side, with 
         [--iters 3] [--rounds 1] [--dtype bfloat16|float32] [--precisions f32,bf16]
         [--write-checkpoint DIR [--no-bench] | --checkpoint DIR] [--kairos-bin BIN] [--kairos-args '...']
 
-The full run (`docs/BENCHMARKS.md`), the checkpoint written once (about 7.5 GB on disk):
+The full run (`docs/BENCHMARKS.md`), the checkpoint written once (π0.5, `--dtype bfloat16`:
+4.14 G parameters, 9.4 GB on disk; `float32`: 16.6 GB):
 
     cargo build --release -p kairos-cli --bin kairos
     python3 engine/tools/bench_pi_full.py --write-checkpoint $CKPT --no-bench
     python3 engine/tools/bench_pi_full.py --checkpoint $CKPT --kairos-bin target/release/kairos
 
-What it measures, and how: each measurement is a fresh process that loads the checkpoint from
-disk and then runs one untimed warm-up and `--iters` timed predictions of a batch of B identical
-synthetic observations (three mid-grey 224x224 cameras, a zero state, "pick up the cube"); the
-median wall time, the process CPU time per run, the RSS of the loaded model and the process's
-peak RSS are recorded. PyTorch is LeRobot 0.6.1's own `predict_action_chunk` in float32 under
-`torch.set_num_threads(threads)`, on the batch its own preprocessor made from that observation
-(the tokenizer step, QUANTILES or MEAN_STD normalisation), with fixed noise: the pre- and
-postprocessing are not timed there, while Kairos's time is its whole pipeline (preprocessing,
-SigLIP, the Gemma prefix, ten Euler steps of the expert, postprocessing). Kairos runs once per
-`--precisions` entry (`--precision f32`, `bf16`). PyTorch and Kairos alternate batch size by
-batch size, `--rounds` times, and only one of them holds the model at a time; the table keeps
-each side's slowest round (conservative for Kairos). Peak RSS is the kernel's `ru_maxrss` for
-the child (load included); PyTorch's model RSS is VmRSS after loading minus before, and its
-inference peak is VmHWM reset after loading. Kairos's model RSS is shown if `kairos predict`
-reports `model_rss_mb`. The targets checked: Kairos f32 <= 0.75x PyTorch, bf16 <= 0.4x PyTorch
-(f32), Kairos peak RSS below PyTorch's.
+What it measures, and how: each measurement is a fresh process that loads the checkpoint and
+runs one untimed warm-up and `--iters` timed predictions of B identical synthetic observations
+(three mid-grey 224x224 cameras, a zero state, "pick up the cube"), recording the median wall
+time, the CPU time per run, the loaded model's RSS and the process's peak RSS (the kernel's
+`ru_maxrss`, loading included). PyTorch is LeRobot 0.6.1's own `predict_action_chunk` in float32
+on the batch LeRobot's preprocessor made from that observation, with fixed noise (pre- and
+postprocessing untimed); Kairos is `kairos predict --repeat`, its whole pipeline timed, once per
+`--precisions` entry. The two alternate batch size by batch size, `--rounds` times, never
+holding the model at the same time; the table keeps PyTorch's fastest and Kairos's slowest round
+and checks the targets in `TARGETS` against PyTorch's float32 time, and Kairos's peak RSS against
+PyTorch's. PyTorch's model RSS is VmRSS after loading minus before; Kairos's is shown when
+`kairos predict` reports `model_rss_mb`.
 
 The checkpoint (`--write-checkpoint DIR`, a temporary directory by default): LeRobot's
 `PI05Policy` / `PI0Policy.save_pretrained` (`config.json`, `model.safetensors`), both processors
@@ -37,9 +34,11 @@ at 224x224, Gemma 2B: 18 layers, width 2048, 8 heads, 1 KV head, head dim 256, v
 257 152) and the Gemma 300M expert (width 1024); three 224x224 cameras, state 8, action 7,
 chunk 50, 10 steps, the family's default normalisation and tokenizer length (π0.5: QUANTILES,
 200 tokens; π0: MEAN_STD, 48). LeRobot's `save_pretrained` writes every parameter in the dtype
-the policy holds it: with `dtype: "float32"` (PI05Config's default) all float32; with
-`"bfloat16"` (`--dtype`, the default here, as released π checkpoints are) the policy is cast
-to bfloat16 except the vision tower, the projector and the RMSNorm weights, which stay float32.
+the policy holds it in: with the config's `dtype: "float32"` (PI05Config's and PI0Config's
+default) all float32; with `"bfloat16"` (`--dtype`, the default here: weights stored in bf16)
+everything is cast to bfloat16 except the vision tower, the projector and the RMSNorms (with
+π0.5's adaptive-norm projections), which stay float32. The state dict includes PaliGemma's and
+the expert's `lm_head` (untied, unused by inference).
 The PyTorch side loads the stored values into float32 modules (`dtype: "float32"`), so both
 sides compute on the same numbers. Weights are seeded unit-gain random values
 (`smolvla_common.rescale_weights`), written without LeRobot's random initialisation first
@@ -134,7 +133,7 @@ def write_checkpoint(family, small, dtype, out: Path):
         output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(ACTION_DIM,))},
     )
     # Every parameter is overwritten below: LeRobot's random initialisation would only cost time
-    # and hold the whole model in float32 once (12 GB at base shapes).
+    # and hold the whole model in float32 once (16.6 GB for π0.5 at base shapes).
     with no_init_weights():
         policy = Policy(cfg).eval()
     params = sum(p.numel() for p in policy.parameters())
@@ -185,16 +184,37 @@ def torch_config(ckpt: Path, small):
     return cfg
 
 
+def read_safetensors(path: Path):
+    """`(name, tensor)` for each tensor of a safetensors file, read one at a time with plain reads.
+
+    Not `safe_open`: its memory map keeps every page it has read resident (and counted in the
+    process's RSS) until it is closed, which would add the file's size to the loader's peak.
+    """
+    import torch
+
+    dtypes = {"F32": torch.float32, "BF16": torch.bfloat16, "F16": torch.float16, "F64": torch.float64,
+              "I64": torch.int64, "I32": torch.int32, "U8": torch.uint8, "BOOL": torch.bool}
+    with open(path, "rb") as f:
+        n = int.from_bytes(f.read(8), "little")
+        header = json.loads(f.read(n))
+        header.pop("__metadata__", None)
+        for name, info in sorted(header.items(), key=lambda kv: kv[1]["data_offsets"][0]):
+            start, end = info["data_offsets"]
+            f.seek(8 + n + start)
+            data = bytearray(f.read(end - start))
+            t = torch.frombuffer(data, dtype=dtypes[info["dtype"]]) if data else torch.empty(0)
+            yield name, t.reshape(info["shape"])
+
+
 def load_torch_policy(ckpt: Path, cfg):
     """LeRobot's policy class for the checkpoint, in float32, with the stored values.
 
     LeRobot's own `from_pretrained` initialises the model at random and then reads the whole
-    safetensors file into memory before copying it in: about 1.5x the float32 model at once. This
-    builds the same modules without the random initialisation and copies the file in tensor by
-    tensor, so the loaded model is what LeRobot runs, at the memory a deployment would see.
+    safetensors file into memory before copying it in: the float32 model and the file at once.
+    This builds the same modules without the random initialisation and copies the file in tensor
+    by tensor, so the loaded model is what LeRobot runs, at the memory a deployment would see.
     """
     import torch
-    from safetensors import safe_open
     from transformers.initialization import no_init_weights
 
     from pi_common import policy_classes
@@ -204,11 +224,14 @@ def load_torch_policy(ckpt: Path, cfg):
         policy = Policy(cfg).eval()
     state = policy.state_dict()
     loaded = set()
-    with safe_open(str(ckpt / "model.safetensors"), "pt") as f, torch.no_grad():
-        for k in f.keys():
+    with torch.no_grad():
+        for k, t in read_safetensors(ckpt / "model.safetensors"):
             if k not in state:
                 raise KeyError(f"{ckpt}/model.safetensors: unexpected tensor {k}")
-            state[k].copy_(f.get_tensor(k))
+            if state[k].shape != t.shape:
+                raise ValueError(f"{ckpt}/model.safetensors: {k} is {list(t.shape)}, LeRobot's "
+                                 f"module holds {list(state[k].shape)}")
+            state[k].copy_(t)
             loaded.add(k)
     # save_pretrained drops a tensor that shares storage with a saved one (tied weights).
     saved_ptrs = {state[k].data_ptr() for k in loaded}
