@@ -45,12 +45,13 @@ def machine_line(extra=""):
             f"OMP_WAIT_POLICY={os.environ['OMP_WAIT_POLICY']}, python {platform.python_version()}")
 
 
-def safetensors_shapes(path):
-    """`{name: shape}` from a safetensors file's header (no tensor is read)."""
+def safetensors_header(path):
+    """`{name: {"dtype", "shape", "data_offsets"}}` from a safetensors file's header (no tensor read)."""
     with open(path, "rb") as f:
         n = int.from_bytes(f.read(8), "little")
         header = json.loads(f.read(n))
-    return {k: v["shape"] for k, v in header.items() if k != "__metadata__"}
+    header.pop("__metadata__", None)
+    return header
 
 
 def run_json(cmd, cwd, shell=False):

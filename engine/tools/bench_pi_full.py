@@ -53,6 +53,7 @@ size, prompt length, chunk and vocabulary, to check the whole tool in a minute.
 import argparse
 import gc
 import json
+import math
 import shlex
 import statistics
 import subprocess
@@ -70,7 +71,7 @@ from bench_common import (  # noqa: E402
     machine_line,
     reset_peak_rss,
     run_json,
-    safetensors_shapes,
+    safetensors_header,
     status_kb,
     time_kairos,
 )
@@ -105,11 +106,10 @@ def toy_sizes(small):
 def write_checkpoint(family, small, dtype, out: Path):
     """The random checkpoint, as LeRobot's `save_pretrained` writes it (see the docstring)."""
     import torch
-    from safetensors import safe_open
     from transformers.initialization import no_init_weights
 
-    from lerobot.configs.types import FeatureType, PolicyFeature
     import pi_common
+    from lerobot.configs.types import FeatureType, PolicyFeature
     from pi_common import feature_stats, hf_tokenizer, patch_lerobot, policy_classes, write_tokenizer
     from smolvla_common import rescale_weights
 
@@ -158,14 +158,8 @@ def write_checkpoint(family, small, dtype, out: Path):
     pre.save_pretrained(out)
     post.save_pretrained(out)
     by_dtype = {}
-    with safe_open(str(out / "model.safetensors"), "pt") as f:
-        for k in f.keys():
-            s = f.get_slice(k)
-            dt = s.get_dtype()
-            n = 1
-            for d in s.get_shape():
-                n *= d
-            by_dtype[dt] = by_dtype.get(dt, 0) + n
+    for info in safetensors_header(out / "model.safetensors").values():
+        by_dtype[info["dtype"]] = by_dtype.get(info["dtype"], 0) + math.prod(info["shape"])
     size = sum(f.stat().st_size for f in out.iterdir()) / 1e9
     stored = ", ".join(f"{n / 1e6:.1f} M {dt}" for dt, n in sorted(by_dtype.items()))
     progress(t0, f"wrote {out} ({size:.2f} GB; parameters stored: {stored}): {sorted(p.name for p in out.iterdir())}")
@@ -345,7 +339,7 @@ def main():
         return
     ckpt = ckpt.resolve()
     # LeRobot builds a toy checkpoint's modules only with the same size patches it was written with.
-    embed = safetensors_shapes(ckpt / "model.safetensors")[EMBED_KEY]
+    embed = safetensors_header(ckpt / "model.safetensors")[EMBED_KEY]["shape"]
     size_flags = ["--small"] if embed[1] != GEMMA_2B_WIDTH else []
     try:
         bench(args, ckpt, batches, precisions, me, size_flags, t0)
@@ -411,8 +405,9 @@ def bench(args, ckpt, batches, precisions, me, size_flags, t0):
                 verdicts.append(f"B={b} {p}: peak RSS {peak:.0f} MB {'below' if below else 'not below'} "
                                 f"PyTorch's {pt['child_peak_rss_mb']:.0f} MB")
         print(row)
+    toy = " (toy sizes: a check of the tool, not a result)" if size_flags else ""
     for v in verdicts:
-        print(f"# {v}")
+        print(f"# {v}{toy}")
 
 
 if __name__ == "__main__":
