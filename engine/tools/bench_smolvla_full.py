@@ -60,9 +60,6 @@ rounded to bf16), so both sides compute on the same values.
 """
 
 import argparse
-import json
-import os
-import platform
 import shlex
 import shutil
 import statistics
@@ -77,12 +74,7 @@ from lerobot_env import REPO, ensure_venv  # noqa: E402
 
 ensure_venv()
 
-# libgomp reads this when torch loads it. PASSIVE: a waiting OpenMP thread sleeps instead of
-# spinning. On a shared machine a spinning thread whose partner is descheduled burns CPU time
-# doing nothing (several times the CPU time of the work itself), which makes the CPU-time
-# column meaningless; on an idle machine the two policies differ by little. Set
-# OMP_WAIT_POLICY yourself to override.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from bench_common import machine_line, status_kb, time_kairos  # noqa: E402  (sets OMP_WAIT_POLICY)
 
 import torch  # noqa: E402
 
@@ -101,13 +93,6 @@ STATE_DIM = 6
 ACTION_DIM = 6
 CAMERAS = ("observation.images.camera1", "observation.images.camera2")
 TOKENIZER = REPO / "engine/tests/fixtures/smolvla_tiny/tokenizer.json"
-
-
-def status_kb(field):
-    for line in open("/proc/self/status"):
-        if line.startswith(field + ":"):
-            return int(line.split()[1])
-    return 0
 
 
 def build():
@@ -193,22 +178,6 @@ def time_torch(policy, cfg, batch, iters):
         runs.append((time.perf_counter() - t0) * 1e3)
         assert out.shape == (batch, cfg.chunk_size, ACTION_DIM)
     return statistics.median(runs), runs, (time.process_time() - cpu0) * 1e3 / iters
-
-
-def time_kairos(template, model, batch, threads, iters):
-    cmd = template.format(model=shlex.quote(str(model)), batch=batch, threads=threads, iters=iters)
-    out = subprocess.run(cmd, shell=True, cwd=REPO, check=True, capture_output=True, text=True)
-    result = json.loads(out.stdout.strip().splitlines()[-1])
-    if "runs_ms" in result:  # `kairos predict --repeat`: keep the timings, not the actions
-        runs = result["runs_ms"]
-        result = {
-            "median_ms": round(statistics.median(runs), 1),
-            "runs": [round(r) for r in runs],
-            "cpu_ms_per_run": round(result["cpu_ms_per_run"]),
-            "rss_mb": round(result["peak_rss_mb"]),
-            "stages_ms_last": {k: round(v) for k, v in result["timing_ms"].items()},
-        }
-    return result
 
 
 def status_of(pid):
@@ -308,12 +277,7 @@ def main():
     if args.checkpoint is not None:
         ckpt = args.checkpoint.resolve()
 
-    cpu = next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")), "?")
-    flags = next((ln.split(":", 1)[1].split() for ln in open("/proc/cpuinfo") if ln.startswith("flags")), [])
-    want = ("avx2", "fma", "avx512f", "avx512_bf16", "avx512_vnni")
-    print(f"# {cpu} [{' '.join(f for f in want if f in flags)}], {os.cpu_count()} cores; torch {torch.__version__} "
-          f"({torch.get_num_threads()} threads, OMP_WAIT_POLICY={os.environ['OMP_WAIT_POLICY']}), "
-          f"python {platform.python_version()}")
+    print(machine_line(f"torch {torch.__version__} ({torch.get_num_threads()} threads), "))
     print(f"# model: {params / 1e6:.0f} M parameters (f32 in memory), RSS after build +{rss_model:.0f} MB")
     results = {}
     try:
@@ -325,7 +289,7 @@ def main():
                         f"cpu {pt_cpu:.0f} ms/run")
                 ka = None
                 if args.kairos:
-                    ka = time_kairos(args.kairos, ckpt, b, args.threads, args.iters)
+                    ka = time_kairos(args.kairos, ckpt, b, args.threads, args.iters, REPO)
                     line += f"; kairos {ka}"
                 print(line, flush=True)
                 kept = results.get(b)

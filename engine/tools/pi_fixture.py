@@ -14,11 +14,13 @@ Each directory is what a user's fine-tuned π0 / π0.5 looks like, at toy size:
   The preprocessor's rename map sends `observation.images.top` to `observation.images.base`.
 - `tokenizer.json` + `tokenizer_config.json`: a Gemma-style BPE (spaces as `▁`, byte fallback,
   `<bos>` prepended by the post-processor, `<pad>` id 0) trained with the `tokenizers` library
-  on a fixed corpus; it stands in for `google/paligemma-3b-pt-224`'s, which LeRobot fetches.
+  on a fixed corpus (`pi_common.write_tokenizer`); it stands in for
+  `google/paligemma-3b-pt-224`'s, which LeRobot fetches.
 
 LeRobot hard-codes the architecture: `get_gemma_config` knows only `gemma_2b` and `gemma_300m`,
 and `PaliGemmaWithExpertModel` builds SigLIP so400m/14 and a 257 152-token vocabulary. To make
-a toy model, this script replaces exactly those three things and nothing else:
+a toy model, this script replaces exactly those three things and nothing else
+(`pi_common.patch_lerobot` with `pi_common.ToySizes`):
 `get_gemma_config` returns small widths (8 query heads and 1 KV head as in every variant; 8 is
 also hard-coded in LeRobot's joint forward), and the two model constructors get a small SigLIP
 (16 heads as so400m; width 64) and a small vocabulary. The config still says `gemma_2b` /
@@ -64,36 +66,20 @@ ensure_venv()
 import torch  # noqa: E402
 from safetensors.torch import save_file  # noqa: E402
 
+from pi_common import ToySizes, feature_stats, hf_tokenizer, patch_lerobot, policy_classes, write_tokenizer  # noqa: E402
 from smolvla_common import float64_casts, rescale_weights  # noqa: E402
 
 SEED = 20261129
-VOCAB = 384
-# Toy Gemma variants: 8 query heads and 1 KV head as in gemma_2b / gemma_300m; the VLM's width
-# differs from heads x head_dim (as the expert's does at full size), the two share head_dim.
-TINY_GEMMA = {
-    "gemma_2b": dict(width=64, depth=3, mlp_dim=128, num_heads=8, num_kv_heads=1, head_dim=8),
-    "gemma_300m": dict(width=32, depth=3, mlp_dim=64, num_heads=8, num_kv_heads=1, head_dim=8),
-}
-# SigLIP so400m/14 keeps its patch 14 and 16 heads; width 64 (head dim 4), 2 layers.
-TINY_SIGLIP = dict(hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=16, patch_size=14)
+TOY = ToySizes()
+TINY_GEMMA = TOY.gemma
+TINY_SIGLIP = TOY.siglip
+VOCAB = TOY.vocab
 IMAGE = 56  # 4 x 4 patches = 16 tokens per camera (224 -> 256 at full size)
 CHUNK = 12
 STATE_DIM = 7
 ACTION_DIM = 6
 CAMERAS = ("observation.images.base", "observation.images.wrist")
 RENAME = {"observation.images.top": "observation.images.base"}
-SPECIAL = ["<pad>", "<eos>", "<bos>", "<unk>"]
-CORPUS = [
-    "pick up the cube",
-    "pick up the red cube and place it in the bin",
-    "put the blue block on the plate",
-    "open the drawer and take out the sponge",
-    "move the arm to the home position",
-    "stack 3 green cups on top of each other",
-    "Task: fold the towel, State: 12 128 255 0 64 200 31;\nAction: ",
-    "Task: grasp the handle, State: 7 99 143 250 1 18 77;\nAction: ",
-    "wipe the table with the cloth",
-]
 LONG_TASK = "pick up the red cube from the left bin, rotate it and place it gently on the blue plate"
 SHORT_TASK = "pick up the cube"
 MISSING_TASK = "put the blue block on the plate"
@@ -104,86 +90,11 @@ FAMILIES = {
 }
 
 
-def train_tokenizer(path: Path):
-    """A Gemma-style BPE trained on CORPUS, saved as tokenizer.json (+ tokenizer_config.json)."""
-    from tokenizers import Tokenizer, decoders, models, normalizers, processors, trainers
-
-    tok = Tokenizer(models.BPE(unk_token="<unk>", byte_fallback=True))
-    tok.normalizer = normalizers.Replace(" ", "▁")
-    tok.decoder = decoders.Sequence(
-        [decoders.Replace("▁", " "), decoders.ByteFallback(), decoders.Fuse()]
-    )
-    bytes_ = [f"<0x{b:02X}>" for b in range(256)]
-    trainer = trainers.BpeTrainer(vocab_size=VOCAB, special_tokens=SPECIAL + bytes_, show_progress=False)
-    tok.train_from_iterator(CORPUS * 4, trainer)
-    tok.post_processor = processors.TemplateProcessing(single="<bos> $A", special_tokens=[("<bos>", 2)])
-    assert tok.get_vocab_size() <= VOCAB, tok.get_vocab_size()
-    assert [tok.token_to_id(t) for t in SPECIAL] == [0, 1, 2, 3]
-    tok.save(str(path))
-    (path.parent / "tokenizer_config.json").write_text(
-        json.dumps(
-            {"bos_token": "<bos>", "eos_token": "<eos>", "pad_token": "<pad>", "unk_token": "<unk>",
-             "add_bos_token": True, "add_eos_token": False, "tokenizer_class": "GemmaTokenizer"},
-            indent=2,
-        )
-        + "\n"
-    )
-
-
-def hf_tokenizer(path: Path):
-    from transformers import PreTrainedTokenizerFast
-
-    return PreTrainedTokenizerFast(
-        tokenizer_file=str(path), pad_token="<pad>", eos_token="<eos>", bos_token="<bos>", unk_token="<unk>"
-    )
-
-
-def patch_lerobot(tokenizer):
-    """The three replacements the module docstring lists, plus the tokenizer's hub lookup."""
-    import lerobot.policies.pi0.modeling_pi0 as m0
-    import lerobot.policies.pi05.modeling_pi05 as m05
-    import lerobot.processor.tokenizer_processor as tp
-
-    for m in (m0, m05):
-        if getattr(m, "_kairos_patched", False):
-            continue
-        real_pali = m.PaliGemmaForConditionalGenerationWithPiGemma
-        real_expert = m.PiGemmaForCausalLM
-        gemma_config = m.GemmaConfig
-
-        def get_gemma_config(variant, _cfg=gemma_config):
-            return _cfg(**TINY_GEMMA[variant])
-
-        def paligemma(config, _real=real_pali):
-            for k, v in TINY_SIGLIP.items():
-                setattr(config.vision_config, k, v)
-            config.vision_config.projection_dim = config.text_config.hidden_size
-            config.text_config.vocab_size = VOCAB
-            return _real(config=config)
-
-        def expert(config, _real=real_expert):
-            config.vocab_size = VOCAB
-            return _real(config=config)
-
-        m.get_gemma_config = get_gemma_config
-        m.PaliGemmaForConditionalGenerationWithPiGemma = paligemma
-        m.PiGemmaForCausalLM = expert
-        m._kairos_patched = True
-    tp.AutoTokenizer.from_pretrained = staticmethod(lambda *_a, **_k: tokenizer)
-
-
 def build(family, tokenizer):
     from lerobot.configs.types import FeatureType, PolicyFeature
 
     policy_type, max_len = FAMILIES[family]
-    if policy_type == "pi0":
-        from lerobot.policies.pi0.configuration_pi0 import PI0Config as Config
-        from lerobot.policies.pi0.modeling_pi0 import PI0Policy as Policy
-        from lerobot.policies.pi0.processor_pi0 import make_pi0_pre_post_processors as make_processors
-    else:
-        from lerobot.policies.pi05.configuration_pi05 import PI05Config as Config
-        from lerobot.policies.pi05.modeling_pi05 import PI05Policy as Policy
-        from lerobot.policies.pi05.processor_pi05 import make_pi05_pre_post_processors as make_processors
+    Config, Policy, make_processors = policy_classes(policy_type)
 
     cfg = Config(
         chunk_size=CHUNK,
@@ -204,21 +115,10 @@ def build(family, tokenizer):
     rescale_weights(policy, SEED + (0 if policy_type == "pi0" else 1))
 
     gen = torch.Generator().manual_seed(SEED + 7)
-
-    def stats(dim, scale):
-        mean = scale * torch.randn(dim, generator=gen)
-        std = 0.5 + torch.rand(dim, generator=gen)
-        return {
-            "mean": mean,
-            "std": std,
-            "min": mean - 3 * std,
-            "max": mean + 3 * std,
-            "q01": mean - 2.3 * std,
-            "q99": mean + 2.4 * std,
-            "count": torch.tensor([1000]),
-        }
-
-    dataset_stats = {"observation.state": stats(STATE_DIM, 2.0), "action": stats(ACTION_DIM, 1.5)}
+    dataset_stats = {
+        "observation.state": feature_stats(gen, STATE_DIM, 2.0),
+        "action": feature_stats(gen, ACTION_DIM, 1.5),
+    }
     pre, post = make_processors(cfg, dataset_stats=dataset_stats)
     pre.steps[0].rename_map = dict(RENAME)
     return policy, pre, post, Policy, dataset_stats["observation.state"]
@@ -452,9 +352,9 @@ def write_fixture(family, out: Path):
         shutil.rmtree(out)
     (out / "golden").mkdir(parents=True)
 
-    train_tokenizer(out / "tokenizer.json")
+    write_tokenizer(out / "tokenizer.json")
     tokenizer = hf_tokenizer(out / "tokenizer.json")
-    patch_lerobot(tokenizer)
+    patch_lerobot(tokenizer, TOY)
     policy, pre, post, Policy, state_stats = build(family, tokenizer)
     policy.save_pretrained(out)
     pre.save_pretrained(out)

@@ -61,17 +61,25 @@ def patch_hub(vlm_config, tokenizer=None):
 
 
 @torch.no_grad()
-def rescale_weights(module, seed):
-    """HF init (std 0.02) makes every activation tiny; use unit-gain weights so attention and SiLU matter."""
+def rescale_weights(module, seed, progress=None):
+    """HF init (std 0.02) makes every activation tiny; use unit-gain weights so attention and SiLU matter.
+
+    `progress(fraction)`, if given, is called after each parameter with the fraction done.
+    """
     gen = torch.Generator().manual_seed(seed)
-    for name, p in module.named_parameters():
+    named = list(module.named_parameters())
+    total, done = sum(p.numel() for _, p in named), 0
+    for name, p in named:
         if p.ndim >= 2:
             fan_in = p.shape[1] if p.ndim == 2 else p[0].numel()
-            p.copy_(torch.randn(p.shape, generator=gen) / fan_in**0.5)
+            p.copy_(torch.randn(p.shape, generator=gen).div_(fan_in**0.5))  # one temporary, not two
         elif "norm" in name:
             p.copy_(1.0 + 0.2 * torch.randn(p.shape, generator=gen))
         else:
             p.copy_(0.2 * torch.randn(p.shape, generator=gen))
+        done += p.numel()
+        if progress is not None:
+            progress(done / total)
 
 
 class _Float64Torch(types.ModuleType):
