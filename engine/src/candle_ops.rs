@@ -7,8 +7,10 @@
 //! `candle_nn::rotary_emb`). On a GPU that matters: a composed RMSNorm is six kernel launches
 //! and five intermediate tensors, the fused one is one launch, and at the small batches a robot
 //! policy serves launch overhead is a large share of a forward pass. On the CPU the Candle path
-//! is the reference the fast kernels are tested against (and π0/π0.5's only path), and a few
-//! extra passes over a row cost little next to the matrix products around them.
+//! is the reference the fast kernels are tested against (and π0/π0.5's only path). There a
+//! composition is a few passes over the tensor where the fused kernel makes one: little next to
+//! the matrix products around it, except for a softmax over a large attention matrix (SigLIP's
+//! image tokens), whose three elementwise passes each go through candle-core's thread pool.
 //!
 //! So `candle-nn` is a dependency of a CUDA build only (the engine's `cuda` feature), and
 //! nothing that serves on the CPU carries it. Every caller in the engine goes through the
