@@ -9,6 +9,7 @@
 //! The server talks to models only through [`ActionModel`]; it never sees tensors.
 
 pub mod builtin;
+pub mod candle_ops;
 pub mod error;
 pub mod flow_head;
 pub mod guidance;

@@ -221,6 +221,9 @@ fn pi_checkpoints_print_the_chunk() {
                 "{fixture} {stage}"
             );
         }
+        for stage in ["vision", "prefix", "expert"] {
+            assert_eq!(v["paths"][stage], "candle:cpu", "{fixture} {stage}");
+        }
         let options = EngineOptions {
             threads: 2,
             ..Default::default()
@@ -230,6 +233,33 @@ fn pi_checkpoints_print_the_chunk() {
         let (mut want, _) = pipeline.predict(&[obs], &[3]).unwrap();
         assert_eq!(actions(&v), want.remove(0).actions, "{fixture}");
     }
+}
+
+/// π0 / π0.5 have only the Candle path: asked for the fast kernels, `kairos predict` says that
+/// every stage ran on Candle ops on the CPU, and the library's `paths` says the same.
+#[test]
+fn pi_paths_name_the_candle_path_whatever_the_kernels_asked_for() {
+    let dir = repo_root().join("engine/tests/fixtures/pi05_tiny");
+    let output = Command::new(env!("CARGO_BIN_EXE_kairos"))
+        .arg("predict")
+        .arg("--model")
+        .arg(&dir)
+        .args(["--threads", "2", "--kernels", "fast"])
+        .output()
+        .unwrap();
+    let v = parse(&output);
+    for stage in ["vision", "prefix", "expert"] {
+        assert_eq!(v["paths"][stage], "candle:cpu", "{stage}");
+    }
+    let options = EngineOptions {
+        threads: 2,
+        ..Default::default()
+    };
+    let pipeline = kairos_engine::pi::PiPipeline::load(&dir, None, &options).unwrap();
+    assert_eq!(
+        kairos_engine::ActionModel::paths(&pipeline),
+        Some(kairos_engine::StagePaths::all("candle:cpu"))
+    );
 }
 
 /// `--kernels candle` moves the whole pipeline: `paths` says `candle:cpu` for every stage, and

@@ -14,6 +14,7 @@ use candle_core::{D, DType, Device, Tensor};
 
 use super::vars::Vars;
 use crate::EngineError;
+use crate::candle_ops;
 
 /// `y = x wᵀ + b` (`nn.Linear`).
 pub struct Linear {
@@ -104,7 +105,7 @@ impl LayerNorm {
 
     /// Over the last dimension.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor, EngineError> {
-        Ok(candle_nn::ops::layer_norm(
+        Ok(candle_ops::layer_norm(
             &x.contiguous()?,
             &self.weight,
             &self.bias,
@@ -194,10 +195,10 @@ impl GemmaNorm {
         let x = x.contiguous()?;
         match (self, modulation) {
             (GemmaNorm::Plain { one_plus_w, eps }, None) => {
-                Ok((candle_nn::ops::rms_norm(&x, one_plus_w, *eps)?, None))
+                Ok((candle_ops::rms_norm(&x, one_plus_w, *eps)?, None))
             }
             (GemmaNorm::Adaptive { ones, eps, .. }, Some(m)) => {
-                let normed = candle_nn::ops::rms_norm(&x, ones, *eps)?;
+                let normed = candle_ops::rms_norm(&x, ones, *eps)?;
                 let out = normed
                     .broadcast_mul(&m.scale_plus_one)?
                     .broadcast_add(&m.shift)?;
@@ -212,7 +213,7 @@ impl GemmaNorm {
     }
 }
 
-/// Llama's RMSNorm (`LlamaRMSNorm`: `x / rms(x) * w`), Candle's fused op.
+/// Llama's RMSNorm (`LlamaRMSNorm`: `x / rms(x) * w`), [`candle_ops::rms_norm`].
 pub struct RmsNorm {
     weight: Tensor,
     eps: f32,
@@ -229,7 +230,7 @@ impl RmsNorm {
 
     /// Over the last dimension.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor, EngineError> {
-        Ok(candle_nn::ops::rms_norm(
+        Ok(candle_ops::rms_norm(
             &x.contiguous()?,
             &self.weight,
             self.eps,
@@ -288,7 +289,7 @@ impl SwiGlu {
 
     /// Over the last dimension.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor, EngineError> {
-        let h = (candle_nn::ops::silu(&self.gate.forward(x)?)? * self.up.forward(x)?)?;
+        let h = (candle_ops::silu(&self.gate.forward(x)?)? * self.up.forward(x)?)?;
         self.down.forward(&h)
     }
 }
@@ -320,7 +321,7 @@ pub fn batched_attention(
         }
         None => scores,
     };
-    let probs = candle_nn::ops::softmax_last_dim(&scores)?;
+    let probs = candle_ops::softmax_last_dim(&scores)?;
     let out = probs.matmul(&v.contiguous()?)?;
     Ok(out
         .reshape((b, heads, lq, hd))?
@@ -404,7 +405,7 @@ impl Rope {
     /// Rotate `x` `[heads, rows, hd]` (rows in this table's position order).
     pub fn apply(&self, x: &Tensor) -> Result<Tensor, EngineError> {
         let x = x.unsqueeze(0)?.contiguous()?;
-        Ok(candle_nn::rotary_emb::rope(&x, &self.cos, &self.sin)?.squeeze(0)?)
+        Ok(candle_ops::rope(&x, &self.cos, &self.sin)?.squeeze(0)?)
     }
 }
 

@@ -27,7 +27,7 @@ use crate::smolvla::pipeline::{Prediction, StageTimes};
 use crate::weights::Checkpoint;
 use crate::{
     ActionChunk, ActionModel, ActionRequest, EngineError, EngineOptions, Kernels, ModelSpec,
-    Precision,
+    Precision, StagePaths,
 };
 
 /// A π checkpoint ready to predict: processors and model.
@@ -35,6 +35,8 @@ pub struct PiPipeline {
     checkpoint: PiCheckpoint,
     model: PiModel,
     spec: ModelSpec,
+    /// The path every stage runs on: `candle:cpu` or `candle:cuda:N` (f32 on either).
+    path: String,
 }
 
 impl std::fmt::Debug for PiPipeline {
@@ -42,6 +44,7 @@ impl std::fmt::Debug for PiPipeline {
         f.debug_struct("PiPipeline")
             .field("checkpoint", &self.checkpoint.dir())
             .field("model", &self.model)
+            .field("path", &self.path)
             .finish()
     }
 }
@@ -95,7 +98,14 @@ impl PiPipeline {
             checkpoint,
             model,
             spec,
+            path: options.candle_path(),
         })
+    }
+
+    /// The path each stage runs on. The vision tower, the prefix and the expert are all Candle
+    /// ops on the one device the model was loaded on (the CPU for every CPU kernel choice).
+    pub fn paths(&self) -> StagePaths {
+        StagePaths::all(&self.path)
     }
 
     /// The processors.
@@ -276,6 +286,10 @@ impl PiPipeline {
 impl ActionModel for PiPipeline {
     fn spec(&self) -> &ModelSpec {
         &self.spec
+    }
+
+    fn paths(&self) -> Option<StagePaths> {
+        Some(PiPipeline::paths(self))
     }
 
     fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {

@@ -4,8 +4,10 @@
 //! - `kairos-core` (the pure logic) has no async runtime, transport, plugin host, command line,
 //!   plots, progress bars or Candle, in any of its dependency kinds.
 //! - `kairos-server` (serving) has no command line, plots or progress bars, and never depends on
-//!   the tools (`kairos-bench`) or the binary (`kairos-cli`). Candle's inference ops
-//!   (`candle-nn`: fused RMSNorm, softmax, RoPE) reach it only through the engine.
+//!   the tools (`kairos-bench`) or the binary (`kairos-cli`). With its default features it has
+//!   no `candle-nn` either: the engine composes RMSNorm, LayerNorm, softmax and RoPE from
+//!   candle-core, and only its `cuda` feature brings `candle-nn`'s fused kernels, through the
+//!   engine and nothing else.
 //! - `kairos-engine` and the SDK know nothing of serving.
 
 #![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
@@ -73,7 +75,7 @@ fn the_core_has_no_io_runtime_plugin_host_cli_or_candle() {
 }
 
 #[test]
-fn serving_has_no_tooling_and_candle_nn_only_through_the_engine() {
+fn serving_has_no_tooling_and_candle_nn_only_in_a_cuda_build() {
     let server = tree(&["-p", "kairos-server", "-e", "normal"]);
     assert!(
         server.contains("kairos-core") && server.contains("quinn"),
@@ -86,16 +88,19 @@ fn serving_has_no_tooling_and_candle_nn_only_through_the_engine() {
             "clap",
             "plotters",
             "indicatif",
+            "candle-nn",
             "kairos-bench",
             "kairos-cli",
         ],
     );
-    // Who depends on candle-nn, seen from the server: the engine, and nothing else.
+    // With the `cuda` feature the fused kernels come in, and only through the engine.
     let dependents = tree(&[
         "-p",
         "kairos-server",
         "-e",
         "normal",
+        "--features",
+        "cuda",
         "-i",
         "candle-nn",
         "--depth",

@@ -15,6 +15,7 @@ use candle_core::{DType, Device, Tensor};
 
 use super::weights::{ExpertWeights, time_embedding};
 use crate::EngineError;
+use crate::candle_ops;
 use crate::guidance::RowGuide;
 use crate::kernels::Precision;
 use crate::pi::layers::{Linear, RmsNorm, SwiGlu, batched_attention};
@@ -124,8 +125,8 @@ impl CandleExpert {
             // Guidance reads and changes each row's velocity and sample between steps, on the
             // host, in the shared sampler (the same operations as the loop below, so a row
             // without guidance gets the same bits here as in a batch without any). An `rtc_vjp`
-            // row is refused by the field's default `velocity_vjp`: candle_nn's fused softmax,
-            // RMSNorm and RoPE ops, which this expert runs, have no backward pass.
+            // row is refused by the field's default `velocity_vjp`: the fused softmax, RMSNorm and
+            // RoPE kernels this expert runs on a GPU (`candle_ops`) have no backward pass.
             let mut field = ClosureField(|k: usize, _t: f32, xt: &[f32], v: &mut [f32]| {
                 let xt = Tensor::from_slice(xt, (rows, n, d.action_pad), dev)?;
                 let out = self.velocity(&xt, &temb.get(k)?, &context)?;
@@ -273,7 +274,7 @@ impl CandleExpert {
         let action_emb = self.action_in.forward(xt)?;
         let temb = temb.broadcast_as(action_emb.shape())?;
         let h = Tensor::cat(&[&action_emb, &temb], 2)?;
-        let h = candle_nn::ops::silu(&self.time_in.forward(&h)?)?;
+        let h = candle_ops::silu(&self.time_in.forward(&h)?)?;
         let mut x = self.time_out.forward(&h)?;
         let scale = (hd as f64).powf(-0.5);
         for (layer, (pk, pv)) in self.layers.iter().zip(prefix_kv) {
@@ -286,7 +287,7 @@ impl CandleExpert {
             let (rope, keys, values, mask) = match layer.kind {
                 LayerKind::SelfAttention => {
                     let k = to_heads(layer.k.forward(&h)?, kvh)?;
-                    let k = candle_nn::rotary_emb::rope(&k, &self_rope.0, &self_rope.1)?;
+                    let k = candle_ops::rope(&k, &self_rope.0, &self_rope.1)?;
                     let v = to_heads(layer.v.forward(&h)?, kvh)?;
                     (
                         self_rope,
@@ -298,7 +299,7 @@ impl CandleExpert {
                 LayerKind::CrossAttention => (cross_rope, pk.clone(), pv.clone(), cross_mask),
             };
             let q = to_heads(layer.q.forward(&h)?, heads)?;
-            let q = candle_nn::rotary_emb::rope(&q, &rope.0, &rope.1)?;
+            let q = candle_ops::rope(&q, &rope.0, &rope.1)?;
             let att = batched_attention(&q, &keys, &values, scale, Some(mask))?;
             x = (layer.o.forward(&att)? + &x)?;
             x = (layer.mlp.forward(&layer.post_norm.forward(&x)?)? + &x)?;

@@ -12,6 +12,7 @@ use candle_core::{DType, Device, Tensor};
 
 use super::text::{ValidKv, ValidPrefix};
 use crate::EngineError;
+use crate::candle_ops;
 use crate::kernels::vecmath;
 use crate::pi::layers::{Linear, RmsNorm, SwiGlu, batched_attention};
 use crate::smolvla::candle_weights::{linear, vector};
@@ -142,7 +143,7 @@ impl CandleText {
         for (l, layer) in self.layers.iter().enumerate() {
             let hn = layer.input_norm.forward(&x)?;
             let k = split(layer.k.forward(&hn)?, kvh)?;
-            let k = candle_nn::rotary_emb::rope(&k, &cos, &sin)?;
+            let k = candle_ops::rope(&k, &cos, &sin)?;
             let v = split(layer.v.forward(&hn)?, kvh)?;
             // `[b, kv heads, tokens, hd]` -> `[b, tokens, kv width]`, the cache's layout.
             let rows = |t: &Tensor| -> Result<Tensor, EngineError> {
@@ -157,7 +158,7 @@ impl CandleText {
                 break;
             }
             let q = split(layer.q.forward(&hn)?, heads)?;
-            let q = candle_nn::rotary_emb::rope(&q, &cos, &sin)?;
+            let q = candle_ops::rope(&q, &cos, &sin)?;
             let att = batched_attention(&q, &k, &v, scale, Some(&mask))?;
             x = (layer.o.forward(&att)? + &x)?;
             x = (layer.mlp.forward(&layer.post_norm.forward(&x)?)? + &x)?;
