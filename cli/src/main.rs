@@ -51,6 +51,7 @@ enum Command {
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
+    pin_candle_threads();
     match cli.command {
         Command::Info => {
             println!("kairos {}", env!("CARGO_PKG_VERSION"));
@@ -70,6 +71,20 @@ fn main() -> anyhow::Result<()> {
         Command::Bench(args) => crate::bench::run(args),
         Command::Worker(args) => crate::worker::run(*args),
     }
+}
+
+/// Sets Candle's thread count once, to the value Candle itself would choose, unless the user
+/// set it ([`kairos_engine::options::candle_cpu_threads`] says why: Candle otherwise works the
+/// count out from sysfs on every CPU matmul).
+fn pin_candle_threads() {
+    let var = kairos_engine::options::CANDLE_THREADS_VAR;
+    if std::env::var_os(var).is_some() {
+        return;
+    }
+    let threads = kairos_engine::options::candle_cpu_threads();
+    // SAFETY: `main` calls this right after parsing the arguments, before it starts any thread
+    // (clap starts none), so no other thread reads or writes the environment meanwhile.
+    unsafe { std::env::set_var(var, threads.to_string()) };
 }
 
 /// A policy parameter on the command line, `name=value` with a numeric value (`inf` is one).

@@ -183,3 +183,18 @@ fn cuda_device(ordinal: usize) -> Result<candle_core::Device, EngineError> {
          `--features cuda` (needs the CUDA toolkit's nvcc; see docs/ENGINE.md)"
     )))
 }
+
+/// The environment variable through which Candle's CPU ops learn their thread count.
+pub const CANDLE_THREADS_VAR: &str = "RAYON_NUM_THREADS";
+
+/// The thread count Candle's CPU ops use when [`CANDLE_THREADS_VAR`] is unset, for a process to
+/// pin once at start-up.
+///
+/// Candle (0.11) works this count out again on every CPU matmul when the variable is unset, from
+/// sysfs and `/proc/cpuinfo`: on the small matrices of a served model that reading costs more
+/// CPU time than the arithmetic (docs/BENCHMARKS.md, "Candle path"). A binary sets the variable
+/// to this value before it starts any thread; the count Candle uses does not change, only how
+/// often it is worked out.
+pub fn candle_cpu_threads() -> usize {
+    candle_core::utils::get_num_threads()
+}
