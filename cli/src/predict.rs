@@ -146,11 +146,11 @@ impl Policy {
         }
     }
 
-    /// The path each stage runs on (π0 / π0.5: Candle ops on the options' device, f32).
-    fn paths(&self, options: &EngineOptions) -> StagePaths {
+    /// The path each stage runs on.
+    fn paths(&self) -> StagePaths {
         match self {
             Policy::SmolVla(p) => p.paths(),
-            Policy::Pi(_) => StagePaths::all(&options.candle_path()),
+            Policy::Pi(p) => p.paths(),
         }
     }
 
@@ -227,7 +227,7 @@ pub fn run(args: PredictArgs) -> anyhow::Result<()> {
         action_dim: pipeline.action_dim(),
         actions,
         timing_ms: timing,
-        paths: pipeline.paths(&options),
+        paths: pipeline.paths(),
         batch_actions,
         bench,
     };

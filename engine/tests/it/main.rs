@@ -7,6 +7,7 @@
 mod examples_help;
 mod loader_errors;
 mod models;
+mod pi_fast;
 mod pi_parity;
 mod pi_pipeline;
 mod smolvla_bf16;

@@ -409,7 +409,7 @@ fn real_pi_checkpoint_loads_and_predicts() {
         .ok()
         .map(std::path::PathBuf::from);
     let pipeline = PiPipeline::load(&dir, tokenizer.as_deref(), &options()).unwrap();
-    let d = pipeline.model().dims();
+    let d = pipeline.dims();
     assert_eq!(d.vlm, kairos_engine::pi::GemmaDims::gemma_2b());
     assert_eq!(d.expert, kairos_engine::pi::GemmaDims::gemma_300m());
     assert_eq!(

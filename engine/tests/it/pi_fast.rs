@@ -1,0 +1,270 @@
+//! π0 and π0.5 on the engine's fast CPU kernels against LeRobot 0.6.1: the same intermediates
+//! of the `pi0_tiny` and `pi05_tiny` fixtures as `pi_parity.rs` checks on the Candle path
+//! (SigLIP output and image tokens of every present camera, prefix embeddings, every layer's
+//! keys and values at the valid positions, every Euler step's velocity, the normalised chunk),
+//! that a batch gives each observation bit for bit what it gets alone, and bf16 weight GEMMs
+//! within their bound of the f32 goldens.
+//!
+//! f32 bound: the one `pi_parity.rs` derives, `5 e_lr + 16 ulp(max |value|)` against both
+//! LeRobot's f32 result and its f64 recomputation. The fast kernels compute in f32 from the
+//! same weights; they differ from PyTorch only in rounding: summation order (fixed FMA order),
+//! `exp` to ~1 ulp (softmax, SiLU, tanh-GELU), the RoPE frequency rounded once, and
+//! `action_time_mlp_in`'s two input halves summed in two GEMMs. Those are errors of the same
+//! nature as LeRobot's own f32 error, so the Candle path's bound holds unchanged; a wrong mask,
+//! position, scale or layer order gives errors of 1e-2..1.
+//!
+//! bf16 bound: as `smolvla_bf16.rs` derives it (each bf16 GEMM output off by about
+//! `2^-8 sum |a||b|`, through every layer and ten Euler steps; no useful worst case composes),
+//! a relative bound on the normalised chunk, `BF16_BOUND x max |action|`.
+
+#![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
+
+use kairos_engine::Precision;
+use kairos_engine::kernels::{Isa, Pool};
+use kairos_engine::pi::{
+    FastPiModel, FastPrefix, FastSampleInput, PiConfig, PiDims, PiFamily, PiObservation,
+};
+use kairos_engine::weights::Checkpoint;
+
+use super::pi_parity::{Case, case, check, pi_fixture};
+use super::smolvla_goldens::Goldens;
+
+/// Largest `|bf16 - LeRobot f32| / max |action|` accepted on the normalised chunk.
+const BF16_BOUND: f32 = 0.02;
+
+/// The fixture's model on the fast kernels (2 threads, the best ISA) in `precision`.
+fn load_fast(name: &str, precision: Precision) -> FastPiModel {
+    let dir = pi_fixture(name);
+    let cfg: PiConfig =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("config.json")).unwrap()).unwrap();
+    let family = PiFamily::from_type(&cfg.policy_type).unwrap();
+    let ckpt = Checkpoint::open(&dir.join("model.safetensors")).unwrap();
+    let dims = PiDims::from_checkpoint(&cfg, family, &ckpt).unwrap();
+    FastPiModel::load(&ckpt, &dims, Pool::new(2).unwrap(), precision).unwrap()
+}
+
+fn sample(
+    model: &FastPiModel,
+    c: &Case,
+    prefixes: &[FastPrefix],
+) -> Vec<kairos_engine::smolvla::ExpertSample> {
+    let noises: Vec<Vec<Vec<f32>>> = c.noise.iter().map(|n| vec![n.clone()]).collect();
+    let pi0 = model.dims().family == PiFamily::Pi0;
+    let inputs: Vec<FastSampleInput<'_>> = (0..c.batch)
+        .map(|b| FastSampleInput {
+            prefix: &prefixes[b],
+            state: pi0.then(|| c.state[b].as_slice()),
+            noise: &noises[b],
+        })
+        .collect();
+    model.sample(&inputs).unwrap()
+}
+
+/// Golden velocities are `[step][batch][chunk][pad]`; samples give `[batch][step][..]`.
+fn reorder(v: &[f32], batch: usize, steps: usize, per: usize) -> Vec<f32> {
+    (0..batch)
+        .flat_map(|b| {
+            (0..steps)
+                .flat_map(move |k| v[(k * batch + b) * per..(k * batch + b + 1) * per].to_vec())
+        })
+        .collect()
+}
+
+/// The normalised actions cut to the action dim, `[batch][chunk][action_dim]`.
+fn cut_actions(
+    samples: &[kairos_engine::smolvla::ExpertSample],
+    pad: usize,
+    dim: usize,
+) -> Vec<f32> {
+    samples
+        .iter()
+        .flat_map(|s| {
+            s.actions
+                .chunks_exact(pad)
+                .flat_map(|a| a[..dim].to_vec())
+                .collect::<Vec<_>>()
+        })
+        .collect()
+}
+
+fn check_case(g: &Goldens, model: &FastPiModel, c: &Case) {
+    let name = &c.name;
+    let d = model.dims();
+    for slot in 0..c.slots {
+        let present: Vec<usize> = (0..c.batch)
+            .filter(|&b| c.image_mask[slot][b] != 0)
+            .collect();
+        if present.is_empty() {
+            continue;
+        }
+        let images: Vec<&[f32]> = present.iter().map(|&b| c.pixels(slot, b)).collect();
+        let out = model.vision(&images).unwrap();
+        for (key, ours) in [("vision", &out.hidden), ("image_emb", &out.embeddings)] {
+            let key = format!("{name}.{key}.{slot}");
+            let per = g.f32(&key).len() / c.batch;
+            let pick = |v: Vec<f32>| -> Vec<f32> {
+                present
+                    .iter()
+                    .flat_map(|&b| v[b * per..(b + 1) * per].to_vec())
+                    .collect()
+            };
+            check(
+                g,
+                &key,
+                &ours.concat(),
+                &pick(g.f32(&key)),
+                &pick(g.f32(&format!("{key}.f64"))),
+            );
+        }
+    }
+    let observations: Vec<PiObservation<'_>> = (0..c.batch).map(|b| c.observation(b)).collect();
+    let prefixes = model.prefix(&observations).unwrap();
+    for (b, p) in prefixes.iter().enumerate() {
+        assert_eq!(
+            p.len,
+            c.pad_mask[b].iter().filter(|&&m| m).count(),
+            "{name}: valid prefix of {b}"
+        );
+        let key = format!("{name}.prefix_embs");
+        let (want, want64) = c.valid_rows(g, &key, b);
+        check(g, &key, &p.embeddings, &want, &want64);
+        for l in 0..d.vlm.depth {
+            for (kind, ours) in [("key", &p.keys[l]), ("value", &p.values[l])] {
+                let key = format!("{name}.layer.{l}.{kind}");
+                let (want, want64) = c.valid_rows(g, &key, b);
+                check(g, &key, ours, &want, &want64);
+            }
+        }
+    }
+    let samples = sample(model, c, &prefixes);
+    let (steps, per) = (d.steps, d.chunk * d.action_pad);
+    let ours_v: Vec<f32> = samples.iter().flat_map(|s| s.velocities.clone()).collect();
+    check(
+        g,
+        &format!("{name}.velocities"),
+        &ours_v,
+        &reorder(&g.f32(&format!("{name}.velocities")), c.batch, steps, per),
+        &reorder(
+            &g.f32(&format!("{name}.velocities.f64")),
+            c.batch,
+            steps,
+            per,
+        ),
+    );
+    let action_dim = g.shape(&format!("{name}.actions_norm"))[2];
+    check(
+        g,
+        &format!("{name}.actions_norm"),
+        &cut_actions(&samples, d.action_pad, action_dim),
+        &g.f32(&format!("{name}.actions_norm")),
+        &g.f32(&format!("{name}.actions_norm.f64")),
+    );
+}
+
+fn check_fixture(name: &str) {
+    let g = Goldens::open_at(&pi_fixture(name));
+    let model = load_fast(name, Precision::F32);
+    for case_name in ["pair", "missing"] {
+        check_case(&g, &model, &case(&g, case_name));
+    }
+}
+
+#[test]
+fn pi0_matches_lerobot_on_the_fast_kernels() {
+    check_fixture("pi0_tiny");
+}
+
+#[test]
+fn pi05_matches_lerobot_on_the_fast_kernels() {
+    check_fixture("pi05_tiny");
+}
+
+/// Each observation of a batch gets, bit for bit, what it gets alone: vision, prefix and chunk.
+fn batch_equals_singles(name: &str, precision: Precision) {
+    let g = Goldens::open_at(&pi_fixture(name));
+    let model = load_fast(name, precision);
+    let c = case(&g, "pair");
+    let observations: Vec<PiObservation<'_>> = (0..c.batch).map(|b| c.observation(b)).collect();
+    let batched = model.prefix(&observations).unwrap();
+    let batched_samples = sample(&model, &c, &batched);
+    let pi0 = model.dims().family == PiFamily::Pi0;
+    for b in 0..c.batch {
+        let alone = model.prefix(&observations[b..=b]).unwrap();
+        assert_eq!(alone[0], batched[b], "{name} {precision:?}: prefix of {b}");
+        let noise = vec![c.noise[b].clone()];
+        let one = model
+            .sample(&[FastSampleInput {
+                prefix: &alone[0],
+                state: pi0.then(|| c.state[b].as_slice()),
+                noise: &noise,
+            }])
+            .unwrap();
+        assert_eq!(
+            one[0], batched_samples[b],
+            "{name} {precision:?}: chunk of {b}"
+        );
+    }
+}
+
+#[test]
+fn pi0_batch_equals_singles_on_the_fast_kernels() {
+    batch_equals_singles("pi0_tiny", Precision::F32);
+    batch_equals_singles("pi0_tiny", Precision::Bf16);
+}
+
+#[test]
+fn pi05_batch_equals_singles_on_the_fast_kernels() {
+    batch_equals_singles("pi05_tiny", Precision::F32);
+    batch_equals_singles("pi05_tiny", Precision::Bf16);
+}
+
+/// bf16 weight GEMMs: the normalised chunk within `BF16_BOUND x max |action|` of LeRobot's f32
+/// one, and not equal to ours in f32 (the bf16 kernels ran). Where the native kernel cannot run
+/// (no AVX512_BF16, or `KAIROS_DISABLE_BF16`), the model falls back to f32 and must equal it.
+fn bf16_within_bound(name: &str) {
+    let g = Goldens::open_at(&pi_fixture(name));
+    let exact = load_fast(name, Precision::F32);
+    let bf16 = load_fast(name, Precision::Bf16);
+    let native = Precision::Bf16.resolve(Isa::detect()) == Precision::Bf16;
+    assert_eq!(bf16.precision() == Precision::Bf16, native);
+    for case_name in ["pair", "missing"] {
+        let c = case(&g, case_name);
+        let observations: Vec<PiObservation<'_>> = (0..c.batch).map(|b| c.observation(b)).collect();
+        let run = |m: &FastPiModel| -> Vec<f32> {
+            let prefixes = m.prefix(&observations).unwrap();
+            let d = m.dims();
+            let dim = g.shape(&format!("{case_name}.actions_norm"))[2];
+            cut_actions(&sample(m, &c, &prefixes), d.action_pad, dim)
+        };
+        let (ours, ours_f32) = (run(&bf16), run(&exact));
+        let want = g.f32(&format!("{case_name}.actions_norm"));
+        let big = want.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        let d = ours
+            .iter()
+            .zip(&want)
+            .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        eprintln!(
+            "{name} {case_name}: bf16 |ours - lerobot| {d:.3e} = {:.3e} of max |action| {big:.3}",
+            d / big
+        );
+        if native {
+            assert!(
+                d <= BF16_BOUND * big,
+                "{name} {case_name}: {d} > {BF16_BOUND} x {big}"
+            );
+            assert_ne!(ours, ours_f32, "{name} {case_name}: bf16 ran as f32");
+        } else {
+            assert_eq!(ours, ours_f32, "{name} {case_name}: the f32 fallback");
+        }
+    }
+}
+
+#[test]
+fn pi0_bf16_stays_within_its_bound_of_the_f32_goldens() {
+    bf16_within_bound("pi0_tiny");
+}
+
+#[test]
+fn pi05_bf16_stays_within_its_bound_of_the_f32_goldens() {
+    bf16_within_bound("pi05_tiny");
+}
