@@ -13,9 +13,17 @@
 //! nature as LeRobot's own f32 error, so the Candle path's bound holds unchanged; a wrong mask,
 //! position, scale or layer order gives errors of 1e-2..1.
 //!
-//! bf16 bound: as `smolvla_bf16.rs` derives it (each bf16 GEMM output off by about
-//! `2^-8 sum |a||b|`, through every layer and ten Euler steps; no useful worst case composes),
-//! a relative bound on the normalised chunk, `BF16_BOUND x max |action|`.
+//! bf16 bound: each bf16 GEMM rounds its weights and its activations to 8 significand bits
+//! (2^-9 relative each); as `smolvla_bf16.rs` notes, no useful worst case composes through
+//! every layer and ten Euler steps. These tiny random networks amplify rounding strongly (their
+//! weights are f32, not bf16-rounded as SmolVLA's fixture's are): rounding only the weights
+//! to bf16, in an otherwise exact f32 run, already moves the chunk by 1-4 % of its largest
+//! value. So the test measures that weights-only error `d_w` on a bf16-rounded copy of the
+//! checkpoint and bounds the bf16 path's error by `BF16_FACTOR x d_w`: the activations' rounding
+//! is of the same size and independent, so about `2 d_w` is expected (measured 2026-11-28 on an
+//! AVX512_BF16 CPU: 0.87-3.15 d_w over both fixtures and cases; the kernels are deterministic,
+//! so every such CPU gets those bits). A broken kernel moves the chunk by the order of its
+//! largest value, 30 d_w and more.
 
 #![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
 
@@ -24,13 +32,14 @@ use kairos_engine::kernels::{Isa, Pool};
 use kairos_engine::pi::{
     FastPiModel, FastPrefix, FastSampleInput, PiConfig, PiDims, PiFamily, PiObservation,
 };
-use kairos_engine::weights::Checkpoint;
+use kairos_engine::weights::{Checkpoint, serialize_f32};
 
 use super::pi_parity::{Case, case, check, pi_fixture};
 use super::smolvla_goldens::Goldens;
 
-/// Largest `|bf16 - LeRobot f32| / max |action|` accepted on the normalised chunk.
-const BF16_BOUND: f32 = 0.02;
+/// Largest `|bf16 - f32|` accepted on the normalised chunk, in units of the error that rounding
+/// only the weights to bf16 gives (see the module's doc).
+const BF16_FACTOR: f32 = 6.0;
 
 /// The fixture's model on the fast kernels (2 threads, the best ISA) in `precision`.
 fn load_fast(name: &str, precision: Precision) -> FastPiModel {
@@ -218,13 +227,55 @@ fn pi05_batch_equals_singles_on_the_fast_kernels() {
     batch_equals_singles("pi05_tiny", Precision::Bf16);
 }
 
-/// bf16 weight GEMMs: the normalised chunk within `BF16_BOUND x max |action|` of LeRobot's f32
-/// one, and not equal to ours in f32 (the bf16 kernels ran). Where the native kernel cannot run
-/// (no AVX512_BF16, or `KAIROS_DISABLE_BF16`), the model falls back to f32 and must equal it.
+/// The fixture's checkpoint with every tensor rounded to bf16 (and stored as f32).
+fn bf16_rounded_checkpoint(name: &str) -> Checkpoint {
+    let ckpt = Checkpoint::open(&pi_fixture(name).join("model.safetensors")).unwrap();
+    let tensors: Vec<(String, Vec<usize>, Vec<f32>)> = ckpt
+        .keys()
+        .into_iter()
+        .map(|k| {
+            let shape = ckpt.shape(&k).unwrap().to_vec();
+            let values = ckpt.tensor(&k, &shape).unwrap();
+            let rounded = values
+                .into_iter()
+                .map(|x| half::bf16::from_f32(x).to_f32())
+                .collect();
+            (k, shape, rounded)
+        })
+        .collect();
+    let views: Vec<(String, Vec<usize>, &[f32])> = tensors
+        .iter()
+        .map(|(k, s, v)| (k.clone(), s.clone(), v.as_slice()))
+        .collect();
+    Checkpoint::from_bytes("bf16-rounded", serialize_f32(&views).unwrap()).unwrap()
+}
+
+fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()))
+}
+
+/// bf16 weight GEMMs against our f32 chunk, within `BF16_FACTOR` times the error of rounding
+/// only the weights to bf16 (an exact f32 run on a rounded copy of the checkpoint, measured
+/// here), and not equal to the f32 chunk (the bf16 kernels ran). Where the native kernel cannot
+/// run (no AVX512_BF16, or `KAIROS_DISABLE_BF16`), the model falls back to f32 and must equal
+/// it.
 fn bf16_within_bound(name: &str) {
     let g = Goldens::open_at(&pi_fixture(name));
     let exact = load_fast(name, Precision::F32);
     let bf16 = load_fast(name, Precision::Bf16);
+    let rounded = {
+        let dims = exact.dims().clone();
+        FastPiModel::load(
+            &bf16_rounded_checkpoint(name),
+            &dims,
+            Pool::new(2).unwrap(),
+            Precision::F32,
+        )
+        .unwrap()
+    };
     let native = Precision::Bf16.resolve(Isa::detect()) == Precision::Bf16;
     assert_eq!(bf16.precision() == Precision::Bf16, native);
     for case_name in ["pair", "missing"] {
@@ -232,25 +283,31 @@ fn bf16_within_bound(name: &str) {
         let observations: Vec<PiObservation<'_>> = (0..c.batch).map(|b| c.observation(b)).collect();
         let run = |m: &FastPiModel| -> Vec<f32> {
             let prefixes = m.prefix(&observations).unwrap();
-            let d = m.dims();
-            let dim = g.shape(&format!("{case_name}.actions_norm"))[2];
-            cut_actions(&sample(m, &c, &prefixes), d.action_pad, dim)
+            sample(m, &c, &prefixes)
+                .into_iter()
+                .flat_map(|s| s.actions)
+                .collect()
         };
-        let (ours, ours_f32) = (run(&bf16), run(&exact));
-        let want = g.f32(&format!("{case_name}.actions_norm"));
-        let big = want.iter().fold(0.0f32, |m, v| m.max(v.abs()));
-        let d = ours
-            .iter()
-            .zip(&want)
-            .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        let (ours, ours_f32, weights_only) = (run(&bf16), run(&exact), run(&rounded));
+        let (d, d_weights) = (
+            max_abs_diff(&ours, &ours_f32),
+            max_abs_diff(&weights_only, &ours_f32),
+        );
+        let big = ours_f32.iter().fold(0.0f32, |m, v| m.max(v.abs()));
         eprintln!(
-            "{name} {case_name}: bf16 |ours - lerobot| {d:.3e} = {:.3e} of max |action| {big:.3}",
-            d / big
+            "{name} {case_name}: |bf16 - f32| {d:.3e} ({:.3e} of max |action| {big:.3}), \
+             weights rounded only {d_weights:.3e}, ratio {:.2}",
+            d / big,
+            d / d_weights
         );
         if native {
             assert!(
-                d <= BF16_BOUND * big,
-                "{name} {case_name}: {d} > {BF16_BOUND} x {big}"
+                d_weights > 0.0,
+                "{name} {case_name}: rounding changed nothing"
+            );
+            assert!(
+                d <= BF16_FACTOR * d_weights,
+                "{name} {case_name}: {d} > {BF16_FACTOR} x {d_weights}"
             );
             assert_ne!(ours, ours_f32, "{name} {case_name}: bf16 ran as f32");
         } else {
