@@ -138,7 +138,7 @@ impl FastGemmaExpert {
         let n = dims.chunk;
         let blocks = match dims.family {
             PiFamily::Pi0 => vec![0..1, 1..1 + n],
-            PiFamily::Pi05 => vec![0..n],
+            PiFamily::Pi05 => std::iter::once(0..n).collect(),
         };
         Ok(FastGemmaExpert {
             dims: dims.clone(),
