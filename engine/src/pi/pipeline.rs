@@ -19,6 +19,7 @@ use super::config::PiDims;
 use super::fast::{FastPiModel, FastPrefix, FastSampleInput};
 use super::gemma::PrefixCache;
 use super::model::{PiModel, PiObservation, SampleInput};
+use crate::guidance::RowGuide;
 use crate::model::StagePaths;
 use crate::options::Target;
 use crate::sampler::{RowLayout, gaussian_noise};
@@ -209,7 +210,7 @@ impl PiPipeline {
 
         let t = Instant::now();
         let noises: Vec<Vec<Vec<f32>>> = noises.iter().map(|n| vec![n.clone()]).collect();
-        let samples = self.sample(&prepared, &prefixes, &noises)?;
+        let samples = self.sample(&prepared, &prefixes, &noises, &[])?;
         times.expert = ms(t);
 
         let t = Instant::now();
@@ -267,6 +268,7 @@ impl PiPipeline {
         prepared: &[PiPrepared],
         prefixes: &[Prefix],
         noises: &[Vec<Vec<f32>>],
+        guides: &[Option<RowGuide>],
     ) -> Result<Vec<ExpertSample>, EngineError> {
         let mismatch = || EngineError::InvalidInput("a prefix of the other backend".into());
         let requests = prepared.iter().zip(prefixes).zip(noises);
@@ -282,7 +284,7 @@ impl PiPipeline {
                         Prefix::Candle(_) => Err(mismatch()),
                     })
                     .collect::<Result<Vec<_>, _>>()?;
-                m.sample(&inputs)
+                m.sample_guided(&inputs, guides)
             }
             Backend::Candle(m) => {
                 let inputs = requests
@@ -295,9 +297,73 @@ impl PiPipeline {
                         Prefix::Fast(_) => Err(mismatch()),
                     })
                     .collect::<Result<Vec<_>, _>>()?;
-                m.sample(&inputs)
+                m.sample_guided(&inputs, guides)
             }
         }
+    }
+
+    /// One guide per sample row (`[request][sample]`) for the requests' guidance, or none when
+    /// no request has any. A guidance prefix is in the robot's units; the expert samples
+    /// normalised actions, so each committed action is mapped back as the postprocessor maps
+    /// forward, inverted: minus the state offset (relative actions), then normalised with the
+    /// action stats.
+    fn guides(
+        &self,
+        batch: &[ActionRequest],
+        prepared: &[PiPrepared],
+        noises: &[Vec<Vec<f32>>],
+    ) -> Result<Vec<Option<RowGuide>>, EngineError> {
+        if batch.iter().all(|r| r.guidance.is_none()) {
+            return Ok(Vec::new());
+        }
+        let support = self.chunking().guidance;
+        if let Some(mode) = batch
+            .iter()
+            .filter_map(|r| r.guidance.as_ref())
+            .map(|g| g.mode)
+            .find(|&mode| !support.supports(mode))
+        {
+            return Err(EngineError::InvalidInput(format!(
+                "guidance `{}`: π0 / π0.5 have no backward pass on {} (rtc and inpaint work)",
+                mode.as_str(),
+                self.path
+            )));
+        }
+        let d = self.dims();
+        let dim = self.checkpoint.action_dim();
+        let unnormalizer = self.checkpoint.postprocessor().unnormalizer.as_ref();
+        let mut guides = Vec::new();
+        for ((r, p), noise) in batch.iter().zip(prepared).zip(noises) {
+            let offset = self.checkpoint.absolute_offset(&p.raw_state)?;
+            let to_model = |action: &mut [f32]| {
+                if let Some(offset) = &offset {
+                    for (a, o) in action.iter_mut().zip(offset) {
+                        *a -= o;
+                    }
+                }
+                if let Some(n) = unnormalizer {
+                    let _ = n.normalize(ACTION_KEY, action);
+                }
+            };
+            for sample_noise in noise {
+                guides.push(
+                    r.guidance
+                        .as_ref()
+                        .map(|g| {
+                            RowGuide::prepare(
+                                g,
+                                d.chunk,
+                                dim,
+                                d.action_pad,
+                                sample_noise,
+                                &to_model,
+                            )
+                        })
+                        .transpose()?,
+                );
+            }
+        }
+        Ok(guides)
     }
 
     /// A chunk in the robot's units: the actions as the postprocessor gives them, the noise
@@ -348,7 +414,8 @@ impl PiPipeline {
 /// The whole policy behind the server's model interface: a request's images are matched to the
 /// model's cameras by name (or, without names, are the cameras in order), its instruction is
 /// the task, its state the raw state; samples of one request share the prefix. Chunks are in
-/// the robot's units (see `to_robot_units`).
+/// the robot's units (see `to_robot_units`). A request's guidance (`rtc`, `inpaint`) steers its
+/// rows in the shared sampler, in the normalised action space (see `guides`).
 impl ActionModel for PiPipeline {
     fn spec(&self) -> &ModelSpec {
         &self.spec
@@ -356,6 +423,15 @@ impl ActionModel for PiPipeline {
 
     fn paths(&self) -> Option<StagePaths> {
         Some(PiPipeline::paths(self))
+    }
+
+    /// `rtc` and `inpaint` in the shared sampler, on both paths; `rtc_vjp` on neither (no
+    /// backward pass). The action space is not declared, as for SmolVLA.
+    fn chunking(&self) -> crate::ModelChunking {
+        crate::ModelChunking {
+            guidance: crate::GuidanceSupport::PREFIX,
+            action_space: crate::ActionSpace::Unspecified,
+        }
     }
 
     fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
@@ -392,7 +468,8 @@ impl ActionModel for PiPipeline {
                     .collect()
             })
             .collect();
-        let out = self.sample(&prepared, &prefixes, &noises)?;
+        let guides = self.guides(batch, &prepared, &noises)?;
+        let out = self.sample(&prepared, &prefixes, &noises, &guides)?;
         let layout = RowLayout {
             samples: batch.iter().map(|r| r.samples).collect(),
             steps: d.steps,

@@ -31,11 +31,13 @@ use std::sync::Mutex;
 use super::layer::{GemmaLayerWeights, GemmaNormWeights, Modulation, geglu_row, rope_tables};
 use super::prefix::FastPrefix;
 use crate::EngineError;
+use crate::guidance::RowGuide;
 use crate::kernels::attention::{AttendScratch, KvSegment, Queries, QueryPositions, attend};
 use crate::kernels::gemm::{ActivationRows, gemm, gemm_par};
 use crate::kernels::{Init, MatMut, MatRef, PackedMatrix, Pool, Precision, SharedMut, vecmath};
 use crate::pi::config::{PiDims, PiFamily, keys};
 use crate::pi::vars::Vars;
+use crate::sampler::ClosureField;
 use crate::smolvla::expert::weights::time_embedding;
 use crate::smolvla::linear::Linear;
 
@@ -201,8 +203,12 @@ impl FastGemmaExpert {
     }
 
     /// Run the Euler loop for `row_request.len()` rows: row `r` belongs to
-    /// `requests[row_request[r]]`; `x` holds the noise (`[rows][chunk][action_pad]`) and
-    /// receives the actions; `velocities` and `updates` receive `[rows][steps][chunk][pad]`.
+    /// `requests[row_request[r]]` and is guided by `guides[r]` (real-time chunking or
+    /// inpainting in the shared sampler; one guide per row); `x` holds the noise
+    /// (`[rows][chunk][action_pad]`) and receives the actions; `velocities` (those each step
+    /// used) and `updates` receive `[rows][steps][chunk][pad]`.
+    // The sampler's buffers and the rows' guides, as `integrate_guided` takes them.
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn sample(
         &self,
         pool: &Pool,
@@ -211,6 +217,7 @@ impl FastGemmaExpert {
         x: &mut [f32],
         velocities: &mut [f32],
         updates: &mut [f32],
+        guides: &[Option<RowGuide>],
     ) -> Result<(), EngineError> {
         let dims = &self.dims;
         let rows = row_request.len();
@@ -256,20 +263,21 @@ impl FastGemmaExpert {
         };
         let len = dims.chunk * dims.action_pad;
         let steps = dims.steps;
-        crate::sampler::integrate(
+        // No backward pass here: an `rtc_vjp` row is refused by the field's default
+        // `velocity_vjp`.
+        let mut field = ClosureField(|_k: usize, t: f32, xt: &[f32], v: &mut [f32]| {
+            self.velocity(pool, &ctx, &mut ws, t, xt, v);
+            Ok(())
+        });
+        crate::sampler::integrate_guided(
             crate::sampler::Schedule { steps },
             rows,
             len,
             x,
             updates,
-            |k, t, xt, v| {
-                self.velocity(pool, &ctx, &mut ws, t, xt, v);
-                for r in 0..rows {
-                    velocities[(r * steps + k) * len..(r * steps + k + 1) * len]
-                        .copy_from_slice(&v[r * len..(r + 1) * len]);
-                }
-                Ok(())
-            },
+            guides,
+            Some(velocities),
+            &mut field,
         )
     }
 

@@ -21,6 +21,7 @@ mod vision;
 pub use prefix::FastPrefix;
 
 use crate::EngineError;
+use crate::guidance::RowGuide;
 use crate::kernels::{Pool, Precision};
 use crate::pi::config::{PiDims, keys};
 use crate::pi::model::PiObservation;
@@ -203,6 +204,17 @@ impl FastPiModel {
 
     /// Run the Euler loop for a batch of requests, one expert pass per step for all of them.
     pub fn sample(&self, inputs: &[FastSampleInput<'_>]) -> Result<Vec<ExpertSample>, EngineError> {
+        self.sample_guided(inputs, &[])
+    }
+
+    /// [`FastPiModel::sample`] with a [`RowGuide`] per row (rows are `[input][sample]`; an
+    /// empty `guides` is plain sampling for every row). The velocities recorded are those each
+    /// step used: the guided ones on guided rows.
+    pub fn sample_guided(
+        &self,
+        inputs: &[FastSampleInput<'_>],
+        guides: &[Option<RowGuide>],
+    ) -> Result<Vec<ExpertSample>, EngineError> {
         let d = &self.dims;
         let len = d.chunk * d.action_pad;
         let mut states = Vec::with_capacity(inputs.len());
@@ -257,6 +269,18 @@ impl FastPiModel {
                 state: state.as_deref(),
             })
             .collect();
+        let plain;
+        let guides = if guides.is_empty() {
+            plain = vec![None; rows];
+            &plain[..]
+        } else if guides.len() == rows {
+            guides
+        } else {
+            return Err(EngineError::InvalidInput(format!(
+                "{} guides for {rows} sample rows",
+                guides.len()
+            )));
+        };
         let noise = x.clone();
         let steps = d.steps;
         let mut velocities = vec![0.0f32; rows * steps * len];
@@ -268,6 +292,7 @@ impl FastPiModel {
             &mut x,
             &mut velocities,
             &mut updates,
+            guides,
         )?;
         let rows = SampledRows {
             noise: &noise,
