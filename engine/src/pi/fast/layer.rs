@@ -8,8 +8,8 @@
 //! rounded once). Only sums are ordered differently (the kernels' fixed order).
 
 use crate::EngineError;
-use crate::kernels::gemm::gemm;
-use crate::kernels::{Isa, MatMut, MatRef, PackedMatrix, Precision, vecmath};
+use crate::kernels::gemm::gemm_par;
+use crate::kernels::{Isa, MatMut, MatRef, PackedMatrix, Pool, Precision, vecmath};
 use crate::pi::config::GemmaDims;
 use crate::pi::vars::Vars;
 use crate::smolvla::linear::{Linear, LinearWeights};
@@ -55,14 +55,14 @@ impl GemmaNormWeights {
 
     /// The modulation of an adaptive norm for the condition `cond` `[width]`; `None` for a
     /// plain norm.
-    pub(crate) fn modulation(&self, isa: Isa, cond: &[f32]) -> Option<Modulation> {
+    pub(crate) fn modulation(&self, pool: &Pool, cond: &[f32]) -> Option<Modulation> {
         let GemmaNormWeights::Adaptive { dense, ones } = self else {
             return None;
         };
         let w = ones.len();
         let mut m = vec![0.0f32; 3 * w];
         let (a, c) = (MatRef::dense(cond, 1, w), MatMut::dense(&mut m, 1, 3 * w));
-        gemm(isa, a, &dense.w, c, dense.init());
+        gemm_par(pool, a, &dense.w, c, dense.init());
         Some(Modulation {
             scale_plus_one: m[..w].iter().map(|s| s + 1.0).collect(),
             shift: m[w..2 * w].to_vec(),
