@@ -197,19 +197,30 @@ fn a_batch_of_copies_and_repeated_timings() {
 }
 
 /// `kairos predict --model engine/tests/fixtures/pi05_tiny` (and `pi0_tiny`): the promised JSON,
-/// with exactly the library's actions for the synthetic observation.
+/// with exactly the library's actions for the synthetic observation; every stage on the fast
+/// kernels by default and on Candle ops with `--kernels candle`.
 #[test]
 fn pi_checkpoints_print_the_chunk() {
     for fixture in ["pi05_tiny", "pi0_tiny"] {
         let dir = repo_root().join("engine/tests/fixtures").join(fixture);
-        let output = Command::new(env!("CARGO_BIN_EXE_kairos"))
-            .arg("predict")
-            .arg("--model")
-            .arg(&dir)
-            .args(["--threads", "2", "--seed", "3"])
-            .output()
-            .unwrap();
-        let v = parse(&output);
+        let run = |extra: &[&str]| {
+            let output = Command::new(env!("CARGO_BIN_EXE_kairos"))
+                .arg("predict")
+                .arg("--model")
+                .arg(&dir)
+                .args(["--threads", "2", "--seed", "3"])
+                .args(extra)
+                .output()
+                .unwrap();
+            parse(&output)
+        };
+        let v = run(&[]);
+        let candle = run(&["--kernels", "candle"]);
+        for stage in ["vision", "prefix", "expert"] {
+            let path = v["paths"][stage].as_str().unwrap();
+            assert!(path.starts_with("fast:"), "{fixture} {stage}: {path}");
+            assert_eq!(candle["paths"][stage], "candle:cpu", "{fixture} {stage}");
+        }
         assert_eq!(
             (v["chunk"].as_u64(), v["action_dim"].as_u64()),
             (Some(12), Some(6)),
