@@ -325,3 +325,45 @@ fn pi0_bf16_stays_within_its_bound_of_the_f32_goldens() {
 fn pi05_bf16_stays_within_its_bound_of_the_f32_goldens() {
     bf16_within_bound("pi05_tiny");
 }
+
+/// Inputs the fast model cannot take are errors that say what is wrong, never panics.
+#[test]
+fn bad_inputs_are_named_errors_on_the_fast_kernels() {
+    let g = Goldens::open_at(&pi_fixture("pi0_tiny"));
+    let model = load_fast("pi0_tiny", Precision::F32);
+    let c = case(&g, "pair");
+    let prefix_err = |obs: PiObservation<'_>| model.prefix(&[obs]).unwrap_err().to_string();
+    let short = vec![0.0f32; 10];
+    let mut obs = c.observation(0);
+    obs.images[0] = Some(&short);
+    let e = prefix_err(obs);
+    assert!(
+        e.contains("camera slot 0") && e.contains("10 values"),
+        "{e}"
+    );
+    let mut obs = c.observation(0);
+    let tokens = vec![10_000u32; obs.tokens.len()];
+    obs.tokens = &tokens;
+    assert!(prefix_err(obs).contains("vocabulary"));
+    let mut obs = c.observation(0);
+    obs.token_mask = &obs.token_mask[1..];
+    assert!(prefix_err(obs).contains("mask values"));
+
+    let prefixes = model.prefix(&[c.observation(0)]).unwrap();
+    let sample_err = |state: Option<&[f32]>, noise: &[Vec<f32>]| {
+        model
+            .sample(&[FastSampleInput {
+                prefix: &prefixes[0],
+                state,
+                noise,
+            }])
+            .unwrap_err()
+            .to_string()
+    };
+    let noise = vec![c.noise[0].clone()];
+    let state = c.state[0].as_slice();
+    assert!(sample_err(None, &noise).contains("needs the state"));
+    assert!(sample_err(Some(&[0.0; 100]), &noise).contains("state has 100 values"));
+    assert!(sample_err(Some(state), &[vec![0.0; 3]]).contains("noise has 3 values"));
+    assert!(sample_err(Some(state), &[]).contains("no sample"));
+}

@@ -158,7 +158,19 @@ impl FastPiModel {
                     d.vocab
                 )));
             }
-            images.extend(obs.images.iter().flatten().copied());
+            let side = d.vision.image_size;
+            for (slot, image) in obs.images.iter().enumerate() {
+                if let Some(p) = image {
+                    if p.len() != 3 * side * side {
+                        return Err(EngineError::InvalidInput(format!(
+                            "observation {o}, camera slot {slot}: {} values, expected \
+                             3 x {side} x {side}",
+                            p.len()
+                        )));
+                    }
+                    images.push(*p);
+                }
+            }
         }
         let image_tokens = if images.is_empty() {
             Vec::new()
