@@ -74,7 +74,7 @@ pub struct EngineOptions {
     pub kernels: Kernels,
     /// CPU threads for the fast kernels (0: one per core, or `KAIROS_ENGINE_THREADS`).
     pub threads: usize,
-    /// Number format of the fast kernels' weight GEMMs (SmolVLA's VLM and expert): `f32`
+    /// Number format of the fast kernels' weight GEMMs (SmolVLA's and π's): `f32`
     /// (default, exact) or `bf16` (AVX512_BF16; other CPUs fall back to f32 with a warning).
     #[serde(default)]
     pub precision: Precision,
@@ -95,7 +95,7 @@ impl EngineOptions {
     }
 
     /// The path of a model that runs on Candle ops wherever these options put it (the CPU
-    /// for every CPU kernel choice, as the π models do): `candle:cpu` or `candle:cuda:N`.
+    /// for every CPU kernel choice): `candle:cpu` or `candle:cuda:N`.
     pub fn candle_path(&self) -> String {
         match self.device {
             DeviceKind::Cpu => "candle:cpu".into(),

@@ -197,19 +197,30 @@ fn a_batch_of_copies_and_repeated_timings() {
 }
 
 /// `kairos predict --model engine/tests/fixtures/pi05_tiny` (and `pi0_tiny`): the promised JSON,
-/// with exactly the library's actions for the synthetic observation.
+/// with exactly the library's actions for the synthetic observation; every stage on the fast
+/// kernels by default and on Candle ops with `--kernels candle`.
 #[test]
 fn pi_checkpoints_print_the_chunk() {
     for fixture in ["pi05_tiny", "pi0_tiny"] {
         let dir = repo_root().join("engine/tests/fixtures").join(fixture);
-        let output = Command::new(env!("CARGO_BIN_EXE_kairos"))
-            .arg("predict")
-            .arg("--model")
-            .arg(&dir)
-            .args(["--threads", "2", "--seed", "3"])
-            .output()
-            .unwrap();
-        let v = parse(&output);
+        let run = |extra: &[&str]| {
+            let output = Command::new(env!("CARGO_BIN_EXE_kairos"))
+                .arg("predict")
+                .arg("--model")
+                .arg(&dir)
+                .args(["--threads", "2", "--seed", "3"])
+                .args(extra)
+                .output()
+                .unwrap();
+            parse(&output)
+        };
+        let v = run(&[]);
+        let candle = run(&["--kernels", "candle"]);
+        for stage in ["vision", "prefix", "expert"] {
+            let path = v["paths"][stage].as_str().unwrap();
+            assert!(path.starts_with("fast:"), "{fixture} {stage}: {path}");
+            assert_eq!(candle["paths"][stage], "candle:cpu", "{fixture} {stage}");
+        }
         assert_eq!(
             (v["chunk"].as_u64(), v["action_dim"].as_u64()),
             (Some(12), Some(6)),
@@ -220,9 +231,6 @@ fn pi_checkpoints_print_the_chunk() {
                 v["timing_ms"][stage].as_f64().unwrap() >= 0.0,
                 "{fixture} {stage}"
             );
-        }
-        for stage in ["vision", "prefix", "expert"] {
-            assert_eq!(v["paths"][stage], "candle:cpu", "{fixture} {stage}");
         }
         let options = EngineOptions {
             threads: 2,
@@ -235,31 +243,34 @@ fn pi_checkpoints_print_the_chunk() {
     }
 }
 
-/// π0 / π0.5 have only the Candle path: asked for the fast kernels, `kairos predict` says that
-/// every stage ran on Candle ops on the CPU, and the library's `paths` says the same.
+/// π0 / π0.5: the paths `kairos predict` prints are the library's, for the fast kernels and for
+/// Candle ops alike.
 #[test]
-fn pi_paths_name_the_candle_path_whatever_the_kernels_asked_for() {
+fn pi_paths_printed_are_the_librarys() {
     let dir = repo_root().join("engine/tests/fixtures/pi05_tiny");
-    let output = Command::new(env!("CARGO_BIN_EXE_kairos"))
-        .arg("predict")
-        .arg("--model")
-        .arg(&dir)
-        .args(["--threads", "2", "--kernels", "fast"])
-        .output()
-        .unwrap();
-    let v = parse(&output);
-    for stage in ["vision", "prefix", "expert"] {
-        assert_eq!(v["paths"][stage], "candle:cpu", "{stage}");
+    for kernels in ["fast", "candle"] {
+        let output = Command::new(env!("CARGO_BIN_EXE_kairos"))
+            .arg("predict")
+            .arg("--model")
+            .arg(&dir)
+            .args(["--threads", "2", "--kernels", kernels])
+            .output()
+            .unwrap();
+        let v = parse(&output);
+        let options = EngineOptions {
+            threads: 2,
+            kernels: kernels.parse().unwrap(),
+            ..Default::default()
+        };
+        let pipeline = kairos_engine::pi::PiPipeline::load(&dir, None, &options).unwrap();
+        let paths = kairos_engine::ActionModel::paths(&pipeline).unwrap();
+        let printed: kairos_engine::StagePaths =
+            serde_json::from_value(v["paths"].clone()).unwrap();
+        assert_eq!(printed, paths, "{kernels}");
+        if kernels == "candle" {
+            assert_eq!(paths, kairos_engine::StagePaths::all("candle:cpu"));
+        }
     }
-    let options = EngineOptions {
-        threads: 2,
-        ..Default::default()
-    };
-    let pipeline = kairos_engine::pi::PiPipeline::load(&dir, None, &options).unwrap();
-    assert_eq!(
-        kairos_engine::ActionModel::paths(&pipeline),
-        Some(kairos_engine::StagePaths::all("candle:cpu"))
-    );
 }
 
 /// `--kernels candle` moves the whole pipeline: `paths` says `candle:cpu` for every stage, and

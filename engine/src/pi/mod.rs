@@ -7,10 +7,15 @@
 //! - [`model`]: the network on Candle ops ([`PiModel`]): SigLIP + projector ([`vision`]), the
 //!   PaliGemma prefix and the Gemma action expert ([`gemma`]), built from [`layers`].
 //!
-//! The model runs on any Candle device (the CPU now; CUDA with the `cuda` feature).
+//! - [`fast`]: the same network on the engine's fast CPU kernels ([`FastPiModel`]), in f32 or
+//!   with bf16 weight GEMMs.
+//!
+//! [`PiModel`] runs on any Candle device (the CPU; CUDA with the `cuda` feature);
+//! [`FastPiModel`] is the CPU default (`--kernels auto|fast|portable`).
 
 pub mod checkpoint;
 pub mod config;
+pub mod fast;
 pub mod gemma;
 pub mod layers;
 pub mod model;
@@ -20,6 +25,7 @@ pub mod vision;
 
 pub use checkpoint::{PiCheckpoint, PiPrepared};
 pub use config::{GemmaDims, PiConfig, PiDims, PiFamily, SiglipDims};
+pub use fast::{FastPiModel, FastPrefix, FastSampleInput};
 pub use gemma::PrefixCache;
 pub use model::{PiModel, PiObservation, SampleInput};
 pub use pipeline::PiPipeline;

@@ -24,6 +24,8 @@ use super::layers::Linear;
 use super::vars::Vars;
 use super::vision::{SiglipTower, VisionOutput};
 use crate::EngineError;
+use crate::guidance::RowGuide;
+use crate::sampler::ClosureField;
 use crate::smolvla::ExpertSample;
 use crate::smolvla::expert::SampledRows;
 use crate::smolvla::expert::weights::time_embedding;
@@ -247,6 +249,17 @@ impl PiModel {
 
     /// Run the Euler loop for a batch of requests, one expert pass per step for all of them.
     pub fn sample(&self, inputs: &[SampleInput<'_>]) -> Result<Vec<ExpertSample>, EngineError> {
+        self.sample_guided(inputs, &[])
+    }
+
+    /// [`PiModel::sample`] with a [`RowGuide`] per row (rows are `[input][sample]`; an empty
+    /// `guides` is plain sampling for every row). The velocities recorded are those each step
+    /// used: the guided ones on guided rows.
+    pub fn sample_guided(
+        &self,
+        inputs: &[SampleInput<'_>],
+        guides: &[Option<RowGuide>],
+    ) -> Result<Vec<ExpertSample>, EngineError> {
         let d = &self.dims;
         let len = d.chunk * d.action_pad;
         let blocks = self.suffix_blocks();
@@ -319,27 +332,40 @@ impl PiModel {
             Suffix::Pi05 { .. } => None,
         };
 
+        let plain;
+        let guides = if guides.is_empty() {
+            plain = vec![None; rows];
+            &plain[..]
+        } else if guides.len() == rows {
+            guides
+        } else {
+            return Err(EngineError::InvalidInput(format!(
+                "{} guides for {rows} sample rows",
+                guides.len()
+            )));
+        };
         let noise = x.clone();
         let steps = d.steps;
         let mut velocities = vec![0.0f32; rows * steps * len];
         let mut updates = vec![0.0f32; rows * steps * len];
-        crate::sampler::integrate(
+        // No backward pass through Candle's ops here: an `rtc_vjp` row is refused by the
+        // field's default `velocity_vjp`.
+        let mut field = ClosureField(|_k: usize, t: f32, xt: &[f32], v: &mut [f32]| {
+            let xt = Tensor::from_slice(xt, (rows, d.chunk, d.action_pad), &self.device)?;
+            let out = self.velocity(&xt, t, state_tokens.as_ref(), &row_contexts)?;
+            let out: Vec<f32> = out.flatten_all()?.to_vec1()?;
+            v.copy_from_slice(&out);
+            Ok(())
+        });
+        crate::sampler::integrate_guided(
             crate::sampler::Schedule { steps },
             rows,
             len,
             &mut x,
             &mut updates,
-            |k, t, xt, v| {
-                let xt = Tensor::from_slice(xt, (rows, d.chunk, d.action_pad), &self.device)?;
-                let out = self.velocity(&xt, t, state_tokens.as_ref(), &row_contexts)?;
-                let out: Vec<f32> = out.flatten_all()?.to_vec1()?;
-                v.copy_from_slice(&out);
-                for r in 0..rows {
-                    velocities[(r * steps + k) * len..(r * steps + k + 1) * len]
-                        .copy_from_slice(&out[r * len..(r + 1) * len]);
-                }
-                Ok(())
-            },
+            guides,
+            Some(&mut velocities),
+            &mut field,
         )?;
         let rows = SampledRows {
             noise: &noise,

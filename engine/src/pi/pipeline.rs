@@ -7,63 +7,60 @@
 //!     --PiCheckpoint::finish_actions (cut, unnormalise, absolute)--> [chunk][action_dim]
 //! ```
 //!
-//! The model runs on Candle ops on the options' device: the CPU, or CUDA with the `cuda`
-//! feature. The engine's fast CPU kernels do not have this family yet, so on the CPU every
-//! `kernels` choice runs the Candle path, and `precision` is f32.
+//! The model runs where the options put it, as SmolVLA does: on the CPU, by default on the
+//! engine's fast kernels ([`FastPiModel`], f32 or bf16 weight GEMMs); with `kernels = candle`,
+//! or on CUDA (the `cuda` feature), on Candle ops ([`PiModel`], f32).
 
 use std::path::Path;
 use std::time::Instant;
 
-use candle_core::Device;
-
 use super::checkpoint::{PiCheckpoint, PiPrepared};
 use super::config::PiDims;
+use super::fast::{FastPiModel, FastPrefix, FastSampleInput};
 use super::gemma::PrefixCache;
 use super::model::{PiModel, PiObservation, SampleInput};
+use crate::guidance::RowGuide;
+use crate::model::StagePaths;
 use crate::options::Target;
 use crate::sampler::{RowLayout, gaussian_noise};
+use crate::smolvla::ExpertSample;
 use crate::smolvla::checkpoint::{ACTION_KEY, Observation};
 use crate::smolvla::pipeline::{Prediction, StageTimes};
 use crate::weights::Checkpoint;
 use crate::{
-    ActionChunk, ActionModel, ActionRequest, EngineError, EngineOptions, Kernels, ModelSpec,
-    Precision, StagePaths,
+    ActionChunk, ActionModel, ActionRequest, EngineError, EngineOptions, ModelSpec, Precision,
 };
+
+/// Where the network runs.
+enum Backend {
+    /// The engine's fast CPU kernels.
+    Fast(Box<FastPiModel>),
+    /// Candle ops on a Candle device.
+    Candle(Box<PiModel>),
+}
+
+/// One observation's prefix on either backend.
+enum Prefix {
+    Fast(FastPrefix),
+    Candle(PrefixCache),
+}
 
 /// A π checkpoint ready to predict: processors and model.
 pub struct PiPipeline {
     checkpoint: PiCheckpoint,
-    model: PiModel,
-    spec: ModelSpec,
-    /// The path every stage runs on: `candle:cpu` or `candle:cuda:N` (f32 on either).
+    backend: Backend,
+    /// The path every stage runs on (`fast:<isa>[-bf16]` or `candle:<device>`).
     path: String,
+    spec: ModelSpec,
 }
 
 impl std::fmt::Debug for PiPipeline {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("PiPipeline")
             .field("checkpoint", &self.checkpoint.dir())
-            .field("model", &self.model)
             .field("path", &self.path)
             .finish()
     }
-}
-
-/// The Candle device `options` name (the CPU for every CPU kernel choice).
-fn device(options: &EngineOptions) -> Result<Device, EngineError> {
-    if matches!(options.kernels, Kernels::Fast | Kernels::Portable) {
-        tracing::warn!(
-            kernels = ?options.kernels,
-            "π0 / π0.5 run on Candle ops; the fast CPU kernels do not have this family yet"
-        );
-    }
-    if options.precision == Precision::Bf16 {
-        tracing::warn!("π0 / π0.5 compute in f32; --precision bf16 is not applied to them yet");
-    }
-    Ok(match options.target()? {
-        Target::Candle(device) => device,
-        Target::Fast(_) => Device::Cpu,
-    })
 }
 
 impl PiPipeline {
@@ -83,7 +80,27 @@ impl PiPipeline {
         }
         let ckpt = Checkpoint::open(&weights_path)?;
         let dims = PiDims::from_checkpoint(checkpoint.config(), checkpoint.family(), &ckpt)?;
-        let model = PiModel::load(&ckpt, &dims, &device(options)?)?;
+        let target = options.target()?;
+        // The Candle path computes π in f32 whatever the precision asked.
+        let path = match &target {
+            Target::Fast(_) => target.path(options.precision),
+            Target::Candle(_) => target.path(Precision::F32),
+        };
+        let backend = match target {
+            Target::Fast(pool) => {
+                let model = FastPiModel::load(&ckpt, &dims, pool, options.precision)?;
+                Backend::Fast(Box::new(model))
+            }
+            Target::Candle(device) => {
+                if options.precision == Precision::Bf16 {
+                    tracing::warn!(
+                        "π0 / π0.5 on Candle ops compute in f32; --precision bf16 applies to \
+                         the fast CPU kernels"
+                    );
+                }
+                Backend::Candle(Box::new(PiModel::load(&ckpt, &dims, &device)?))
+            }
+        };
         let spec = ModelSpec {
             name: checkpoint.family().policy_type().into(),
             chunk_len: dims.chunk,
@@ -96,16 +113,40 @@ impl PiPipeline {
         };
         Ok(PiPipeline {
             checkpoint,
-            model,
+            backend,
+            path,
             spec,
-            path: options.candle_path(),
         })
     }
 
-    /// The path each stage runs on. The vision tower, the prefix and the expert are all Candle
-    /// ops on the one device the model was loaded on (the CPU for every CPU kernel choice).
+    /// The path each stage runs on: all on the fast kernels (`fast:<isa>`, `-bf16` when the
+    /// weight GEMMs run in bf16) or all on Candle ops (`candle:<device>`).
     pub fn paths(&self) -> StagePaths {
         StagePaths::all(&self.path)
+    }
+
+    /// Shapes.
+    pub fn dims(&self) -> &PiDims {
+        match &self.backend {
+            Backend::Fast(m) => m.dims(),
+            Backend::Candle(m) => m.dims(),
+        }
+    }
+
+    /// The network on Candle ops, when it runs there.
+    pub fn candle_model(&self) -> Option<&PiModel> {
+        match &self.backend {
+            Backend::Candle(m) => Some(m),
+            Backend::Fast(_) => None,
+        }
+    }
+
+    /// The network on the fast CPU kernels, when it runs there.
+    pub fn fast_model(&self) -> Option<&FastPiModel> {
+        match &self.backend {
+            Backend::Fast(m) => Some(m),
+            Backend::Candle(_) => None,
+        }
     }
 
     /// The processors.
@@ -113,14 +154,9 @@ impl PiPipeline {
         &self.checkpoint
     }
 
-    /// The network.
-    pub fn model(&self) -> &PiModel {
-        &self.model
-    }
-
     /// Actions per chunk.
     pub fn chunk(&self) -> usize {
-        self.model.dims().chunk
+        self.dims().chunk
     }
 
     /// The robot's action width.
@@ -135,7 +171,7 @@ impl PiPipeline {
         observations: &[Observation],
         seeds: &[u64],
     ) -> Result<(Vec<Prediction>, StageTimes), EngineError> {
-        let d = self.model.dims();
+        let d = self.dims();
         let noises: Vec<Vec<f32>> = seeds
             .iter()
             .map(|&s| gaussian_noise(s, 0, d.chunk * d.action_pad))
@@ -174,13 +210,11 @@ impl PiPipeline {
 
         let t = Instant::now();
         let noises: Vec<Vec<Vec<f32>>> = noises.iter().map(|n| vec![n.clone()]).collect();
-        let samples = self
-            .model
-            .sample(&self.sample_inputs(&prepared, &prefixes, &noises))?;
+        let samples = self.sample(&prepared, &prefixes, &noises, &[])?;
         times.expert = ms(t);
 
         let t = Instant::now();
-        let pad = self.model.dims().action_pad;
+        let pad = self.dims().action_pad;
         let predictions = samples
             .into_iter()
             .zip(&prepared)
@@ -200,7 +234,7 @@ impl PiPipeline {
 
     /// The prefix of each prepared observation, the cameras of the batch through the vision
     /// tower together.
-    pub fn prefixes(&self, prepared: &[PiPrepared]) -> Result<Vec<PrefixCache>, EngineError> {
+    fn prefixes(&self, prepared: &[PiPrepared]) -> Result<Vec<Prefix>, EngineError> {
         let observations: Vec<PiObservation<'_>> = prepared
             .iter()
             .map(|p| PiObservation {
@@ -213,25 +247,123 @@ impl PiPipeline {
                 token_mask: &p.tokens.mask,
             })
             .collect();
-        self.model.prefix(&observations)
+        Ok(match &self.backend {
+            Backend::Fast(m) => m
+                .prefix(&observations)?
+                .into_iter()
+                .map(Prefix::Fast)
+                .collect(),
+            Backend::Candle(m) => m
+                .prefix(&observations)?
+                .into_iter()
+                .map(Prefix::Candle)
+                .collect(),
+        })
     }
 
-    fn sample_inputs<'a>(
+    /// The Euler loop for every prepared observation (`noises[i]`: its samples' noise) on
+    /// its prefix.
+    fn sample(
         &self,
-        prepared: &'a [PiPrepared],
-        prefixes: &'a [PrefixCache],
-        noises: &'a [Vec<Vec<f32>>],
-    ) -> Vec<SampleInput<'a>> {
-        prepared
+        prepared: &[PiPrepared],
+        prefixes: &[Prefix],
+        noises: &[Vec<Vec<f32>>],
+        guides: &[Option<RowGuide>],
+    ) -> Result<Vec<ExpertSample>, EngineError> {
+        let mismatch = || EngineError::InvalidInput("a prefix of the other backend".into());
+        let requests = prepared.iter().zip(prefixes).zip(noises);
+        match &self.backend {
+            Backend::Fast(m) => {
+                let inputs = requests
+                    .map(|((p, prefix), noise)| match prefix {
+                        Prefix::Fast(prefix) => Ok(FastSampleInput {
+                            prefix,
+                            state: Some(&p.state),
+                            noise,
+                        }),
+                        Prefix::Candle(_) => Err(mismatch()),
+                    })
+                    .collect::<Result<Vec<_>, _>>()?;
+                m.sample_guided(&inputs, guides)
+            }
+            Backend::Candle(m) => {
+                let inputs = requests
+                    .map(|((p, prefix), noise)| match prefix {
+                        Prefix::Candle(prefix) => Ok(SampleInput {
+                            prefix,
+                            state: Some(&p.state),
+                            noise,
+                        }),
+                        Prefix::Fast(_) => Err(mismatch()),
+                    })
+                    .collect::<Result<Vec<_>, _>>()?;
+                m.sample_guided(&inputs, guides)
+            }
+        }
+    }
+
+    /// One guide per sample row (`[request][sample]`) for the requests' guidance, or none when
+    /// no request has any. A guidance prefix is in the robot's units; the expert samples
+    /// normalised actions, so each committed action is mapped back as the postprocessor maps
+    /// forward, inverted: minus the state offset (relative actions), then normalised with the
+    /// action stats.
+    fn guides(
+        &self,
+        batch: &[ActionRequest],
+        prepared: &[PiPrepared],
+        noises: &[Vec<Vec<f32>>],
+    ) -> Result<Vec<Option<RowGuide>>, EngineError> {
+        if batch.iter().all(|r| r.guidance.is_none()) {
+            return Ok(Vec::new());
+        }
+        let support = self.chunking().guidance;
+        if let Some(mode) = batch
             .iter()
-            .zip(prefixes)
-            .zip(noises)
-            .map(|((p, prefix), noise)| SampleInput {
-                prefix,
-                state: Some(&p.state),
-                noise,
-            })
-            .collect()
+            .filter_map(|r| r.guidance.as_ref())
+            .map(|g| g.mode)
+            .find(|&mode| !support.supports(mode))
+        {
+            return Err(EngineError::InvalidInput(format!(
+                "guidance `{}`: π0 / π0.5 have no backward pass on {} (rtc and inpaint work)",
+                mode.as_str(),
+                self.path
+            )));
+        }
+        let d = self.dims();
+        let dim = self.checkpoint.action_dim();
+        let unnormalizer = self.checkpoint.postprocessor().unnormalizer.as_ref();
+        let mut guides = Vec::new();
+        for ((r, p), noise) in batch.iter().zip(prepared).zip(noises) {
+            let offset = self.checkpoint.absolute_offset(&p.raw_state)?;
+            let to_model = |action: &mut [f32]| {
+                if let Some(offset) = &offset {
+                    for (a, o) in action.iter_mut().zip(offset) {
+                        *a -= o;
+                    }
+                }
+                if let Some(n) = unnormalizer {
+                    let _ = n.normalize(ACTION_KEY, action);
+                }
+            };
+            for sample_noise in noise {
+                guides.push(
+                    r.guidance
+                        .as_ref()
+                        .map(|g| {
+                            RowGuide::prepare(
+                                g,
+                                d.chunk,
+                                dim,
+                                d.action_pad,
+                                sample_noise,
+                                &to_model,
+                            )
+                        })
+                        .transpose()?,
+                );
+            }
+        }
+        Ok(guides)
     }
 
     /// A chunk in the robot's units: the actions as the postprocessor gives them, the noise
@@ -282,7 +414,8 @@ impl PiPipeline {
 /// The whole policy behind the server's model interface: a request's images are matched to the
 /// model's cameras by name (or, without names, are the cameras in order), its instruction is
 /// the task, its state the raw state; samples of one request share the prefix. Chunks are in
-/// the robot's units (see `to_robot_units`).
+/// the robot's units (see `to_robot_units`). A request's guidance (`rtc`, `inpaint`) steers its
+/// rows in the shared sampler, in the normalised action space (see `guides`).
 impl ActionModel for PiPipeline {
     fn spec(&self) -> &ModelSpec {
         &self.spec
@@ -290,6 +423,15 @@ impl ActionModel for PiPipeline {
 
     fn paths(&self) -> Option<StagePaths> {
         Some(PiPipeline::paths(self))
+    }
+
+    /// `rtc` and `inpaint` in the shared sampler, on both paths; `rtc_vjp` on neither (no
+    /// backward pass). The action space is not declared, as for SmolVLA.
+    fn chunking(&self) -> crate::ModelChunking {
+        crate::ModelChunking {
+            guidance: crate::GuidanceSupport::PREFIX,
+            action_space: crate::ActionSpace::Unspecified,
+        }
     }
 
     fn generate(&self, batch: &[ActionRequest]) -> Result<Vec<ActionChunk>, EngineError> {
@@ -316,7 +458,7 @@ impl ActionModel for PiPipeline {
             })
             .collect::<Result<Vec<_>, _>>()?;
         let prefixes = self.prefixes(&prepared)?;
-        let d = self.model.dims();
+        let d = self.dims();
         let len = d.chunk * d.action_pad;
         let noises: Vec<Vec<Vec<f32>>> = batch
             .iter()
@@ -326,9 +468,8 @@ impl ActionModel for PiPipeline {
                     .collect()
             })
             .collect();
-        let out = self
-            .model
-            .sample(&self.sample_inputs(&prepared, &prefixes, &noises))?;
+        let guides = self.guides(batch, &prepared, &noises)?;
+        let out = self.sample(&prepared, &prefixes, &noises, &guides)?;
         let layout = RowLayout {
             samples: batch.iter().map(|r| r.samples).collect(),
             steps: d.steps,

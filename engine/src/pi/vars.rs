@@ -12,7 +12,8 @@ use candle_core::{Device, Tensor};
 
 use super::config::PiFamily;
 use crate::EngineError;
-use crate::weights::Checkpoint;
+use crate::smolvla::linear::LinearWeights;
+use crate::weights::{Checkpoint, StoredTensor};
 
 /// The embedding key and the tied head LeRobot copies into it when the embedding is absent.
 const EMBED: &str =
@@ -112,5 +113,29 @@ impl<'a> Vars<'a> {
         let stored = resolve_key(self.ckpt, self.family, &key)
             .ok_or_else(|| EngineError::MissingTensor { key: key.clone() })?;
         self.ckpt.tensor(&stored, shape)
+    }
+
+    /// `name` as the checkpoint stores it (bf16 bits stay bf16), checked to have `shape`.
+    pub fn stored(&self, shape: &[usize], name: &str) -> Result<StoredTensor, EngineError> {
+        let key = self.key(name);
+        let stored = resolve_key(self.ckpt, self.family, &key)
+            .ok_or_else(|| EngineError::MissingTensor { key: key.clone() })?;
+        self.ckpt.tensor_stored(&stored, shape)
+    }
+
+    /// The `nn.Linear` here for the fast kernels: `weight` `[out][in]` as stored and, with
+    /// `bias`, `bias` `[out]` widened to f32.
+    pub fn linear_weights(
+        &self,
+        out: usize,
+        inp: usize,
+        bias: bool,
+    ) -> Result<LinearWeights<StoredTensor>, EngineError> {
+        Ok(LinearWeights {
+            weight: self.stored(&[out, inp], "weight")?,
+            bias: bias.then(|| self.values(&[out], "bias")).transpose()?,
+            out_dim: out,
+            in_dim: inp,
+        })
     }
 }

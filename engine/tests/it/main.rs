@@ -7,8 +7,10 @@
 mod examples_help;
 mod loader_errors;
 mod models;
+mod pi_fast;
 mod pi_parity;
 mod pi_pipeline;
+mod pi_rtc;
 mod smolvla_bf16;
 mod smolvla_fixture;
 mod smolvla_goldens;

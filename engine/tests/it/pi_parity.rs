@@ -49,7 +49,7 @@ pub(crate) fn load_model(name: &str, device: &Device) -> PiModel {
 
 /// Assert `ours` matches LeRobot's f32 result and its f64 recomputation within the bound above
 /// (`want` are the golden values at the same positions as `ours`).
-fn check(g: &Goldens, key: &str, ours: &[f32], want: &[f32], want64: &[f32]) {
+pub(crate) fn check(g: &Goldens, key: &str, ours: &[f32], want: &[f32], want64: &[f32]) {
     assert_eq!(ours.len(), want.len(), "{key}: length");
     assert_eq!(ours.len(), want64.len(), "{key}: length");
     let (mut d32, mut d64, mut big) = (0.0f32, 0.0f32, 0.0f32);
@@ -68,26 +68,26 @@ fn check(g: &Goldens, key: &str, ours: &[f32], want: &[f32], want64: &[f32]) {
 }
 
 /// One golden case as the model's inputs.
-struct Case {
-    name: String,
-    batch: usize,
-    slots: usize,
-    side: usize,
+pub(crate) struct Case {
+    pub(crate) name: String,
+    pub(crate) batch: usize,
+    pub(crate) slots: usize,
+    pub(crate) side: usize,
     /// `[slot]` -> `[batch][3][side][side]`.
     images: Vec<Vec<f32>>,
     /// `[slot]` -> `[batch]`.
-    image_mask: Vec<Vec<u8>>,
+    pub(crate) image_mask: Vec<Vec<u8>>,
     tokens: Vec<Vec<u32>>,
     token_mask: Vec<Vec<bool>>,
     /// `[batch]` -> the normalised state.
-    state: Vec<Vec<f32>>,
+    pub(crate) state: Vec<Vec<f32>>,
     /// `[batch]` -> `[chunk][max_action_dim]`.
-    noise: Vec<Vec<f32>>,
+    pub(crate) noise: Vec<Vec<f32>>,
     /// `[batch][prefix_len]`.
-    pad_mask: Vec<Vec<bool>>,
+    pub(crate) pad_mask: Vec<Vec<bool>>,
 }
 
-fn case(g: &Goldens, name: &str) -> Case {
+pub(crate) fn case(g: &Goldens, name: &str) -> Case {
     let c = &g.meta["cases"][name];
     let batch = c["batch"].as_u64().unwrap() as usize;
     let slots = c["image_slots"].as_u64().unwrap() as usize;
@@ -129,12 +129,12 @@ fn case(g: &Goldens, name: &str) -> Case {
 }
 
 impl Case {
-    fn pixels(&self, slot: usize, b: usize) -> &[f32] {
+    pub(crate) fn pixels(&self, slot: usize, b: usize) -> &[f32] {
         let n = 3 * self.side * self.side;
         &self.images[slot][b * n..(b + 1) * n]
     }
 
-    fn observation(&self, b: usize) -> PiObservation<'_> {
+    pub(crate) fn observation(&self, b: usize) -> PiObservation<'_> {
         PiObservation {
             images: (0..self.slots)
                 .map(|s| (self.image_mask[s][b] != 0).then(|| self.pixels(s, b)))
@@ -145,7 +145,7 @@ impl Case {
     }
 
     /// The golden `[batch][len][width]` tensor `key` at observation `b`'s valid prefix positions.
-    fn valid_rows(&self, g: &Goldens, key: &str, b: usize) -> (Vec<f32>, Vec<f32>) {
+    pub(crate) fn valid_rows(&self, g: &Goldens, key: &str, b: usize) -> (Vec<f32>, Vec<f32>) {
         let shape = g.shape(key);
         let (len, width) = (shape[1], shape[2..].iter().product::<usize>());
         let pick = |v: Vec<f32>| -> Vec<f32> {

@@ -15,7 +15,9 @@ use kairos_engine::pi::PiPipeline;
 use kairos_engine::smolvla::checkpoint::Observation;
 use kairos_engine::smolvla::images::prepared_pixel_bound;
 use kairos_engine::weights::{Checkpoint, serialize_f32};
-use kairos_engine::{ActionRequest, EngineError, EngineOptions, ImageInput, resolve_model_with};
+use kairos_engine::{
+    ActionRequest, EngineError, EngineOptions, ImageInput, Kernels, resolve_model_with,
+};
 
 use super::pi_parity::pi_fixture;
 use super::smolvla_goldens::Goldens;
@@ -274,11 +276,22 @@ fn rewrite_weights(
     std::fs::write(&path, serialize_f32(&views).unwrap()).unwrap();
 }
 
+/// The error of loading `dir`, the same on the fast kernels (the default) and on Candle ops.
 fn load_err(dir: &std::path::Path) -> String {
-    match PiPipeline::load(dir, None, &options()) {
-        Ok(_) => panic!("{} loaded", dir.display()),
+    let err = |kernels: Kernels| match PiPipeline::load(
+        dir,
+        None,
+        &EngineOptions {
+            kernels,
+            ..options()
+        },
+    ) {
+        Ok(_) => panic!("{} loaded on {kernels:?}", dir.display()),
         Err(e) => e.to_string(),
-    }
+    };
+    let fast = err(Kernels::Auto);
+    assert_eq!(fast, err(Kernels::Candle), "the two paths' errors");
+    fast
 }
 
 #[test]
@@ -312,7 +325,13 @@ fn missing_files_tensors_shapes_and_keys_are_named() {
             }
         })
     });
-    PiPipeline::load(dir.path(), None, &options()).unwrap();
+    for kernels in [Kernels::Auto, Kernels::Candle] {
+        let options = EngineOptions {
+            kernels,
+            ..options()
+        };
+        PiPipeline::load(dir.path(), None, &options).unwrap();
+    }
     let key = "model.paligemma_with_expert.gemma_expert.model.norm.dense.weight";
     let dir = edited_copy("pi05_tiny", |d| {
         rewrite_weights(d, |t| t.retain(|(k, _, _)| k != key))
@@ -409,7 +428,7 @@ fn real_pi_checkpoint_loads_and_predicts() {
         .ok()
         .map(std::path::PathBuf::from);
     let pipeline = PiPipeline::load(&dir, tokenizer.as_deref(), &options()).unwrap();
-    let d = pipeline.model().dims();
+    let d = pipeline.dims();
     assert_eq!(d.vlm, kairos_engine::pi::GemmaDims::gemma_2b());
     assert_eq!(d.expert, kairos_engine::pi::GemmaDims::gemma_300m());
     assert_eq!(

@@ -22,9 +22,7 @@ use super::weights::{NormWeights, VlmWeights};
 use crate::EngineError;
 use crate::kernels::bf16::round_pairs;
 use crate::kernels::gemm::{ActivationRows, gemm_par, gemm_par_pairs};
-use crate::kernels::{
-    FreeList, Init, MatMut, MatRef, PackedMatrix, Pool, Precision, SharedMut, grown, vecmath,
-};
+use crate::kernels::{FreeList, Init, MatMut, MatRef, Pool, Precision, SharedMut, grown, vecmath};
 use crate::smolvla::config::VlmConfig;
 use crate::smolvla::linear::{Linear, LinearWeights};
 use attention::{AttentionIn, AttentionOut, HeadScratch};
@@ -75,7 +73,8 @@ pub(crate) struct CpuVision {
     positions: Vec<f32>,
     layers: Vec<VisionLayer>,
     post: NormWeights,
-    connector: PackedMatrix,
+    /// The connector (SmolVLM's, no bias) or PaliGemma's projector (with its bias).
+    connector: Linear,
     /// The precision of the weight GEMMs, also used for attention's `q kᵀ` and `p v` GEMMs
     /// (keys and values packed in it per request).
     precision: Precision,
@@ -183,7 +182,7 @@ impl CpuVision {
             positions: w.position_embedding,
             layers,
             post: w.post_layernorm,
-            connector: w.connector.into_linear(precision).w,
+            connector: w.connector.into_linear(precision),
             config: w.config,
             precision,
             buffers: FreeList::default(),
@@ -470,13 +469,19 @@ impl CpuVision {
             }
             t0 += n * n;
         }
-        let th = self.connector.n();
+        let th = self.connector.w.n();
         let emb = grown(emb, total * th);
         let (groups, tokens_out) = (
             MatRef::dense(shuffled, total, wide),
             MatMut::dense(emb, total, th),
         );
-        gemm_par(pool, groups, &self.connector, tokens_out, Init::Zero);
+        gemm_par(
+            pool,
+            groups,
+            &self.connector.w,
+            tokens_out,
+            self.connector.init(),
+        );
         let mut t0 = 0;
         for ((&n, &start), &tk) in group.counts.iter().zip(&group.starts).zip(&tokens) {
             out.hidden.push(h[start * vh..(start + n) * vh].to_vec());
