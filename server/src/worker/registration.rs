@@ -23,6 +23,7 @@ use tokio::sync::watch;
 use tokio::time::Instant;
 
 use super::RemoteEngine;
+use super::readmission::Readmission;
 use super::removal::{Removal, truncated};
 use super::wire::{model_spec, profile_from_wire};
 use crate::config::WorkersConfig;
@@ -42,6 +43,23 @@ pub struct WorkerGate {
     pub config: WorkersConfig,
     /// Where removed workers are counted (`kairos_worker_removed_total`).
     pub metrics: Metrics,
+    /// Workers removed for unusable answers, refused registration until their delay ends
+    /// (`[workers] readmit_after_invalid_ms`).
+    pub readmission: Arc<Readmission>,
+}
+
+impl WorkerGate {
+    /// The gate of a scheduler that accepts workers holding the token whose hash is
+    /// `token_hash` (`None`: none), treated as `config` says, counted in `metrics`.
+    pub fn new(token_hash: Option<[u8; 32]>, config: WorkersConfig, metrics: Metrics) -> Self {
+        let readmission = Arc::new(Readmission::new(config.readmit_after_invalid()));
+        WorkerGate {
+            token_hash,
+            config,
+            metrics,
+            readmission,
+        }
+    }
 }
 
 /// The largest `Register` body read: names, a token and a profile of a few dozen points.
@@ -251,7 +269,8 @@ async fn register(
                     return refuse(send, worker_close::REFUSED, reason, false).await;
                 }
             };
-            let removal = Removal::new(connection.clone(), context.workers.metrics.clone());
+            let removal = Removal::new(connection.clone(), context.workers.metrics.clone())
+                .barring(context.workers.readmission.clone(), &register.worker_id);
             let declared = match register.tier {
                 WorkerTier::Edge => Some(Tier::Edge),
                 WorkerTier::Cloud => Some(Tier::Cloud),
@@ -348,6 +367,21 @@ fn check(
             format!("Register breaks the protocol's rules: {error}"),
             false,
         ));
+    }
+    if let Err(wait) = context
+        .workers
+        .readmission
+        .check(&register.worker_id, ip, Instant::now())
+    {
+        let reason = format!(
+            "worker `{}` was removed for an unusable answer; it may register again in {} ms",
+            register.worker_id,
+            wait.as_millis()
+        );
+        context
+            .refusals
+            .refuse(Door::Workers, Reason::ReadmitDelay, remote, &reason);
+        return Err((worker_close::REFUSED, reason, true));
     }
     if register.protocol < WORKER_PROTOCOL_VERSION {
         return Err((
