@@ -11,6 +11,11 @@ openpi_calls=${OPENPI_CALLS:-30}
 max_connections=${MAX_CONNECTIONS:-96}
 quic_slots=${QUIC_SLOTS:-64}
 tcp_slots=${TCP_SLOTS:-64}
+# The attackers' own address: the per-address guards (handshake places per source) cannot tell
+# clients on one address apart before they authenticate, so on one loopback address a slowloris
+# holding that address's share of the openpi door's handshake places shuts out the well-behaved
+# openpi clients too. Empty: the attackers share 127.0.0.1 with the clients.
+attack_source=${ATTACK_SOURCE-127.0.0.2}
 
 for tool in "$tools/kairos-attack" "$tools/kairos-hostile-worker"; do
     if [ ! -x "$tool" ]; then
@@ -136,7 +141,8 @@ EOF
         hostile_pid=$!
         "$tools/kairos-attack" --server "$quic" --data-dir "$data" --openpi "$openpi" \
             --metrics "$metrics" --hog-token "$hog_token" --quic-slots "$quic_slots" \
-            --tcp-slots "$tcp_slots" >"$dir/attack.log" 2>&1 &
+            --tcp-slots "$tcp_slots" ${attack_source:+--source-ip "$attack_source"} \
+            >"$dir/attack.log" 2>&1 &
         attack_pid=$!
         other_pids+=("$hostile_pid" "$attack_pid")
         # The attackers take their places before the well-behaved load starts.

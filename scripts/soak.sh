@@ -36,7 +36,9 @@
 # latency of the robots and of the openpi clients is within 2x the baseline's. Prints the
 # server's refusal and worker-removal counters from /metrics. Env as below, plus ROBOTS (16),
 # CONTROL_HZ (10), ROUNDS (20), OPENPI_CLIENTS (3), OPENPI_PERIOD_S (1), OPENPI_CALLS (30),
-# QUIC_SLOTS and TCP_SLOTS (slowloris connections per listener, 64), KAIROS_TOOLS (directory of
+# QUIC_SLOTS and TCP_SLOTS (slowloris connections per listener, 64), ATTACK_SOURCE (the address
+# `kairos-attack` sends from, default 127.0.0.2, apart from the clients' 127.0.0.1; empty: the
+# same address as the clients), KAIROS_TOOLS (directory of
 # `kairos-attack` and `kairos-hostile-worker`, default: KAIROS_BIN's), KAIROS_OPENPI_PYTHON (a
 # python with openpi-client==0.1.2, default .venv-openpi/bin/python as scripts/test.sh makes it).
 #

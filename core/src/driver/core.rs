@@ -212,9 +212,10 @@ pub struct DriverCore {
     ended: VecDeque<TaskSnapshot>,
     stats: DriverStats,
     latencies: RecentLatencies,
-    /// Per engine instance (indexed by id; ids are never reused): time spent in forward passes,
-    /// and a remote worker's measured round trip.
-    engine_facts: Vec<EngineFacts>,
+    /// Per engine instance the scheduler still knows (ids are never reused): time spent in
+    /// forward passes, and a remote worker's measured round trip. Pruned with the scheduler's
+    /// records ([`DriverCore::forget_departed_engines`]), so registrations do not pile up here.
+    engine_facts: BTreeMap<EngineId, EngineFacts>,
     draining: bool,
     redispatch: RedispatchRule,
     /// The timer last asked of the shell.
@@ -258,7 +259,7 @@ impl DriverCore {
                 ..DriverStats::default()
             },
             latencies: RecentLatencies::default(),
-            engine_facts: Vec::new(),
+            engine_facts: BTreeMap::new(),
             draining: false,
             redispatch: RedispatchRule::default(),
             timer: None,
@@ -303,8 +304,10 @@ impl DriverCore {
     pub fn engine_link(&mut self, engine: EngineId, rtt: Duration, tier: crate::scheduler::Tier) {
         self.scheduler.set_engine_rtt(engine, rtt);
         let retiered = self.scheduler.set_engine_tier(engine, tier);
-        self.engine_facts_mut(engine).rtt = Some(rtt);
-        if let Some(state) = self.scheduler.engines().nth(engine.0)
+        if let Some(facts) = self.engine_facts_mut(engine) {
+            facts.rtt = Some(rtt);
+        }
+        if let Some(state) = self.scheduler.engine(engine)
             && retiered
         {
             tracing::info!(engine = %state.spec.name, ?tier, ?rtt, "worker re-classified");
@@ -329,8 +332,7 @@ impl DriverCore {
         if let Some(state) = self.batches.remove(&batch) {
             let engine = self
                 .scheduler
-                .engines()
-                .nth(state.dispatch.engine.0)
+                .engine(state.dispatch.engine)
                 .map(|e| e.spec.name.clone())
                 .unwrap_or_default();
             for (mut input, job) in inputs.into_iter().zip(rounds) {
@@ -496,7 +498,9 @@ impl DriverCore {
             state.inference = inference;
             state.generation_end = Some(now);
             let engine = state.dispatch.engine;
-            self.engine_facts_mut(engine).busy_time += inference;
+            if let Some(facts) = self.engine_facts_mut(engine) {
+                facts.busy_time += inference;
+            }
             self.scheduler.handle_generation_ended(now, batch);
         }
         let load = self.scheduler.load(now);
@@ -575,7 +579,7 @@ impl DriverCore {
                 } else {
                     return None;
                 };
-                let facts = self.engine_facts.get(e.id.0).copied().unwrap_or_default();
+                let facts = self.engine_facts.get(&e.id).copied().unwrap_or_default();
                 Some(EngineReport {
                     name: e.spec.name.clone(),
                     tier: e.spec.tier,
@@ -595,12 +599,25 @@ impl DriverCore {
         }
     }
 
-    fn engine_facts_mut(&mut self, engine: EngineId) -> &mut EngineFacts {
-        if self.engine_facts.len() <= engine.0 {
+    /// The facts of an instance the scheduler knows; `None` for one it has forgotten (a late
+    /// event about an instance that left), which must not bring its facts back.
+    fn engine_facts_mut(&mut self, engine: EngineId) -> Option<&mut EngineFacts> {
+        self.scheduler.engine(engine)?;
+        Some(self.engine_facts.entry(engine).or_default())
+    }
+
+    /// Drops the facts of instances the scheduler has forgotten (left the pool, no batch left).
+    fn forget_departed_engines(&mut self) {
+        if self.engine_facts.len() > self.scheduler.engine_records() {
+            let scheduler = &self.scheduler;
             self.engine_facts
-                .resize(engine.0 + 1, EngineFacts::default());
+                .retain(|&id, _| scheduler.engine(id).is_some());
         }
-        &mut self.engine_facts[engine.0]
+    }
+
+    /// Engine instances the core keeps facts about (at most those the scheduler knows).
+    pub fn engine_facts_held(&self) -> usize {
+        self.engine_facts.len()
     }
 
     fn advance(&mut self, now: Timestamp) -> Timestamp {
@@ -821,6 +838,7 @@ impl DriverCore {
         }
         self.answer_stranded(now);
         self.dispatch(now);
+        self.forget_departed_engines();
         let next = self.scheduler.poll_timeout();
         if next != self.timer {
             self.timer = next;
@@ -916,8 +934,7 @@ impl DriverCore {
         let batch_size = u32::try_from(state.dispatch.requests.len()).unwrap_or(u32::MAX);
         let generation = self
             .scheduler
-            .engines()
-            .nth(engine.0)
+            .engine(engine)
             .map(|e| e.spec.profile.latency(batch_size) + e.spec.rtt)
             .unwrap_or_default();
         let reply_overhead = self.reply_overhead.get();

@@ -427,11 +427,16 @@ fn a_lost_batch_runs_again_on_another_engine_and_each_round_is_answered_once() {
     let stats = b.core.stats();
     assert_eq!(stats.redispatched.connection_lost, 2);
     assert_eq!(stats.redispatched.total(), 2);
-    let engines: Vec<bool> = b.core.scheduler().engines().map(|e| e.live).collect();
+    let engines: Vec<(EngineId, bool)> = b
+        .core
+        .scheduler()
+        .engines()
+        .map(|e| (e.id, e.live))
+        .collect();
     assert_eq!(
         engines,
-        [false, false, true],
-        "the lost worker left the pool"
+        [(other, true)],
+        "the lost worker left the pool, and the core forgot it with the local engine"
     );
     // A late answer of the lost batch is dropped; the new one answers each round once.
     let late = b.answers(BatchJob {
@@ -458,6 +463,11 @@ fn a_lost_batch_runs_again_on_another_engine_and_each_round_is_answered_once() {
     waiters.sort();
     assert_eq!(waiters, [WaiterId(1), WaiterId(2)]);
     assert_eq!(b.core.stats().failed, 0);
+    // Only the engine left in the pool has facts kept about it.
+    assert_eq!(b.core.engine_facts_held(), 1);
+    let report = b.core.report();
+    assert_eq!(report.engines.len(), 1);
+    assert_eq!(report.engines[0].name, "worker:b");
 }
 
 #[test]
@@ -606,7 +616,7 @@ fn a_reclassified_worker_moves_tier_in_the_scheduler_and_the_report() {
             .count()
     };
     let view = |b: &Bench| {
-        let e = b.core.scheduler().engines().nth(worker.0).unwrap();
+        let e = b.core.scheduler().engine(worker).unwrap();
         (e.spec.tier, e.spec.rtt)
     };
     b.core

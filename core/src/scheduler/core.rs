@@ -49,7 +49,7 @@ struct Batch {
 struct EngineState {
     spec: EngineSpec,
     /// False once the instance left the pool (a remote worker gone or draining): placement no
-    /// longer sees it. Its id is never reused.
+    /// longer sees it, and its record is dropped as soon as it runs no batch.
     live: bool,
     max_batch: usize,
     busy: Option<BatchId>,
@@ -154,7 +154,11 @@ pub struct SchedulerCounters {
 /// The execution-aware scheduler. See the module documentation for the event API.
 pub struct Scheduler {
     config: SchedulerConfig,
-    engines: Vec<EngineState>,
+    /// The instances in the pool, and those that left while running a batch, until that batch
+    /// ends (see [`Scheduler::add_engine`] for why ids are never reused).
+    engines: BTreeMap<EngineId, EngineState>,
+    /// The id the next instance added gets.
+    next_engine: usize,
     policy: Box<dyn PriorityPolicy>,
     tasks: TaskTable,
     /// Keyed by `RequestId`, so iteration (and the views a policy sees) is in arrival order.
@@ -187,9 +191,14 @@ impl Scheduler {
             config.task_idle_timeout,
             config.ended_tasks_remembered,
         );
-        let engines = engines.into_iter().map(EngineState::new).collect();
+        let engines: BTreeMap<EngineId, EngineState> = engines
+            .into_iter()
+            .enumerate()
+            .map(|(i, spec)| (EngineId(i), EngineState::new(spec)))
+            .collect();
         Scheduler {
             config,
+            next_engine: engines.len(),
             engines,
             policy,
             tasks,
@@ -214,7 +223,7 @@ impl Scheduler {
     /// what the instance was given.
     pub fn refine_profiles(&mut self, config: RefineConfig) {
         self.refine = Some(config);
-        for engine in &mut self.engines {
+        for engine in self.engines.values_mut() {
             engine.refiner = Some(ProfileRefiner::new(&engine.spec.profile, config));
         }
     }
@@ -222,7 +231,7 @@ impl Scheduler {
     /// A generation of `size` requests took `took` on `engine` (without the network round
     /// trip): the refined profile, if refinement is on, learns it.
     fn observe_generation(&mut self, engine: EngineId, size: usize, took: Duration) {
-        let Some(e) = self.engines.get_mut(engine.0) else {
+        let Some(e) = self.engines.get_mut(&engine) else {
             return;
         };
         let Some(refiner) = e.refiner.as_mut() else {
@@ -321,7 +330,7 @@ impl Scheduler {
     /// decision happens). Returns the batches to run, each to be confirmed with
     /// `handle_batch_started` once its re-fetches are done and its forward pass begins.
     pub fn poll_dispatch(&mut self, now: Timestamp) -> Vec<Dispatch> {
-        let any_idle = self.engines.iter().any(|e| e.live && e.busy.is_none());
+        let any_idle = self.engines.values().any(|e| e.live && e.busy.is_none());
         if !any_idle || self.pending.is_empty() {
             return Vec::new();
         }
@@ -345,7 +354,7 @@ impl Scheduler {
             if batch.is_empty() {
                 continue;
             }
-            let engine_index = live_ids[slot_index];
+            let engine_id = live_ids[slot_index];
             let batch_id = BatchId(self.next_batch);
             self.next_batch += 1;
             let mut requests = Vec::with_capacity(batch.len());
@@ -372,13 +381,14 @@ impl Scheduler {
                 self.tasks.dispatched(entry.task, request);
             }
             dispatched += requests.len();
-            let engine = &mut self.engines[engine_index];
-            engine.busy = Some(batch_id);
-            engine.busy_until = now + costs[slot_index];
+            if let Some(engine) = self.engines.get_mut(&engine_id) {
+                engine.busy = Some(batch_id);
+                engine.busy_until = now + costs[slot_index];
+            }
             self.batches.insert(
                 batch_id,
                 Batch {
-                    engine: EngineId(engine_index),
+                    engine: engine_id,
                     dispatched_at: now,
                     started_at: None,
                     generated_at: None,
@@ -387,7 +397,7 @@ impl Scheduler {
             );
             dispatches.push(Dispatch {
                 batch: batch_id,
-                engine: EngineId(engine_index),
+                engine: engine_id,
                 requests,
             });
         }
@@ -474,7 +484,7 @@ impl Scheduler {
             self.tasks
                 .generation_started(now, entry.task, entry.request);
         }
-        if let Some(engine) = self.engines.get_mut(b.engine.0) {
+        if let Some(engine) = self.engines.get_mut(&b.engine) {
             let cost = engine
                 .spec
                 .profile
@@ -505,12 +515,16 @@ impl Scheduler {
         self.observe_generation(engine, size, took);
     }
 
-    /// The engine instance is idle, unless it already runs another batch than `batch`.
+    /// The engine instance is idle, unless it already runs another batch than `batch`. An
+    /// instance that left the pool is forgotten once idle.
     fn release_engine(&mut self, engine: EngineId, batch: BatchId) {
-        if let Some(engine) = self.engines.get_mut(engine.0)
-            && engine.busy == Some(batch)
+        if let Some(state) = self.engines.get_mut(&engine)
+            && state.busy == Some(batch)
         {
-            engine.busy = None;
+            state.busy = None;
+            if !state.live {
+                self.engines.remove(&engine);
+            }
         }
     }
 
@@ -642,14 +656,17 @@ impl Scheduler {
     }
 
     /// The live engine instances as placement sees them, with their `EngineId` indexes, in order.
-    fn live_engine_slots(&self) -> (Vec<usize>, Vec<EngineSlot<'_>>) {
-        let live_ids: Vec<usize> = (0..self.engines.len())
-            .filter(|&i| self.engines[i].live)
-            .collect();
-        let slots = live_ids
+    fn live_engine_slots(&self) -> (Vec<EngineId>, Vec<EngineSlot<'_>>) {
+        let live: Vec<(EngineId, &EngineState)> = self
+            .engines
             .iter()
-            .map(|&i| &self.engines[i])
-            .map(|e| EngineSlot {
+            .filter(|(_, e)| e.live)
+            .map(|(&id, e)| (id, e))
+            .collect();
+        let live_ids = live.iter().map(|&(id, _)| id).collect();
+        let slots = live
+            .into_iter()
+            .map(|(_, e)| EngineSlot {
                 tier: e.spec.tier,
                 max_batch: e.max_batch,
                 busy_until: e.busy.map(|_| e.busy_until),
@@ -701,28 +718,29 @@ impl Scheduler {
         self.pending.get(&request).map(|p| p.skipped)
     }
 
-    /// Every engine instance's state, in `EngineId` order (instances that left included).
+    /// Every engine instance's state, in `EngineId` order: those in the pool, and those that
+    /// left while running a batch, until it ends.
     pub fn engines(&self) -> impl ExactSizeIterator<Item = EngineStatus<'_>> {
-        self.engines.iter().enumerate().map(|(i, e)| EngineStatus {
-            id: EngineId(i),
-            spec: &e.spec,
-            batch: e.busy,
-            busy_until: e.busy.map(|_| e.busy_until),
-            live: e.live,
-        })
+        self.engines.iter().map(|(&id, e)| e.status(id))
+    }
+
+    /// The state of instance `engine`, while it is in the pool or runs a batch after leaving
+    /// it; `None` for an id the scheduler has forgotten or never gave.
+    pub fn engine(&self, engine: EngineId) -> Option<EngineStatus<'_>> {
+        self.engines.get(&engine).map(|e| e.status(engine))
     }
 
     /// The instance's round trip changed (a remote worker's measured RTT): placement and the
     /// busy estimate use the new one from the next decision.
     pub fn set_engine_rtt(&mut self, engine: EngineId, rtt: Duration) {
-        if let Some(state) = self.engines.get_mut(engine.0) {
+        if let Some(state) = self.engines.get_mut(&engine) {
             state.spec.rtt = rtt;
         }
     }
 
     /// The instance's tier changed (a worker classified from its round trip); whether it did.
     pub fn set_engine_tier(&mut self, engine: EngineId, tier: Tier) -> bool {
-        match self.engines.get_mut(engine.0) {
+        match self.engines.get_mut(&engine) {
             Some(state) if state.spec.tier != tier => {
                 state.spec.tier = tier;
                 true
@@ -733,32 +751,55 @@ impl Scheduler {
 
     /// Instances placement may use.
     pub fn live_engines(&self) -> usize {
-        self.engines.iter().filter(|e| e.live).count()
+        self.engines.values().filter(|e| e.live).count()
     }
 
     /// A new engine instance joins (a remote worker registered). It gets the next
-    /// [`EngineId`]; ids are never reused, so a late event about an instance that left cannot
-    /// hit a new one.
+    /// [`EngineId`].
+    ///
+    /// Ids are never reused, so a late event about an instance that left (a batch end, a round
+    /// trip measured just before it went) cannot hit a new one: the scheduler no longer knows
+    /// the old id and ignores it. Storage does not grow with them: an instance's record is
+    /// dropped once it has left the pool and runs no batch, so a worker that registers and
+    /// leaves again and again costs nothing that stays. The ids are kept in a map rather than
+    /// as indexes into a vector with a free list and generations: the pool is small (tens of
+    /// instances), and a map gives the same guarantee with nothing to get wrong. A 64-bit
+    /// counter does not wrap in any real lifetime (one registration per nanosecond would take
+    /// 584 years).
     pub fn add_engine(&mut self, spec: EngineSpec) -> EngineId {
         let mut engine = EngineState::new(spec);
         if let Some(config) = self.refine {
             engine.refiner = Some(ProfileRefiner::new(&engine.spec.profile, config));
         }
-        self.engines.push(engine);
-        EngineId(self.engines.len() - 1)
+        let id = EngineId(self.next_engine);
+        self.next_engine = self.next_engine.saturating_add(1);
+        self.engines.insert(id, engine);
+        id
+    }
+
+    /// Engine instance records held: those in the pool, and those that left while running a
+    /// batch, until it ends. What the scheduler's per-instance storage grows with.
+    pub fn engine_records(&self) -> usize {
+        self.engines.len()
     }
 
     /// The instance leaves the pool: placement no longer sees it. A batch it is running is not
     /// touched: it still ends through `handle_batch_finished` (a draining worker finishes it) or
     /// comes back through [`Scheduler::requeue_batch`] (the worker was lost). Returns that
-    /// batch, if any; `None` too for an unknown or already removed instance.
+    /// batch, if any; `None` too for an unknown or already removed instance. The instance's
+    /// record is dropped now if it is idle, else when that batch ends: its id is refused from
+    /// then on.
     pub fn remove_engine(&mut self, engine: EngineId) -> Option<BatchId> {
-        let state = self.engines.get_mut(engine.0)?;
+        let state = self.engines.get_mut(&engine)?;
         if !state.live {
             return None;
         }
         state.live = false;
-        state.busy
+        let busy = state.busy;
+        if busy.is_none() {
+            self.engines.remove(&engine);
+        }
+        busy
     }
 
     /// The batch was lost with its engine instance before it produced anything: the instance
@@ -801,7 +842,7 @@ impl Scheduler {
 
     /// The batch engine instance `engine` runs, if it is busy.
     pub fn engine_busy(&self, engine: EngineId) -> Option<BatchId> {
-        self.engines.get(engine.0).and_then(|e| e.busy)
+        self.engines.get(&engine).and_then(|e| e.busy)
     }
 
     /// What the most recent decision did.
@@ -847,6 +888,16 @@ impl EngineState {
             busy: None,
             busy_until: Timestamp::ZERO,
             refiner: None,
+        }
+    }
+
+    fn status(&self, id: EngineId) -> EngineStatus<'_> {
+        EngineStatus {
+            id,
+            spec: &self.spec,
+            batch: self.busy,
+            busy_until: self.busy.map(|_| self.busy_until),
+            live: self.live,
         }
     }
 }

@@ -97,7 +97,9 @@ pub struct RequestId(pub u64);
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub struct BatchId(pub u64);
 
-/// Index of an engine instance in the list given to `Scheduler::new`.
+/// An engine instance: its index in the list given to `Scheduler::new`, then the next number for
+/// each instance added later. Never reused within a scheduler's lifetime, so a late event about
+/// an instance that left cannot hit a new one (`Scheduler::add_engine`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub struct EngineId(pub usize);
 

@@ -176,7 +176,7 @@ fn run(mut sched: Scheduler, tasks: &[RobotTask]) -> Trace {
         let busy_before: Vec<bool> = sched.engines().map(|e| e.batch.is_some()).collect();
         for d in sched.poll_dispatch(ms(now)) {
             assert!(!busy_before[d.engine.0], "dispatched to a busy engine");
-            let spec = sched.engines().nth(d.engine.0).unwrap().spec.clone();
+            let spec = sched.engine(d.engine).unwrap().spec.clone();
             assert!(d.requests.len() <= spec.profile.max_batch.max(1) as usize);
             sched.handle_batch_started(ms(now), d.batch);
             let latency = spec.profile.latency(d.requests.len() as u32) + spec.rtt;
@@ -468,7 +468,7 @@ fn batches_never_exceed_max_batch_and_only_idle_engines_get_work() {
     assert_eq!(s.counters().decisions, 1);
     s.handle_batch_started(ms(1), d[1].batch);
     assert_eq!(
-        s.engines().nth(1).unwrap().busy_until,
+        s.engine(EngineId(1)).unwrap().busy_until,
         Some(ms(101)),
         "busy until start + profile latency"
     );
@@ -1213,6 +1213,108 @@ mod membership {
         assert!(s.fail_pending(t(8), r[2]));
         assert_eq!(s.pending_len(), 0);
         assert!(!s.fail_pending(t(8), r[2]));
+        // `a` left with its batch gone: the scheduler forgot it, and its id is refused.
+        assert!(s.engine(a).is_none());
+        assert_eq!(s.remove_engine(a), None);
+        assert_eq!(s.engines().map(|e| e.id).collect::<Vec<_>>(), [b]);
+    }
+
+    /// A worker that registers and leaves in a loop: the scheduler's per-instance storage stays
+    /// at what is in the pool, and no event about an instance that left reaches a newer one.
+    #[test]
+    fn engines_that_come_and_go_leave_nothing_behind_and_their_ids_are_refused() {
+        let mut s = Scheduler::new(
+            SchedulerConfig::default(),
+            vec![spec_named("local")],
+            Box::new(crate::scheduler::fifo::Fifo::default()),
+        );
+        let local = EngineId(0);
+        let t = |ms: u64| Timestamp::from_micros(ms * 1000);
+        // The local engine runs one long batch the whole time, so rounds go to the workers.
+        let busy = RoundSubmit {
+            task: TaskId(u64::MAX),
+            robot: RobotId(0),
+            round: 0,
+            sent_at: t(0),
+            obs_captured_at: t(0),
+            last_exec: None,
+            remaining: None,
+            control_hz: None,
+        };
+        s.handle_submit(t(0), busy).unwrap();
+        assert_eq!(s.poll_dispatch(t(0))[0].engine, local);
+        let mut stale = Vec::new();
+        for cycle in 0..10_000u64 {
+            let id = s.add_engine(spec_named("worker"));
+            assert_eq!(
+                id,
+                EngineId(1 + cycle as usize),
+                "ids move on, never reused"
+            );
+            if cycle % 2 == 0 {
+                // Idle when it leaves: forgotten at once.
+                assert_eq!(s.remove_engine(id), None);
+            } else {
+                // Busy when it leaves: kept until its batch is given back, then forgotten.
+                let submit = RoundSubmit {
+                    task: TaskId(cycle),
+                    sent_at: t(cycle),
+                    obs_captured_at: t(cycle),
+                    ..busy
+                };
+                let request = s.handle_submit(t(cycle), submit).unwrap();
+                let d = s.poll_dispatch(t(cycle));
+                assert_eq!((d.len(), d[0].engine), (1, id));
+                assert_eq!(s.remove_engine(id), Some(d[0].batch));
+                assert!(s.engine(id).is_some_and(|e| !e.live), "kept while it runs");
+                assert_eq!(s.requeue_batch(t(cycle), d[0].batch), [request]);
+                assert!(s.fail_pending(t(cycle), request));
+            }
+            assert!(s.engine(id).is_none(), "forgotten once it left and is idle");
+            stale.push(id);
+            assert_eq!(
+                s.engine_records(),
+                1,
+                "cycle {cycle}: only the local engine is held"
+            );
+        }
+        assert_eq!(s.live_engines(), 1);
+        // Every stale id is refused, and a new instance gets an id none of them had.
+        let newest = s.add_engine(spec_named("newest"));
+        for &id in &stale {
+            assert_ne!(id, newest);
+            assert!(s.engine(id).is_none());
+            assert_eq!(s.remove_engine(id), None);
+            assert_eq!(s.engine_busy(id), None);
+            assert!(!s.set_engine_tier(id, Tier::Cloud));
+            s.set_engine_rtt(id, Duration::from_secs(1));
+        }
+        let newest_state = s.engine(newest).unwrap();
+        assert!(newest_state.live);
+        assert_eq!(
+            newest_state.spec.rtt,
+            Duration::ZERO,
+            "stale events did not reach it"
+        );
+        assert_eq!(newest_state.spec.tier, Tier::Edge);
+        assert_eq!(s.engine_records(), 2);
+    }
+
+    fn spec_named(name: &str) -> EngineSpec {
+        EngineSpec {
+            name: name.into(),
+            tier: Tier::Edge,
+            profile: kairos_engine_types::EngineProfile {
+                model: "m".into(),
+                device: "d".into(),
+                points: vec![kairos_engine_types::ProfilePoint {
+                    batch: 1,
+                    latency_ms: 10.0,
+                }],
+                max_batch: 1,
+            },
+            rtt: Duration::ZERO,
+        }
     }
 }
 

@@ -139,6 +139,12 @@ pub struct WorkersConfig {
     /// least this many ms and edge below it; it is re-classified as the moving average moves
     /// (25 % hysteresis around the threshold, `worker::remote::tier_from_rtt`).
     pub cloud_rtt_ms: u32,
+    /// A worker removed for an unusable answer (NaN actions, wrong result count, oversized
+    /// error text) is refused registration under the same `worker_id` from the same address
+    /// for this long, so that the retries of the batch it spoiled go to other workers
+    /// (`worker::readmission`); at least `redispatch_within_ms` keeps it from any round it
+    /// spoiled. 0: readmitted at once.
+    pub readmit_after_invalid_ms: u32,
 }
 
 impl Default for WorkersConfig {
@@ -152,6 +158,7 @@ impl Default for WorkersConfig {
             max_attempts: 3,
             redispatch_within_ms: 10_000,
             cloud_rtt_ms: 20,
+            readmit_after_invalid_ms: 30_000,
         }
     }
 }
@@ -187,6 +194,11 @@ impl WorkersConfig {
     /// The re-dispatch window.
     pub fn redispatch_within(&self) -> Duration {
         Duration::from_millis(u64::from(self.redispatch_within_ms))
+    }
+
+    /// How long a worker removed for an unusable answer waits before it may register again.
+    pub fn readmit_after_invalid(&self) -> Duration {
+        Duration::from_millis(u64::from(self.readmit_after_invalid_ms))
     }
 }
 

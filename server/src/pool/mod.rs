@@ -19,6 +19,7 @@ mod link;
 mod local;
 pub mod replay;
 
+use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -140,11 +141,15 @@ pub struct BatchLabel {
     pub attempt: u32,
 }
 
-/// All engine instances, indexed by [`EngineId`]; an instance that left keeps its id, empty.
+/// All engine instances, by [`EngineId`]. Ids are handed out in order and never reused (the
+/// scheduler's are the same: both count every instance added); an instance that left is
+/// dropped, so workers that register again and again leave nothing behind.
 #[derive(Clone)]
 pub struct EnginePool {
     spec: ModelSpec,
-    instances: Vec<Option<Arc<dyn EngineInstance>>>,
+    instances: BTreeMap<EngineId, Arc<dyn EngineInstance>>,
+    /// The id the next instance added gets.
+    next: usize,
 }
 
 impl std::fmt::Debug for EnginePool {
@@ -191,7 +196,8 @@ impl EnginePool {
     ) -> Result<EnginePool, PoolBuildError> {
         let mut pool = EnginePool {
             spec,
-            instances: Vec::with_capacity(instances.len()),
+            instances: BTreeMap::new(),
+            next: 0,
         };
         for instance in instances {
             pool.add(instance)?;
@@ -210,13 +216,15 @@ impl EnginePool {
                 found: Box::new(instance.spec().clone()),
             });
         }
-        self.instances.push(Some(instance));
-        Ok(EngineId(self.instances.len() - 1))
+        let id = EngineId(self.next);
+        self.next = self.next.saturating_add(1);
+        self.instances.insert(id, instance);
+        Ok(id)
     }
 
-    /// The instance leaves the pool; its id stays taken. Returns it, if it was there.
+    /// The instance leaves the pool; its id is never given again. Returns it, if it was there.
     pub fn remove(&mut self, id: EngineId) -> Option<Arc<dyn EngineInstance>> {
-        self.instances.get_mut(id.0).and_then(Option::take)
+        self.instances.remove(&id)
     }
 
     /// The model shapes every instance shares.
@@ -226,7 +234,7 @@ impl EnginePool {
 
     /// Number of instances in the pool now.
     pub fn len(&self) -> usize {
-        self.iter().count()
+        self.instances.len()
     }
 
     /// Whether no instance is in the pool now.
@@ -236,12 +244,12 @@ impl EnginePool {
 
     /// The instance `id`, if it is in the pool.
     pub fn get(&self, id: EngineId) -> Option<&Arc<dyn EngineInstance>> {
-        self.instances.get(id.0).and_then(Option::as_ref)
+        self.instances.get(&id)
     }
 
     /// Every instance in the pool, in [`EngineId`] order.
     pub fn iter(&self) -> impl Iterator<Item = &Arc<dyn EngineInstance>> {
-        self.instances.iter().flatten()
+        self.instances.values()
     }
 
     /// What the chunking strategies may do with every instance of the pool now: the guidance
@@ -482,6 +490,18 @@ mod tests {
         let odd: Arc<dyn EngineInstance> =
             Arc::new(LocalEngine::start("odd", Arc::new(other), flat_profile()));
         let first = pool.get(EngineId(0)).unwrap().clone();
+        // Ids move on with each instance added and are never given again; a removed instance
+        // leaves nothing behind.
+        let mut growing = pool.clone();
+        for round in 0..1_000 {
+            let id = growing.add(first.clone()).unwrap();
+            assert_eq!(id, EngineId(2 + round));
+            assert!(growing.remove(id).is_some());
+            assert!(growing.get(id).is_none(), "a removed id is refused");
+            assert!(growing.remove(id).is_none());
+        }
+        assert_eq!(growing.len(), 2);
+        assert_eq!(growing.instances.len(), 2);
         assert!(matches!(
             EnginePool::new(vec![first, odd]),
             Err(PoolBuildError::SpecMismatch { .. })

@@ -443,6 +443,12 @@ async fn stream(
         let _ = recv.stop(VarInt::from_u32(STREAM_REFUSED));
         send_error(&mut send, &error, &context).await;
     }
+    // The stream's last frame is only queued: wait (briefly) until the client has it. A
+    // connection that is shutting down closes once its streams end, and a close discards what
+    // was not yet sent: a round refused `shutting_down` at that moment (a dead driver, a drain)
+    // would reach its robot as a lost connection, and the robot would spend its reconnect
+    // attempts on a server that is going away instead of reading the refusal.
+    let _ = tokio::time::timeout(LINGER, send.stopped()).await;
 }
 
 async fn end_task(

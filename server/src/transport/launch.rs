@@ -332,11 +332,11 @@ pub async fn start(
         driver: driver.clone(),
         model: model.clone(),
         connections: config.connections.clone(),
-        workers: crate::worker::registration::WorkerGate {
-            token_hash: worker_token_hash,
-            config: config.workers.clone(),
-            metrics: metrics.clone(),
-        },
+        workers: crate::worker::registration::WorkerGate::new(
+            worker_token_hash,
+            config.workers.clone(),
+            metrics.clone(),
+        ),
         metrics: metrics.clone(),
         wrong_tokens: Arc::new(super::admission::WrongTokens::new(&config.connections)),
         refusals: super::refusals::Refusals::new(&metrics),

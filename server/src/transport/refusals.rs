@@ -80,7 +80,7 @@ impl Door {
             ],
             // What a worker breaks after its token is accepted removes it instead
             // (`kairos_worker_removed_total{reason}`).
-            Door::Workers => &[WrongTokenLimit, Unauthorized, RegisterTimeout],
+            Door::Workers => &[WrongTokenLimit, Unauthorized, RegisterTimeout, ReadmitDelay],
         }
     }
 }
@@ -109,6 +109,9 @@ pub enum Reason {
     BadUpgrade,
     /// No `Register` within `hello_timeout_ms` of the first packet (workers).
     RegisterTimeout,
+    /// A worker removed for an unusable answer registered again before
+    /// `readmit_after_invalid_ms` passed (workers).
+    ReadmitDelay,
     /// The door's `max_connections` authenticated places were taken.
     AtCapacity,
     /// The robot held `max_connections_per_robot` connections (on every door together).
@@ -135,6 +138,7 @@ impl Reason {
             Reason::BadHello => "bad_hello",
             Reason::BadUpgrade => "bad_upgrade",
             Reason::RegisterTimeout => "register_timeout",
+            Reason::ReadmitDelay => "readmit_delay",
             Reason::AtCapacity => "at_capacity",
             Reason::RobotAtCapacity => "robot_at_capacity",
             Reason::RoundRate => "round_rate",

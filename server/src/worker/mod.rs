@@ -9,6 +9,7 @@
 //! - [`remote`]: the scheduler's side of a worker's batches: [`RemoteEngine`], one engine
 //!   instance of the pool (`crate::pool::EngineInstance`) whose batches are QUIC streams.
 //! - [`removal`]: how the scheduler removes a worker, once, counted by reason.
+//! - [`readmission`]: how long a worker removed for unusable answers is refused registration.
 //! - [`wire`]: the conversions between the engine's types and their wire forms, used by both
 //!   ends, with the checks that make a worker's messages safe to use.
 //!
@@ -18,6 +19,7 @@
 //! is refused or removed, its batch run again elsewhere.
 
 pub mod client;
+pub mod readmission;
 pub mod registration;
 pub mod remote;
 pub mod removal;

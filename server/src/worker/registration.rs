@@ -23,6 +23,7 @@ use tokio::sync::watch;
 use tokio::time::Instant;
 
 use super::RemoteEngine;
+use super::readmission::Readmission;
 use super::removal::{Removal, truncated};
 use super::wire::{model_spec, profile_from_wire};
 use crate::config::WorkersConfig;
@@ -42,6 +43,23 @@ pub struct WorkerGate {
     pub config: WorkersConfig,
     /// Where removed workers are counted (`kairos_worker_removed_total`).
     pub metrics: Metrics,
+    /// Workers removed for unusable answers, refused registration until their delay ends
+    /// (`[workers] readmit_after_invalid_ms`).
+    pub readmission: Arc<Readmission>,
+}
+
+impl WorkerGate {
+    /// The gate of a scheduler that accepts workers holding the token whose hash is
+    /// `token_hash` (`None`: none), treated as `config` says, counted in `metrics`.
+    pub fn new(token_hash: Option<[u8; 32]>, config: WorkersConfig, metrics: Metrics) -> Self {
+        let readmission = Arc::new(Readmission::new(config.readmit_after_invalid()));
+        WorkerGate {
+            token_hash,
+            config,
+            metrics,
+            readmission,
+        }
+    }
 }
 
 /// The largest `Register` body read: names, a token and a profile of a few dozen points.
@@ -64,8 +82,19 @@ pub(crate) async fn serve(
     };
     let (engine, removal, send, recv) = match registered {
         Ok(Ok(registered)) => registered,
-        Ok(Err((code, reason))) => {
-            tracing::info!(%remote, %reason, "worker refused");
+        Ok(Err(Refusal {
+            code,
+            reason,
+            logged,
+        })) => {
+            // A guard's refusal (a wrong token, a readmission delay) is counted and warn-logged,
+            // rate-limited, where it happens: a worker retrying every 100 ms must not write a
+            // line each time.
+            if logged {
+                tracing::debug!(%remote, %reason, "worker refused");
+            } else {
+                tracing::info!(%remote, %reason, "worker refused");
+            }
             connection.close(VarInt::from_u32(code), truncated(&reason, 200).as_bytes());
             return;
         }
@@ -205,13 +234,31 @@ type Registration = (
     RecvStream,
 );
 
+/// Why a registration ended without the worker in the pool.
+struct Refusal {
+    /// The connection's close code.
+    code: u32,
+    /// The close reason, also the `Refused` text.
+    reason: String,
+    /// Counted and logged already by a guard (`kairos_refusals_total`).
+    logged: bool,
+}
+
+/// What [`check`] refused: the close code, the reason, whether the worker may retry, and whether
+/// a guard counted and logged it already.
+type CheckRefusal = (u32, String, bool, bool);
+
 /// `Register` → checks → the pool → `Registered`; or the close code and reason after `Refused`.
 async fn register(
     connection: &Connection,
     context: &ServerContext,
     gate: &Gate,
-) -> Result<Registration, (u32, String)> {
-    let protocol_error = |reason: String| (close_code::PROTOCOL_ERROR, reason);
+) -> Result<Registration, Refusal> {
+    let protocol_error = |reason: String| Refusal {
+        code: close_code::PROTOCOL_ERROR,
+        reason,
+        logged: false,
+    };
     let (mut send, mut recv) = connection
         .accept_bi()
         .await
@@ -236,7 +283,7 @@ async fn register(
         Err(error) => return Err(protocol_error(error.to_string())),
     };
     let verdict = check(context, gate, connection.remote_address(), &register);
-    let (code, reason, retryable) = match verdict {
+    let (code, reason, retryable, logged) = match verdict {
         Ok(()) => {
             let profile = match profile_from_wire(register.profile.clone()) {
                 Ok(mut profile) => {
@@ -248,10 +295,11 @@ async fn register(
                         .workers
                         .metrics
                         .record_worker_removed(WorkerRemoval::InvalidRegistration);
-                    return refuse(send, worker_close::REFUSED, reason, false).await;
+                    return refuse(send, (worker_close::REFUSED, reason, false, false)).await;
                 }
             };
-            let removal = Removal::new(connection.clone(), context.workers.metrics.clone());
+            let removal = Removal::new(connection.clone(), context.workers.metrics.clone())
+                .barring(context.workers.readmission.clone(), &register.worker_id);
             let declared = match register.tier {
                 WorkerTier::Edge => Some(Tier::Edge),
                 WorkerTier::Cloud => Some(Tier::Cloud),
@@ -291,13 +339,13 @@ async fn register(
                     tracing::info!(engine = %name, ?id, ?tier, "worker registered");
                     return Ok((id, removal, send, recv));
                 }
-                Ok(Err(error)) => (close_code::PROTOCOL_ERROR, error.to_string(), false),
-                Err(gone) => (close_code::SHUTTING_DOWN, gone.to_string(), true),
+                Ok(Err(error)) => (close_code::PROTOCOL_ERROR, error.to_string(), false, false),
+                Err(gone) => (close_code::SHUTTING_DOWN, gone.to_string(), true, false),
             }
         }
         Err(refusal) => refusal,
     };
-    refuse(send, code, reason, retryable).await
+    refuse(send, (code, reason, retryable, logged)).await
 }
 
 /// Token, version and shapes, in that order (the token first, so a stranger learns nothing
@@ -307,12 +355,13 @@ fn check(
     gate: &Gate,
     remote: std::net::SocketAddr,
     register: &Register,
-) -> Result<(), (u32, String, bool)> {
+) -> Result<(), CheckRefusal> {
     let ip = remote.ip();
     let Some(expected) = context.workers.token_hash else {
         return Err((
             worker_close::REFUSED,
             "this scheduler accepts no workers ([workers] enabled = false)".into(),
+            false,
             false,
         ));
     };
@@ -321,7 +370,7 @@ fn check(
         context
             .refusals
             .refuse(Door::Workers, Reason::WrongTokenLimit, remote, &reason);
-        return Err((close_code::UNAUTHORIZED, reason.into(), true));
+        return Err((close_code::UNAUTHORIZED, reason.into(), true, true));
     }
     if hash_token(&register.token) != expected {
         gate.token_failed(ip);
@@ -335,6 +384,7 @@ fn check(
             close_code::UNAUTHORIZED,
             "unknown worker token (robot tokens cannot register workers)".into(),
             false,
+            true,
         ));
     }
     // The token was right: from here on the worker learns why it is refused.
@@ -347,7 +397,23 @@ fn check(
             worker_close::REFUSED,
             format!("Register breaks the protocol's rules: {error}"),
             false,
+            false,
         ));
+    }
+    if let Err(wait) = context
+        .workers
+        .readmission
+        .check(&register.worker_id, ip, Instant::now())
+    {
+        let reason = format!(
+            "worker `{}` was removed for an unusable answer; it may register again in {} ms",
+            register.worker_id,
+            wait.as_millis()
+        );
+        context
+            .refusals
+            .refuse(Door::Workers, Reason::ReadmitDelay, remote, &reason);
+        return Err((worker_close::REFUSED, reason, true, true));
     }
     if register.protocol < WORKER_PROTOCOL_VERSION {
         return Err((
@@ -356,6 +422,7 @@ fn check(
                 "worker protocol {} is not supported (this scheduler speaks {WORKER_PROTOCOL_VERSION})",
                 register.protocol
             ),
+            false,
             false,
         ));
     }
@@ -368,6 +435,7 @@ fn check(
                 context.validator.spec
             ),
             false,
+            false,
         ));
     }
     Ok(())
@@ -376,10 +444,8 @@ fn check(
 /// Sends `Refused` and waits briefly for it to be delivered; returns the close code and reason.
 async fn refuse<T>(
     mut send: SendStream,
-    code: u32,
-    reason: String,
-    retryable: bool,
-) -> Result<T, (u32, String)> {
+    (code, reason, retryable, logged): CheckRefusal,
+) -> Result<T, Refusal> {
     let refused = Refused {
         reason: reason.clone(),
         retryable,
@@ -387,5 +453,9 @@ async fn refuse<T>(
     let _ = write_body(&mut send, &refused, REGISTER_MAX_FRAME).await;
     let _ = send.finish();
     let _ = tokio::time::timeout(Duration::from_secs(1), send.stopped()).await;
-    Err((code, reason))
+    Err(Refusal {
+        code,
+        reason,
+        logged,
+    })
 }

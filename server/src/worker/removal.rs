@@ -1,7 +1,9 @@
 //! [`Removal`]: how the scheduler removes a worker, once. Its registration task (heartbeats,
 //! the registration stream) and its [`RemoteEngine`](super::RemoteEngine) (batches) can both
 //! find it unusable, even at the same moment; the first reason closes the connection with its
-//! close code and is counted in `kairos_worker_removed_total{reason}`, later ones are not.
+//! close code and is counted in `kairos_worker_removed_total{reason}`, later ones are not. A
+//! removal for an unusable answer also bars the worker from registering again for a while
+//! ([`super::readmission`]).
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -10,6 +12,7 @@ use kairos_sdk::client::close_code;
 use kairos_sdk::protocol::worker::close_code as worker_close;
 use quinn::{Connection, VarInt};
 
+use super::readmission::Readmission;
 use crate::metrics::{Metrics, WorkerRemoval};
 
 /// Longest close reason sent (QUIC carries it in one packet).
@@ -41,6 +44,8 @@ pub struct Removal {
     connection: Connection,
     metrics: Metrics,
     done: Arc<AtomicBool>,
+    /// Where a removal for an unusable answer bars the worker, under its `worker_id`.
+    readmission: Option<(Arc<Readmission>, Arc<str>)>,
 }
 
 impl Removal {
@@ -50,7 +55,15 @@ impl Removal {
             connection,
             metrics,
             done: Arc::new(AtomicBool::new(false)),
+            readmission: None,
         }
+    }
+
+    /// A removal for an unusable answer also bars the worker `worker_id` (from this
+    /// connection's address) in `readmission`.
+    pub fn barring(mut self, readmission: Arc<Readmission>, worker_id: &str) -> Removal {
+        self.readmission = Some((readmission, Arc::from(worker_id)));
+        self
     }
 
     /// Removes the worker for `reason`: closes its connection with the reason's code and
@@ -59,6 +72,17 @@ impl Removal {
     pub fn remove(&self, reason: WorkerRemoval, detail: &str) -> bool {
         if self.done.swap(true, Ordering::AcqRel) {
             return false;
+        }
+        // Barred before the connection closes: a worker that reconnects on seeing the close
+        // finds the bar in place.
+        if reason == WorkerRemoval::InvalidAnswer
+            && let Some((readmission, worker_id)) = &self.readmission
+        {
+            readmission.bar(
+                worker_id,
+                self.connection.remote_address().ip(),
+                tokio::time::Instant::now(),
+            );
         }
         self.connection.close(
             VarInt::from_u32(close_code_of(reason)),

@@ -4,7 +4,7 @@
 //! them. Runs until SIGINT/SIGTERM or `--seconds`; prints each attack's counts every 30 s and
 //! at the end.
 
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
@@ -43,6 +43,10 @@ struct Args {
     /// Slowloris connections held on each TCP listener.
     #[arg(long, default_value_t = 64)]
     tcp_slots: usize,
+    /// Attack from this address of the host (e.g. 127.0.0.2 on loopback), so that the server's
+    /// per-address guards see the attacker apart from clients on the default address.
+    #[arg(long)]
+    source_ip: Option<IpAddr>,
     /// Stop after this long (default: at SIGINT/SIGTERM).
     #[arg(long)]
     seconds: Option<u64>,
@@ -70,6 +74,7 @@ fn main() -> anyhow::Result<()> {
                 trust.clone(),
                 args.quic_slots,
                 counters,
+                args.source_ip,
             ));
         }
         for (name, target) in [
@@ -80,7 +85,7 @@ fn main() -> anyhow::Result<()> {
                 let counters = AttackCounters::shared();
                 attacks.push((name, counters.clone()));
                 set.spawn(async move {
-                    slowloris_tcp(target, args.tcp_slots, counters).await;
+                    slowloris_tcp(target, args.tcp_slots, counters, args.source_ip).await;
                     Ok(())
                 });
             }
@@ -88,7 +93,13 @@ fn main() -> anyhow::Result<()> {
         if let Some(token) = args.hog_token.clone() {
             let counters = AttackCounters::shared();
             attacks.push(("connection hog", counters.clone()));
-            set.spawn(connection_hog(args.server, trust.clone(), token, counters));
+            set.spawn(connection_hog(
+                args.server,
+                trust.clone(),
+                token,
+                counters,
+                args.source_ip,
+            ));
         }
         let report = async {
             let mut ticker = tokio::time::interval(Duration::from_secs(30));

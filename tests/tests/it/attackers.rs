@@ -76,22 +76,29 @@ async fn the_listener_attacks_are_held_off_and_another_robot_is_served() {
             trust.clone(),
             2,
             quic_loris.clone(),
+            None,
         )),
         tokio::spawn({
             let counters = openpi_loris.clone();
             async move {
-                slowloris_tcp(openpi, 2, counters).await;
+                slowloris_tcp(openpi, 2, counters, None).await;
                 Ok::<(), anyhow::Error>(())
             }
         }),
         tokio::spawn({
             let counters = metrics_loris.clone();
             async move {
-                slowloris_tcp(metrics, 2, counters).await;
+                slowloris_tcp(metrics, 2, counters, None).await;
                 Ok::<(), anyhow::Error>(())
             }
         }),
-        tokio::spawn(connection_hog(server.addr, trust, A.into(), hog.clone())),
+        tokio::spawn(connection_hog(
+            server.addr,
+            trust,
+            A.into(),
+            hog.clone(),
+            None,
+        )),
     ];
 
     // Each listener closes the connections that never finish their first message.

@@ -15,6 +15,8 @@ use std::time::Duration;
 
 use kairos_core::scheduler::{PendingView, PolicyError, PriorityPolicy};
 use kairos_core::time::Timestamp;
+use kairos_sdk::client::ClientError;
+use kairos_sdk::protocol::ErrorCode;
 use kairos_server::transport::launch::Policies;
 use kairos_tests::harness::{ServerOptions, TestServer, one_round};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -84,10 +86,24 @@ async fn a_driver_that_panics_makes_the_server_unready_and_stop() {
     let (_, text) = get(metrics, "/metrics").await;
     assert_eq!(sample(&text, "kairos_driver_alive"), Some(1.0), "{text}");
 
-    // The first round makes the scheduler decide: the driver thread panics.
+    // The first round makes the scheduler decide: the driver thread panics. The robot reads
+    // the server's refusal; the connection's close as the server stops does not overtake it
+    // (it did under load: the robot saw a lost connection and spent its reconnect attempts,
+    // about a minute, on a server going away).
     let client = server.connect(&server.token).await.unwrap();
     let failed = one_round(&client, 1, 0).await;
-    assert!(failed.is_err(), "{failed:?}");
+    match &failed {
+        Err(ClientError::Server(reply)) => {
+            assert_eq!(reply.code, ErrorCode::ShuttingDown, "{reply:?}");
+            assert!(reply.retryable, "{reply:?}");
+        }
+        other => panic!("expected the server's shutting_down refusal, got {other:?}"),
+    }
+    assert_eq!(
+        client.stats().resent_rounds,
+        0,
+        "the round was not sent again"
+    );
 
     // Probes see it: not ready, and why.
     tokio::time::timeout(GIVE_UP, async {

@@ -290,3 +290,126 @@ async fn batch_deadlines_are_capped_whatever_a_worker_declares() {
     let _ = stop.send(());
     server.shutdown().await;
 }
+
+/// A worker removed for NaN actions that registers again at once is refused (retryable, counted
+/// under `readmit_delay`) while the round it spoiled waits for the healthy worker, which runs
+/// it; once its delay has passed, the same worker may register again. Without the delay it came
+/// back as a new, idle, fast-looking engine, took the spoiled round again and spent its attempts
+/// until the robot got an error.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_removed_for_nan_is_refused_until_its_delay_passes_and_the_retry_runs_on_the_healthy_one()
+ {
+    const DELAY: Duration = Duration::from_millis(300);
+    let server = TestServer::start(ServerOptions {
+        tweak: |config| {
+            config.metrics.listen = Some("127.0.0.1:0".parse().unwrap());
+            config.workers.readmit_after_invalid_ms = 300;
+            // The hand-driven workers answer when the test says so, not within a deadline.
+            config.workers.min_batch_deadline_ms = 600_000;
+            config.workers.max_batch_deadline_ms = 600_000;
+        },
+        ..no_engine_with_metrics()
+    })
+    .await
+    .unwrap();
+    // The liar registers alone and takes robot task 1's round.
+    let register = register_message(&server, "liar", 0.05).unwrap();
+    let (liar, answer) = RawWorker::register(&server, &register).await.unwrap();
+    assert!(matches!(answer, WorkerMessage::Registered(_)), "{answer:?}");
+    wait_engines(&server, |e| live(e) == 1).await;
+    let client = server.connect(&server.token).await.unwrap();
+    let round = |task: u64| {
+        let client = client.clone();
+        tokio::spawn(async move { one_round(&client, task, 0).await })
+    };
+    let first = round(1);
+    let spoiled = tokio::time::timeout(GIVE_UP, liar.next_batch())
+        .await
+        .unwrap()
+        .unwrap();
+    // A healthy worker (driven by hand, so that it is busy when the liar is removed) joins and
+    // takes task 2's round.
+    let honest_register = register_message(&server, "honest", 50.0).unwrap();
+    let (honest, answer) = RawWorker::register(&server, &honest_register)
+        .await
+        .unwrap();
+    assert!(matches!(answer, WorkerMessage::Registered(_)), "{answer:?}");
+    wait_engines(&server, |e| live(e) == 2).await;
+    let second = round(2);
+    let busy = tokio::time::timeout(GIVE_UP, honest.next_batch())
+        .await
+        .unwrap()
+        .unwrap();
+
+    // The liar answers NaN: removed, its round back in the queue, no engine idle.
+    let before_removal = tokio::time::Instant::now();
+    let answer = chunks_of(&spoiled.run, f32::NAN);
+    spoiled.answer(&answer).await.unwrap();
+    assert_removed(&server, &liar, worker_close::BATCH_LOST, "invalid_answer").await;
+    liar.close().await;
+    // It registers again at once, as `kairos-hostile-worker` does: refused, retryable, counted.
+    let (again, answer) = RawWorker::register(&server, &register).await.unwrap();
+    match &answer {
+        WorkerMessage::Refused(refused) => {
+            assert!(refused.retryable, "{refused:?}");
+            assert!(refused.reason.contains("unusable answer"), "{refused:?}");
+        }
+        other => panic!("the removed worker was readmitted at once: {other:?}"),
+    }
+    again.close().await;
+    let text = scrape(server.server().metrics_addr.unwrap()).await;
+    assert_eq!(
+        sample(
+            &text,
+            r#"kairos_refusals_total{door="workers",reason="readmit_delay"}"#
+        ),
+        Some(1.0),
+        "{text}"
+    );
+
+    // The healthy worker answers task 2, then gets task 1's spoiled round: its second dispatch.
+    let answer = chunks_of(&busy.run, 0.0);
+    busy.answer(&answer).await.unwrap();
+    let retry = tokio::time::timeout(GIVE_UP, honest.next_batch())
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(retry.run.attempt, 1, "the spoiled round, run again");
+    let answer = chunks_of(&retry.run, 0.0);
+    retry.answer(&answer).await.unwrap();
+    for reply in [first, second] {
+        let reply = tokio::time::timeout(GIVE_UP, reply)
+            .await
+            .unwrap()
+            .unwrap()
+            .expect("the round is answered");
+        assert_finite(&reply);
+    }
+
+    // Once the delay has passed, the same worker may register again; until then it is refused.
+    let readmitted = tokio::time::timeout(GIVE_UP, async {
+        loop {
+            let (worker, answer) = RawWorker::register(&server, &register).await.unwrap();
+            match answer {
+                WorkerMessage::Registered(_) => return worker,
+                WorkerMessage::Refused(refused) => {
+                    assert!(refused.retryable, "{refused:?}");
+                    worker.close().await;
+                    tokio::time::sleep(Duration::from_millis(20)).await;
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+    })
+    .await
+    .expect("readmitted once the delay passed");
+    assert!(
+        before_removal.elapsed() >= DELAY,
+        "readmitted before its delay ended"
+    );
+    readmitted.close().await;
+    honest.close().await;
+    client.close().await;
+    let report = server.shutdown().await;
+    assert_eq!((report.driver.replies, report.driver.failed), (2, 0));
+}
