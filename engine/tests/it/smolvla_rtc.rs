@@ -219,7 +219,15 @@ fn rtc_matches_lerobot(kernels: Kernels) {
         .unwrap()
     };
     let mut mixes = vec![[Some(GuidanceMode::Rtc), None]];
-    if kernels == Kernels::Candle {
+    if kernels != Kernels::Candle {
+        // The fast kernels have no backward pass: an rtc_vjp row is refused, naming the path
+        // that serves it.
+        let refused = expert
+            .sample_guided(&inputs, &[Some(row_guide(GuidanceMode::RtcVjp, 0)), None])
+            .unwrap_err()
+            .to_string();
+        assert!(refused.contains("--kernels candle"), "{refused}");
+    } else {
         mixes.push([Some(GuidanceMode::RtcVjp), None]);
         mixes.push([None, Some(GuidanceMode::RtcVjp)]);
         mixes.push([Some(GuidanceMode::Rtc), Some(GuidanceMode::RtcVjp)]);
