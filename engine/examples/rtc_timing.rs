@@ -1,6 +1,7 @@
 //! Time what real-time chunking adds to a whole SmolVLA policy: one request through
 //! `ActionModel::generate` (preprocessing, vision tower, VLM prefix, expert, postprocessing)
-//! plainly, with `rtc` guidance and with `inpaint`, in an order rotating run by run, on a
+//! plainly, with `rtc` guidance, with `inpaint` and (on the Candle path, the one that serves it)
+//! with `rtc_vjp`, in an order rotating run by run, on a
 //! checkpoint directory (e.g. the smolvla_base-shaped one `engine/tools/bench_smolvla_full.py
 //! --write-checkpoint` writes).
 //!
@@ -11,7 +12,7 @@
 //! output, from action 2 on: the robot executed 2 before the capture), `d = --delay`, LeRobot's
 //! defaults (linear schedule, execution horizon 10, max guidance weight 10). Prints one JSON
 //! line per mode: `{"mode":..,"median_ms":..,"min_ms":..,"runs":[..]}`, then one with the
-//! medians' ratios to plain sampling and the guidance's own work per chunk (`RowGuide::prepare`
+//! medians' ratios to plain sampling (`rtc_vjp_over_plain` on the Candle path) and the guidance's own work per chunk (`RowGuide::prepare`
 //! and its ten velocity corrections, timed alone: on a shared machine the whole-chunk medians
 //! move by more than that).
 
@@ -33,7 +34,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     while let Some(flag) = args.next() {
         if flag == "--help" || flag == "-h" {
             println!(
-                "Times a whole SmolVLA policy's chunk plainly, with rtc and with inpaint.\n\n\
+                "Times a whole SmolVLA policy's chunk plainly, with rtc, with inpaint and, on \
+                 the Candle path, with rtc_vjp.\n\n\
                  Usage: rtc_timing --model DIR [--iters 5] [--threads 2] \
                  [--kernels fast|candle] [--delay 3]"
             );
@@ -83,11 +85,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         schedule: PrefixSchedule::Linear,
         max_guidance_weight: 10.0,
     };
-    let modes: [(&str, Option<Guidance>); 3] = [
+    let mut modes: Vec<(&str, Option<Guidance>)> = vec![
         ("plain", None),
         ("rtc", Some(guidance(GuidanceMode::Rtc))),
         ("inpaint", Some(guidance(GuidanceMode::Inpaint))),
     ];
+    if kernels == Kernels::Candle {
+        modes.push(("rtc_vjp", Some(guidance(GuidanceMode::RtcVjp))));
+    }
     let mut runs = vec![Vec::new(); modes.len()];
     for i in 0..iters {
         // The order rotates run by run, so that no mode always follows another.
@@ -137,8 +142,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
     }
     let guidance_us = started.elapsed().as_secs_f64() * 1e6 / reps as f64;
+    let vjp = medians
+        .get(3)
+        .map(|m| format!("\"rtc_vjp_over_plain\":{:.4},", m / medians[0]))
+        .unwrap_or_default();
     println!(
-        "{{\"rtc_over_plain\":{:.4},\"inpaint_over_plain\":{:.4},\"rtc_guidance_us_per_chunk\":{guidance_us:.1},\"description\":\"{}\"}}",
+        "{{\"rtc_over_plain\":{:.4},\"inpaint_over_plain\":{:.4},{vjp}\"rtc_guidance_us_per_chunk\":{guidance_us:.1},\"description\":\"{}\"}}",
         medians[1] / medians[0],
         medians[2] / medians[0],
         pipeline.expert().description()

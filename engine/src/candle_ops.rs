@@ -17,7 +17,7 @@
 //! functions here, and each picks its implementation by the tensor's device:
 //!
 //! - on a CUDA device (only possible with the `cuda` feature) it runs `candle-nn`'s fused
-//!   kernel;
+//!   kernel, unless the input tracks gradients (below);
 //! - everywhere else it runs a composition of candle-core ops with the same semantics.
 //!
 //! Choosing by device rather than by feature keeps a CPU run's numbers the same whether the
@@ -48,8 +48,18 @@
 //! and bf16, at the models' shapes, each within a bound derived from the rounding of the two
 //! (zero for RoPE and SiLU).
 //!
-//! Unlike the fused kernels, the compositions have a backward pass; the callers do not rely on
-//! it, since a CUDA build runs the fused kernels, which have none.
+//! # Gradients
+//!
+//! Unlike the fused kernels, the compositions have a backward pass (candle-core's ops each have
+//! one), and `rtc_vjp` needs it: the SmolVLA expert (and the flow head built on it) takes the
+//! vector–Jacobian product of its velocity with Candle's `backward`. So an input that tracks
+//! gradients (`Tensor::track_op`: a `Var`, or anything computed from one) takes the composition
+//! on CUDA too. The alternative, refusing `rtc_vjp` on CUDA, would leave the GPU, where a
+//! backward pass is cheapest, as the one Candle device that cannot serve it; the price of this
+//! choice is paid only by tracked tensors (the `rtc_vjp` rows of a batch, which the expert runs
+//! apart from the other rows, so those keep the fused kernels and their bits), in kernel
+//! launches and intermediate tensors, not in results beyond the rounding bounds the tests below
+//! derive.
 
 use candle_core::{D, DType, Result, Tensor, bail};
 
@@ -57,7 +67,7 @@ use candle_core::{D, DType, Result, Tensor, bail};
 /// last dimension's size. The fused `candle_nn::ops::rms_norm` on CUDA, composed elsewhere.
 pub fn rms_norm(x: &Tensor, alpha: &Tensor, eps: f32) -> Result<Tensor> {
     #[cfg(feature = "cuda")]
-    if x.device().is_cuda() {
+    if fused(x) {
         return candle_nn::ops::rms_norm(x, alpha, eps);
     }
     rms_norm_composed(x, alpha, eps)
@@ -68,7 +78,7 @@ pub fn rms_norm(x: &Tensor, alpha: &Tensor, eps: f32) -> Result<Tensor> {
 /// composed elsewhere.
 pub fn layer_norm(x: &Tensor, alpha: &Tensor, beta: &Tensor, eps: f32) -> Result<Tensor> {
     #[cfg(feature = "cuda")]
-    if x.device().is_cuda() {
+    if fused(x) {
         return candle_nn::ops::layer_norm(x, alpha, beta, eps);
     }
     layer_norm_composed(x, alpha, beta, eps)
@@ -78,7 +88,7 @@ pub fn layer_norm(x: &Tensor, alpha: &Tensor, beta: &Tensor, eps: f32) -> Result
 /// composed elsewhere.
 pub fn softmax_last_dim(x: &Tensor) -> Result<Tensor> {
     #[cfg(feature = "cuda")]
-    if x.device().is_cuda() {
+    if fused(x) {
         return candle_nn::ops::softmax_last_dim(x);
     }
     softmax_last_dim_composed(x)
@@ -91,10 +101,17 @@ pub fn softmax_last_dim(x: &Tensor) -> Result<Tensor> {
 /// elsewhere.
 pub fn rope(x: &Tensor, cos: &Tensor, sin: &Tensor) -> Result<Tensor> {
     #[cfg(feature = "cuda")]
-    if x.device().is_cuda() {
+    if fused(x) {
         return candle_nn::rotary_emb::rope(x, cos, sin);
     }
     rope_composed(x, cos, sin)
+}
+
+/// Whether `x` runs `candle-nn`'s fused kernel: on a CUDA device, unless `x` tracks gradients
+/// (the fused kernels have no backward pass; module doc).
+#[cfg(feature = "cuda")]
+fn fused(x: &Tensor) -> bool {
+    x.device().is_cuda() && !x.track_op()
 }
 
 /// SiLU (`x * sigmoid(x)`), candle-core's own unary op on every device: `candle_nn::ops::silu`

@@ -346,7 +346,7 @@ impl ActionModel for FlowHead {
             .generate_requests(batch, |request, state| self.encode(request, state), &|_| {})
     }
 
-    /// `rtc` and `inpaint` in its expert's sampler.
+    /// `rtc` and `inpaint` in its expert's sampler, and `rtc_vjp` on the Candle path.
     fn chunking(&self) -> crate::ModelChunking {
         crate::ModelChunking {
             guidance: self.expert.guidance_support(),

@@ -336,12 +336,50 @@ mod tests {
         );
     }
 
-    /// Rows of one batch with different guidance (none, `rtc`, `inpaint`) each get exactly what
-    /// they get alone: guidance reads and writes its own row only.
+    /// The test's per-row velocity field, `v = (r - x) t + 0.1` on row `r`, with its exact
+    /// vector–Jacobian product `J^T c = -t c`.
+    struct LinearField {
+        rows: Vec<usize>,
+        len: usize,
+    }
+
+    impl VelocityField for LinearField {
+        fn velocity(
+            &mut self,
+            _k: usize,
+            t: f32,
+            x: &[f32],
+            v: &mut [f32],
+        ) -> Result<(), EngineError> {
+            for (i, (vi, xi)) in v.iter_mut().zip(x).enumerate() {
+                *vi = (self.rows[i / self.len] as f32 - xi) * t + 0.1;
+            }
+            Ok(())
+        }
+
+        fn velocity_vjp(
+            &mut self,
+            k: usize,
+            t: f32,
+            x: &[f32],
+            v: &mut [f32],
+            cotangent: &mut dyn FnMut(&[f32]) -> Vec<f32>,
+            pullback: &mut [f32],
+        ) -> Result<(), EngineError> {
+            self.velocity(k, t, x, v)?;
+            for (p, c) in pullback.iter_mut().zip(cotangent(v)) {
+                *p = -t * c;
+            }
+            Ok(())
+        }
+    }
+
+    /// Rows of one batch with different guidance (none, `rtc`, `inpaint`, `rtc_vjp`) each get
+    /// exactly what they get alone: guidance reads and writes its own row only.
     #[test]
     fn a_mixed_batch_gives_each_row_what_it_gets_alone() {
         use kairos_engine_types::{Guidance, PrefixSchedule};
-        let (rows, chunk, dim, steps) = (3, 4, 2, 5);
+        let (rows, chunk, dim, steps) = (4, 4, 2, 5);
         let len = chunk * dim;
         let guidance = |mode| Guidance {
             mode,
@@ -369,16 +407,10 @@ mod tests {
             None,
             Some(guide(GuidanceMode::Rtc, 1)),
             Some(guide(GuidanceMode::Inpaint, 2)),
+            Some(guide(GuidanceMode::RtcVjp, 3)),
         ];
         // A per-row velocity field (as the models' are): row r pulls toward r - x.
-        let field = |rows: Vec<usize>| {
-            ClosureField(move |_k: usize, t: f32, x: &[f32], v: &mut [f32]| {
-                for (i, (vi, xi)) in v.iter_mut().zip(x).enumerate() {
-                    *vi = (rows[i / len] as f32 - xi) * t + 0.1;
-                }
-                Ok(())
-            })
-        };
+        let field = |rows: Vec<usize>| LinearField { rows, len };
         let run = |which: Vec<usize>| {
             let mut x: Vec<f32> = which
                 .iter()
@@ -401,7 +433,7 @@ mod tests {
             .unwrap();
             (x, u, v)
         };
-        let (x, u, v) = run(vec![0, 1, 2]);
+        let (x, u, v) = run((0..rows).collect());
         for r in 0..rows {
             let (xa, ua, va) = run(vec![r]);
             assert_eq!(&x[r * len..(r + 1) * len], &xa[..], "row {r}: actions");
@@ -433,6 +465,23 @@ mod tests {
         )
         .unwrap();
         assert_ne!(&x[len..2 * len], &plain[..]);
+        // The rtc_vjp row differs from the same row with rtc: its pullback is not zero.
+        let mut rtc = noise[3 * len..4 * len].to_vec();
+        integrate_guided(
+            Schedule { steps },
+            1,
+            len,
+            &mut rtc,
+            &mut pu,
+            &[Some(RowGuide {
+                mode: GuidanceMode::Rtc,
+                ..guides[3].clone().unwrap()
+            })],
+            None,
+            &mut field(vec![3]),
+        )
+        .unwrap();
+        assert_ne!(&x[3 * len..4 * len], &rtc[..]);
     }
 
     #[test]

@@ -125,14 +125,28 @@ fn rtc_matches_lerobot(kernels: Kernels) {
         .iter()
         .map(|v| v.as_u64().unwrap() as usize)
         .collect();
-    for sched in ["linear", "exp"] {
-        for &delay in &delays {
-            let key = format!("rtc.{sched}.d{delay}");
+    let mut cases: Vec<(GuidanceMode, &str, usize)> = ["linear", "exp"]
+        .into_iter()
+        .flat_map(|sched| delays.iter().map(move |&d| (GuidanceMode::Rtc, sched, d)))
+        .collect();
+    if kernels == Kernels::Candle {
+        // The paper's guidance, with the true VJP (the Candle path's autograd).
+        let case = &r.meta["vjp_case"];
+        let sched = case["schedule"].as_str().unwrap();
+        cases.push((
+            GuidanceMode::RtcVjp,
+            sched,
+            case["delay"].as_u64().unwrap() as usize,
+        ));
+    }
+    for (mode, sched, delay) in cases {
+        {
+            let key = format!("{}.{sched}.d{delay}", mode.as_str());
             let guides: Vec<Option<RowGuide>> = (0..batch)
                 .map(|b| {
                     Some(
                         RowGuide::prepare(
-                            &guidance(&r, b, GuidanceMode::Rtc, sched, delay),
+                            &guidance(&r, b, mode, sched, delay),
                             d.chunk,
                             d.action_dim,
                             d.action_pad,
@@ -191,24 +205,51 @@ fn rtc_matches_lerobot(kernels: Kernels) {
         }
     }
 
-    // A mixed batch: row 0 guided (rtc, d = 3), row 1 plain; each is what it is alone.
-    let rtc = RowGuide::prepare(
-        &guidance(&r, 0, GuidanceMode::Rtc, "linear", 3),
-        d.chunk,
-        d.action_dim,
-        d.action_pad,
-        &noises[0][0],
-        &to_model,
-    )
-    .unwrap();
-    let mixed = expert
-        .sample_guided(&inputs, &[Some(rtc.clone()), None])
-        .unwrap();
-    let alone_guided = expert.sample_guided(&inputs[..1], &[Some(rtc)]).unwrap();
-    let alone_plain = expert.sample(&inputs[1..]).unwrap();
-    assert_eq!(mixed[0], alone_guided[0], "{kernels:?}: the guided row");
-    assert_eq!(mixed[1], alone_plain[0], "{kernels:?}: the plain row");
-    assert_ne!(mixed[0], expert.sample(&inputs[..1]).unwrap()[0]);
+    // Mixed batches: each row is what it is alone (row 0 guided with rtc, d = 3, and row 1
+    // plain; on the Candle path also rtc_vjp beside a plain row and beside an rtc row).
+    let row_guide = |mode, b: usize| {
+        RowGuide::prepare(
+            &guidance(&r, b, mode, "linear", 3),
+            d.chunk,
+            d.action_dim,
+            d.action_pad,
+            &noises[b][0],
+            &to_model,
+        )
+        .unwrap()
+    };
+    let mut mixes = vec![[Some(GuidanceMode::Rtc), None]];
+    if kernels != Kernels::Candle {
+        // The fast kernels have no backward pass: an rtc_vjp row is refused, naming the path
+        // that serves it.
+        let refused = expert
+            .sample_guided(&inputs, &[Some(row_guide(GuidanceMode::RtcVjp, 0)), None])
+            .unwrap_err()
+            .to_string();
+        assert!(refused.contains("--kernels candle"), "{refused}");
+    } else {
+        mixes.push([Some(GuidanceMode::RtcVjp), None]);
+        mixes.push([None, Some(GuidanceMode::RtcVjp)]);
+        mixes.push([Some(GuidanceMode::Rtc), Some(GuidanceMode::RtcVjp)]);
+    }
+    for modes in mixes {
+        let guides: Vec<Option<RowGuide>> = modes
+            .iter()
+            .enumerate()
+            .map(|(b, m)| m.map(|m| row_guide(m, b)))
+            .collect();
+        let mixed = expert.sample_guided(&inputs, &guides).unwrap();
+        for b in 0..batch {
+            let alone = expert
+                .sample_guided(&inputs[b..=b], &guides[b..=b])
+                .unwrap()
+                .remove(0);
+            assert_eq!(mixed[b], alone, "{kernels:?} {modes:?}: row {b}");
+            if guides[b].is_some() {
+                assert_ne!(mixed[b], expert.sample(&inputs[b..=b]).unwrap()[0]);
+            }
+        }
+    }
 }
 
 #[test]
@@ -222,9 +263,11 @@ fn rtc_on_the_candle_path_matches_lerobot() {
 }
 
 /// Served through the model interface: `rtc` and `inpaint` change the chunk (`inpaint` ends on
-/// the committed actions), `rtc_vjp` is refused saying why, and the model says what it supports.
+/// the committed actions) on both paths; `rtc_vjp` changes it differently from `rtc` on the
+/// Candle path, is plain sampling where every prefix weight is zero, and is refused on the fast
+/// kernels naming the path that serves it; the model says what it supports.
 #[test]
-fn the_served_model_applies_rtc_and_inpaint_and_refuses_rtc_vjp() {
+fn the_served_model_applies_every_guidance_its_path_has() {
     let r = RtcGoldens::open();
     let g = Goldens::open();
     let obs = observations(&g, "pair").remove(0);
@@ -232,7 +275,10 @@ fn the_served_model_applies_rtc_and_inpaint_and_refuses_rtc_vjp() {
         let model = SmolVlaPipeline::load(&fixture(), None, &options(kernels)).unwrap();
         let support = model.chunking().guidance;
         assert!(support.supports(GuidanceMode::Rtc) && support.supports(GuidanceMode::Inpaint));
-        assert!(!support.supports(GuidanceMode::RtcVjp));
+        assert_eq!(
+            support.supports(GuidanceMode::RtcVjp),
+            kernels == Kernels::Candle
+        );
         let request = |g: Option<Guidance>| ActionRequest {
             cameras: obs.images.keys().cloned().collect(),
             images: obs.images.values().cloned().collect(),
@@ -269,19 +315,162 @@ fn the_served_model_applies_rtc_and_inpaint_and_refuses_rtc_vjp() {
             max_abs_diff(got, want) <= 1e-5 * scale,
             "{kernels:?}: {got:?} vs {want:?}"
         );
-        let refused = model
-            .generate(&[request(Some(guidance(
-                &r,
-                0,
-                GuidanceMode::RtcVjp,
-                "linear",
-                3,
-            )))])
-            .unwrap_err()
-            .to_string();
-        assert!(
-            refused.contains("rtc_vjp") && refused.contains("backward"),
-            "{refused}"
-        );
+        let vjp = model.generate(&[request(Some(guidance(
+            &r,
+            0,
+            GuidanceMode::RtcVjp,
+            "linear",
+            3,
+        )))]);
+        if kernels == Kernels::Candle {
+            let vjp = vjp.unwrap().remove(0);
+            assert_ne!(vjp.actions, plain.actions);
+            assert_ne!(vjp.actions, rtc.actions);
+            // `zeros` with no delay weighs every action 0: the error, its pullback and so the
+            // correction are zero, and the chunk is plain sampling's, bit for bit.
+            let unweighted = Guidance {
+                schedule: PrefixSchedule::Zeros,
+                delay: 0,
+                ..guidance(&r, 0, GuidanceMode::RtcVjp, "linear", 0)
+            };
+            let chunk = model
+                .generate(&[request(Some(unweighted))])
+                .unwrap()
+                .remove(0);
+            assert_eq!(chunk, plain);
+        } else {
+            let refused = vjp.unwrap_err().to_string();
+            assert!(
+                refused.contains("rtc_vjp")
+                    && refused.contains("backward")
+                    && refused.contains("--kernels candle"),
+                "{refused}"
+            );
+        }
     }
+}
+
+/// The pullback `rtc_vjp` takes from Candle's autograd is the transposed Jacobian of the
+/// expert's velocity applied to the guidance error: its inner product with a direction `e`
+/// agrees with a central difference of `<v(x), c>` along `e`.
+///
+/// The pullback is read from the sampler's first step, where `rtc` and `rtc_vjp` start from the
+/// same noise and velocity and the weight is the cap `w`: `v_vjp - v_rtc = w J^T c` with
+/// `c = 1 * err` (time 1). The velocity at a perturbed sample is plain sampling's first step
+/// from that noise.
+///
+/// The bound, in f32: the difference quotient's rounding, `2 δ Σ|c| / (2h)`, with `δ` the
+/// velocity's rounding error, estimated by the gap between the two independent f32
+/// implementations of the velocity (fast kernels and Candle); its truncation error `C h²`,
+/// bounded by `|D(2h) - D(h)| = 3 C h²`; and the pullback's own rounding, the same relative
+/// error as the velocity's times `Σ|p e|`, times 16 for the backward pass's own depth; and an
+/// ulp of each guided velocity the pullback is read from.
+#[test]
+fn the_candle_vjp_matches_a_finite_difference_of_the_velocity() {
+    let r = RtcGoldens::open();
+    let g = Goldens::open();
+    let candle = SmolVlaPipeline::load(&fixture(), None, &options(Kernels::Candle)).unwrap();
+    let fast = SmolVlaPipeline::load(&fixture(), None, &options(Kernels::Auto)).unwrap();
+    let expert = candle.expert();
+    let d = expert.dims().clone();
+    let len = d.chunk * d.action_pad;
+    let observations = observations(&g, "pair");
+    let prepared = vec![candle.checkpoint().prepare(&observations[0]).unwrap()];
+    let prefix = candle.prefixes(&prepared).unwrap().remove(0);
+    let noise = r.f32("noise")[..len].to_vec();
+    let unnormalizer = candle.checkpoint().postprocessor().unnormalizer.as_ref();
+    let to_model = |a: &mut [f32]| {
+        if let Some(n) = unnormalizer {
+            n.normalize("action", a).unwrap();
+        }
+    };
+    let guide = |mode| {
+        RowGuide::prepare(
+            &guidance(&r, 0, mode, "linear", 3),
+            d.chunk,
+            d.action_dim,
+            d.action_pad,
+            &noise,
+            &to_model,
+        )
+        .unwrap()
+    };
+    let first_velocity =
+        |expert: &kairos_engine::smolvla::SmolVlaExpert, x: &[f32], guide: Option<RowGuide>| {
+            let noise = [x.to_vec()];
+            let input = ExpertInput {
+                prefix: &prefix,
+                noise: &noise,
+            };
+            let guides: Vec<Option<RowGuide>> = guide.into_iter().map(Some).collect();
+            expert.sample_guided(&[input], &guides).unwrap()[0].velocities[..len].to_vec()
+        };
+    let v = first_velocity(expert, &noise, None);
+    let rtc = guide(GuidanceMode::Rtc);
+    let w = rtc.max_guidance_weight;
+    let v_rtc = first_velocity(expert, &noise, Some(rtc.clone()));
+    let v_vjp = first_velocity(expert, &noise, Some(guide(GuidanceMode::RtcVjp)));
+    let pullback: Vec<f64> = v_vjp
+        .iter()
+        .zip(&v_rtc)
+        .map(|(a, b)| f64::from(a - b) / f64::from(w))
+        .collect();
+    let c: Vec<f64> = rtc
+        .error(1.0, &noise, &v)
+        .into_iter()
+        .map(f64::from)
+        .collect();
+    assert!(c.iter().any(|&ci| ci != 0.0), "the error weighs something");
+    let e: Vec<f32> = kairos_engine::sampler::gaussian_noise(11, 0, len);
+    let dot = |a: &[f32], b: &[f64]| -> f64 {
+        a.iter().zip(b).map(|(x, y)| f64::from(*x) * y).sum::<f64>()
+    };
+    let along = |h: f32| {
+        let shifted =
+            |s: f32| -> Vec<f32> { noise.iter().zip(&e).map(|(x, ei)| x + s * ei).collect() };
+        let up = first_velocity(expert, &shifted(h), None);
+        let down = first_velocity(expert, &shifted(-h), None);
+        (dot(&up, &c) - dot(&down, &c)) / (2.0 * f64::from(h))
+    };
+    let h = 1e-2f32;
+    let (fd, fd2) = (along(h), along(2.0 * h));
+    let analytic: f64 = pullback
+        .iter()
+        .zip(&e)
+        .map(|(p, ei)| p * f64::from(*ei))
+        .sum();
+    let v_fast = first_velocity(fast.expert(), &noise, None);
+    let delta = f64::from(max_abs_diff(&v, &v_fast)).max(f64::from(f32::EPSILON));
+    let scale = v.iter().fold(0.0f64, |m, x| m.max(f64::from(x.abs())));
+    let sum_c: f64 = c.iter().map(|x| x.abs()).sum();
+    let sum_pe: f64 = pullback
+        .iter()
+        .zip(&e)
+        .map(|(p, ei)| (p * f64::from(*ei)).abs())
+        .sum();
+    // Reading the pullback off `v_vjp - v_rtc` rounds each by an ulp of its magnitude.
+    let extraction: f64 = v_vjp
+        .iter()
+        .zip(&v_rtc)
+        .zip(&e)
+        .map(|((a, b), ei)| {
+            f64::from(f32::EPSILON) * f64::from(a.abs() + b.abs()) * f64::from(ei.abs())
+        })
+        .sum::<f64>()
+        / f64::from(w);
+    let bound = delta * sum_c / f64::from(h)
+        + (fd2 - fd).abs()
+        + 16.0 * delta / scale * sum_pe
+        + extraction;
+    eprintln!(
+        "vjp . e = {analytic:.6e}, difference quotient {fd:.6e} (2h: {fd2:.6e}), bound {bound:.3e}"
+    );
+    assert!(
+        bound < 0.1 * analytic.abs(),
+        "the bound must be able to fail"
+    );
+    assert!(
+        (fd - analytic).abs() <= bound,
+        "autograd {analytic}, finite difference {fd}, bound {bound}"
+    );
 }

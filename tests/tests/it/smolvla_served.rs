@@ -9,7 +9,10 @@ use std::path::{Path, PathBuf};
 use kairos_core::round::round_seed;
 use kairos_engine::{ActionRequest, EngineOptions, ImageFormat, ImageInput};
 use kairos_sdk::client::{Client, ClientConfig, ClientError, NoRefetch, RoundReply, RoundRequest};
-use kairos_sdk::protocol::{ErrorCode, ErrorReply, Image, ImagePayload, Observation, Tensor};
+use kairos_sdk::protocol::{
+    ChunkingSelection, ChunkingStrategy, ErrorCode, ErrorReply, Image, ImagePayload, LastExecInfo,
+    Observation, Tensor,
+};
 use kairos_server::config::{Config, DEFAULT_ROBOT, Overrides};
 use kairos_server::data_dir::DataDir;
 use kairos_server::pool::{ModelSchemes, build_pool};
@@ -28,6 +31,16 @@ async fn serve(
     tokenizer: Option<&Path>,
     data: &Path,
 ) -> anyhow::Result<RunningServer> {
+    serve_with_kernels(model, tokenizer, data, None).await
+}
+
+/// [`serve`] with the engine's `kernels` set as `kairos.toml` sets it (`None`: the default).
+async fn serve_with_kernels(
+    model: &Path,
+    tokenizer: Option<&Path>,
+    data: &Path,
+    kernels: Option<&str>,
+) -> anyhow::Result<RunningServer> {
     let overrides = Overrides {
         listen: Some("127.0.0.1:0".parse()?),
         data_dir: Some(data.to_path_buf()),
@@ -35,7 +48,12 @@ async fn serve(
         tokenizer: tokenizer.map(Path::to_path_buf),
         ..Overrides::default()
     };
-    let config = Config::load_with(None, &overrides)?;
+    let mut config = Config::load_with(None, &overrides)?;
+    if let Some(kernels) = kernels {
+        for engine in &mut config.engines {
+            engine.kernels = kernels.into();
+        }
+    }
     let pool = tokio::task::spawn_blocking({
         let config = config.clone();
         move || build_pool(&config.engines, &ModelSchemes::new(), |_| {})
@@ -66,7 +84,18 @@ async fn round(
     images: &[(&str, Vec<u8>)],
     state: &[f32],
 ) -> Result<RoundReply, ClientError> {
-    let observation = Observation {
+    client
+        .task(task)
+        .submit(
+            RoundRequest::new(observation(client, images, state)),
+            &mut NoRefetch,
+        )
+        .await
+}
+
+/// An observation captured now with `images` (camera name, PNG bytes) and `state`.
+fn observation(client: &Client, images: &[(&str, Vec<u8>)], state: &[f32]) -> Observation {
+    Observation {
         captured_at_us: client.now_us(),
         state: Tensor::from_f32(vec![state.len() as u32], state).unwrap(),
         images: images
@@ -77,11 +106,7 @@ async fn round(
             })
             .collect(),
         instruction: TASK.into(),
-    };
-    client
-        .task(task)
-        .submit(RoundRequest::new(observation), &mut NoRefetch)
-        .await
+    }
 }
 
 fn server_error(result: Result<RoundReply, ClientError>) -> ErrorReply {
@@ -277,6 +302,57 @@ async fn the_tokenizer_is_given_or_beside_the_checkpoint() {
         .await
         .unwrap();
     assert_eq!(reply.reply.actions.shape[1], 6);
+    client.close().await;
+    server.shutdown().await;
+}
+
+/// `chunking = rtc_vjp` on SmolVLA: a server on the Candle path (`kernels = "candle"`) serves
+/// it, also once the robot has committed actions (the round the guidance applies to); a server
+/// on the fast kernels refuses it before the round is queued, naming the Candle path.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rtc_vjp_is_served_on_the_candle_path_and_refused_on_the_fast_kernels() {
+    let images = [("top", png("missing.0.top.png"))];
+    let submit = |client: &Client, last_exec: Option<LastExecInfo>| {
+        let mut request = RoundRequest::new(observation(client, &images, &STATE));
+        request.chunking = Some(ChunkingSelection::new(ChunkingStrategy::RtcVjp));
+        request.control_hz = Some(5.0);
+        request.last_exec = last_exec;
+        let mut task = client.task(3);
+        async move { task.submit(request, &mut NoRefetch).await }
+    };
+
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("kairos-data");
+    let server = serve_with_kernels(&fixture(), None, &data, Some("candle"))
+        .await
+        .unwrap();
+    let client = connect(&server, &data).await;
+    let first = submit(&client, None).await.unwrap().reply;
+    let started_us = client.now_us();
+    let exec = LastExecInfo {
+        exec_started_at_us: started_us,
+        actions_remaining: first.horizon - 1,
+        control_hz: 5.0,
+        round: Some(first.round),
+        delay: Some(0),
+    };
+    let second = submit(&client, Some(exec)).await.unwrap().reply;
+    assert_eq!(second.chunking.as_deref(), Some("rtc_vjp"));
+    assert_eq!(second.actions.shape, vec![second.horizon, 6]);
+    client.close().await;
+    server.shutdown().await;
+
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("kairos-data");
+    let server = serve(&fixture(), None, &data).await.unwrap();
+    let client = connect(&server, &data).await;
+    let refused = server_error(submit(&client, None).await);
+    assert_eq!(refused.code, ErrorCode::InvalidRequest);
+    assert!(
+        refused.message.contains("rtc_vjp") && refused.message.contains("kernels = \"candle\""),
+        "{}",
+        refused.message
+    );
     client.close().await;
     server.shutdown().await;
 }

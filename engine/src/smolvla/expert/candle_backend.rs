@@ -11,7 +11,8 @@
 //! layers), the masks, the RoPE tables and the time embeddings go to the device once and serve
 //! all Euler steps, and the Euler loop itself runs on the device.
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{DType, Device, Tensor, Var};
+use kairos_engine_types::GuidanceMode;
 
 use super::weights::{ExpertWeights, time_embedding};
 use crate::EngineError;
@@ -19,7 +20,7 @@ use crate::candle_ops;
 use crate::guidance::RowGuide;
 use crate::kernels::Precision;
 use crate::pi::layers::{Linear, RmsNorm, SwiGlu, batched_attention};
-use crate::sampler::ClosureField;
+use crate::sampler::VelocityField;
 use crate::smolvla::candle_weights::{linear, matmul_dtype, vector};
 use crate::smolvla::config::{ExpertDims, LayerKind};
 use crate::smolvla::prefix::PrefixKv;
@@ -124,15 +125,8 @@ impl CandleExpert {
         if guides.iter().any(Option::is_some) {
             // Guidance reads and changes each row's velocity and sample between steps, on the
             // host, in the shared sampler (the same operations as the loop below, so a row
-            // without guidance gets the same bits here as in a batch without any). An `rtc_vjp`
-            // row is refused by the field's default `velocity_vjp`: the fused softmax, RMSNorm and
-            // RoPE kernels this expert runs on a GPU (`candle_ops`) have no backward pass.
-            let mut field = ClosureField(|k: usize, _t: f32, xt: &[f32], v: &mut [f32]| {
-                let xt = Tensor::from_slice(xt, (rows, n, d.action_pad), dev)?;
-                let out = self.velocity(&xt, &temb.get(k)?, &context)?;
-                v.copy_from_slice(&out.flatten_all()?.to_vec1::<f32>()?);
-                Ok(())
-            });
+            // without guidance gets the same bits here as in a batch without any).
+            let mut field = GuidedField::new(self, &context, &temb, guides)?;
             return crate::sampler::integrate_guided(
                 schedule,
                 rows,
@@ -309,6 +303,137 @@ impl CandleExpert {
     }
 }
 
+/// The expert's velocity field over the rows of one guided `sample` call, with the
+/// vector–Jacobian product `rtc_vjp` needs.
+///
+/// In a step with `rtc_vjp` rows, those rows run their own forward pass with `x_t` a [`Var`],
+/// and one `backward` of `<v(x_t), c>` gives `J_v(x_t)^T c` for the sampler's cotangent `c`. The
+/// other rows run the untracked forward pass they run in any batch: they keep their bits (on
+/// CUDA a tracked input takes `candle_ops`' compositions instead of the fused kernels), and the
+/// backward pass spends nothing on them. The prefix keys and values, masks, RoPE tables, time
+/// embeddings and weights are constants of the graph: no gradient flows into them.
+struct GuidedField<'a> {
+    expert: &'a CandleExpert,
+    temb: &'a Tensor,
+    /// The context of every row.
+    all: &'a AttentionContext,
+    /// The rows guided with `rtc_vjp`, and the others, each with its rows' context (`None`
+    /// when no row needs the backward pass).
+    split: Option<RowSplit>,
+}
+
+/// The rows of a batch split by whether they need the backward pass.
+struct RowSplit {
+    vjp: Vec<usize>,
+    vjp_context: AttentionContext,
+    plain: Vec<usize>,
+    plain_context: Option<AttentionContext>,
+}
+
+impl<'a> GuidedField<'a> {
+    fn new(
+        expert: &'a CandleExpert,
+        all: &'a AttentionContext,
+        temb: &'a Tensor,
+        guides: &[Option<RowGuide>],
+    ) -> Result<Self, EngineError> {
+        let (vjp, plain): (Vec<usize>, Vec<usize>) = (0..guides.len()).partition(|&r| {
+            guides[r]
+                .as_ref()
+                .is_some_and(|g| g.mode == GuidanceMode::RtcVjp)
+        });
+        let split = if vjp.is_empty() {
+            None
+        } else {
+            Some(RowSplit {
+                vjp_context: all.select(&vjp, &expert.device)?,
+                plain_context: (!plain.is_empty())
+                    .then(|| all.select(&plain, &expert.device))
+                    .transpose()?,
+                vjp,
+                plain,
+            })
+        };
+        Ok(GuidedField {
+            expert,
+            temb,
+            all,
+            split,
+        })
+    }
+
+    /// The rows `rows` of `x` (`[row][len]`) as a `[rows, chunk, action_pad]` tensor.
+    fn gather(&self, x: &[f32], rows: &[usize]) -> Result<Tensor, EngineError> {
+        let d = &self.expert.dims;
+        let len = d.chunk * d.action_pad;
+        let flat: Vec<f32> = rows
+            .iter()
+            .flat_map(|&r| x[r * len..(r + 1) * len].iter().copied())
+            .collect();
+        Ok(Tensor::from_vec(
+            flat,
+            (rows.len(), d.chunk, d.action_pad),
+            &self.expert.device,
+        )?)
+    }
+}
+
+/// Writes `values` (`[rows.len()][len]`) into rows `rows` of `out` (`[row][len]`).
+fn scatter(values: &[f32], rows: &[usize], out: &mut [f32]) {
+    let len = values.len() / rows.len().max(1);
+    for (i, &r) in rows.iter().enumerate() {
+        out[r * len..(r + 1) * len].copy_from_slice(&values[i * len..(i + 1) * len]);
+    }
+}
+
+impl VelocityField for GuidedField<'_> {
+    fn velocity(&mut self, k: usize, _t: f32, x: &[f32], v: &mut [f32]) -> Result<(), EngineError> {
+        let d = &self.expert.dims;
+        let rows = x.len() / (d.chunk * d.action_pad);
+        let xt = Tensor::from_slice(x, (rows, d.chunk, d.action_pad), &self.expert.device)?;
+        let out = self.expert.velocity(&xt, &self.temb.get(k)?, self.all)?;
+        v.copy_from_slice(&out.flatten_all()?.to_vec1::<f32>()?);
+        Ok(())
+    }
+
+    fn velocity_vjp(
+        &mut self,
+        k: usize,
+        t: f32,
+        x: &[f32],
+        v: &mut [f32],
+        cotangent: &mut dyn FnMut(&[f32]) -> Vec<f32>,
+        pullback: &mut [f32],
+    ) -> Result<(), EngineError> {
+        let Some(split) = &self.split else {
+            // No row needs the backward pass: the pullback is zero.
+            pullback.fill(0.0);
+            return self.velocity(k, t, x, v);
+        };
+        let temb = self.temb.get(k)?;
+        if let Some(context) = &split.plain_context {
+            let out = self
+                .expert
+                .velocity(&self.gather(x, &split.plain)?, &temb, context)?;
+            scatter(&out.flatten_all()?.to_vec1::<f32>()?, &split.plain, v);
+        }
+        let xt = Var::from_tensor(&self.gather(x, &split.vjp)?)?;
+        let out = self
+            .expert
+            .velocity(xt.as_tensor(), &temb, &split.vjp_context)?;
+        scatter(&out.flatten_all()?.to_vec1::<f32>()?, &split.vjp, v);
+        // One backward pass of <v(x), c> gives J_v(x)^T c at x, for the vjp rows' cotangent.
+        let c = self.gather(&cotangent(v), &split.vjp)?;
+        let grads = (out * c)?.sum_all()?.backward()?;
+        let g = grads.get(xt.as_tensor()).ok_or_else(|| {
+            EngineError::InvalidInput("rtc_vjp: no gradient reached the sample".into())
+        })?;
+        pullback.fill(0.0);
+        scatter(&g.flatten_all()?.to_vec1::<f32>()?, &split.vjp, pullback);
+        Ok(())
+    }
+}
+
 /// What every step of one `sample` call attends with: per layer the prefix keys and values
 /// (`[rows, kv_heads, len, head_dim]`), the additive masks and the RoPE tables of the self- and
 /// cross-attention layers.
@@ -318,6 +443,26 @@ struct AttentionContext {
     cross_mask: Tensor,
     self_rope: (Tensor, Tensor),
     cross_rope: (Tensor, Tensor),
+}
+
+impl AttentionContext {
+    /// The context of rows `rows` only, in that order.
+    fn select(&self, rows: &[usize], device: &Device) -> Result<AttentionContext, EngineError> {
+        let idx: Vec<u32> = rows.iter().map(|&r| r as u32).collect();
+        let idx = Tensor::from_vec(idx, rows.len(), device)?;
+        let pick = |t: &Tensor| t.index_select(&idx, 0);
+        Ok(AttentionContext {
+            prefix_kv: self
+                .prefix_kv
+                .iter()
+                .map(|(k, v)| Ok((pick(k)?, pick(v)?)))
+                .collect::<Result<_, candle_core::Error>>()?,
+            self_mask: pick(&self.self_mask)?,
+            cross_mask: pick(&self.cross_mask)?,
+            self_rope: (pick(&self.self_rope.0)?, pick(&self.self_rope.1)?),
+            cross_rope: (pick(&self.cross_rope.0)?, pick(&self.cross_rope.1)?),
+        })
+    }
 }
 
 /// LeRobot's RoPE cos/sin for `[rows][n]` positions, `[rows, n, head_dim/2]`.

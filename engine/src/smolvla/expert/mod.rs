@@ -13,7 +13,9 @@
 //! VLM encodes.
 //!
 //! Two backends run it: the engine's CPU kernels (`cpu`), and plain Candle tensor ops for any
-//! Candle device (`candle_backend`). Its weights are in [`weights`].
+//! Candle device (`candle_backend`). Its weights are in [`weights`]. Both apply the shared
+//! sampler's guidance ([`crate::guidance`]); `rtc_vjp`, which pulls the guidance error back
+//! through the velocity network, only the Candle one, with Candle's autograd.
 
 pub mod weights;
 
@@ -31,6 +33,10 @@ use crate::options::{EngineOptions, Target};
 use crate::sampler::{RowLayout, gaussian_noise};
 use crate::weights::Checkpoint;
 use crate::{ActionChunk, ActionRequest, EngineError, Guidance, GuidanceSupport};
+
+/// Where `rtc_vjp` is served, for the refusals of the paths that cannot serve it.
+pub(crate) const VJP_PATH: &str = "the Candle path serves rtc_vjp (`--kernels candle`, or \
+                                   `kernels = \"candle\"` in kairos.toml)";
 
 /// Where the expert runs: the engine's CPU kernels on a pool of threads, or Candle.
 enum Backend {
@@ -202,10 +208,13 @@ impl SmolVlaExpert {
     }
 
     /// The guidance its sampler applies: `rtc` and `inpaint` on both backends (per-row work in
-    /// the shared sampler); `rtc_vjp` on neither: the fast kernels have no backward pass, and
-    /// the Candle path's attention and norm ops have none either.
+    /// the shared sampler); `rtc_vjp` on the Candle path only, which takes the vector–Jacobian
+    /// product with Candle's autograd (the fast kernels have no backward pass).
     pub fn guidance_support(&self) -> GuidanceSupport {
-        GuidanceSupport::PREFIX
+        match self.backend {
+            Backend::Fast { .. } => GuidanceSupport::PREFIX,
+            Backend::Candle(_) => GuidanceSupport::ALL,
+        }
     }
 
     /// Run the sampler for a batch of requests in one forward pass per step.
@@ -359,7 +368,7 @@ impl SmolVlaExpert {
         {
             return Err(EngineError::InvalidInput(format!(
                 "guidance `{}`: SmolVLA's expert has no backward pass on {} (rtc and inpaint \
-                 work)",
+                 work); {VJP_PATH}",
                 mode.as_str(),
                 self.description
             )));

@@ -9,6 +9,8 @@ use std::sync::Mutex;
 
 use super::weights::{ExpertWeights, time_embedding};
 use crate::EngineError;
+use kairos_engine_types::GuidanceMode;
+
 use crate::guidance::RowGuide;
 use crate::kernels::attention::AttendScratch;
 use crate::kernels::gemm::{ActivationRows, gemm, gemm_par};
@@ -230,6 +232,19 @@ impl CpuExpert {
         updates: &mut [f32],
         guides: &[Option<RowGuide>],
     ) -> Result<(), EngineError> {
+        // No backward pass here: an `rtc_vjp` row is refused, naming the path that serves it.
+        if let Some(g) = guides
+            .iter()
+            .flatten()
+            .find(|g| g.mode == GuidanceMode::RtcVjp)
+        {
+            return Err(EngineError::InvalidInput(format!(
+                "guidance `{}`: the fast kernels have no backward pass through SmolVLA's \
+                 expert; {}",
+                g.mode.as_str(),
+                super::VJP_PATH
+            )));
+        }
         let d = &self.dims;
         let rows = row_prefix.len();
         let prepared: Vec<PreparedPrefix> =
@@ -261,8 +276,6 @@ impl CpuExpert {
         let len = d.chunk * d.action_pad;
         let steps = d.steps;
         let schedule = crate::sampler::Schedule { steps };
-        // No backward pass here: an `rtc_vjp` row is refused by the field's default
-        // `velocity_vjp`.
         let mut field = ClosureField(|_k: usize, t: f32, xt: &[f32], v: &mut [f32]| {
             self.velocity(pool, &ctx, &mut ws, t, xt, v);
             Ok(())
