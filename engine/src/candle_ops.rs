@@ -51,8 +51,8 @@
 //! # Gradients
 //!
 //! Unlike the fused kernels, the compositions have a backward pass (candle-core's ops each have
-//! one), and `rtc_vjp` needs it: the SmolVLA expert (and the flow head built on it) takes the
-//! vector–Jacobian product of its velocity with Candle's `backward`. So an input that tracks
+//! one), and `rtc_vjp` needs it: the SmolVLA expert (and the flow head built on it) and π0/π0.5
+//! take the vector–Jacobian product of their velocity with Candle's `backward`. So an input that tracks
 //! gradients (`Tensor::track_op`: a `Var`, or anything computed from one) takes the composition
 //! on CUDA too. The alternative, refusing `rtc_vjp` on CUDA, would leave the GPU, where a
 //! backward pass is cheapest, as the one Candle device that cannot serve it; the price of this

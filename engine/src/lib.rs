@@ -10,6 +10,7 @@
 
 pub mod builtin;
 pub mod candle_ops;
+mod candle_vjp;
 pub mod error;
 pub mod flow_head;
 pub mod guidance;

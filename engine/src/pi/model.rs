@@ -24,8 +24,9 @@ use super::layers::Linear;
 use super::vars::Vars;
 use super::vision::{SiglipTower, VisionOutput};
 use crate::EngineError;
+use crate::candle_vjp::{self, VjpRows};
 use crate::guidance::RowGuide;
-use crate::sampler::ClosureField;
+use crate::sampler::VelocityField;
 use crate::smolvla::ExpertSample;
 use crate::smolvla::expert::SampledRows;
 use crate::smolvla::expert::weights::time_embedding;
@@ -254,7 +255,9 @@ impl PiModel {
 
     /// [`PiModel::sample`] with a [`RowGuide`] per row (rows are `[input][sample]`; an empty
     /// `guides` is plain sampling for every row). The velocities recorded are those each step
-    /// used: the guided ones on guided rows.
+    /// used: the guided ones on guided rows. `rtc_vjp` rows take the vector–Jacobian product of
+    /// the velocity with Candle's autograd, in a forward and backward pass of their own, so the
+    /// other rows get the bits they get without them.
     pub fn sample_guided(
         &self,
         inputs: &[SampleInput<'_>],
@@ -348,15 +351,14 @@ impl PiModel {
         let steps = d.steps;
         let mut velocities = vec![0.0f32; rows * steps * len];
         let mut updates = vec![0.0f32; rows * steps * len];
-        // No backward pass through Candle's ops here: an `rtc_vjp` row is refused by the
-        // field's default `velocity_vjp`.
-        let mut field = ClosureField(|_k: usize, t: f32, xt: &[f32], v: &mut [f32]| {
-            let xt = Tensor::from_slice(xt, (rows, d.chunk, d.action_pad), &self.device)?;
-            let out = self.velocity(&xt, t, state_tokens.as_ref(), &row_contexts)?;
-            let out: Vec<f32> = out.flatten_all()?.to_vec1()?;
-            v.copy_from_slice(&out);
-            Ok(())
-        });
+        let mut field = PiField::new(
+            self,
+            RowInputs {
+                state_tokens,
+                contexts: row_contexts,
+            },
+            guides,
+        )?;
         crate::sampler::integrate_guided(
             crate::sampler::Schedule { steps },
             rows,
@@ -379,6 +381,8 @@ impl PiModel {
     }
 
     /// `v_t` for `xt` `[rows][chunk][max_action_dim]` at time `t` (LeRobot's `denoise_step`).
+    /// Only `xt` may track gradients: the state tokens, the time embedding and (π0.5) the
+    /// adaRMS condition, which depends on `t` only, are constants of a backward pass.
     fn velocity(
         &self,
         xt: &Tensor,
@@ -429,5 +433,106 @@ impl PiModel {
         let actions = out.narrow(1, s - d.chunk, d.chunk)?;
         // LeRobot casts the expert output to f32 before action_out_proj (a no-op in f32).
         self.action_out_proj.forward(&actions.to_dtype(DType::F32)?)
+    }
+}
+
+/// What the velocity of a set of rows reads besides the samples: π0's state tokens
+/// (`[rows][1][width]`) and each row's prefix context.
+struct RowInputs<'a> {
+    state_tokens: Option<Tensor>,
+    contexts: Vec<&'a SuffixContext>,
+}
+
+impl<'a> RowInputs<'a> {
+    /// The inputs of rows `rows` only, in that order.
+    fn select(&self, rows: &[usize], device: &Device) -> Result<RowInputs<'a>, EngineError> {
+        let idx: Vec<u32> = rows.iter().map(|&r| r as u32).collect();
+        let idx = Tensor::from_vec(idx, rows.len(), device)?;
+        Ok(RowInputs {
+            state_tokens: self
+                .state_tokens
+                .as_ref()
+                .map(|s| s.index_select(&idx, 0))
+                .transpose()?,
+            contexts: rows.iter().map(|&r| self.contexts[r]).collect(),
+        })
+    }
+}
+
+/// The model's velocity field over the rows of one `sample` call, with the vector–Jacobian
+/// product `rtc_vjp` needs ([`candle_vjp`]: the `rtc_vjp` rows run their own tracked forward
+/// pass and one backward pass; the other rows keep their bits). π0's state token and
+/// action-time MLP are part of the tracked pass: the gradient reaches `x_t` through the expert's
+/// attention between the state and the action tokens as well as through the action tokens.
+struct PiField<'a> {
+    model: &'a PiModel,
+    all: RowInputs<'a>,
+    /// The rows guided with `rtc_vjp` and their inputs, and the others' (`None` when no row
+    /// needs the backward pass).
+    split: Option<(VjpRows, RowInputs<'a>, Option<RowInputs<'a>>)>,
+}
+
+impl<'a> PiField<'a> {
+    fn new(
+        model: &'a PiModel,
+        all: RowInputs<'a>,
+        guides: &[Option<RowGuide>],
+    ) -> Result<Self, EngineError> {
+        let split = VjpRows::new(guides)
+            .map(|rows| -> Result<_, EngineError> {
+                let vjp = all.select(rows.vjp(), &model.device)?;
+                let plain = (!rows.plain().is_empty())
+                    .then(|| all.select(rows.plain(), &model.device))
+                    .transpose()?;
+                Ok((rows, vjp, plain))
+            })
+            .transpose()?;
+        Ok(PiField { model, all, split })
+    }
+
+    fn forward(&self, inputs: &RowInputs<'_>, t: f32, xt: &Tensor) -> Result<Tensor, EngineError> {
+        self.model
+            .velocity(xt, t, inputs.state_tokens.as_ref(), &inputs.contexts)
+    }
+}
+
+impl VelocityField for PiField<'_> {
+    fn velocity(&mut self, _k: usize, t: f32, x: &[f32], v: &mut [f32]) -> Result<(), EngineError> {
+        let d = &self.model.dims;
+        let rows = self.all.contexts.len();
+        let xt = Tensor::from_slice(x, (rows, d.chunk, d.action_pad), &self.model.device)?;
+        let out = self.forward(&self.all, t, &xt)?;
+        v.copy_from_slice(&out.flatten_all()?.to_vec1::<f32>()?);
+        Ok(())
+    }
+
+    fn velocity_vjp(
+        &mut self,
+        k: usize,
+        t: f32,
+        x: &[f32],
+        v: &mut [f32],
+        cotangent: &mut dyn FnMut(&[f32]) -> Vec<f32>,
+        pullback: &mut [f32],
+    ) -> Result<(), EngineError> {
+        let Some((rows, vjp, plain)) = &self.split else {
+            // No row needs the backward pass: the pullback is zero.
+            pullback.fill(0.0);
+            return self.velocity(k, t, x, v);
+        };
+        let d = &self.model.dims;
+        candle_vjp::velocity_vjp(
+            rows,
+            (d.chunk, d.action_pad),
+            &self.model.device,
+            x,
+            v,
+            cotangent,
+            pullback,
+            plain
+                .as_ref()
+                .map(|inputs| |xt: &Tensor| self.forward(inputs, t, xt)),
+            |xt: &Tensor| self.forward(vjp, t, xt),
+        )
     }
 }

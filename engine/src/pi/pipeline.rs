@@ -324,9 +324,11 @@ impl PiPipeline {
             .find(|&mode| !support.supports(mode))
         {
             return Err(EngineError::InvalidInput(format!(
-                "guidance `{}`: π0 / π0.5 have no backward pass on {} (rtc and inpaint work)",
+                "guidance `{}`: π0 / π0.5 have no backward pass on {} (rtc and inpaint \
+                 work); {}",
                 mode.as_str(),
-                self.path
+                self.path,
+                crate::candle_vjp::VJP_PATH
             )));
         }
         let d = self.dims();
@@ -425,11 +427,15 @@ impl ActionModel for PiPipeline {
         Some(PiPipeline::paths(self))
     }
 
-    /// `rtc` and `inpaint` in the shared sampler, on both paths; `rtc_vjp` on neither (no
-    /// backward pass). The action space is not declared, as for SmolVLA.
+    /// `rtc` and `inpaint` in the shared sampler, on both paths; `rtc_vjp` on the Candle path
+    /// only, which takes the vector–Jacobian product with Candle's autograd (the fast kernels
+    /// have no backward pass). The action space is not declared, as for SmolVLA.
     fn chunking(&self) -> crate::ModelChunking {
         crate::ModelChunking {
-            guidance: crate::GuidanceSupport::PREFIX,
+            guidance: match self.backend {
+                Backend::Fast(_) => crate::GuidanceSupport::PREFIX,
+                Backend::Candle(_) => crate::GuidanceSupport::ALL,
+            },
             action_space: crate::ActionSpace::Unspecified,
         }
     }

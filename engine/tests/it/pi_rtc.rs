@@ -6,15 +6,19 @@
 //! flow policy, and the sampler's guidance is checked against LeRobot's goldens on SmolVLA in
 //! `smolvla_rtc.rs`); here the checks are what guidance must do whatever the network:
 //! `inpaint` writes the committed actions exactly (through the normalisation and back), `rtc`
-//! pulls the guided actions towards the committed ones, `rtc_vjp` is refused saying why, and a
-//! guided request in a batch leaves the plain one beside it bit for bit as it is alone.
+//! pulls the guided actions towards the committed ones, `rtc_vjp` is served on the Candle path
+//! (its pullback is the transposed Jacobian of the velocity, checked against a finite
+//! difference; with every weight zero it is plain sampling) and refused on the fast kernels
+//! naming the path that serves it, and a guided request in a batch leaves the plain one beside
+//! it bit for bit as it is alone.
 
 #![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
 
-use kairos_engine::pi::PiPipeline;
+use kairos_engine::guidance::RowGuide;
+use kairos_engine::pi::{FastSampleInput, PiObservation, PiPipeline, SampleInput};
 use kairos_engine::{
     ActionChunk, ActionModel, ActionRequest, EngineOptions, Guidance, GuidanceMode, Kernels,
-    PrefixSchedule,
+    Precision, PrefixSchedule,
 };
 
 use super::pi_parity::pi_fixture;
@@ -67,7 +71,10 @@ fn guided(fixture: &str, kernels: Kernels) {
     let model = PiPipeline::load(&pi_fixture(fixture), None, &options).unwrap();
     let support = model.chunking().guidance;
     assert!(support.supports(GuidanceMode::Rtc) && support.supports(GuidanceMode::Inpaint));
-    assert!(!support.supports(GuidanceMode::RtcVjp));
+    assert_eq!(
+        support.supports(GuidanceMode::RtcVjp),
+        kernels == Kernels::Candle
+    );
     let generate = |requests: Vec<ActionRequest>| model.generate(&requests).unwrap();
     let previous = generate(vec![request(&model, 9, None)]).remove(0);
     let plain = generate(vec![request(&model, 5, None)]).remove(0);
@@ -94,18 +101,46 @@ fn guided(fixture: &str, kernels: Kernels) {
         );
     }
 
-    let refused = model
-        .generate(&[request(
-            &model,
-            5,
-            Some(guidance(GuidanceMode::RtcVjp, &previous)),
-        )])
-        .unwrap_err()
-        .to_string();
-    assert!(
-        refused.contains("rtc_vjp") && refused.contains("backward"),
-        "{label}: {refused}"
-    );
+    let vjp = guidance(GuidanceMode::RtcVjp, &previous);
+    if kernels == Kernels::Candle {
+        let pulled_vjp = generate(vec![request(&model, 5, Some(vjp.clone()))]).remove(0);
+        assert_ne!(pulled_vjp.actions, plain.actions, "{label}: rtc_vjp");
+        assert_ne!(
+            pulled_vjp.actions, pulled.actions,
+            "{label}: rtc_vjp vs rtc"
+        );
+        // `zeros` with no delay weighs every action 0: the error, its pullback and so the
+        // correction are zero, and the chunk is plain sampling's, bit for bit.
+        let unweighted = Guidance {
+            schedule: PrefixSchedule::Zeros,
+            delay: 0,
+            ..vjp.clone()
+        };
+        let chunk = generate(vec![request(&model, 5, Some(unweighted))]).remove(0);
+        assert_eq!(chunk, plain, "{label}: rtc_vjp with zero weights");
+        // The rows that need the backward pass run apart from the others: each row of a
+        // mixed batch is what it is alone.
+        let mixed = generate(vec![
+            request(&model, 5, None),
+            request(&model, 5, Some(vjp.clone())),
+        ]);
+        assert_eq!(mixed[0], plain, "{label}: the plain request beside rtc_vjp");
+        assert_eq!(
+            mixed[1], pulled_vjp,
+            "{label}: rtc_vjp beside a plain request"
+        );
+    } else {
+        let refused = model
+            .generate(&[request(&model, 5, Some(vjp))])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            refused.contains("rtc_vjp")
+                && refused.contains("backward")
+                && refused.contains("--kernels candle"),
+            "{label}: {refused}"
+        );
+    }
 
     let mixed = generate(vec![
         request(&model, 5, Some(rtc)),
@@ -119,13 +154,200 @@ fn guided(fixture: &str, kernels: Kernels) {
 }
 
 #[test]
-fn pi0_applies_rtc_and_inpaint_on_both_paths() {
+fn pi0_applies_every_guidance_its_path_has() {
     guided("pi0_tiny", Kernels::Auto);
     guided("pi0_tiny", Kernels::Candle);
 }
 
 #[test]
-fn pi05_applies_rtc_and_inpaint_on_both_paths() {
+fn pi05_applies_every_guidance_its_path_has() {
     guided("pi05_tiny", Kernels::Auto);
     guided("pi05_tiny", Kernels::Candle);
+}
+
+fn model_options(kernels: Kernels) -> EngineOptions {
+    EngineOptions {
+        kernels,
+        threads: 2,
+        precision: Precision::F32,
+        ..Default::default()
+    }
+}
+
+/// The pullback `rtc_vjp` takes from Candle's autograd through π's velocity network (π0: with
+/// the state token and the action-time MLP; π0.5: with the adaRMS condition, a constant of `t`)
+/// is the transposed Jacobian of the velocity applied to the guidance error: its inner product
+/// with a direction `e` agrees with a central difference of `<v(x), c>` along `e`. The fast
+/// kernels refuse the same row, naming the path that serves it.
+///
+/// The pullback is read from the sampler's first step, where `rtc` and `rtc_vjp` start from the
+/// same noise and velocity and the weight is the cap `w`: `v_vjp - v_rtc = w J^T c` with
+/// `c = 1 * err` (time 1). The velocity at a perturbed sample is plain sampling's first step
+/// from that noise.
+///
+/// The bound, in f32, as `smolvla_rtc.rs` derives it: the difference quotient's rounding,
+/// `2 δ Σ|c| / (2h)`, with `δ` the velocity's rounding error, estimated by the gap between the
+/// two independent f32 implementations of the velocity (fast kernels and Candle); its truncation
+/// error `C h²`, bounded by `|D(2h) - D(h)| = 3 C h²`; the pullback's own rounding, the same
+/// relative error as the velocity's times `Σ|p e|`, times 16 for the backward pass's own depth;
+/// and an ulp of each guided velocity the pullback is read from.
+fn vjp_matches_a_finite_difference(fixture: &str) {
+    let candle =
+        PiPipeline::load(&pi_fixture(fixture), None, &model_options(Kernels::Candle)).unwrap();
+    let fast = PiPipeline::load(&pi_fixture(fixture), None, &model_options(Kernels::Auto)).unwrap();
+    let (model, fast_model) = (candle.candle_model().unwrap(), fast.fast_model().unwrap());
+    let d = model.dims().clone();
+    let len = d.chunk * d.action_pad;
+    let prepared = candle
+        .checkpoint()
+        .prepare(&candle.checkpoint().synthetic_observation())
+        .unwrap();
+    let observation = PiObservation {
+        images: prepared
+            .images
+            .iter()
+            .map(|img| img.present.then_some(img.pixels.as_slice()))
+            .collect(),
+        tokens: &prepared.tokens.ids,
+        token_mask: &prepared.tokens.mask,
+    };
+    let prefix = model
+        .prefix(std::slice::from_ref(&observation))
+        .unwrap()
+        .remove(0);
+    let fast_prefix = fast_model.prefix(&[observation]).unwrap().remove(0);
+    let noise = kairos_engine::sampler::gaussian_noise(5, 0, len);
+    // Committed actions in the model's space (the check needs a target, not a robot's one).
+    let action_dim = candle.action_dim();
+    let committed = kairos_engine::sampler::gaussian_noise(9, 0, COMMITTED * action_dim);
+    let guide = |mode| {
+        let g = Guidance {
+            mode,
+            prefix: committed.clone(),
+            delay: DELAY,
+            execution_horizon: COMMITTED,
+            schedule: PrefixSchedule::Linear,
+            max_guidance_weight: 10.0,
+        };
+        RowGuide::prepare(&g, d.chunk, action_dim, d.action_pad, &noise, &|_| {}).unwrap()
+    };
+    let state = Some(prepared.state.as_slice());
+    let first_velocity = |x: &[f32], guide: Option<RowGuide>| {
+        let noise = [x.to_vec()];
+        let input = SampleInput {
+            prefix: &prefix,
+            state,
+            noise: &noise,
+        };
+        let guides: Vec<Option<RowGuide>> = guide.into_iter().map(Some).collect();
+        model.sample_guided(&[input], &guides).unwrap()[0].velocities[..len].to_vec()
+    };
+    let noises = [noise.clone()];
+    let fast_input = FastSampleInput {
+        prefix: &fast_prefix,
+        state,
+        noise: &noises,
+    };
+    let refused = fast_model
+        .sample_guided(&[fast_input], &[Some(guide(GuidanceMode::RtcVjp))])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        refused.contains("rtc_vjp")
+            && refused.contains("backward")
+            && refused.contains("--kernels candle"),
+        "{fixture}: {refused}"
+    );
+
+    let v = first_velocity(&noise, None);
+    let rtc = guide(GuidanceMode::Rtc);
+    let w = rtc.max_guidance_weight;
+    let v_rtc = first_velocity(&noise, Some(rtc.clone()));
+    let v_vjp = first_velocity(&noise, Some(guide(GuidanceMode::RtcVjp)));
+    let pullback: Vec<f64> = v_vjp
+        .iter()
+        .zip(&v_rtc)
+        .map(|(a, b)| f64::from(a - b) / f64::from(w))
+        .collect();
+    let c: Vec<f64> = rtc
+        .error(1.0, &noise, &v)
+        .into_iter()
+        .map(f64::from)
+        .collect();
+    assert!(c.iter().any(|&ci| ci != 0.0), "the error weighs something");
+    let e: Vec<f32> = kairos_engine::sampler::gaussian_noise(11, 0, len);
+    let dot = |a: &[f32], b: &[f64]| -> f64 {
+        a.iter().zip(b).map(|(x, y)| f64::from(*x) * y).sum::<f64>()
+    };
+    let along = |h: f32| {
+        let shifted =
+            |s: f32| -> Vec<f32> { noise.iter().zip(&e).map(|(x, ei)| x + s * ei).collect() };
+        let up = first_velocity(&shifted(h), None);
+        let down = first_velocity(&shifted(-h), None);
+        (dot(&up, &c) - dot(&down, &c)) / (2.0 * f64::from(h))
+    };
+    // Smaller than SmolVLA's 1e-2: the tiny π0's velocity bends enough that at 1e-2 the
+    // truncation term alone is a quarter of the product; at 3e-3 truncation and rounding are
+    // of one size.
+    let h = 3e-3f32;
+    let (fd, fd2) = (along(h), along(2.0 * h));
+    let analytic: f64 = pullback
+        .iter()
+        .zip(&e)
+        .map(|(p, ei)| p * f64::from(*ei))
+        .sum();
+    let v_fast = fast_model
+        .sample(&[fast_input])
+        .unwrap()
+        .remove(0)
+        .velocities[..len]
+        .to_vec();
+    let gap = v
+        .iter()
+        .zip(&v_fast)
+        .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+    let delta = f64::from(gap).max(f64::from(f32::EPSILON));
+    let scale = v.iter().fold(0.0f64, |m, x| m.max(f64::from(x.abs())));
+    let sum_c: f64 = c.iter().map(|x| x.abs()).sum();
+    let sum_pe: f64 = pullback
+        .iter()
+        .zip(&e)
+        .map(|(p, ei)| (p * f64::from(*ei)).abs())
+        .sum();
+    // Reading the pullback off `v_vjp - v_rtc` rounds each by an ulp of its magnitude.
+    let extraction: f64 = v_vjp
+        .iter()
+        .zip(&v_rtc)
+        .zip(&e)
+        .map(|((a, b), ei)| {
+            f64::from(f32::EPSILON) * f64::from(a.abs() + b.abs()) * f64::from(ei.abs())
+        })
+        .sum::<f64>()
+        / f64::from(w);
+    let bound = delta * sum_c / f64::from(h)
+        + (fd2 - fd).abs()
+        + 16.0 * delta / scale * sum_pe
+        + extraction;
+    eprintln!(
+        "{fixture}: vjp . e = {analytic:.6e}, difference quotient {fd:.6e} (2h: {fd2:.6e}), \
+         bound {bound:.3e}"
+    );
+    assert!(
+        bound < 0.1 * analytic.abs(),
+        "{fixture}: the bound must be able to fail"
+    );
+    assert!(
+        (fd - analytic).abs() <= bound,
+        "{fixture}: autograd {analytic}, finite difference {fd}, bound {bound}"
+    );
+}
+
+#[test]
+fn pi0_candle_vjp_matches_a_finite_difference_of_the_velocity() {
+    vjp_matches_a_finite_difference("pi0_tiny");
+}
+
+#[test]
+fn pi05_candle_vjp_matches_a_finite_difference_of_the_velocity() {
+    vjp_matches_a_finite_difference("pi05_tiny");
 }

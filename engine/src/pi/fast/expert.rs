@@ -277,8 +277,8 @@ impl FastGemmaExpert {
         };
         let len = dims.chunk * dims.action_pad;
         let steps = dims.steps;
-        // No backward pass here: an `rtc_vjp` row is refused by the field's default
-        // `velocity_vjp`.
+        // No backward pass here: `FastPiModel::sample_guided` refuses an `rtc_vjp` row before
+        // it gets here (and the field's default `velocity_vjp` would).
         let mut field = ClosureField(|_k: usize, t: f32, xt: &[f32], v: &mut [f32]| {
             self.velocity(pool, &ctx, &mut ws, t, xt, v);
             Ok(())

@@ -293,6 +293,18 @@ impl FastPiModel {
                 guides.len()
             )));
         };
+        // No backward pass here: an `rtc_vjp` row is refused, naming the path that serves it.
+        if let Some(g) = guides
+            .iter()
+            .flatten()
+            .find(|g| g.mode == kairos_engine_types::GuidanceMode::RtcVjp)
+        {
+            return Err(EngineError::InvalidInput(format!(
+                "guidance `{}`: the fast kernels have no backward pass through π's expert; {}",
+                g.mode.as_str(),
+                crate::candle_vjp::VJP_PATH
+            )));
+        }
         let noise = x.clone();
         let steps = d.steps;
         let mut velocities = vec![0.0f32; rows * steps * len];

@@ -11,12 +11,12 @@
 //! layers), the masks, the RoPE tables and the time embeddings go to the device once and serve
 //! all Euler steps, and the Euler loop itself runs on the device.
 
-use candle_core::{DType, Device, Tensor, Var};
-use kairos_engine_types::GuidanceMode;
+use candle_core::{DType, Device, Tensor};
 
 use super::weights::{ExpertWeights, time_embedding};
 use crate::EngineError;
 use crate::candle_ops;
+use crate::candle_vjp::{self, VjpRows};
 use crate::guidance::RowGuide;
 use crate::kernels::Precision;
 use crate::pi::layers::{Linear, RmsNorm, SwiGlu, batched_attention};
@@ -304,14 +304,8 @@ impl CandleExpert {
 }
 
 /// The expert's velocity field over the rows of one guided `sample` call, with the
-/// vector–Jacobian product `rtc_vjp` needs.
-///
-/// In a step with `rtc_vjp` rows, those rows run their own forward pass with `x_t` a [`Var`],
-/// and one `backward` of `<v(x_t), c>` gives `J_v(x_t)^T c` for the sampler's cotangent `c`. The
-/// other rows run the untracked forward pass they run in any batch: they keep their bits (on
-/// CUDA a tracked input takes `candle_ops`' compositions instead of the fused kernels), and the
-/// backward pass spends nothing on them. The prefix keys and values, masks, RoPE tables, time
-/// embeddings and weights are constants of the graph: no gradient flows into them.
+/// vector–Jacobian product `rtc_vjp` needs ([`candle_vjp`]: the `rtc_vjp` rows run their own
+/// tracked forward pass and one backward pass; the other rows keep their bits).
 struct GuidedField<'a> {
     expert: &'a CandleExpert,
     temb: &'a Tensor,
@@ -322,11 +316,10 @@ struct GuidedField<'a> {
     split: Option<RowSplit>,
 }
 
-/// The rows of a batch split by whether they need the backward pass.
+/// The rows of a batch split by whether they need the backward pass, with their contexts.
 struct RowSplit {
-    vjp: Vec<usize>,
+    rows: VjpRows,
     vjp_context: AttentionContext,
-    plain: Vec<usize>,
     plain_context: Option<AttentionContext>,
 }
 
@@ -337,52 +330,23 @@ impl<'a> GuidedField<'a> {
         temb: &'a Tensor,
         guides: &[Option<RowGuide>],
     ) -> Result<Self, EngineError> {
-        let (vjp, plain): (Vec<usize>, Vec<usize>) = (0..guides.len()).partition(|&r| {
-            guides[r]
-                .as_ref()
-                .is_some_and(|g| g.mode == GuidanceMode::RtcVjp)
-        });
-        let split = if vjp.is_empty() {
-            None
-        } else {
-            Some(RowSplit {
-                vjp_context: all.select(&vjp, &expert.device)?,
-                plain_context: (!plain.is_empty())
-                    .then(|| all.select(&plain, &expert.device))
-                    .transpose()?,
-                vjp,
-                plain,
+        let split = VjpRows::new(guides)
+            .map(|rows| -> Result<RowSplit, EngineError> {
+                Ok(RowSplit {
+                    vjp_context: all.select(rows.vjp(), &expert.device)?,
+                    plain_context: (!rows.plain().is_empty())
+                        .then(|| all.select(rows.plain(), &expert.device))
+                        .transpose()?,
+                    rows,
+                })
             })
-        };
+            .transpose()?;
         Ok(GuidedField {
             expert,
             temb,
             all,
             split,
         })
-    }
-
-    /// The rows `rows` of `x` (`[row][len]`) as a `[rows, chunk, action_pad]` tensor.
-    fn gather(&self, x: &[f32], rows: &[usize]) -> Result<Tensor, EngineError> {
-        let d = &self.expert.dims;
-        let len = d.chunk * d.action_pad;
-        let flat: Vec<f32> = rows
-            .iter()
-            .flat_map(|&r| x[r * len..(r + 1) * len].iter().copied())
-            .collect();
-        Ok(Tensor::from_vec(
-            flat,
-            (rows.len(), d.chunk, d.action_pad),
-            &self.expert.device,
-        )?)
-    }
-}
-
-/// Writes `values` (`[rows.len()][len]`) into rows `rows` of `out` (`[row][len]`).
-fn scatter(values: &[f32], rows: &[usize], out: &mut [f32]) {
-    let len = values.len() / rows.len().max(1);
-    for (i, &r) in rows.iter().enumerate() {
-        out[r * len..(r + 1) * len].copy_from_slice(&values[i * len..(i + 1) * len]);
     }
 }
 
@@ -410,27 +374,22 @@ impl VelocityField for GuidedField<'_> {
             pullback.fill(0.0);
             return self.velocity(k, t, x, v);
         };
+        let expert = self.expert;
         let temb = self.temb.get(k)?;
-        if let Some(context) = &split.plain_context {
-            let out = self
-                .expert
-                .velocity(&self.gather(x, &split.plain)?, &temb, context)?;
-            scatter(&out.flatten_all()?.to_vec1::<f32>()?, &split.plain, v);
-        }
-        let xt = Var::from_tensor(&self.gather(x, &split.vjp)?)?;
-        let out = self
-            .expert
-            .velocity(xt.as_tensor(), &temb, &split.vjp_context)?;
-        scatter(&out.flatten_all()?.to_vec1::<f32>()?, &split.vjp, v);
-        // One backward pass of <v(x), c> gives J_v(x)^T c at x, for the vjp rows' cotangent.
-        let c = self.gather(&cotangent(v), &split.vjp)?;
-        let grads = (out * c)?.sum_all()?.backward()?;
-        let g = grads.get(xt.as_tensor()).ok_or_else(|| {
-            EngineError::InvalidInput("rtc_vjp: no gradient reached the sample".into())
-        })?;
-        pullback.fill(0.0);
-        scatter(&g.flatten_all()?.to_vec1::<f32>()?, &split.vjp, pullback);
-        Ok(())
+        candle_vjp::velocity_vjp(
+            &split.rows,
+            (expert.dims.chunk, expert.dims.action_pad),
+            &expert.device,
+            x,
+            v,
+            cotangent,
+            pullback,
+            split
+                .plain_context
+                .as_ref()
+                .map(|context| |xt: &Tensor| expert.velocity(xt, &temb, context)),
+            |xt: &Tensor| expert.velocity(xt, &temb, &split.vjp_context),
+        )
     }
 }
 

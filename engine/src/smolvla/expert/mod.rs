@@ -28,15 +28,12 @@ pub use weights::ExpertWeights;
 
 use super::config::{self, ExpertDims, SmolVlaConfig, VlmConfig};
 use super::prefix::PrefixKv;
+use crate::candle_vjp::VJP_PATH;
 use crate::guidance::RowGuide;
 use crate::options::{EngineOptions, Target};
 use crate::sampler::{RowLayout, gaussian_noise};
 use crate::weights::Checkpoint;
 use crate::{ActionChunk, ActionRequest, EngineError, Guidance, GuidanceSupport};
-
-/// Where `rtc_vjp` is served, for the refusals of the paths that cannot serve it.
-pub(crate) const VJP_PATH: &str = "the Candle path serves rtc_vjp (`--kernels candle`, or \
-                                   `kernels = \"candle\"` in kairos.toml)";
 
 /// Where the expert runs: the engine's CPU kernels on a pool of threads, or Candle.
 enum Backend {

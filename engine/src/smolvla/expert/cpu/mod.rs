@@ -242,7 +242,7 @@ impl CpuExpert {
                 "guidance `{}`: the fast kernels have no backward pass through SmolVLA's \
                  expert; {}",
                 g.mode.as_str(),
-                super::VJP_PATH
+                crate::candle_vjp::VJP_PATH
             )));
         }
         let d = &self.dims;
