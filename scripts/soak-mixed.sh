@@ -16,6 +16,13 @@ tcp_slots=${TCP_SLOTS:-64}
 # holding that address's share of the openpi door's handshake places shuts out the well-behaved
 # openpi clients too. Empty: the attackers share 127.0.0.1 with the clients.
 attack_source=${ATTACK_SOURCE-127.0.0.2}
+# The attackers' CPU priority. On a network an attacker's loop runs on its own machine; here it
+# shares the server's cores, and a connect flood that reconnects the instant it is refused spends
+# as much CPU on its own side as the server spends refusing it. At the lowest priority the
+# attackers still take every cycle the server and the well-behaved clients leave idle, and the
+# server's work to refuse them stays in the measurement; their own loop's does not. 0: equal
+# priority (the attackers' own CPU counts against the server too).
+attack_nice=${ATTACK_NICE-19}
 
 for tool in "$tools/kairos-attack" "$tools/kairos-hostile-worker"; do
     if [ ! -x "$tool" ]; then
@@ -137,9 +144,9 @@ EOF
     echo "server pid $server_pid; healthy worker pid $worker_pid registered"
     local attack_pid="" hostile_pid=""
     if [ "$attackers" = 1 ]; then
-        "$tools/kairos-hostile-worker" --server "$quic" --data-dir "$data" >"$dir/hostile.log" 2>&1 &
+        nice -n "$attack_nice" "$tools/kairos-hostile-worker" --server "$quic" --data-dir "$data" >"$dir/hostile.log" 2>&1 &
         hostile_pid=$!
-        "$tools/kairos-attack" --server "$quic" --data-dir "$data" --openpi "$openpi" \
+        nice -n "$attack_nice" "$tools/kairos-attack" --server "$quic" --data-dir "$data" --openpi "$openpi" \
             --metrics "$metrics" --hog-token "$hog_token" --quic-slots "$quic_slots" \
             --tcp-slots "$tcp_slots" ${attack_source:+--source-ip "$attack_source"} \
             >"$dir/attack.log" 2>&1 &

@@ -38,7 +38,8 @@
 # CONTROL_HZ (10), ROUNDS (20), OPENPI_CLIENTS (3), OPENPI_PERIOD_S (1), OPENPI_CALLS (30),
 # QUIC_SLOTS and TCP_SLOTS (slowloris connections per listener, 64), ATTACK_SOURCE (the address
 # `kairos-attack` sends from, default 127.0.0.2, apart from the clients' 127.0.0.1; empty: the
-# same address as the clients), KAIROS_TOOLS (directory of
+# same address as the clients), ATTACK_NICE (the attackers' `nice` level, default 19: their own
+# loop's CPU is not the server's, as on a network; 0: equal priority), KAIROS_TOOLS (directory of
 # `kairos-attack` and `kairos-hostile-worker`, default: KAIROS_BIN's), KAIROS_OPENPI_PYTHON (a
 # python with openpi-client==0.1.2, default .venv-openpi/bin/python as scripts/test.sh makes it).
 #
