@@ -118,6 +118,25 @@ pub fn guidance_weight(time: f64, max_weight: f32) -> f32 {
     nan_to_num(c * inv_r2).min(max_weight)
 }
 
+/// One guide per sample row: `guides` itself when it has one per row, no guidance on every row
+/// when it is empty (plain sampling), else an error naming both counts. Every model's
+/// `sample_guided` takes its guides through this.
+pub fn guides_per_row(
+    guides: &[Option<RowGuide>],
+    rows: usize,
+) -> Result<std::borrow::Cow<'_, [Option<RowGuide>]>, EngineError> {
+    if guides.is_empty() {
+        Ok(std::borrow::Cow::Owned(vec![None; rows]))
+    } else if guides.len() == rows {
+        Ok(std::borrow::Cow::Borrowed(guides))
+    } else {
+        Err(EngineError::InvalidInput(format!(
+            "{} row guides for {rows} sample rows",
+            guides.len()
+        )))
+    }
+}
+
 /// What one row of the sampler needs to apply a request's guidance.
 #[derive(Clone, Debug, PartialEq)]
 pub struct RowGuide {
@@ -255,6 +274,20 @@ impl RowGuide {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn guides_per_row_fills_plain_rows_and_refuses_a_miscount() {
+        let plain = guides_per_row(&[], 3).unwrap();
+        assert_eq!(plain.len(), 3);
+        assert!(plain.iter().all(Option::is_none));
+        let given = [None, None];
+        assert!(matches!(
+            guides_per_row(&given, 2).unwrap(),
+            std::borrow::Cow::Borrowed(_)
+        ));
+        let err = guides_per_row(&given, 3).unwrap_err().to_string();
+        assert!(err.contains("2 row guides for 3 sample rows"), "{err}");
+    }
 
     #[test]
     fn prefix_weights_follow_lerobot() {

@@ -335,18 +335,8 @@ impl PiModel {
             Suffix::Pi05 { .. } => None,
         };
 
-        let plain;
-        let guides = if guides.is_empty() {
-            plain = vec![None; rows];
-            &plain[..]
-        } else if guides.len() == rows {
-            guides
-        } else {
-            return Err(EngineError::InvalidInput(format!(
-                "{} guides for {rows} sample rows",
-                guides.len()
-            )));
-        };
+        let guides = crate::guidance::guides_per_row(guides, rows)?;
+        let guides = &guides[..];
         let noise = x.clone();
         let steps = d.steps;
         let mut velocities = vec![0.0f32; rows * steps * len];

@@ -281,18 +281,8 @@ impl FastPiModel {
                 state: state.as_deref(),
             })
             .collect();
-        let plain;
-        let guides = if guides.is_empty() {
-            plain = vec![None; rows];
-            &plain[..]
-        } else if guides.len() == rows {
-            guides
-        } else {
-            return Err(EngineError::InvalidInput(format!(
-                "{} guides for {rows} sample rows",
-                guides.len()
-            )));
-        };
+        let guides = crate::guidance::guides_per_row(guides, rows)?;
+        let guides = &guides[..];
         // No backward pass here: an `rtc_vjp` row is refused, naming the path that serves it.
         if let Some(g) = guides
             .iter()

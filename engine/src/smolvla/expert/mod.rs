@@ -259,18 +259,8 @@ impl SmolVlaExpert {
         if rows == 0 {
             return Ok(Vec::new());
         }
-        let plain;
-        let guides = if guides.is_empty() {
-            plain = vec![None; rows];
-            &plain[..]
-        } else if guides.len() == rows {
-            guides
-        } else {
-            return Err(EngineError::InvalidInput(format!(
-                "{} row guides for {rows} rows",
-                guides.len()
-            )));
-        };
+        let guides = crate::guidance::guides_per_row(guides, rows)?;
+        let guides = &guides[..];
         let prefixes: Vec<&PrefixKv> = inputs.iter().map(|i| i.prefix).collect();
         let noise = x.clone();
         let mut velocities = vec![0.0f32; rows * d.steps * len];
