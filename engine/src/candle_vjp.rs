@@ -7,7 +7,7 @@
 //! CUDA a tracked input takes `candle_ops`' compositions instead of the fused kernels), and the
 //! backward pass spends nothing on them. Everything but `x_t` (prefix keys and values, masks,
 //! RoPE tables, time embeddings, weights) is a constant of the graph. This holds for any network
-//! whose velocity is per row, which is what lets one helper serve both models.
+//! whose velocity is per row, which is what lets one function serve both models.
 
 use candle_core::{Device, Tensor, Var};
 use kairos_engine_types::GuidanceMode;
