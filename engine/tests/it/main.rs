@@ -20,3 +20,4 @@ mod smolvla_processors;
 mod smolvla_random_checkpoint;
 mod smolvla_rtc;
 mod smolvla_vlm;
+mod vjp_check;
