@@ -429,6 +429,31 @@ impl PiDims {
             max_period: cfg.max_period,
         })
     }
+
+    /// Request `i`'s state as the expert takes it: π0's padded to `state_pad` (it needs one,
+    /// of at most that many values), none for π0.5 (its state is in the prompt).
+    pub fn expert_state(
+        &self,
+        i: usize,
+        state: Option<&[f32]>,
+    ) -> Result<Option<Vec<f32>>, EngineError> {
+        match (self.family, state) {
+            (PiFamily::Pi0, Some(s)) if s.len() <= self.state_pad => {
+                let mut padded = s.to_vec();
+                padded.resize(self.state_pad, 0.0);
+                Ok(Some(padded))
+            }
+            (PiFamily::Pi0, Some(s)) => Err(EngineError::InvalidInput(format!(
+                "request {i}: state has {} values, at most {}",
+                s.len(),
+                self.state_pad
+            ))),
+            (PiFamily::Pi0, None) => Err(EngineError::InvalidInput(format!(
+                "request {i}: π0 needs the state"
+            ))),
+            (PiFamily::Pi05, _) => Ok(None),
+        }
+    }
 }
 
 #[cfg(test)]

@@ -282,26 +282,7 @@ impl PiModel {
                 &d.expert,
                 &self.device,
             )?);
-            match (d.family, input.state) {
-                (PiFamily::Pi0, Some(s)) if s.len() <= d.state_pad => {
-                    let mut padded = s.to_vec();
-                    padded.resize(d.state_pad, 0.0);
-                    states.push(padded);
-                }
-                (PiFamily::Pi0, Some(s)) => {
-                    return Err(EngineError::InvalidInput(format!(
-                        "request {i}: state has {} values, at most {}",
-                        s.len(),
-                        d.state_pad
-                    )));
-                }
-                (PiFamily::Pi0, None) => {
-                    return Err(EngineError::InvalidInput(format!(
-                        "request {i}: π0 needs the state"
-                    )));
-                }
-                (PiFamily::Pi05, _) => {}
-            }
+            states.extend(d.expert_state(i, input.state)?);
             for noise in input.noise {
                 if noise.len() != len {
                     return Err(EngineError::InvalidInput(format!(

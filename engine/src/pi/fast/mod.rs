@@ -238,26 +238,7 @@ impl FastPiModel {
                     "request {i} asks for no sample"
                 )));
             }
-            states.push(match (d.family, input.state) {
-                (crate::pi::PiFamily::Pi0, Some(s)) if s.len() <= d.state_pad => {
-                    let mut padded = s.to_vec();
-                    padded.resize(d.state_pad, 0.0);
-                    Some(padded)
-                }
-                (crate::pi::PiFamily::Pi0, Some(s)) => {
-                    return Err(EngineError::InvalidInput(format!(
-                        "request {i}: state has {} values, at most {}",
-                        s.len(),
-                        d.state_pad
-                    )));
-                }
-                (crate::pi::PiFamily::Pi0, None) => {
-                    return Err(EngineError::InvalidInput(format!(
-                        "request {i}: π0 needs the state"
-                    )));
-                }
-                (crate::pi::PiFamily::Pi05, _) => None,
-            });
+            states.push(d.expert_state(i, input.state)?);
             for noise in input.noise {
                 if noise.len() != len {
                     return Err(EngineError::InvalidInput(format!(
