@@ -18,8 +18,8 @@ use crate::vjp_check;
 use kairos_engine::guidance::RowGuide;
 use kairos_engine::pi::{FastSampleInput, PiObservation, PiPipeline, SampleInput};
 use kairos_engine::{
-    ActionChunk, ActionModel, ActionRequest, EngineOptions, Guidance, GuidanceMode, Kernels,
-    Precision, PrefixSchedule,
+    ActionChunk, ActionModel, ActionRequest, DeviceKind, EngineOptions, Guidance, GuidanceMode,
+    Kernels, Precision, PrefixSchedule,
 };
 
 use super::pi_parity::pi_fixture;
@@ -64,7 +64,12 @@ fn distance(a: &ActionChunk, b: &[f32], rows: usize) -> f32 {
 }
 
 fn guided(fixture: &str, kernels: Kernels) {
+    guided_on(fixture, DeviceKind::Cpu, kernels);
+}
+
+fn guided_on(fixture: &str, device: DeviceKind, kernels: Kernels) {
     let options = EngineOptions {
+        device,
         kernels,
         threads: 2,
         ..Default::default()
@@ -80,7 +85,7 @@ fn guided(fixture: &str, kernels: Kernels) {
     let previous = generate(vec![request(&model, 9, None)]).remove(0);
     let plain = generate(vec![request(&model, 5, None)]).remove(0);
     let committed = &previous.actions[..COMMITTED * previous.action_dim];
-    let label = format!("{fixture} {kernels:?}");
+    let label = format!("{fixture} {device:?}/{kernels:?}");
 
     let rtc = guidance(GuidanceMode::Rtc, &previous);
     let pulled = generate(vec![request(&model, 5, Some(rtc.clone()))]).remove(0);
@@ -164,6 +169,14 @@ fn pi0_applies_every_guidance_its_path_has() {
 fn pi05_applies_every_guidance_its_path_has() {
     guided("pi05_tiny", Kernels::Auto);
     guided("pi05_tiny", Kernels::Candle);
+}
+
+/// The same on CUDA, where only the Candle path runs.
+#[cfg(feature = "cuda")]
+#[test]
+fn pi_guidance_on_cuda() {
+    guided_on("pi0_tiny", DeviceKind::Cuda(0), Kernels::Candle);
+    guided_on("pi05_tiny", DeviceKind::Cuda(0), Kernels::Candle);
 }
 
 fn model_options(kernels: Kernels) -> EngineOptions {

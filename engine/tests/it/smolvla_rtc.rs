@@ -59,6 +59,17 @@ fn options(kernels: Kernels) -> EngineOptions {
     }
 }
 
+/// The Candle path on the first CUDA device.
+#[cfg(feature = "cuda")]
+fn cuda() -> EngineOptions {
+    EngineOptions {
+        device: DeviceKind::Cuda(0),
+        kernels: Kernels::Candle,
+        threads: 0,
+        ..Default::default()
+    }
+}
+
 fn schedule(name: &str) -> PrefixSchedule {
     match name {
         "linear" => PrefixSchedule::Linear,
@@ -82,12 +93,14 @@ fn guidance(r: &RtcGoldens, row: usize, mode: GuidanceMode, sched: &str, d: usiz
     }
 }
 
-/// Runs every golden case through `kernels` and compares the guided velocity of every step, the
-/// normalised chunk and the chunk in the robot's units.
-fn rtc_matches_lerobot(kernels: Kernels) {
+/// Runs every golden case on the device and kernels of `options` and compares the guided
+/// velocity of every step, the normalised chunk and the chunk in the robot's units.
+fn rtc_matches_lerobot(options: EngineOptions) {
+    let kernels = options.kernels;
+    let device = options.device;
     let g = Goldens::open();
     let r = RtcGoldens::open();
-    let pipeline = SmolVlaPipeline::load(&fixture(), None, &options(kernels)).unwrap();
+    let pipeline = SmolVlaPipeline::load(&fixture(), None, &options).unwrap();
     let expert = pipeline.expert();
     let d = expert.dims().clone();
     let observations = observations(&g, "pair");
@@ -197,7 +210,7 @@ fn rtc_matches_lerobot(kernels: Kernels) {
                 .collect();
             let du = max_abs_diff(&ours, &r.f32(&format!("{key}.actions")));
             eprintln!(
-                "{kernels:?} {key}: velocities {dv:.3e}, actions_norm {da:.3e}, actions {du:.3e}, bound {bound:.3e}"
+                "{device:?}/{kernels:?} {key}: velocities {dv:.3e}, actions_norm {da:.3e}, actions {du:.3e}, bound {bound:.3e}"
             );
             assert!(dv <= bound, "{key}: velocities differ by {dv:e}");
             assert!(da <= bound, "{key}: normalised actions differ by {da:e}");
@@ -245,7 +258,7 @@ fn rtc_matches_lerobot(kernels: Kernels) {
                 .sample_guided(&inputs[b..=b], &guides[b..=b])
                 .unwrap()
                 .remove(0);
-            assert_eq!(mixed[b], alone, "{kernels:?} {modes:?}: row {b}");
+            assert_eq!(mixed[b], alone, "{device:?}/{kernels:?} {modes:?}: row {b}");
             if guides[b].is_some() {
                 assert_ne!(mixed[b], expert.sample(&inputs[b..=b]).unwrap()[0]);
             }
@@ -255,12 +268,20 @@ fn rtc_matches_lerobot(kernels: Kernels) {
 
 #[test]
 fn rtc_on_the_fast_kernels_matches_lerobot() {
-    rtc_matches_lerobot(Kernels::Auto);
+    rtc_matches_lerobot(options(Kernels::Auto));
 }
 
 #[test]
 fn rtc_on_the_candle_path_matches_lerobot() {
-    rtc_matches_lerobot(Kernels::Candle);
+    rtc_matches_lerobot(options(Kernels::Candle));
+}
+
+/// `rtc` and `rtc_vjp` on CUDA (Candle's fused kernels for the plain rows, the compositions for
+/// the rows that track gradients), against the same goldens and bound, mixed batches included.
+#[cfg(feature = "cuda")]
+#[test]
+fn rtc_on_cuda_matches_lerobot() {
+    rtc_matches_lerobot(cuda());
 }
 
 /// Served through the model interface: `rtc` and `inpaint` change the chunk (`inpaint` ends on
