@@ -1,6 +1,7 @@
 //! Admission under abuse (#12 item 3), over real QUIC: clients that never authenticate cannot
 //! lock robots out, whether they stop half way through the handshake or finish it and never send
 //! `Hello`; and a source that sends wrong tokens is refused before its token is looked at.
+//! Refusals are counted in `/metrics` and in the shutdown report.
 
 #![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
 
@@ -15,6 +16,7 @@ use kairos_server::transport::refusals::{Door, Reason};
 use kairos_tests::harness::{RawConnection, ServerOptions, TestServer, one_round};
 
 use super::auth::application_close_code;
+use super::metrics::{get, refusal_samples, sample};
 
 /// Guards against a hang only; every wait below is for an event.
 const HANG_GUARD: Duration = Duration::from_secs(60);
@@ -134,6 +136,7 @@ async fn max_connections_counts_authenticated_robots_only() {
         tweak: |config| {
             config.connections.max_connections = 2;
             config.connections.hello_timeout_ms = 300;
+            config.metrics.listen = Some("127.0.0.1:0".parse().unwrap());
         },
         ..ServerOptions::default()
     })
@@ -163,6 +166,22 @@ async fn max_connections_counts_authenticated_robots_only() {
     assert!(reason.contains("Hello"), "{reason}");
 
     one_round(&a, 1, 1).await.unwrap();
+    // Both refusals are counted where an operator looks: in /metrics while the server runs (issue
+    // #28, finding 10), and in the shutdown report.
+    let (status, text) = get(server.server().metrics_addr.unwrap(), "/metrics").await;
+    assert_eq!(status, 200);
+    let refused = |reason: &str| {
+        sample(
+            &text,
+            &format!(r#"kairos_refusals_total{{door="quic",reason="{reason}"}}"#),
+        )
+    };
+    assert_eq!(
+        (refused("at_capacity"), refused("hello_timeout")),
+        (Some(1.0), Some(1.0)),
+        "refusals in /metrics: {:?}",
+        refusal_samples(&text)
+    );
     a.close().await;
     b.close().await;
     let report = server.shutdown().await;

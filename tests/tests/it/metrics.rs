@@ -26,7 +26,8 @@ async fn exchange(addr: SocketAddr, request: &[u8]) -> (u16, String) {
     (status, text)
 }
 
-async fn get(addr: SocketAddr, path: &str) -> (u16, String) {
+/// `GET path`: the status code and the whole response.
+pub(super) async fn get(addr: SocketAddr, path: &str) -> (u16, String) {
     exchange(
         addr,
         format!("GET {path} HTTP/1.1\r\nHost: kairos\r\n\r\n").as_bytes(),
@@ -35,9 +36,16 @@ async fn get(addr: SocketAddr, path: &str) -> (u16, String) {
 }
 
 /// The value of the sample `series` (name and labels, exactly as exported).
-fn sample(text: &str, series: &str) -> Option<f64> {
+pub(super) fn sample(text: &str, series: &str) -> Option<f64> {
     text.lines()
         .find_map(|line| line.strip_prefix(series)?.strip_prefix(' ')?.parse().ok())
+}
+
+/// The `kairos_refusals_total` samples in `text`, for failure messages.
+pub(super) fn refusal_samples(text: &str) -> Vec<&str> {
+    text.lines()
+        .filter(|line| line.starts_with("kairos_refusals_total"))
+        .collect()
 }
 
 async fn server_with_metrics() -> TestServer {

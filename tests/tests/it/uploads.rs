@@ -2,7 +2,8 @@
 //! streams, announces a large frame on each and then stalls can make the server hold no more
 //! than its connection's budget (`upload_buffer_frames` frames partly read, plus a QUIC receive
 //! window of the same size), and every stalled stream is stopped once it falls under the minimum
-//! upload rate. Meanwhile another robot is served.
+//! upload rate, and counted (`too_slow` in `/metrics` and in the shutdown report). Meanwhile
+//! another robot is served.
 
 #![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
 
@@ -17,8 +18,11 @@ use kairos_sdk::protocol::{
 };
 use kairos_sdk::tls::ServerTrust;
 use kairos_sdk::transport::{TransportTuning, client_config};
+use kairos_server::transport::refusals::{Door, Reason};
 use kairos_tests::harness::{ServerOptions, TestServer, one_round};
 use quinn::VarInt;
+
+use super::metrics::{get, refusal_samples, sample};
 
 /// Guards against a hang only; every wait below is for an event.
 const HANG_GUARD: Duration = Duration::from_secs(60);
@@ -113,6 +117,7 @@ async fn stalled_uploads_are_bounded_by_the_connection_budget_and_stopped() {
             config.connections.upload_buffer_frames = BUFFER_FRAMES;
             config.connections.min_upload_bytes_per_s = 1 << 20;
             config.connections.upload_grace_ms = 500;
+            config.metrics.listen = Some("127.0.0.1:0".parse().unwrap());
         },
         ..ServerOptions::default()
     })
@@ -225,10 +230,27 @@ async fn stalled_uploads_are_bounded_by_the_connection_budget_and_stopped() {
             .any(|outcome| outcome.error == Some(ErrorCode::TooSlow)),
         "the stopped streams are told why"
     );
+    // Every stop is counted where an operator looks: in /metrics while the server runs (issue
+    // #28, finding 10), and in the shutdown report below.
+    let (status, text) = get(server.server().metrics_addr.unwrap(), "/metrics").await;
+    assert_eq!(status, 200);
+    assert_eq!(
+        sample(
+            &text,
+            r#"kairos_refusals_total{door="quic",reason="too_slow"}"#
+        ),
+        Some(STREAMS as f64),
+        "refusals in /metrics: {:?}",
+        refusal_samples(&text)
+    );
 
     // The server still serves.
     one_round(&robot, 1, 1).await.unwrap();
     robot.close().await;
     connection.close(VarInt::from_u32(0), b"done");
-    server.shutdown().await;
+    let report = server.shutdown().await;
+    assert_eq!(
+        report.refusals.get(Door::Quic, Reason::TooSlow),
+        STREAMS as u64
+    );
 }
