@@ -11,10 +11,12 @@
 //! The guidance: the committed actions are a previous chunk of the model's (its own plain
 //! output, from action 2 on: the robot executed 2 before the capture), `d = --delay`, LeRobot's
 //! defaults (linear schedule, execution horizon 10, max guidance weight 10). Prints one JSON
-//! line per mode: `{"mode":..,"median_ms":..,"min_ms":..,"runs":[..]}`, then one with the
-//! medians' ratios to plain sampling (`rtc_vjp_over_plain` on the Candle path) and the guidance's own work per chunk (`RowGuide::prepare`
-//! and its ten velocity corrections, timed alone: on a shared machine the whole-chunk medians
-//! move by more than that).
+//! line per mode: `{"mode":..,"median_ms":..,"min_ms":..,"median_cpu_ms":..,"runs":[..]}`,
+//! then one with the medians' ratios to plain sampling (`rtc_vjp_over_plain` on the Candle
+//! path) and the guidance's own work per chunk (`RowGuide::prepare` and its ten velocity
+//! corrections, timed alone: on a shared machine the whole-chunk medians move by more than
+//! that). The ratios are given in wall time and in the process's CPU time, which other
+//! processes' load moves far less: with `--threads 1` it is the chunk's own work.
 
 use std::time::Instant;
 
@@ -94,14 +96,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         modes.push(("rtc_vjp", Some(guidance(GuidanceMode::RtcVjp))));
     }
     let mut runs = vec![Vec::new(); modes.len()];
+    let mut cpu = vec![Vec::new(); modes.len()];
     for i in 0..iters {
         // The order rotates run by run, so that no mode always follows another.
         for j in 0..modes.len() {
             let m = (i + j) % modes.len();
             let batch = [request(modes[m].1.clone())];
-            let started = Instant::now();
+            let (started, cpu_started) = (Instant::now(), process_cpu_ms());
             pipeline.generate(&batch)?;
             runs[m].push(started.elapsed().as_secs_f64() * 1e3);
+            cpu[m].push(process_cpu_ms() - cpu_started);
         }
     }
     let median = |v: &[f64]| {
@@ -110,11 +114,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         s[s.len() / 2]
     };
     let medians: Vec<f64> = runs.iter().map(|r| median(r)).collect();
-    for ((name, _), times) in modes.iter().zip(&runs) {
+    let cpu_medians: Vec<f64> = cpu.iter().map(|r| median(r)).collect();
+    for (((name, _), times), cpu_median) in modes.iter().zip(&runs).zip(&cpu_medians) {
         let min = times.iter().copied().fold(f64::INFINITY, f64::min);
         let runs: Vec<String> = times.iter().map(|t| format!("{t:.1}")).collect();
         println!(
-            "{{\"mode\":\"{name}\",\"median_ms\":{:.1},\"min_ms\":{min:.1},\"runs\":[{}]}}",
+            "{{\"mode\":\"{name}\",\"median_ms\":{:.1},\"min_ms\":{min:.1},\"median_cpu_ms\":{cpu_median:.1},\"runs\":[{}]}}",
             median(times),
             runs.join(",")
         );
@@ -147,10 +152,25 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .map(|m| format!("\"rtc_vjp_over_plain\":{:.4},", m / medians[0]))
         .unwrap_or_default();
     println!(
-        "{{\"rtc_over_plain\":{:.4},\"inpaint_over_plain\":{:.4},{vjp}\"rtc_guidance_us_per_chunk\":{guidance_us:.1},\"description\":\"{}\"}}",
+        "{{\"rtc_over_plain\":{:.4},\"inpaint_over_plain\":{:.4},\"rtc_cpu_over_plain\":{:.4},\"inpaint_cpu_over_plain\":{:.4},{vjp}\"rtc_guidance_us_per_chunk\":{guidance_us:.1},\"description\":\"{}\"}}",
         medians[1] / medians[0],
         medians[2] / medians[0],
+        cpu_medians[1] / cpu_medians[0],
+        cpu_medians[2] / cpu_medians[0],
         pipeline.expert().description()
     );
     Ok(())
+}
+
+/// The CPU time this process has used so far (every thread, user and system), in ms.
+fn process_cpu_ms() -> f64 {
+    // SAFETY: `getrusage` only writes the `rusage` it is given, which is a plain C struct that
+    // all-zero bytes initialise validly.
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: `usage` is a valid, writable `rusage`; `RUSAGE_SELF` is a valid `who`.
+    if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut usage) } != 0 {
+        return f64::NAN;
+    }
+    let ms = |t: libc::timeval| t.tv_sec as f64 * 1e3 + t.tv_usec as f64 / 1e3;
+    ms(usage.ru_utime) + ms(usage.ru_stime)
 }
