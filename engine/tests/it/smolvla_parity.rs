@@ -143,7 +143,7 @@ fn cpu(kernels: Kernels) -> EngineOptions {
 
 /// The options of a GPU test: Candle on the first CUDA device.
 #[cfg(feature = "cuda")]
-fn cuda() -> EngineOptions {
+pub(crate) fn cuda() -> EngineOptions {
     EngineOptions {
         device: DeviceKind::Cuda(0),
         kernels: Kernels::Candle,

@@ -59,17 +59,6 @@ fn options(kernels: Kernels) -> EngineOptions {
     }
 }
 
-/// The Candle path on the first CUDA device.
-#[cfg(feature = "cuda")]
-fn cuda() -> EngineOptions {
-    EngineOptions {
-        device: DeviceKind::Cuda(0),
-        kernels: Kernels::Candle,
-        threads: 0,
-        ..Default::default()
-    }
-}
-
 fn schedule(name: &str) -> PrefixSchedule {
     match name {
         "linear" => PrefixSchedule::Linear,
@@ -281,7 +270,7 @@ fn rtc_on_the_candle_path_matches_lerobot() {
 #[cfg(feature = "cuda")]
 #[test]
 fn rtc_on_cuda_matches_lerobot() {
-    rtc_matches_lerobot(cuda());
+    rtc_matches_lerobot(crate::smolvla_parity::cuda());
 }
 
 /// Served through the model interface: `rtc` and `inpaint` change the chunk (`inpaint` ends on
