@@ -1008,6 +1008,23 @@ mod tests {
         assert_eq!(options.device, DeviceKind::Cuda(1));
         assert!(options.cuda_graphs);
         assert!(!EngineConfig::default().options().unwrap().cuda_graphs);
+
+        // `kairos serve --cuda-graphs`: on with a CUDA device, refused with the CPU.
+        let overrides = Overrides {
+            device: Some("cuda:0".into()),
+            cuda_graphs: true,
+            ..Overrides::default()
+        };
+        let c = Config::load_with(None, &overrides).unwrap();
+        assert!(c.engines[0].options().unwrap().cuda_graphs);
+        let overrides = Overrides {
+            cuda_graphs: true,
+            ..Overrides::default()
+        };
+        match Config::load_with(None, &overrides).unwrap_err() {
+            ConfigError::Invalid { key, .. } => assert_eq!(key, "engine[0].cuda_graphs"),
+            other => panic!("expected Invalid, got {other}"),
+        }
     }
 
     #[test]

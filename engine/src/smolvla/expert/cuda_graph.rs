@@ -1,8 +1,8 @@
 //! SmolVLA's Euler loop replayed as a CUDA graph, one graph per batch shape
 //! ([`crate::EngineOptions::cuda_graphs`]).
 //!
-//! At B = 1 the loop's ten steps are some 3,000 small kernels, and launching them one by one from
-//! the host costs more than running them. A CUDA graph records the launches once and replays
+//! At B = 1 the loop's ten steps are thousands of small kernels, each launched from the host,
+//! and the launches may cost more than the work. A CUDA graph records the launches once and replays
 //! them with one call. A graph replays fixed device addresses, so each batch shape (rows, prefix
 //! length) gets its own: persistent input tensors (the noise, the time embeddings and the
 //! attention context: prefix keys and values, masks, RoPE tables) that each call's inputs are
@@ -21,12 +21,22 @@
 //! uncaptured run uploaded. Candle refuses device-to-host copies during a capture, and the
 //! loop makes none.
 //!
+//! Graphs belong to the thread that captured them. Candle's upload cache is thread-local, and
+//! a graph's copies read the cached buffers at every replay, so a graph must not outlive the
+//! thread whose cache it reads; and Candle's stream is the calling thread's default stream, so
+//! two threads are two streams, each with its own graph and buffers. Each thread keeps its
+//! graphs in a thread-local map (an engine serves from one thread, so it captures once per
+//! shape), and they are freed with the thread, or at the thread's next call once their expert
+//! is gone.
+//!
 //! Any error while capturing or launching a shape's graph sends that shape back to the
-//! uncaptured loop for the rest of the process, with one warning: a graph that cannot be
-//! captured never fails a batch.
+//! uncaptured loop (on that thread) for the rest of the process, with one warning: a graph that
+//! cannot be captured never fails a batch.
 
+use std::cell::RefCell;
 use std::collections::HashMap;
-use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Weak};
 
 use candle_core::cuda_backend::WrapErr;
 use candle_core::cuda_backend::cudarc::driver::{CudaGraph, sys};
@@ -44,16 +54,29 @@ struct Shape {
     prefix_len: usize,
 }
 
-/// The captured loops of one expert, by shape.
+/// The CUDA graphs of one expert's Euler loop. The graphs themselves are in [`THREAD_GRAPHS`].
 pub(super) struct EulerGraphs {
     device: CudaDevice,
-    state: Mutex<GraphState>,
+    /// Shared with the thread-local maps (as a `Weak`): it names the expert there, and a map
+    /// whose expert is gone is dropped.
+    counters: Arc<Counters>,
 }
 
 #[derive(Default)]
-struct GraphState {
+struct Counters {
+    captured: AtomicUsize,
+    uncaptured: AtomicUsize,
+    replays: AtomicU64,
+}
+
+/// One expert's graphs on one thread.
+struct ThreadGraphs {
+    expert: Weak<Counters>,
     shapes: HashMap<Shape, Slot>,
-    replays: u64,
+}
+
+thread_local! {
+    static THREAD_GRAPHS: RefCell<Vec<ThreadGraphs>> = const { RefCell::new(Vec::new()) };
 }
 
 enum Slot {
@@ -64,50 +87,52 @@ enum Slot {
 
 /// One shape's graph and the tensors it reads and writes.
 struct CapturedLoop {
-    graph: ReplayableGraph,
+    graph: CudaGraph,
     x0: Tensor,
+    /// Read by the graph, never rewritten: the time embeddings are the same for every call.
+    _temb: Tensor,
     context: AttentionContext,
     output: DeviceLoop,
 }
-
-/// A [`CudaGraph`] that can move between threads.
-struct ReplayableGraph(CudaGraph);
-
-// SAFETY: a CUDA graph and its executable graph are driver handles that any thread of the
-// process may use; the driver requires only that calls on one graph be serialised, and every use
-// of a `ReplayableGraph` happens under `EulerGraphs::state`'s mutex.
-unsafe impl Send for ReplayableGraph {}
 
 impl EulerGraphs {
     /// Graphs on `device`: every tensor of the expert lives there and uses its one stream.
     pub(super) fn new(device: CudaDevice) -> Self {
         EulerGraphs {
             device,
-            state: Mutex::new(GraphState::default()),
+            counters: Arc::default(),
         }
     }
 
-    /// How many shapes have a graph, how many fell back, and how many replays there were.
+    /// How many shapes have been captured, how many fell back, and how many replays there were
+    /// (over every thread).
     pub(super) fn stats(&self) -> CudaGraphStats {
-        let state = self.lock();
-        let captured = state
-            .shapes
-            .values()
-            .filter(|s| matches!(s, Slot::Captured(_)))
-            .count();
+        let c = &self.counters;
         CudaGraphStats {
-            captured,
-            uncaptured: state.shapes.len() - captured,
-            replays: state.replays,
+            captured: c.captured.load(Ordering::Relaxed),
+            uncaptured: c.uncaptured.load(Ordering::Relaxed),
+            replays: c.replays.load(Ordering::Relaxed),
         }
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, GraphState> {
-        // A panic while the lock was held left at worst a shape half set up; the slots are
-        // replaced whole, so the map itself is consistent.
-        self.state
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    /// `f` with this thread's graphs of this expert (made empty on first use).
+    fn with_thread_graphs<T>(&self, f: impl FnOnce(&mut HashMap<Shape, Slot>) -> T) -> T {
+        THREAD_GRAPHS.with(|all| {
+            let mut all = all.borrow_mut();
+            all.retain(|g| g.expert.strong_count() > 0);
+            let mine = Arc::downgrade(&self.counters);
+            let index = match all.iter().position(|g| g.expert.ptr_eq(&mine)) {
+                Some(i) => i,
+                None => {
+                    all.push(ThreadGraphs {
+                        expert: mine,
+                        shapes: HashMap::new(),
+                    });
+                    all.len() - 1
+                }
+            };
+            f(&mut all[index].shapes)
+        })
     }
 
     /// The loop from `x0` with `context`, on the host: replayed from this shape's graph when
@@ -123,53 +148,60 @@ impl EulerGraphs {
     ) -> Result<HostLoop, EngineError> {
         let (rows, _, _, prefix_len) = context.cross_mask.dims4()?;
         let shape = Shape { rows, prefix_len };
-        // Held to the end: the graph's inputs and outputs are shared by every call of the shape.
-        let mut state = self.lock();
-        let replayed = match state.shapes.get(&shape) {
-            None => None,
-            Some(Slot::Uncaptured) => return run(x0, temb, context)?.to_host(),
-            // A failed launch may only show at the copy to the host, which waits for it.
-            Some(Slot::Captured(captured)) => Some(
-                captured
-                    .replay(x0, context)
-                    .and_then(|()| captured.output.to_host()),
-            ),
-        };
-        match replayed {
-            Some(Ok(host)) => {
-                state.replays += 1;
-                return Ok(host);
+        self.with_thread_graphs(|shapes| {
+            let replayed = match shapes.get(&shape) {
+                None => None,
+                Some(Slot::Uncaptured) => return run(x0, temb, context)?.to_host(),
+                // A failed launch may only show at the copy to the host, which waits for it.
+                Some(Slot::Captured(captured)) => Some(
+                    captured
+                        .replay(x0, context)
+                        .and_then(|()| captured.output.to_host()),
+                ),
+            };
+            match replayed {
+                Some(Ok(host)) => {
+                    self.counters.replays.fetch_add(1, Ordering::Relaxed);
+                    return Ok(host);
+                }
+                Some(Err(e)) => {
+                    tracing::warn!(
+                        "SmolVLA expert: replaying the CUDA graph of {rows} rows x {prefix_len} \
+                         prefix tokens failed ({e}); that shape runs uncaptured from now on"
+                    );
+                    shapes.insert(shape, Slot::Uncaptured);
+                    self.counters.captured.fetch_sub(1, Ordering::Relaxed);
+                    self.counters.uncaptured.fetch_add(1, Ordering::Relaxed);
+                    return run(x0, temb, context)?.to_host();
+                }
+                None => {}
             }
-            Some(Err(e)) => {
-                tracing::warn!(
-                    "SmolVLA expert: replaying the CUDA graph of {rows} rows x {prefix_len} \
-                     prefix tokens failed ({e}); that shape runs uncaptured from now on"
-                );
-                state.shapes.insert(shape, Slot::Uncaptured);
-                return run(x0, temb, context)?.to_host();
-            }
-            None => {}
-        }
-        // First call of this shape: uncaptured, with Candle's small uploads kept for the capture.
-        let cache = self.device.enable_cuda_graph_htod_cache();
-        let result = run(x0, temb, context)?;
-        let slot = match self.capture(x0, temb, context, &result, run) {
-            Ok(captured) => Slot::Captured(Box::new(captured)),
-            Err(e) => {
-                tracing::warn!(
-                    "SmolVLA expert: capturing the Euler loop of {rows} rows x {prefix_len} \
-                     prefix tokens as a CUDA graph failed ({e}); that shape runs uncaptured"
-                );
-                Slot::Uncaptured
-            }
-        };
-        drop(cache);
-        state.shapes.insert(shape, slot);
-        result.to_host()
+            // First call of this shape: uncaptured, with Candle's small uploads kept for the
+            // capture.
+            let cache = self.device.enable_cuda_graph_htod_cache();
+            let result = run(x0, temb, context)?;
+            let slot = match self.capture(x0, temb, context, &result, run) {
+                Ok(captured) => {
+                    self.counters.captured.fetch_add(1, Ordering::Relaxed);
+                    Slot::Captured(Box::new(captured))
+                }
+                Err(e) => {
+                    tracing::warn!(
+                        "SmolVLA expert: capturing the Euler loop of {rows} rows x {prefix_len} \
+                         prefix tokens as a CUDA graph failed ({e}); that shape runs uncaptured"
+                    );
+                    self.counters.uncaptured.fetch_add(1, Ordering::Relaxed);
+                    Slot::Uncaptured
+                }
+            };
+            drop(cache);
+            shapes.insert(shape, slot);
+            result.to_host()
+        })
     }
 
     /// Capture `run` on this call's inputs, which become the graph's persistent inputs (the
-    /// caller drops its own references after the call; `temb` is the same for every call).
+    /// caller drops its own references after the call).
     fn capture(
         &self,
         x0: &Tensor,
@@ -203,8 +235,9 @@ impl EulerGraphs {
             EngineError::InvalidInput("the captured Euler loop is an empty graph".into())
         })?;
         Ok(CapturedLoop {
-            graph: ReplayableGraph(graph),
+            graph,
             x0,
+            _temb: temb,
             context,
             output,
         })
@@ -219,7 +252,7 @@ impl CapturedLoop {
         for (persistent, new) in self.context.tensors().into_iter().zip(context.tensors()) {
             persistent.slice_set(new, 0, 0)?;
         }
-        self.graph.0.launch().w()?;
+        self.graph.launch().w()?;
         Ok(())
     }
 }

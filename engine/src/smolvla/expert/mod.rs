@@ -67,7 +67,8 @@ impl std::fmt::Debug for SmolVlaExpert {
 /// padded prefix length).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct CudaGraphStats {
-    /// Shapes whose loop was captured as a graph.
+    /// Shapes whose loop is captured as a graph and replayed (each thread that samples captures
+    /// its own).
     pub captured: usize,
     /// Shapes whose capture or replay failed once, which run uncaptured from then on.
     pub uncaptured: usize,
