@@ -4,10 +4,10 @@
 //! At B = 1 the loop's ten steps are thousands of small kernels, each launched from the host,
 //! and the launches may cost more than the work. A CUDA graph records the launches once and replays
 //! them with one call. A graph replays fixed device addresses, so each batch shape (rows, prefix
-//! length) gets its own: persistent input tensors (the noise, the time embeddings and the
-//! attention context: prefix keys and values, masks, RoPE tables) that each call's inputs are
-//! copied into, persistent output tensors (the final sample, every step's velocity and update)
-//! that the graph writes, and the graph itself.
+//! length) gets its own: persistent input tensors (the noise and the attention context: prefix
+//! keys and values, masks, RoPE tables) that each call's inputs are copied into, the time
+//! embeddings (the same for every call), persistent output tensors (the final sample, every
+//! step's velocity and update) that the graph writes, and the graph itself.
 //!
 //! The first call of a shape runs the loop uncaptured (which loads Candle's kernels, sets up
 //! cuBLAS and fills Candle's upload cache, below) and returns that result; then the loop is
