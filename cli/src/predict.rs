@@ -62,6 +62,10 @@ pub struct PredictArgs {
     /// Weight GEMMs in `f32` (exact) or `bf16` (AVX512_BF16; falls back to f32 elsewhere).
     #[arg(long, default_value = "f32")]
     pub precision: String,
+    /// Replay SmolVLA's Euler loop as a CUDA graph, one per batch shape (CUDA only; the first
+    /// batch of a shape runs uncaptured and captures it).
+    #[arg(long)]
+    pub cuda_graphs: bool,
     /// Predict this many copies of the observation in one batch (as a server batches robots),
     /// copy `i` with noise seed `seed + i`; `actions` is copy 0's chunk, `batch_actions` all.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
@@ -171,6 +175,7 @@ pub fn run(args: PredictArgs) -> anyhow::Result<()> {
         kernels: args.kernels.parse::<Kernels>().context("--kernels")?,
         threads: args.threads,
         precision: args.precision.parse::<Precision>().context("--precision")?,
+        cuda_graphs: args.cuda_graphs,
     };
     let pipeline = Policy::load(&args.model, args.tokenizer.as_deref(), &options)
         .with_context(|| format!("loading {}", args.model.display()))?;

@@ -43,6 +43,10 @@ pub struct ProfileArgs {
     /// f32 with a warning elsewhere). Profile with the precision you serve with.
     #[arg(long, default_value = "f32")]
     pub precision: String,
+    /// Replay SmolVLA's Euler loop as a CUDA graph, one per batch shape (CUDA only; the first
+    /// batch of a shape runs uncaptured and captures it).
+    #[arg(long)]
+    pub cuda_graphs: bool,
     /// A batch is worth forming only if it raises throughput by more than this fraction.
     #[arg(long, default_value_t = DEFAULT_MIN_GAIN)]
     pub min_gain: f64,
@@ -60,6 +64,7 @@ pub fn run(args: ProfileArgs) -> anyhow::Result<()> {
         kernels,
         threads: args.threads,
         precision: args.precision.parse::<Precision>().context("--precision")?,
+        cuda_graphs: args.cuda_graphs,
     };
     anyhow::ensure!(
         !args.batches.is_empty() && !args.batches.contains(&0),
@@ -159,6 +164,7 @@ mod tests {
             kernels: "fast".into(),
             threads: 2,
             precision: "f32".into(),
+            cuda_graphs: false,
             min_gain: 0.05,
             out: Some(out.clone()),
         })
@@ -200,6 +206,7 @@ mod tests {
             kernels: "auto".into(),
             threads: 1,
             precision: "f32".into(),
+            cuda_graphs: false,
             min_gain: 0.05,
             out: Some(out.clone()),
         };
@@ -256,6 +263,7 @@ mod tests {
             kernels: "auto".into(),
             threads: 1,
             precision: "f32".into(),
+            cuda_graphs: false,
             min_gain: 0.05,
             out: None,
         };

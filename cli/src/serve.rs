@@ -58,6 +58,10 @@ pub struct ServeArgs {
     /// overriding the file's `precision`; same rules as `--model`.
     #[arg(long)]
     pub precision: Option<String>,
+    /// Replay SmolVLA's Euler loop as a CUDA graph per batch shape (CUDA only), overriding the
+    /// file's `cuda_graphs`; same rules as `--model`.
+    #[arg(long)]
+    pub cuda_graphs: bool,
     /// Local engine instances of the model (default: the file's `instances`, else 1). `0` runs a
     /// scheduler with no local engine, served only by remote workers (`kairos worker`); the
     /// model then only fixes the shapes workers must match.
@@ -99,6 +103,7 @@ impl ServeArgs {
             tokenizer: self.tokenizer.clone(),
             device: self.device.clone(),
             precision: self.precision.clone(),
+            cuda_graphs: self.cuda_graphs,
             local_engines: self.local_engines,
             horizon_plugin: self.horizon_plugin.clone(),
             horizon_params: self.horizon_params.clone(),

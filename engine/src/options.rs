@@ -78,6 +78,11 @@ pub struct EngineOptions {
     /// (default, exact) or `bf16` (AVX512_BF16; other CPUs fall back to f32 with a warning).
     #[serde(default)]
     pub precision: Precision,
+    /// Replay SmolVLA's Euler loop on CUDA as a captured CUDA graph, one per batch shape (see
+    /// docs/ENGINE.md, "CUDA"); off by default. Needs a CUDA device: asking for it on the CPU
+    /// is an error at load. Other models run their loops uncaptured.
+    #[serde(default)]
+    pub cuda_graphs: bool,
 }
 
 /// A resolved execution target.
@@ -104,6 +109,12 @@ impl EngineOptions {
     }
 
     pub(crate) fn target(&self) -> Result<Target, EngineError> {
+        if self.cuda_graphs && self.device == DeviceKind::Cpu {
+            return Err(EngineError::InvalidInput(
+                "CUDA graphs need a CUDA device (--device cuda:N); the CPU paths have no graphs"
+                    .into(),
+            ));
+        }
         match (self.device, self.kernels) {
             (DeviceKind::Cpu, Kernels::Auto | Kernels::Fast) => {
                 Ok(Target::Fast(Pool::new(self.threads)?))
@@ -173,7 +184,47 @@ impl Target {
 
 #[cfg(feature = "cuda")]
 fn cuda_device(ordinal: usize) -> Result<candle_core::Device, EngineError> {
-    Ok(candle_core::Device::new_cuda(ordinal)?)
+    let device = candle_core::Device::new_cuda(ordinal)?;
+    if let candle_core::Device::Cuda(cuda) = &device {
+        keep_freed_device_memory(cuda)?;
+    }
+    Ok(device)
+}
+
+/// Makes the device's default memory pool keep the memory Candle frees, instead of handing it
+/// back to the driver.
+///
+/// Candle allocates every op's output with cudarc's stream-ordered allocator
+/// (`cuMemAllocAsync` on the device's default pool) and frees it with `cuMemFreeAsync`. The
+/// pool's release threshold is 0 unless set (cudarc 0.19 never sets it), so at every
+/// synchronisation (each batch's copy of its results to the host) the pool returns its free
+/// memory to the driver, and the next batch maps it again. With the threshold at `u64::MAX`
+/// the pool keeps what it has: every batch after the first of a shape is served from memory the
+/// pool already holds, and the pool's footprint is the largest working set a batch has needed.
+/// The pool is the device's, shared by every model on it in this process; memory another
+/// process needs is not given back until this one exits, which a server that owns its GPU
+/// wants anyway.
+#[cfg(feature = "cuda")]
+fn keep_freed_device_memory(cuda: &candle_core::CudaDevice) -> Result<(), EngineError> {
+    use candle_core::cuda_backend::WrapErr;
+    use candle_core::cuda_backend::cudarc::driver::{result, sys};
+    let stream = cuda.cuda_stream();
+    let context = stream.context();
+    context.bind_to_thread().w()?;
+    let mut threshold: u64 = u64::MAX;
+    // SAFETY: `cu_device()` is the device of a live context (Candle holds it), as
+    // `cuDeviceGetDefaultMemPool` requires; `CU_MEMPOOL_ATTR_RELEASE_THRESHOLD` takes a
+    // `cuuint64_t`, and `threshold` is a live `u64` for the duration of the call.
+    unsafe {
+        let pool = result::device::get_default_mem_pool(context.cu_device()).w()?;
+        result::mem_pool::set_attribute(
+            pool,
+            sys::CUmemPool_attribute::CU_MEMPOOL_ATTR_RELEASE_THRESHOLD,
+            (&raw mut threshold).cast(),
+        )
+        .w()?;
+    }
+    Ok(())
 }
 
 #[cfg(not(feature = "cuda"))]

@@ -149,6 +149,15 @@ fn bad_inputs_fail_with_the_field_named() {
     assert!(err.contains("observation.state has 2 values"), "{err}");
 }
 
+/// `--cuda-graphs` reaches the engine: on the CPU it is refused at load, saying why.
+#[test]
+fn cuda_graphs_on_the_cpu_fail_saying_they_need_cuda() {
+    let out = predict(&["--cuda-graphs"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("CUDA graphs need a CUDA device"), "{err}");
+}
+
 /// `--precision bf16` where the native bf16 kernel may not run (forced here with
 /// `KAIROS_DISABLE_BF16`) runs the exact f32 model and says so once on stderr.
 #[test]

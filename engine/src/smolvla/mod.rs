@@ -32,7 +32,7 @@ pub mod vlm;
 
 pub use checkpoint::{Observation, PreparedObservation, SmolVlaCheckpoint};
 pub use config::{ExpertDims, LayerKind, SmolVlaConfig, VlmConfig, VlmTextConfig, VlmVisionConfig};
-pub use expert::{ExpertInput, ExpertSample, ExpertWeights, SmolVlaExpert};
+pub use expert::{CudaGraphStats, ExpertInput, ExpertSample, ExpertWeights, SmolVlaExpert};
 pub use pipeline::SmolVlaPipeline;
 pub use prefix::PrefixKv;
 pub use vlm::vision::{VisionImage, VisionOutput};

@@ -20,7 +20,7 @@
 
 use std::path::PathBuf;
 
-use kairos_engine::smolvla::{ExpertDims, ExpertInput, PrefixKv, SmolVlaExpert};
+use kairos_engine::smolvla::{ExpertDims, ExpertInput, ExpertSample, PrefixKv, SmolVlaExpert};
 use kairos_engine::weights::Checkpoint;
 use kairos_engine::{DeviceKind, EngineOptions, Kernels};
 
@@ -161,8 +161,6 @@ fn check(options: EngineOptions) {
     let kernels = label(&options);
     let expert = SmolVlaExpert::load(&golden_dir(), &options).unwrap();
     let g = load_golden(&expert);
-    let d = expert.dims().clone();
-    let (b, k, len) = (g.prefixes.len(), d.steps, d.chunk * d.action_pad);
 
     let emb = expert.embed_state(&g.state).unwrap().concat();
     assert!(
@@ -170,16 +168,26 @@ fn check(options: EngineOptions) {
         "{kernels}: state_proj differs"
     );
 
-    let inputs: Vec<ExpertInput<'_>> = g
-        .prefixes
+    let inputs = golden_inputs(&g);
+    let out = expert.sample(&inputs).unwrap();
+    assert_matches_lerobot(&kernels, &g, expert.dims(), &out);
+}
+
+/// One request per golden observation, with LeRobot's noise.
+fn golden_inputs(g: &Golden) -> Vec<ExpertInput<'_>> {
+    g.prefixes
         .iter()
         .zip(&g.noise)
         .map(|(prefix, noise)| ExpertInput {
             prefix,
             noise: std::slice::from_ref(noise),
         })
-        .collect();
-    let out = expert.sample(&inputs).unwrap();
+        .collect()
+}
+
+/// `out` (the samples of [`golden_inputs`]) is LeRobot's result within the bound above.
+fn assert_matches_lerobot(kernels: &str, g: &Golden, d: &ExpertDims, out: &[ExpertSample]) {
+    let (b, k, len) = (g.prefixes.len(), d.steps, d.chunk * d.action_pad);
     // Ours: [request][K][N][A]; LeRobot's: [K][request][N][A].
     let mut velocities = vec![0.0f32; k * b * len];
     for (i, o) in out.iter().enumerate() {
@@ -288,4 +296,101 @@ fn candle_batch_equals_singles() {
 #[test]
 fn cuda_batch_equals_singles() {
     batch_equals_singles(cuda(), false);
+}
+
+/// CUDA graphs are a CUDA feature: asking for them on the CPU is an error at load, whichever
+/// kernels run there.
+#[test]
+fn cuda_graphs_on_the_cpu_are_refused_at_load() {
+    for kernels in [Kernels::Auto, Kernels::Candle] {
+        let options = EngineOptions {
+            cuda_graphs: true,
+            ..cpu(kernels)
+        };
+        let e = SmolVlaExpert::load(&golden_dir(), &options)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("CUDA graphs need a CUDA device"),
+            "{kernels:?}: {e}"
+        );
+    }
+}
+
+/// The Euler loop replayed as a CUDA graph (`EngineOptions::cuda_graphs`) gives the uncaptured
+/// loop's bits. A shape's first call runs uncaptured and captures the graph; every later call of
+/// that shape copies its inputs into the graph's and replays it. Checked: the replay matches
+/// LeRobot within `cuda_matches_lerobot`'s bound; two replays with different noise each equal
+/// the uncaptured expert's result bit for bit (the graph reads the new input); another batch
+/// size captures a graph of its own and replays it bit for bit too; and the counters show that
+/// every call after a shape's first was a replay.
+#[cfg(feature = "cuda")]
+#[test]
+fn cuda_graphs_replay_the_uncaptured_loop_bit_for_bit() {
+    use kairos_engine::smolvla::CudaGraphStats;
+    let graphs = EngineOptions {
+        cuda_graphs: true,
+        ..cuda()
+    };
+    let expert = SmolVlaExpert::load(&golden_dir(), &graphs).unwrap();
+    let uncaptured = SmolVlaExpert::load(&golden_dir(), &cuda()).unwrap();
+    assert!(expert.path().ends_with("+graphs"), "{}", expert.path());
+    assert_eq!(uncaptured.cuda_graph_stats(), None);
+    let stats = || expert.cuda_graph_stats().unwrap();
+    assert_eq!(stats(), CudaGraphStats::default());
+    let g = load_golden(&expert);
+    let inputs = golden_inputs(&g);
+    let want = uncaptured.sample(&inputs).unwrap();
+
+    // The first call of three rows captures; the second replays.
+    let first = expert.sample(&inputs).unwrap();
+    assert_eq!(
+        stats(),
+        CudaGraphStats {
+            captured: 1,
+            uncaptured: 0,
+            replays: 0
+        }
+    );
+    let replayed = expert.sample(&inputs).unwrap();
+    assert_eq!(stats().replays, 1);
+    assert_eq!(first, want);
+    assert_eq!(replayed, want);
+    assert_matches_lerobot("Cuda(0)/Candle, graph replay", &g, expert.dims(), &replayed);
+
+    // Same shape, other noise: a replay, and the uncaptured loop's bits for that noise.
+    let other_noise: Vec<Vec<f32>> = (0..inputs.len() as u64)
+        .map(|i| kairos_engine::sampler::gaussian_noise(7 + i, 0, g.noise[0].len()))
+        .collect();
+    let other: Vec<ExpertInput<'_>> = g
+        .prefixes
+        .iter()
+        .zip(&other_noise)
+        .map(|(prefix, noise)| ExpertInput {
+            prefix,
+            noise: std::slice::from_ref(noise),
+        })
+        .collect();
+    let replayed_other = expert.sample(&other).unwrap();
+    assert_eq!(stats().replays, 2);
+    assert_eq!(replayed_other, uncaptured.sample(&other).unwrap());
+    assert_ne!(replayed_other[0].actions, replayed[0].actions);
+
+    // One row: a shape of its own, captured on its first call, replayed on the second.
+    let one = &other[1..2];
+    let want_one = uncaptured.sample(one).unwrap();
+    assert_eq!(expert.sample(one).unwrap(), want_one);
+    assert_eq!(
+        stats(),
+        CudaGraphStats {
+            captured: 2,
+            uncaptured: 0,
+            replays: 2
+        }
+    );
+    assert_eq!(expert.sample(one).unwrap(), want_one);
+    assert_eq!(stats().replays, 3);
+    // And the three-row graph still replays the first batch's bits.
+    assert_eq!(expert.sample(&inputs).unwrap(), want);
+    assert_eq!(stats().replays, 4);
 }

@@ -204,17 +204,25 @@ fn parity_with(g: &Goldens, options: &EngineOptions, name: &str) {
         .zip(&noises)
         .map(|(prefix, noise)| ExpertInput { prefix, noise })
         .collect();
-    let out = expert.sample(&inputs).unwrap();
-    let actions: Vec<f32> = out
-        .iter()
-        .flat_map(|o| {
-            o.actions
-                .chunks_exact(d.action_pad)
-                .flat_map(|a| a[..d.action_dim].to_vec())
-                .collect::<Vec<_>>()
-        })
-        .collect();
-    check(g, &format!("{name}.actions_norm"), &actions, &|_| true);
+    // With CUDA graphs the first run captures the loop and the second replays it: both are
+    // checked.
+    let runs = if options.cuda_graphs { 2 } else { 1 };
+    for _ in 0..runs {
+        let out = expert.sample(&inputs).unwrap();
+        let actions: Vec<f32> = out
+            .iter()
+            .flat_map(|o| {
+                o.actions
+                    .chunks_exact(d.action_pad)
+                    .flat_map(|a| a[..d.action_dim].to_vec())
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        check(g, &format!("{name}.actions_norm"), &actions, &|_| true);
+    }
+    if let Some(stats) = expert.cuda_graph_stats() {
+        assert_eq!((stats.captured, stats.replays), (1, 1), "{name}: {stats:?}");
+    }
 }
 
 #[test]
@@ -248,6 +256,23 @@ fn cuda_path_matches_lerobot() {
     let options = EngineOptions {
         device: DeviceKind::Cuda(0),
         kernels: Kernels::Candle,
+        ..Default::default()
+    };
+    let g = Goldens::open();
+    for name in ["pair", "missing"] {
+        parity_with(&g, &options, name);
+    }
+}
+
+/// The same with the Euler loop replayed as a CUDA graph (`EngineOptions::cuda_graphs`): the
+/// run that captures and the run that replays each match LeRobot within the same bound.
+#[cfg(feature = "cuda")]
+#[test]
+fn cuda_graphs_path_matches_lerobot() {
+    let options = EngineOptions {
+        device: DeviceKind::Cuda(0),
+        kernels: Kernels::Candle,
+        cuda_graphs: true,
         ..Default::default()
     };
     let g = Goldens::open();

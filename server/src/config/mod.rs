@@ -348,6 +348,9 @@ pub struct EngineConfig {
     /// `f32` (default, exact) or `bf16`: the number format of the fast kernels' weight GEMMs
     /// (AVX512_BF16; a CPU without it runs f32 and logs a warning; see docs/ENGINE.md).
     pub precision: String,
+    /// Replay SmolVLA's Euler loop as a CUDA graph per batch shape (CUDA devices only; off by
+    /// default; see docs/ENGINE.md, "CUDA").
+    pub cuda_graphs: bool,
 }
 
 impl Default for EngineConfig {
@@ -365,6 +368,7 @@ impl Default for EngineConfig {
             kernels: "auto".into(),
             threads: 0,
             precision: "f32".into(),
+            cuda_graphs: false,
         }
     }
 }
@@ -384,6 +388,7 @@ impl EngineConfig {
             kernels: self.kernels.parse()?,
             threads: self.threads,
             precision: self.precision.parse()?,
+            cuda_graphs: self.cuda_graphs,
         })
     }
 }
@@ -763,8 +768,15 @@ impl Config {
                     "must be at least 1".into(),
                 ));
             }
-            if let Err(e) = engine.device.parse::<DeviceKind>() {
-                return Err(invalid(format!("engine[{i}].device"), e.to_string()));
+            match engine.device.parse::<DeviceKind>() {
+                Err(e) => return Err(invalid(format!("engine[{i}].device"), e.to_string())),
+                Ok(DeviceKind::Cpu) if engine.cuda_graphs => {
+                    return Err(invalid(
+                        format!("engine[{i}].cuda_graphs"),
+                        "CUDA graphs need a CUDA device (`device = \"cuda:N\"`)".into(),
+                    ));
+                }
+                Ok(_) => {}
             }
             if let Err(e) = engine.kernels.parse::<Kernels>() {
                 return Err(invalid(format!("engine[{i}].kernels"), e.to_string()));
@@ -989,6 +1001,33 @@ mod tests {
     }
 
     #[test]
+    fn cuda_graphs_reach_the_engine_options() {
+        let text = "[[engine]]\ndevice = \"cuda:1\"\ncuda_graphs = true\n";
+        let c = Config::parse(text, Path::new("k.toml")).unwrap();
+        let options = c.engines[0].options().unwrap();
+        assert_eq!(options.device, DeviceKind::Cuda(1));
+        assert!(options.cuda_graphs);
+        assert!(!EngineConfig::default().options().unwrap().cuda_graphs);
+
+        // `kairos serve --cuda-graphs`: on with a CUDA device, refused with the CPU.
+        let overrides = Overrides {
+            device: Some("cuda:0".into()),
+            cuda_graphs: true,
+            ..Overrides::default()
+        };
+        let c = Config::load_with(None, &overrides).unwrap();
+        assert!(c.engines[0].options().unwrap().cuda_graphs);
+        let overrides = Overrides {
+            cuda_graphs: true,
+            ..Overrides::default()
+        };
+        match Config::load_with(None, &overrides).unwrap_err() {
+            ConfigError::Invalid { key, .. } => assert_eq!(key, "engine[0].cuda_graphs"),
+            other => panic!("expected Invalid, got {other}"),
+        }
+    }
+
+    #[test]
     fn full_example_parses() {
         let text = r#"
             listen = "0.0.0.0:5000"
@@ -1045,6 +1084,7 @@ mod tests {
                 kernels: Kernels::Portable,
                 threads: 1,
                 precision: Precision::Bf16,
+                cuda_graphs: false,
             }
         );
         assert_eq!(
@@ -1209,6 +1249,7 @@ mod tests {
             ("[[engine]]\ndevice = \"cuda:x\"\n", "engine[0].device"),
             ("[[engine]]\nkernels = \"mkl\"\n", "engine[0].kernels"),
             ("[[engine]]\nprecision = \"fp8\"\n", "engine[0].precision"),
+            ("[[engine]]\ncuda_graphs = true\n", "engine[0].cuda_graphs"),
         ];
         for (text, key) in cases {
             let err = Config::parse(text, Path::new("k.toml")).unwrap_err();

@@ -29,6 +29,8 @@ pub struct Overrides {
     pub device: Option<String>,
     /// The one engine's precision (`f32`, `bf16`).
     pub precision: Option<String>,
+    /// Turns on the one engine's CUDA graphs (`cuda_graphs`); `false` keeps the file's value.
+    pub cuda_graphs: bool,
     /// The one engine's local instances (`0`: served by remote workers only).
     pub local_engines: Option<u32>,
     /// A horizon-policy plugin, registered under its file stem and made the default.
@@ -79,6 +81,7 @@ impl Overrides {
         let engine_flags = self.model.is_some()
             || self.device.is_some()
             || self.precision.is_some()
+            || self.cuda_graphs
             || self.tokenizer.is_some();
         if engine_flags {
             if config.engines.len() > 1 {
@@ -109,6 +112,9 @@ impl Overrides {
             }
             if let Some(precision) = &self.precision {
                 engine.precision = precision.clone();
+            }
+            if self.cuda_graphs {
+                engine.cuda_graphs = true;
             }
             // A profile file describes one model on one device.
             engine.profile = None;

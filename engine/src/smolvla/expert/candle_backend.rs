@@ -47,14 +47,27 @@ pub(crate) struct CandleExpert {
     time_out: Linear,
     out: Linear,
     state: Linear,
+    /// The Euler loop's CUDA graphs, when [`crate::EngineOptions::cuda_graphs`] asks for them.
+    graphs: Option<Graphs>,
 }
 
+#[cfg(feature = "cuda")]
+type Graphs = super::cuda_graph::EulerGraphs;
+/// Without CUDA there are no graphs: the option is refused at load (CPU) or CUDA is (no feature).
+#[cfg(not(feature = "cuda"))]
+type Graphs = std::convert::Infallible;
+
 impl CandleExpert {
+    /// The expert's weights on `device`; with `cuda_graphs`, its Euler loop replays CUDA graphs
+    /// (`device` must then be a CUDA device).
     pub(crate) fn new(
         w: &ExpertWeights,
         device: &Device,
         precision: Precision,
+        cuda_graphs: bool,
     ) -> Result<Self, EngineError> {
+        // Before any tensor is made: the graphs change how the device tracks its buffers.
+        let graphs = cuda_graphs.then(|| euler_graphs(device)).transpose()?;
         let dtype = matmul_dtype(precision);
         let eps = f64::from(w.dims.rms_eps);
         let layers = w
@@ -89,7 +102,17 @@ impl CandleExpert {
             // state token is the VLM's input: both stay f32.
             out: linear(&w.action_out_proj, DType::F32, device)?,
             state: linear(&w.state_proj, DType::F32, device)?,
+            graphs,
         })
+    }
+
+    /// What the Euler loop's CUDA graphs have done (`None` without graphs).
+    pub(crate) fn graph_stats(&self) -> Option<super::CudaGraphStats> {
+        match &self.graphs {
+            #[cfg(feature = "cuda")]
+            Some(graphs) => Some(graphs.stats()),
+            _ => None,
+        }
     }
 
     pub(crate) fn embed_state(&self, states: &[f32], rows: usize) -> Result<Vec<f32>, EngineError> {
@@ -138,28 +161,54 @@ impl CandleExpert {
                 &mut field,
             );
         }
+        let xt = Tensor::from_slice(x, (rows, n, d.action_pad), dev)?;
         let dt = f64::from(schedule.dt());
-        let mut xt = Tensor::from_slice(x, (rows, n, d.action_pad), dev)?;
+        let run = |x0: &Tensor, temb: &Tensor, context: &AttentionContext| {
+            self.euler(x0, temb, context, steps, dt)
+        };
+        let host = match &self.graphs {
+            #[cfg(feature = "cuda")]
+            Some(graphs) => graphs.sample(&xt, &temb, &context, &run)?,
+            _ => run(&xt, &temb, &context)?.to_host()?,
+        };
+        x.copy_from_slice(&host.x);
+        // `[steps][rows][len]` on the device -> `[rows][steps][len]` on the host.
+        for (all, out) in [(host.velocities, velocities), (host.updates, updates)] {
+            for k in 0..steps {
+                for r in 0..rows {
+                    out[(r * steps + k) * len..][..len]
+                        .copy_from_slice(&all[(k * rows + r) * len..][..len]);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The Euler loop on the device from `x0` (`[rows, chunk, action_pad]`): the same f32
+    /// operations as `sampler::integrate` (`u = dt v`, `x += u`), nothing copied to or from the
+    /// host (so a CUDA graph can capture it).
+    fn euler(
+        &self,
+        x0: &Tensor,
+        temb: &Tensor,
+        context: &AttentionContext,
+        steps: usize,
+        dt: f64,
+    ) -> Result<DeviceLoop, EngineError> {
+        let mut xt = x0.clone();
         let (mut vs, mut us) = (Vec::with_capacity(steps), Vec::with_capacity(steps));
         for k in 0..steps {
-            let v = self.velocity(&xt, &temb.get(k)?, &context)?;
+            let v = self.velocity(&xt, &temb.get(k)?, context)?;
             let u = (&v * dt)?;
             xt = (&xt + &u)?;
             vs.push(v);
             us.push(u);
         }
-        x.copy_from_slice(&xt.flatten_all()?.to_vec1::<f32>()?);
-        // `[steps][rows][len]` on the device -> `[rows][steps][len]` on the host.
-        for (all, out) in [(vs, &mut *velocities), (us, &mut *updates)] {
-            let host: Vec<f32> = Tensor::stack(&all, 0)?.flatten_all()?.to_vec1()?;
-            for k in 0..steps {
-                for r in 0..rows {
-                    out[(r * steps + k) * len..][..len]
-                        .copy_from_slice(&host[(k * rows + r) * len..][..len]);
-                }
-            }
-        }
-        Ok(())
+        Ok(DeviceLoop {
+            x: xt,
+            velocities: Tensor::stack(&vs, 0)?,
+            updates: Tensor::stack(&us, 0)?,
+        })
     }
 
     /// The prefix keys and values, masks and RoPE tables that every step of a `sample` call
@@ -393,18 +442,91 @@ impl VelocityField for GuidedField<'_> {
     }
 }
 
+/// The CUDA graphs of an expert on `device`.
+#[cfg(feature = "cuda")]
+fn euler_graphs(device: &Device) -> Result<Graphs, EngineError> {
+    match device {
+        Device::Cuda(cuda) => {
+            // SAFETY: cudarc records an event at each use of a buffer only to order its uses
+            // across streams, and every buffer of this device is used on Candle's one stream for
+            // it (no other stream is made on its context). Without the tracking a buffer costs
+            // no event creation, and nothing in the captured loop records or waits on an event
+            // made outside the capture.
+            unsafe { cuda.disable_event_tracking() };
+            Ok(super::cuda_graph::EulerGraphs::new(cuda.clone()))
+        }
+        _ => Err(graphs_need_cuda()),
+    }
+}
+
+#[cfg(not(feature = "cuda"))]
+fn euler_graphs(_device: &Device) -> Result<Graphs, EngineError> {
+    Err(graphs_need_cuda())
+}
+
+fn graphs_need_cuda() -> EngineError {
+    EngineError::InvalidInput(
+        "CUDA graphs need a CUDA device (--device cuda:N, in a build with `--features cuda`)"
+            .into(),
+    )
+}
+
+/// The result of the Euler loop on the device: the final sample `[rows, chunk, action_pad]`,
+/// and every step's velocity and update, `[steps, rows, chunk, action_pad]`.
+pub(super) struct DeviceLoop {
+    pub(super) x: Tensor,
+    pub(super) velocities: Tensor,
+    pub(super) updates: Tensor,
+}
+
+/// A [`DeviceLoop`] copied to the host, flat in the same layouts.
+pub(super) struct HostLoop {
+    pub(super) x: Vec<f32>,
+    pub(super) velocities: Vec<f32>,
+    pub(super) updates: Vec<f32>,
+}
+
+impl DeviceLoop {
+    /// One copy to the host each.
+    pub(super) fn to_host(&self) -> Result<HostLoop, EngineError> {
+        let host = |t: &Tensor| t.flatten_all()?.to_vec1::<f32>();
+        Ok(HostLoop {
+            x: host(&self.x)?,
+            velocities: host(&self.velocities)?,
+            updates: host(&self.updates)?,
+        })
+    }
+}
+
 /// What every step of one `sample` call attends with: per layer the prefix keys and values
 /// (`[rows, kv_heads, len, head_dim]`), the additive masks and the RoPE tables of the self- and
 /// cross-attention layers.
-struct AttentionContext {
+#[derive(Clone)]
+pub(super) struct AttentionContext {
     prefix_kv: Vec<(Tensor, Tensor)>,
     self_mask: Tensor,
-    cross_mask: Tensor,
+    /// `[rows, 1, chunk, prefix_len]`.
+    pub(super) cross_mask: Tensor,
     self_rope: (Tensor, Tensor),
     cross_rope: (Tensor, Tensor),
 }
 
 impl AttentionContext {
+    /// Every tensor, in a fixed order.
+    #[cfg_attr(not(feature = "cuda"), allow(dead_code))]
+    pub(super) fn tensors(&self) -> Vec<&Tensor> {
+        let mut all: Vec<&Tensor> = self.prefix_kv.iter().flat_map(|(k, v)| [k, v]).collect();
+        all.extend([
+            &self.self_mask,
+            &self.cross_mask,
+            &self.self_rope.0,
+            &self.self_rope.1,
+            &self.cross_rope.0,
+            &self.cross_rope.1,
+        ]);
+        all
+    }
+
     /// The context of rows `rows` only, in that order.
     fn select(&self, rows: &[usize], device: &Device) -> Result<AttentionContext, EngineError> {
         let idx: Vec<u32> = rows.iter().map(|&r| r as u32).collect();

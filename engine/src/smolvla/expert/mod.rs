@@ -21,6 +21,8 @@ pub mod weights;
 
 mod candle_backend;
 mod cpu;
+#[cfg(feature = "cuda")]
+mod cuda_graph;
 
 use std::path::Path;
 
@@ -59,6 +61,19 @@ impl std::fmt::Debug for SmolVlaExpert {
             .field("backend", &self.description)
             .finish()
     }
+}
+
+/// What the CUDA graphs of an expert's Euler loop have done (one graph per batch shape: rows and
+/// padded prefix length).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CudaGraphStats {
+    /// Shapes whose loop is captured as a graph and replayed (each thread that samples captures
+    /// its own).
+    pub captured: usize,
+    /// Shapes whose capture or replay failed once, which run uncaptured from then on.
+    pub uncaptured: usize,
+    /// Calls served by replaying a graph (a shape's first call runs uncaptured).
+    pub replays: u64,
 }
 
 /// The result of one request: `S` samples, each `[chunk][action_pad]` wide (LeRobot's padded
@@ -144,19 +159,27 @@ impl SmolVlaExpert {
         let target = options.target()?;
         let description = target.describe();
         let path = target.path(options.precision);
-        let backend =
-            match target {
-                Target::Fast(pool) => Backend::Fast {
-                    model: Box::new(cpu::CpuExpert::new(
-                        weights,
-                        options.precision.resolve(pool.isa()),
-                    )),
-                    pool,
-                },
-                Target::Candle(device) => Backend::Candle(Box::new(
-                    candle_backend::CandleExpert::new(weights, &device, options.precision)?,
+        let backend = match target {
+            Target::Fast(pool) => Backend::Fast {
+                model: Box::new(cpu::CpuExpert::new(
+                    weights,
+                    options.precision.resolve(pool.isa()),
                 )),
-            };
+                pool,
+            },
+            Target::Candle(device) => Backend::Candle(Box::new(candle_backend::CandleExpert::new(
+                weights,
+                &device,
+                options.precision,
+                options.cuda_graphs,
+            )?)),
+        };
+        // The Euler loop replays a graph: `kairos predict` reports it with the path.
+        let path = if options.cuda_graphs {
+            format!("{path}+graphs")
+        } else {
+            path
+        };
         Ok(SmolVlaExpert {
             dims: weights.dims.clone(),
             backend,
@@ -168,6 +191,15 @@ impl SmolVlaExpert {
     /// The path it runs on, e.g. `fast:avx2-fma` or `candle:cuda:0-bf16`.
     pub fn path(&self) -> &str {
         &self.path
+    }
+
+    /// What the Euler loop's CUDA graphs have done so far ([`EngineOptions::cuda_graphs`]);
+    /// `None` when it runs without graphs.
+    pub fn cuda_graph_stats(&self) -> Option<CudaGraphStats> {
+        match &self.backend {
+            Backend::Candle(model) => model.graph_stats(),
+            Backend::Fast { .. } => None,
+        }
     }
 
     /// Shapes.
