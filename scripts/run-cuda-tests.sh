@@ -107,6 +107,6 @@ P
     predict "cpu_${precision}_b1" --device cpu --kernels fast --threads "$(nproc)" --precision "$precision" --batch 1 --repeat 2
   done | tee "$OUT/pipeline_cpu.txt"
   echo "== profile: the whole pipeline on CUDA, bf16"
-  timeout 240 .devbin/kairos profile --model "$BASE" --device cuda:0 --precision bf16 --batches 1,4,16,64 \
+  timeout 240 .devbin/kairos profile --model "$BASE" --device cuda:0 --precision bf16 --batches 1,2,4,8,16,32,64 \
     --iterations 2 --out "$OUT/profile_cuda_bf16.json" 2>&1 | tail -12
 fi
