@@ -48,6 +48,7 @@ cc -shared -fPIC -Wl,-soname,libcuda.so.1 -o "$LINK/libcuda.so" "$LINK/stub.c"
 export PATH="$CUDA_HOME/bin:$PATH" CUDA_PATH="$CUDA_HOME" CUDA_ROOT="$CUDA_HOME" CUDA_HOME
 export CUDA_COMPUTE_CAP="${CUDA_COMPUTE_CAP:-90}" CUDARC_CUDA_VERSION=13000
 export RUSTFLAGS="-L native=$LINK" CARGO_TARGET_DIR=target/cuda-gpu
+mkdir -p "$CARGO_TARGET_DIR"
 nvcc --version | tail -2
 cargo test --locked -p kairos-engine --features cuda --no-run --message-format json 2>/dev/null \
     | python3 -c 'import json,sys
