@@ -8,48 +8,26 @@
 #![allow(clippy::unwrap_used)] // tests may unwrap (RULES.md)
 
 use std::net::SocketAddr;
-use std::sync::Arc;
 use std::time::Duration;
 
 use kairos_core::scheduler::Tier;
-use kairos_engine::{EngineProfile, ProfilePoint};
 use kairos_sdk::client::{Client, ClientError};
 use kairos_sdk::protocol::worker::WorkerTier;
 use kairos_sdk::tls::{Fingerprint, ServerTrust};
 use kairos_server::data_dir::DataDir;
 use kairos_server::driver::EngineView;
 use kairos_server::metrics::{Metrics, Readiness};
-use kairos_server::pool::{EngineInstance, LocalEngine};
 use kairos_server::transport::refusals::{Door, Reason};
 use kairos_server::worker::{WorkerError, WorkerOptions, WorkerReport, run};
 use kairos_tests::harness::{RobotPlan, ServerOptions, TestServer, run_fleet};
-use kairos_tests::model::TestFlow;
 use kairos_tests::netns::NetNs;
 use kairos_tests::proxy::{Impairment, Proxy, ProxyConfig};
+use kairos_tests::workers::test_flow_engine;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 
 const GIVE_UP: Duration = Duration::from_secs(60);
-
-fn engine(name: &str) -> Arc<dyn EngineInstance> {
-    let profile = EngineProfile {
-        model: "test-flow".into(),
-        device: "cpu (test flow)".into(),
-        points: vec![
-            ProfilePoint {
-                batch: 1,
-                latency_ms: 0.05,
-            },
-            ProfilePoint {
-                batch: 2,
-                latency_ms: 0.1,
-            },
-        ],
-        max_batch: 2,
-    };
-    Arc::new(LocalEngine::start(name, Arc::new(TestFlow::new()), profile))
-}
 
 fn options(
     server: &TestServer,
@@ -83,7 +61,7 @@ fn spawn_worker(
 ) {
     let (stop, stopped) = oneshot::channel::<()>();
     let id = options.worker_id.clone();
-    let task = tokio::spawn(run(options, engine(&id), async {
+    let task = tokio::spawn(run(options, test_flow_engine(&id), async {
         let _ = stopped.await;
     }));
     (stop, task)
@@ -123,7 +101,7 @@ async fn only_the_worker_token_registers_and_the_worker_checks_the_pin() {
     // A robot's token cannot register a worker.
     let refused = run(
         options(&server, server.addr, &server.token, "robot-token"),
-        engine("r"),
+        test_flow_engine("r"),
         std::future::pending::<()>(),
     )
     .await;
@@ -134,7 +112,12 @@ async fn only_the_worker_token_registers_and_the_worker_checks_the_pin() {
     // A worker that does not find its pinned certificate refuses the scheduler.
     let mut wrong_pin = options(&server, server.addr, &worker_token, "wrong-pin");
     wrong_pin.trust = ServerTrust::Pinned(Fingerprint([7; 32]));
-    let refused = run(wrong_pin, engine("p"), std::future::pending::<()>()).await;
+    let refused = run(
+        wrong_pin,
+        test_flow_engine("p"),
+        std::future::pending::<()>(),
+    )
+    .await;
     assert!(
         matches!(&refused, Err(WorkerError::Connect { .. })),
         "{refused:?}"
@@ -265,7 +248,7 @@ async fn a_worker_in_a_network_namespace_behind_a_delay_relay_is_measured_and_pl
             .enable_all()
             .build()
             .unwrap();
-        runtime.block_on(run(far_options, engine("far"), async {
+        runtime.block_on(run(far_options, test_flow_engine("far"), async {
             let _ = far_stopped.await;
         }))
     });
