@@ -35,7 +35,9 @@ use crate::EngineError;
 use crate::guidance::RowGuide;
 use crate::kernels::attention::{AttendScratch, KvSegment, Queries, QueryPositions, attend};
 use crate::kernels::gemm::{ActivationRows, gemm, gemm_par};
-use crate::kernels::{Init, MatMut, MatRef, PackedMatrix, Pool, Precision, SharedMut, vecmath};
+use crate::kernels::{
+    Init, Isa, MatMut, MatRef, PackedMatrix, Pool, Precision, SharedMut, vecmath,
+};
 use crate::pi::config::{PiDims, PiFamily, keys};
 use crate::pi::vars::Vars;
 use crate::sampler::ClosureField;
@@ -407,20 +409,9 @@ impl FastGemmaExpert {
         let e = dims.expert.width;
         let isa = pool.isa();
         let temb = time_embedding(t, e, dims.min_period, dims.max_period);
-        let one = |l: &Linear, a: &[f32]| -> Vec<f32> {
-            let mut out = vec![0.0f32; e];
-            gemm(
-                isa,
-                MatRef::dense(a, 1, e),
-                &l.w,
-                MatMut::dense(&mut out, 1, e),
-                l.init(),
-            );
-            out
-        };
-        let mut h = one(time_mlp_in, &temb);
+        let mut h = time_row(isa, time_mlp_in, &temb);
         vecmath::silu_inplace(isa, &mut h);
-        let mut cond = one(time_mlp_out, &h);
+        let mut cond = time_row(isa, time_mlp_out, &h);
         vecmath::silu_inplace(isa, &mut cond);
         let adaptive =
             |norm: &GemmaNormWeights| -> Option<Modulation> { norm.modulation(pool, &cond) };
@@ -454,17 +445,6 @@ impl FastGemmaExpert {
         let rows = ctx.row_request.len();
         let isa = pool.isa();
         let temb = time_embedding(t, e, dims.min_period, dims.max_period);
-        let one = |l: &Linear, a: &[f32]| -> Vec<f32> {
-            let mut out = vec![0.0f32; e];
-            gemm(
-                isa,
-                MatRef::dense(a, 1, e),
-                &l.w,
-                MatMut::dense(&mut out, 1, e),
-                l.init(),
-            );
-            out
-        };
         let actions = MatRef::dense(xt, rows * n, dims.action_pad);
         match &self.suffix {
             Suffix::Pi05 { .. } => {
@@ -477,7 +457,7 @@ impl FastGemmaExpert {
                 mlp_out,
                 ..
             } => {
-                let time_bias = one(mlp_in_time, &temb);
+                let time_bias = time_row(isa, mlp_in_time, &temb);
                 let emb = MatMut::dense(&mut ws.emb, rows * n, e);
                 gemm_par(pool, actions, &self.action_in.w, emb, self.action_in.init());
                 let (emb, mid) = (
@@ -694,4 +674,18 @@ impl Workspace {
                 .collect(),
         }
     }
+}
+
+/// `a W + b` for one row `a` through one of the time MLP's square layers (as wide as `a`).
+fn time_row(isa: Isa, l: &Linear, a: &[f32]) -> Vec<f32> {
+    let width = a.len();
+    let mut out = vec![0.0f32; width];
+    gemm(
+        isa,
+        MatRef::dense(a, 1, width),
+        &l.w,
+        MatMut::dense(&mut out, 1, width),
+        l.init(),
+    );
+    out
 }
