@@ -110,10 +110,7 @@ impl EngineOptions {
 
     pub(crate) fn target(&self) -> Result<Target, EngineError> {
         if self.cuda_graphs && self.device == DeviceKind::Cpu {
-            return Err(EngineError::InvalidInput(
-                "CUDA graphs need a CUDA device (--device cuda:N); the CPU paths have no graphs"
-                    .into(),
-            ));
+            return Err(cuda_graphs_need_cuda());
         }
         match (self.device, self.kernels) {
             (DeviceKind::Cpu, Kernels::Auto | Kernels::Fast) => {
@@ -180,6 +177,13 @@ impl Target {
             },
         }
     }
+}
+
+/// The refusal of [`EngineOptions::cuda_graphs`] without a CUDA device.
+pub(crate) fn cuda_graphs_need_cuda() -> EngineError {
+    EngineError::InvalidInput(
+        "CUDA graphs need a CUDA device (--device cuda:N); the CPU paths have no graphs".into(),
+    )
 }
 
 #[cfg(feature = "cuda")]

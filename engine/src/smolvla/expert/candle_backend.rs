@@ -455,20 +455,13 @@ fn euler_graphs(device: &Device) -> Result<Graphs, EngineError> {
             unsafe { cuda.disable_event_tracking() };
             Ok(super::cuda_graph::EulerGraphs::new(cuda.clone()))
         }
-        _ => Err(graphs_need_cuda()),
+        _ => Err(crate::options::cuda_graphs_need_cuda()),
     }
 }
 
 #[cfg(not(feature = "cuda"))]
 fn euler_graphs(_device: &Device) -> Result<Graphs, EngineError> {
-    Err(graphs_need_cuda())
-}
-
-fn graphs_need_cuda() -> EngineError {
-    EngineError::InvalidInput(
-        "CUDA graphs need a CUDA device (--device cuda:N, in a build with `--features cuda`)"
-            .into(),
-    )
+    Err(crate::options::cuda_graphs_need_cuda())
 }
 
 /// The result of the Euler loop on the device: the final sample `[rows, chunk, action_pad]`,
