@@ -110,7 +110,8 @@ def write_checkpoint(family, small, dtype, out: Path):
 
     import pi_common
     from lerobot.configs.types import FeatureType, PolicyFeature
-    from pi_common import feature_stats, hf_tokenizer, patch_lerobot, policy_classes, write_tokenizer
+    from pi_common import hf_tokenizer, patch_lerobot, policy_classes, write_tokenizer
+    from smolvla_common import feature_stats
     from smolvla_common import rescale_weights
 
     assert pi_common.PALIGEMMA_VOCAB == PALIGEMMA_VOCAB

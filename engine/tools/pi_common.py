@@ -1,5 +1,6 @@
 """What the engine's π0 / π0.5 tools share: a PaliGemma-style tokenizer written offline, LeRobot's
-π policies built without the hub (at full size or toy size), and their dataset statistics.
+π policies built without the hub (at full size or toy size). Random dataset statistics are
+`smolvla_common.feature_stats`, which the SmolVLA fixture shares.
 
 LeRobot hard-codes the π architecture: `get_gemma_config` knows only `gemma_2b` and
 `gemma_300m`, and `PaliGemmaWithExpertModel` builds SigLIP so400m/14 and a 257 152-token
@@ -151,18 +152,3 @@ def policy_classes(family):
     else:
         raise ValueError(f"unknown π family {family!r}")
     return Config, Policy, make_processors
-
-
-def feature_stats(gen, dim, scale):
-    """Random dataset statistics for one feature, with every field MEAN_STD and QUANTILES read."""
-    mean = scale * torch.randn(dim, generator=gen)
-    std = 0.5 + torch.rand(dim, generator=gen)
-    return {
-        "mean": mean,
-        "std": std,
-        "min": mean - 3 * std,
-        "max": mean + 3 * std,
-        "q01": mean - 2.3 * std,
-        "q99": mean + 2.4 * std,
-        "count": torch.tensor([1000]),
-    }

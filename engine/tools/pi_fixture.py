@@ -66,8 +66,8 @@ ensure_venv()
 import torch  # noqa: E402
 from safetensors.torch import save_file  # noqa: E402
 
-from pi_common import ToySizes, feature_stats, hf_tokenizer, patch_lerobot, policy_classes, write_tokenizer  # noqa: E402
-from smolvla_common import float64_casts, rescale_weights  # noqa: E402
+from pi_common import ToySizes, hf_tokenizer, patch_lerobot, policy_classes, write_tokenizer  # noqa: E402
+from smolvla_common import feature_stats, float64_casts, rescale_weights  # noqa: E402
 
 SEED = 20261129
 TOY = ToySizes()

@@ -1,4 +1,5 @@
-"""What the engine's LeRobot tools share: building a SmolVLA offline and giving it usable weights.
+"""What the engine's LeRobot tools share: building a SmolVLA offline, giving it usable weights, and
+random dataset statistics (`feature_stats`, for the SmolVLA and π fixtures and benchmarks).
 
 LeRobot's `SmolVLMWithExpertModel` asks the hub for the VLM's config (`AutoConfig`) and processor
 (`AutoProcessor`), and its tokenizer step asks for the tokenizer (`AutoTokenizer`). None of the
@@ -137,3 +138,18 @@ def store_vlm_in_bf16(path, exact=True):
             assert not exact or torch.equal(bf.float(), v), k
             tensors[k] = bf
     save_file(tensors, str(path), metadata=metadata)
+
+
+def feature_stats(gen, dim, scale):
+    """Random dataset statistics for one feature, with every field MEAN_STD and QUANTILES read."""
+    mean = scale * torch.randn(dim, generator=gen)
+    std = 0.5 + torch.rand(dim, generator=gen)
+    return {
+        "mean": mean,
+        "std": std,
+        "min": mean - 3 * std,
+        "max": mean + 3 * std,
+        "q01": mean - 2.3 * std,
+        "q99": mean + 2.4 * std,
+        "count": torch.tensor([1000]),
+    }

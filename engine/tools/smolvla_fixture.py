@@ -57,7 +57,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from safetensors.torch import save_file  # noqa: E402
 
-from smolvla_common import BF16_PREFIX, float64_casts, patch_hub, rescale_weights, store_vlm_in_bf16  # noqa: E402
+from smolvla_common import BF16_PREFIX, feature_stats, float64_casts, patch_hub, rescale_weights, store_vlm_in_bf16  # noqa: E402
 
 SEED = 20261125
 TEXT_CONFIG = dict(
@@ -196,22 +196,9 @@ def build(tokenizer):
 
     gen = torch.Generator().manual_seed(SEED + 7)
 
-    def quantile_stats(dim, scale):
-        mean = scale * torch.randn(dim, generator=gen)
-        std = 0.5 + torch.rand(dim, generator=gen)
-        return {
-            "mean": mean,
-            "std": std,
-            "min": mean - 3 * std,
-            "max": mean + 3 * std,
-            "q01": mean - 2.3 * std,
-            "q99": mean + 2.4 * std,
-            "count": torch.tensor([1000]),
-        }
-
     stats = {
-        "observation.state": quantile_stats(STATE_DIM, 2.0),
-        "action": quantile_stats(ACTION_DIM, 1.5),
+        "observation.state": feature_stats(gen, STATE_DIM, 2.0),
+        "action": feature_stats(gen, ACTION_DIM, 1.5),
         # Real checkpoints carry image stats too; IDENTITY leaves them unused.
         CAMERAS[0]: {
             "mean": torch.rand(3, 1, 1, generator=gen),
